@@ -1,0 +1,32 @@
+//! spinscan: 3D shape recovery on a turntable with registration-assisted stereo matching
+//! (Lin, Liang & Wu, IbPRIA 2007).
+//!
+//! ```text
+//!  raw pair ──[calib: undistort + rectify]──> rectified pair ──[segment: blue screen]──> mask
+//!                                                   │                                      │
+//!                                                   └──[stereo::matcher: intervals]<───────┘
+//!                                                                  │
+//!                                       disparity ──[triangulate: Q, R1ᵀ]──> coloured points
+//!                                                                  │          (left raw frame, mm)
+//!                                                        PNG16 / PFM / PLY
+//! ```
+//!
+//! Quick start on the simulated lab (no devices, no files):
+//!
+//! ```
+//! use spinscan::pipeline::{Pipeline, PipelineOptions};
+//! let scene = hw_sim::SceneConfig { width: 160, height: 120, focal_px: 175.0, ..Default::default() };
+//! let pair = scene.render();
+//! let calib = spinscan::sim::ideal_calib(&scene);
+//! let mut pipe = Pipeline::new(&calib, (160, 120), PipelineOptions { num_disparities: 48, ..Default::default() }).unwrap();
+//! let view = pipe.process_rgb(&pair.left_rgb, &pair.right_rgb, true).unwrap();
+//! assert!(view.cloud.len() > 1000);
+//! ```
+
+pub mod calib;
+pub mod cloud;
+pub mod io;
+pub mod pipeline;
+pub mod segment;
+pub mod sim;
+pub mod stereo;

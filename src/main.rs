@@ -1,0 +1,437 @@
+//! `spinscan`: the command-line tool.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use clap::{Args, Parser, Subcommand};
+use serde_json::json;
+
+use spinscan::calib::StereoCalib;
+use spinscan::io::{self, LoadedImage};
+use spinscan::pipeline::{Pipeline, PipelineOptions};
+use spinscan::stereo::{DisparityMap, GrayView, MatchParams, StereoMatcher};
+
+/// Exit codes, so scripts and systemd can tell kinds of failure apart.
+mod exit {
+    /// Bad input: unreadable or inconsistent files, impossible parameters.
+    pub const INPUT: u8 = 3;
+    /// An output could not be written.
+    pub const OUTPUT: u8 = 4;
+}
+
+#[derive(Parser)]
+#[command(name = "spinscan", version, about = "Registration-assisted stereo scanning for turntable labs")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Disparity map of a stereo pair (rectified, or raw with --calib).
+    Disparity(DisparityArgs),
+    /// Writes the rectified pair of a calibrated raw pair.
+    Rectify(RectifyArgs),
+    /// Coloured point cloud (PLY, mm, left raw camera frame) of a calibrated raw pair.
+    Points(PointsArgs),
+    /// Renders a pair in the simulated lab and runs the stereo core on it, scored against
+    /// the ground truth. Needs no devices and no files.
+    Demo(DemoArgs),
+}
+
+/// Matcher knobs shared by the commands that match.
+#[derive(Args, Clone)]
+struct MatchArgs {
+    /// First disparity searched (may be negative). Default: 0, or −(N−1) on a calibrated rig
+    /// whose rectified disparities are negative.
+    #[arg(long, allow_hyphen_values = true)]
+    min_disparity: Option<i32>,
+    /// Number of disparities N: the search covers D … D+N−1.
+    #[arg(long, default_value_t = 64)]
+    max_disparity: u32,
+    /// Correlation window side (odd, 3…31).
+    #[arg(long, default_value_t = 9)]
+    block: u32,
+    /// Worker threads; default all cores.
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Uniqueness ratio in percent (0 disables).
+    #[arg(long, default_value_t = 10)]
+    uniqueness: u32,
+    /// Texture threshold: minimum summed |x-gradient| in the window (0 disables).
+    #[arg(long, default_value_t = 10)]
+    texture_threshold: u32,
+    /// Left–right check tolerance in pixels; a negative value disables the check.
+    #[arg(long, default_value_t = 1, allow_hyphen_values = true)]
+    lr_max_diff: i32,
+    /// Speckle filter: largest blob (pixels) removed; 0 disables.
+    #[arg(long, default_value_t = 100)]
+    speckle_window: u32,
+    /// Speckle filter: largest disparity step inside a blob, pixels.
+    #[arg(long, default_value_t = 1.0)]
+    speckle_range: f32,
+}
+
+impl MatchArgs {
+    fn params(&self) -> MatchParams {
+        MatchParams {
+            min_disparity: self.min_disparity.unwrap_or(0),
+            num_disparities: self.max_disparity,
+            block: self.block,
+            uniqueness_ratio: self.uniqueness,
+            texture_threshold: self.texture_threshold,
+            lr_max_diff: u32::try_from(self.lr_max_diff).ok(),
+            speckle_window: self.speckle_window,
+            speckle_range_px: self.speckle_range,
+            threads: self.threads.unwrap_or(0),
+            ..MatchParams::default()
+        }
+    }
+}
+
+#[derive(Args)]
+struct DisparityArgs {
+    #[arg(long)]
+    left: PathBuf,
+    #[arg(long)]
+    right: PathBuf,
+    /// Calibration (file or folder); without it the pair is taken as rectified.
+    #[arg(long)]
+    calib: Option<PathBuf>,
+    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    alpha: f64,
+    #[command(flatten)]
+    matching: MatchArgs,
+    /// Times the matcher K times and reports the median.
+    #[arg(long, default_value_t = 1)]
+    repeat: u32,
+    /// Disparity as 16-bit PNG (|d| × 256, 0 = none).
+    #[arg(short = 'o', long = "out")]
+    out: PathBuf,
+    /// Signed disparity as PFM.
+    #[arg(long)]
+    pfm: Option<PathBuf>,
+    /// False-colour disparity PNG.
+    #[arg(long)]
+    color: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct RectifyArgs {
+    #[arg(long)]
+    calib: PathBuf,
+    #[arg(long)]
+    left: PathBuf,
+    #[arg(long)]
+    right: PathBuf,
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    alpha: f64,
+    /// Output folder: left.png, right.png, rectification.json.
+    #[arg(short = 'o', long = "out")]
+    out: PathBuf,
+}
+
+#[derive(Args)]
+struct PointsArgs {
+    #[arg(long)]
+    calib: PathBuf,
+    #[arg(long)]
+    left: PathBuf,
+    #[arg(long)]
+    right: PathBuf,
+    /// `auto` (blue-screen chroma key) or a mask image in raw left coordinates (non-zero = object).
+    #[arg(long)]
+    mask: Option<String>,
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    alpha: f64,
+    #[command(flatten)]
+    matching: MatchArgs,
+    #[arg(short = 'o', long = "out")]
+    out: PathBuf,
+    /// Also write the disparity (16-bit PNG).
+    #[arg(long)]
+    disparity: Option<PathBuf>,
+    /// Also write the rectified mask used (PNG).
+    #[arg(long)]
+    mask_out: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct DemoArgs {
+    /// Output folder.
+    #[arg(short = 'o', long = "out", default_value = "out/demo")]
+    out: PathBuf,
+    /// Built-in object.
+    #[arg(long, default_value = "egg")]
+    object: String,
+    /// Turntable angle of the object, degrees.
+    #[arg(long, default_value_t = 30.0, allow_hyphen_values = true)]
+    table_deg: f64,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    #[command(flatten)]
+    matching: MatchArgs,
+}
+
+/// A failure with the exit code it maps to.
+struct Failure {
+    code: u8,
+    message: String,
+}
+
+fn input<E: std::fmt::Display>(e: E) -> Failure {
+    Failure { code: exit::INPUT, message: e.to_string() }
+}
+
+fn output<E: std::fmt::Display>(e: E) -> Failure {
+    Failure { code: exit::OUTPUT, message: e.to_string() }
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Disparity(a) => cmd_disparity(a),
+        Command::Rectify(a) => cmd_rectify(a),
+        Command::Points(a) => cmd_points(a),
+        Command::Demo(a) => cmd_demo(a),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(f) => {
+            eprintln!("spinscan: error: {}", f.message);
+            ExitCode::from(f.code)
+        }
+    }
+}
+
+fn load_pair(left: &Path, right: &Path) -> Result<(LoadedImage, LoadedImage), Failure> {
+    let l = io::load_image(left).map_err(input)?;
+    let r = io::load_image(right).map_err(input)?;
+    if (l.width, l.height) != (r.width, r.height) {
+        return Err(input(format!(
+            "{} is {}×{} but {} is {}×{}; a stereo pair must have one size",
+            left.display(),
+            l.width,
+            l.height,
+            right.display(),
+            r.width,
+            r.height
+        )));
+    }
+    Ok((l, r))
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        (v[n / 2 - 1] + v[n / 2]) / 2.0
+    }
+}
+
+fn write_disparity_outputs(disp: &DisparityMap, png: &Path, pfm: Option<&Path>, color: Option<&Path>, range: (f32, f32)) -> Result<(), Failure> {
+    io::write_disparity_png(png, disp).map_err(output)?;
+    if let Some(p) = pfm {
+        io::write_pfm(p, disp).map_err(output)?;
+    }
+    if let Some(p) = color {
+        io::write_rgb_png(p, disp.width, disp.height, &io::disparity_false_color(disp, range)).map_err(output)?;
+    }
+    Ok(())
+}
+
+fn cmd_disparity(a: DisparityArgs) -> Result<(), Failure> {
+    if a.repeat == 0 {
+        return Err(input("--repeat must be at least 1"));
+    }
+    let (l, r) = load_pair(&a.left, &a.right)?;
+    let (w, h) = (l.width, l.height);
+    // Rectify first (not timed), then time the matcher alone on grey images.
+    let (left_gray, right_gray, params, sign) = match &a.calib {
+        Some(path) => {
+            let calib = StereoCalib::load(path).map_err(input)?;
+            let opts = PipelineOptions {
+                alpha: a.alpha,
+                min_disparity: a.matching.min_disparity,
+                matching: a.matching.params(),
+                ..Default::default()
+            };
+            let pipe = Pipeline::new(&calib, (w as u32, h as u32), opts).map_err(input)?;
+            let (lr, rr) = pipe.rectify_rgb(&l.rgb, &r.rgb);
+            let params = (**pipe.matcher().params()).clone();
+            (io::rgb_to_gray(&lr), io::rgb_to_gray(&rr), params, pipe.rect.disparity_sign)
+        }
+        None => {
+            let params = a.matching.params();
+            let sign = if params.min_disparity + params.num_disparities as i32 - 1 <= 0 { -1 } else { 1 };
+            (l.gray, r.gray, params, sign)
+        }
+    };
+    let valid = params.clone().validate().map_err(input)?;
+    let threads = valid.thread_count();
+    let mut matcher = StereoMatcher::new(valid);
+    let intervals = matcher.full_intervals(w, h, None);
+    let (lv, rv) = (GrayView::new(w, h, &left_gray).unwrap(), GrayView::new(w, h, &right_gray).unwrap());
+    let mut disp = DisparityMap::new(w, h);
+    let mut times = Vec::new();
+    let mut stats = Default::default();
+    for _ in 0..a.repeat {
+        let t0 = Instant::now();
+        stats = matcher.compute(lv, rv, &intervals, &mut disp).map_err(input)?;
+        times.push(t0.elapsed().as_secs_f64() * 1e3);
+    }
+    let lo = params.min_disparity as f32;
+    let hi = (params.min_disparity + params.num_disparities as i32 - 1) as f32;
+    let range = (lo.abs().min(hi.abs()), lo.abs().max(hi.abs()));
+    write_disparity_outputs(&disp, &a.out, a.pfm.as_deref(), a.color.as_deref(), range)?;
+    let report = json!({
+        "match_ms": median(times),
+        "valid_fraction": stats.valid_fraction(),
+        "disparity_sign": sign,
+        "width": w,
+        "height": h,
+        "min_disparity": params.min_disparity,
+        "num_disparities": params.num_disparities,
+        "block": params.block,
+        "threads": threads,
+        "repeat": a.repeat,
+        "matched": stats.matched,
+        "searched": stats.searched,
+        "mean_search_px": stats.mean_search_px(),
+    });
+    println!("{report}");
+    Ok(())
+}
+
+fn cmd_rectify(a: RectifyArgs) -> Result<(), Failure> {
+    let (l, r) = load_pair(&a.left, &a.right)?;
+    let calib = StereoCalib::load(&a.calib).map_err(input)?;
+    let opts = PipelineOptions { alpha: a.alpha, ..Default::default() };
+    let pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts).map_err(input)?;
+    let (lr, rr) = pipe.rectify_rgb(&l.rgb, &r.rgb);
+    std::fs::create_dir_all(&a.out).map_err(|e| output(format!("cannot create {}: {e}", a.out.display())))?;
+    io::write_rgb_png(&a.out.join("left.png"), l.width, l.height, &lr).map_err(output)?;
+    io::write_rgb_png(&a.out.join("right.png"), l.width, l.height, &rr).map_err(output)?;
+    let m = |m: nalgebra::DMatrixView<f64>| -> Vec<Vec<f64>> { (0..m.nrows()).map(|i| m.row(i).iter().copied().collect()).collect() };
+    let rect = &pipe.rect;
+    let doc = json!({
+        "alpha": a.alpha,
+        "R1": m(rect.r1.as_view()), "R2": m(rect.r2.as_view()),
+        "P1": m(rect.p1.as_view()), "P2": m(rect.p2.as_view()), "Q": m(rect.q.as_view()),
+        "disparity_sign": rect.disparity_sign,
+    });
+    io::write_atomic(&a.out.join("rectification.json"), serde_json::to_string_pretty(&doc).unwrap().as_bytes()).map_err(output)?;
+    println!("{}", json!({"left": a.out.join("left.png"), "right": a.out.join("right.png"), "disparity_sign": rect.disparity_sign, "focal_px": rect.p1[(0, 0)]}));
+    Ok(())
+}
+
+fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
+    let (l, r) = load_pair(&a.left, &a.right)?;
+    let calib = StereoCalib::load(&a.calib).map_err(input)?;
+    let opts = PipelineOptions { alpha: a.alpha, min_disparity: a.matching.min_disparity, matching: a.matching.params(), ..Default::default() };
+    let mut pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts).map_err(input)?;
+    let view = match a.mask.as_deref() {
+        None => pipe.process_rgb(&l.rgb, &r.rgb, false),
+        Some("auto") => pipe.process_rgb(&l.rgb, &r.rgb, true),
+        Some(file) => {
+            let m = io::load_image(Path::new(file)).map_err(input)?;
+            if (m.width, m.height) != (l.width, l.height) {
+                return Err(input(format!("mask {file} is {}×{} but the images are {}×{}", m.width, m.height, l.width, l.height)));
+            }
+            let raw: Vec<u8> = m.gray.iter().map(|&v| if v > 0 { 255 } else { 0 }).collect();
+            let mask = pipe.rectify_left_mask(&raw);
+            let (lr, rr) = pipe.rectify_rgb(&l.rgb, &r.rgb);
+            pipe.process_rectified(lr, &rr, Some(mask))
+        }
+    }
+    .map_err(input)?;
+    io::ply::write_ply(&a.out, &view.cloud).map_err(output)?;
+    if let Some(p) = &a.disparity {
+        io::write_disparity_png(p, &view.disparity).map_err(output)?;
+    }
+    if let (Some(p), Some(mask)) = (&a.mask_out, &view.mask) {
+        io::write_gray_png(p, l.width, l.height, mask).map_err(output)?;
+    }
+    println!(
+        "{}",
+        json!({"points": view.cloud.len(), "match_ms": view.match_ms, "valid_fraction": view.stats.valid_fraction(),
+               "disparity_sign": pipe.rect.disparity_sign, "out": a.out})
+    );
+    Ok(())
+}
+
+fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
+    let shape = hw_sim::Shape::by_name(&a.object)
+        .ok_or_else(|| input(format!("unknown object `{}`; built-in objects: {}", a.object, hw_sim::Shape::NAMES.join(", "))))?;
+    let scene = hw_sim::SceneConfig { shape, table_deg: a.table_deg, seed: a.seed, ..Default::default() };
+    eprintln!("demo: rendering a {}×{} stereo pair of the `{}` in the simulated lab…", scene.width, scene.height, a.object);
+    let pair = scene.render();
+    let calib = spinscan::sim::ideal_calib(&scene);
+    let out = &a.out;
+    std::fs::create_dir_all(out).map_err(|e| output(format!("cannot create {}: {e}", out.display())))?;
+    io::write_rgb_png(&out.join("left.png"), pair.width, pair.height, &pair.left_rgb).map_err(output)?;
+    io::write_rgb_png(&out.join("right.png"), pair.width, pair.height, &pair.right_rgb).map_err(output)?;
+    io::write_atomic(&out.join("calib.yaml"), calib.to_yaml().as_bytes()).map_err(output)?;
+    let gt = DisparityMap::from_values(pair.width, pair.height, pair.gt_disparity.clone());
+    io::write_disparity_png(&out.join("gt_disparity.png"), &gt).map_err(output)?;
+
+    // The same path a user takes: read the calibration back from disk.
+    let calib = StereoCalib::load(&out.join("calib.yaml")).map_err(input)?;
+    let mut matching = a.matching.params();
+    if a.matching.max_disparity == 64 {
+        matching.num_disparities = 128; // the default rig's disparities span 0…127
+    }
+    let opts = PipelineOptions { min_disparity: a.matching.min_disparity, matching, ..Default::default() };
+    let mut pipe = Pipeline::new(&calib, (pair.width as u32, pair.height as u32), opts).map_err(input)?;
+    eprintln!("demo: segmenting the blue screen, matching, triangulating…");
+    let view = pipe.process_rgb(&pair.left_rgb, &pair.right_rgb, true).map_err(input)?;
+    let mask = view.mask.as_deref().unwrap_or_default();
+    io::write_gray_png(&out.join("mask.png"), pair.width, pair.height, mask).map_err(output)?;
+    io::write_disparity_png(&out.join("disparity.png"), &view.disparity).map_err(output)?;
+    io::write_pfm(&out.join("disparity.pfm"), &view.disparity).map_err(output)?;
+    let (lo, hi) = (40.0, 127.0);
+    io::write_rgb_png(&out.join("disparity_color.png"), pair.width, pair.height, &io::disparity_false_color(&view.disparity, (lo, hi))).map_err(output)?;
+    io::ply::write_ply(&out.join("points.ply"), &view.cloud).map_err(output)?;
+
+    // Score against the ground truth, as ../shared/bench/peer_stereo.py counts bad2.
+    let (mut with_gt, mut bad2, mut err_sum, mut matched) = (0usize, 0usize, 0f64, 0usize);
+    let (mut mask_agree, mut gt_px) = (0usize, 0usize);
+    for y in 0..pair.height {
+        for x in 0..pair.width {
+            let i = y * pair.width + x;
+            let truth = pair.gt_disparity[i];
+            if truth.is_finite() {
+                gt_px += 1;
+                mask_agree += (mask[i] != 0) as usize;
+                with_gt += 1;
+                match view.disparity.get(x, y) {
+                    Some(d) => {
+                        matched += 1;
+                        err_sum += (d - truth).abs() as f64;
+                        bad2 += ((d - truth).abs() > 2.0) as usize;
+                    }
+                    None => bad2 += 1,
+                }
+            }
+        }
+    }
+    let report = json!({
+        "out": out,
+        "points": view.cloud.len(),
+        "match_ms": view.match_ms,
+        "valid_fraction": view.stats.valid_fraction(),
+        "disparity_sign": pipe.rect.disparity_sign,
+        "mask_recall": mask_agree as f64 / gt_px.max(1) as f64,
+        "bad2": 100.0 * bad2 as f64 / with_gt.max(1) as f64,
+        "density": 100.0 * matched as f64 / with_gt.max(1) as f64,
+        "avgerr_px": err_sum / matched.max(1) as f64,
+    });
+    io::write_atomic(&out.join("report.json"), serde_json::to_string_pretty(&report).unwrap().as_bytes()).map_err(output)?;
+    eprintln!("demo: wrote {} (open points.ply in MeshLab or Open3D)", out.display());
+    println!("{report}");
+    Ok(())
+}

@@ -1,0 +1,173 @@
+//! Foreground segmentation against a uniform (blue) background, as in the paper's set-up.
+//!
+//! The key test works in normalised chromaticity `(r, g) = (R, G) / (R + G + B)`: shading and
+//! exposure scale all three channels alike and leave chromaticity unchanged, so a shadowed
+//! part of the screen is still the screen. Pixels too dark for a stable chromaticity are
+//! decided by the optional background plate (an image of the empty scene), else kept as
+//! foreground (losing object pixels is worse than keeping a little screen). The mask is then
+//! cleaned by a morphological opening (removes specks) and closing (fills pinholes).
+
+/// Chroma-key settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ChromaKey {
+    /// The background colour, RGB.
+    pub key_rgb: [u8; 3],
+    /// Largest chromaticity distance from the key still counted as background (0…1).
+    pub tolerance: f32,
+    /// Pixels whose R + G + B is below this are too dark to key by colour.
+    pub dark_level: u16,
+    /// With a plate: a pixel within this many grey levels (every channel) of the plate is
+    /// background.
+    pub plate_tolerance: u8,
+    /// Radius in pixels of the square opening (0 disables).
+    pub open_radius: usize,
+    /// Radius in pixels of the square closing (0 disables).
+    pub close_radius: usize,
+}
+
+impl Default for ChromaKey {
+    fn default() -> Self {
+        ChromaKey { key_rgb: [40, 70, 190], tolerance: 0.12, dark_level: 60, plate_tolerance: 20, open_radius: 1, close_radius: 2 }
+    }
+}
+
+/// Why segmentation could not run.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum SegmentError {
+    #[error("background plate is {0}×{1} but the image is {2}×{3}")]
+    PlateSize(usize, usize, usize, usize),
+    #[error("image buffer holds {0} bytes, expected {1} (width × height × 3)")]
+    Buffer(usize, usize),
+    #[error("chroma-key tolerance must be within 0…1, got {0}")]
+    Tolerance(f32),
+}
+
+fn chromaticity(p: &[u8]) -> Option<(f32, f32)> {
+    let s = p[0] as f32 + p[1] as f32 + p[2] as f32;
+    (s > 0.0).then(|| (p[0] as f32 / s, p[1] as f32 / s))
+}
+
+impl ChromaKey {
+    /// Segments an interleaved RGB image: 255 = object, 0 = background.
+    pub fn segment(&self, rgb: &[u8], width: usize, height: usize, plate: Option<&[u8]>) -> Result<Vec<u8>, SegmentError> {
+        if rgb.len() != width * height * 3 {
+            return Err(SegmentError::Buffer(rgb.len(), width * height * 3));
+        }
+        if !(0.0..=1.0).contains(&self.tolerance) {
+            return Err(SegmentError::Tolerance(self.tolerance));
+        }
+        if let Some(p) = plate {
+            if p.len() != rgb.len() {
+                let n = p.len() / 3;
+                return Err(SegmentError::PlateSize(n / height.max(1), height, width, height));
+            }
+        }
+        let key = chromaticity(&self.key_rgb).unwrap_or((0.0, 0.0));
+        let tol2 = self.tolerance * self.tolerance;
+        let mut mask = vec![0u8; width * height];
+        for (i, m) in mask.iter_mut().enumerate() {
+            let px = &rgb[i * 3..i * 3 + 3];
+            let bright = px.iter().map(|&v| v as u16).sum::<u16>() >= self.dark_level;
+            let keyed = bright
+                && chromaticity(px).is_some_and(|(r, g)| (r - key.0).powi(2) + (g - key.1).powi(2) <= tol2);
+            let plated = plate.is_some_and(|p| {
+                px.iter().zip(&p[i * 3..i * 3 + 3]).all(|(&a, &b)| a.abs_diff(b) <= self.plate_tolerance)
+            });
+            *m = if keyed || plated { 0 } else { 255 };
+        }
+        if self.open_radius > 0 {
+            morph(&mut mask, width, height, self.open_radius, false);
+            morph(&mut mask, width, height, self.open_radius, true);
+        }
+        if self.close_radius > 0 {
+            morph(&mut mask, width, height, self.close_radius, true);
+            morph(&mut mask, width, height, self.close_radius, false);
+        }
+        Ok(mask)
+    }
+}
+
+/// Square dilation (`dilate = true`) or erosion of a 0/255 mask, separable, with running
+/// counts so the cost does not grow with the radius. Only pixels inside the image count, so
+/// an object touching the border is not eaten by the erosion.
+fn morph(mask: &mut [u8], w: usize, h: usize, radius: usize, dilate: bool) {
+    let mut tmp = vec![0u8; w * h];
+    let pass = |src: &[u8], dst: &mut [u8], len: usize, lines: usize, at: &dyn Fn(usize, usize) -> usize| {
+        for line in 0..lines {
+            let mut count = 0usize; // set pixels in the window
+            for i in 0..radius.min(len) {
+                count += (src[at(line, i)] != 0) as usize;
+            }
+            for i in 0..len {
+                if i + radius < len {
+                    count += (src[at(line, i + radius)] != 0) as usize;
+                }
+                if i > radius {
+                    count -= (src[at(line, i - radius - 1)] != 0) as usize;
+                }
+                let window = (i + radius).min(len - 1) + 1 - i.saturating_sub(radius);
+                let on = if dilate { count > 0 } else { count == window };
+                dst[at(line, i)] = if on { 255 } else { 0 };
+            }
+        }
+    };
+    pass(mask, &mut tmp, w, h, &|line, i| line * w + i);
+    pass(&tmp, mask, h, w, &|line, i| i * w + line);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scene(w: usize, h: usize) -> Vec<u8> {
+        let mut img = Vec::with_capacity(w * h * 3);
+        for y in 0..h {
+            for x in 0..w {
+                // Blue screen darkening to the right (shading), a grey square in the middle.
+                let shade = 1.0 - 0.5 * x as f32 / w as f32;
+                let inside = (10..30).contains(&x) && (8..24).contains(&y);
+                let px = if inside { [150, 140, 130] } else { [40, 70, 190] };
+                img.extend(px.iter().map(|&v| (v as f32 * shade) as u8));
+            }
+        }
+        img
+    }
+
+    #[test]
+    fn keys_out_a_shaded_screen() {
+        let (w, h) = (48, 32);
+        let mask = ChromaKey::default().segment(&scene(w, h), w, h, None).unwrap();
+        assert_eq!(mask[16 * w + 20], 255);
+        assert_eq!(mask[2 * w + 45], 0, "the darker screen is still background");
+        let fg = mask.iter().filter(|&&m| m == 255).count();
+        assert_eq!(fg, 20 * 16);
+    }
+
+    #[test]
+    fn opening_removes_a_speck() {
+        let (w, h) = (48, 32);
+        let mut img = scene(w, h);
+        let i = (3 * w + 3) * 3;
+        img[i..i + 3].copy_from_slice(&[200, 200, 200]);
+        let mask = ChromaKey::default().segment(&img, w, h, None).unwrap();
+        assert_eq!(mask[3 * w + 3], 0);
+    }
+
+    #[test]
+    fn plate_keys_dark_background() {
+        let (w, h) = (16, 8);
+        let plate = vec![5u8; w * h * 3];
+        let mut img = plate.clone();
+        for x in 4..12 {
+            for y in 2..6 {
+                img[(y * w + x) * 3..(y * w + x) * 3 + 3].copy_from_slice(&[120, 100, 90]);
+            }
+        }
+        let key = ChromaKey { open_radius: 0, close_radius: 0, ..Default::default() };
+        let without = key.segment(&img, w, h, None).unwrap();
+        assert_eq!(without[0], 255, "too dark to key by colour");
+        let with = key.segment(&img, w, h, Some(&plate)).unwrap();
+        assert_eq!(with[0], 0);
+        assert_eq!(with[3 * w + 5], 255);
+    }
+}

@@ -1,0 +1,882 @@
+//! Correlation matching along rectified rows, for a per-pixel disparity interval.
+//!
+//! # The cost, and why
+//! Sum of absolute differences over a `block × block` window of x-Sobel-prefiltered,
+//! clipped images (OpenCV `StereoBM`'s cost). The prefilter removes the brightness offset
+//! between the cameras, the clipping bounds the influence of edges, and the cost of one
+//! (pixel, disparity) pair is one byte difference — eight to thirty-two of them per SIMD
+//! instruction, where census needs a 64-bit popcount per pair.
+//!
+//! # Intervals and the work they save
+//! The entry point takes, for every left pixel, the disparity interval to search
+//! ([`DisparityIntervals`]; the full range is the special case). Aggregation runs with
+//! *banded* running sums, so every (pixel, disparity) pair costs O(1) amortised whatever the
+//! interval shape, and no work is done outside the intervals:
+//! - per column `x'`, the vertical window sums `CS(x', d)` are kept only over the band of
+//!   disparities some pixel whose window covers `x'` needs, and are slid down one row
+//!   (add the new row, subtract the old) where the band overlaps the previous row's band,
+//!   recomputed from scratch (`block` terms) where it does not;
+//! - per pixel, the window cost `SAD(x, d) = Σ CS(x−r … x+r, d)` is slid from pixel `x−1` where
+//!   their intervals overlap, summed from scratch elsewhere.
+//! With narrow intervals that follow a smooth disparity field the from-scratch terms are the
+//! band edges only, so the work is proportional to the summed interval widths.
+//!
+//! # The left–right check with left intervals only
+//! The right image gets no intervals of its own: the candidate set of a right pixel `x_r` is
+//! every evaluated pair `(x, d)` with `x − d = x_r` — the left intervals splatted onto the
+//! right row. Its best disparity is the cheapest of those; a left match `d` at `x` passes when
+//! the best disparity of `x − d` is within `lr_max_diff` of `d`. This costs one `min` per
+//! evaluated pair, and with full intervals it is the classic check.
+//!
+//! # Pipeline
+//! prefilter → per row: column sums → window sums + select (winner-take-all, texture,
+//! uniqueness, sub-pixel) → left–right check → speckle filter over the whole map.
+
+use std::ops::Range;
+
+use super::params::ValidMatchParams;
+use super::speckle::SpeckleFilter;
+
+/// A borrowed 8-bit grey image, row-major, no padding.
+#[derive(Debug, Clone, Copy)]
+pub struct GrayView<'a> {
+    pub width: usize,
+    pub height: usize,
+    pub data: &'a [u8],
+}
+
+impl<'a> GrayView<'a> {
+    /// Wraps a buffer; `None` if it does not hold `width × height` bytes.
+    pub fn new(width: usize, height: usize, data: &'a [u8]) -> Option<Self> {
+        (data.len() == width * height).then_some(GrayView { width, height, data })
+    }
+}
+
+/// The disparity interval to search at each left pixel, in disparity units
+/// (`d = x_left − x_right`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DisparityIntervals {
+    width: usize,
+    height: usize,
+    // Invariant: a pixel with lo > hi searches nothing.
+    lo: Vec<i16>,
+    hi: Vec<i16>,
+}
+
+impl DisparityIntervals {
+    /// Every pixel searches `min_d ..= max_d`.
+    pub fn full(width: usize, height: usize, min_d: i32, max_d: i32) -> Self {
+        let n = width * height;
+        DisparityIntervals { width, height, lo: vec![min_d as i16; n], hi: vec![max_d as i16; n] }
+    }
+
+    /// Pixels where `mask` is non-zero search `min_d ..= max_d`, the others nothing.
+    pub fn masked(width: usize, height: usize, mask: &[u8], min_d: i32, max_d: i32) -> Self {
+        let mut iv = Self::full(width, height, min_d, max_d);
+        for (i, &m) in mask.iter().enumerate().take(width * height) {
+            if m == 0 {
+                iv.lo[i] = 1;
+                iv.hi[i] = 0;
+            }
+        }
+        iv
+    }
+
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Sets the interval of one pixel (`None`: do not match it).
+    pub fn set(&mut self, x: usize, y: usize, interval: Option<(i32, i32)>) {
+        let i = y * self.width + x;
+        let (lo, hi) = match interval {
+            Some((lo, hi)) if lo <= hi => (lo.clamp(-32768, 32767) as i16, hi.clamp(-32768, 32767) as i16),
+            _ => (1, 0),
+        };
+        self.lo[i] = lo;
+        self.hi[i] = hi;
+    }
+
+    /// The interval of one pixel, `None` if it is not searched.
+    pub fn get(&self, x: usize, y: usize) -> Option<(i32, i32)> {
+        let i = y * self.width + x;
+        (self.lo[i] <= self.hi[i]).then(|| (self.lo[i] as i32, self.hi[i] as i32))
+    }
+}
+
+/// A disparity map: `d = x_left − x_right` in rectified pixels, sub-pixel.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DisparityMap {
+    pub width: usize,
+    pub height: usize,
+    // Invariant: NaN where no disparity was found (the PFM convention); read with `get`.
+    data: Vec<f32>,
+}
+
+impl DisparityMap {
+    pub fn new(width: usize, height: usize) -> Self {
+        DisparityMap { width, height, data: vec![f32::NAN; width * height] }
+    }
+
+    /// Builds a map from values where non-finite means "no disparity".
+    pub fn from_values(width: usize, height: usize, data: Vec<f32>) -> Self {
+        assert_eq!(data.len(), width * height, "disparity map size");
+        DisparityMap { width, height, data }
+    }
+
+    pub fn get(&self, x: usize, y: usize) -> Option<f32> {
+        let v = self.data[y * self.width + x];
+        v.is_finite().then_some(v)
+    }
+
+    pub fn set(&mut self, x: usize, y: usize, d: Option<f32>) {
+        self.data[y * self.width + x] = d.unwrap_or(f32::NAN);
+    }
+
+    /// Row-major values, NaN where there is no disparity.
+    pub fn values(&self) -> &[f32] {
+        &self.data
+    }
+
+    pub(crate) fn values_mut(&mut self) -> &mut [f32] {
+        &mut self.data
+    }
+
+    pub fn valid_count(&self) -> usize {
+        self.data.iter().filter(|v| v.is_finite()).count()
+    }
+}
+
+/// What one matching call did.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct MatchStats {
+    /// Pixels with a non-empty search interval.
+    pub searched: usize,
+    /// Pixels that got a disparity.
+    pub matched: usize,
+    /// (pixel, disparity) pairs evaluated.
+    pub evaluated: u64,
+}
+
+impl MatchStats {
+    /// `matched / searched` (0 when nothing was searched).
+    pub fn valid_fraction(&self) -> f64 {
+        if self.searched == 0 {
+            0.0
+        } else {
+            self.matched as f64 / self.searched as f64
+        }
+    }
+
+    /// Mean interval width actually searched, in pixels.
+    pub fn mean_search_px(&self) -> f64 {
+        if self.searched == 0 {
+            0.0
+        } else {
+            self.evaluated as f64 / self.searched as f64
+        }
+    }
+}
+
+/// Why a pair cannot be matched.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum MatchError {
+    #[error("left image is {0}×{1} but right image is {2}×{3}; a rectified pair has one size")]
+    SizeMismatch(usize, usize, usize, usize),
+    #[error("search intervals are {0}×{1} but the images are {2}×{3}")]
+    IntervalSize(usize, usize, usize, usize),
+    #[error("images of {0}×{1} are too small for a {2}×{2} window")]
+    TooSmall(usize, usize, u32),
+}
+
+/// Sizes shared by every stripe of one call.
+#[derive(Clone, Copy)]
+struct Geometry {
+    w: usize,
+    h: usize,
+    r: usize,
+    /// Padded width of the prefiltered rows (`w + 2r`).
+    wp: usize,
+    n: usize,
+    dmin: i32,
+}
+
+/// Per-thread buffers, grown to fit and reused across frames.
+#[derive(Default)]
+struct StripeScratch {
+    /// Vertical window sums, `wp × n`, column-major in disparity.
+    cs: Vec<u16>,
+    /// Band of valid entries per column (empty when lo > hi).
+    band_lo: Vec<i32>,
+    band_hi: Vec<i32>,
+    need_lo: Vec<i32>,
+    need_hi: Vec<i32>,
+    /// This row's clamped intervals, in disparity index `k = d − dmin`.
+    ilo: Vec<i32>,
+    ihi: Vec<i32>,
+    sad: [Vec<u16>; 2],
+    /// Best packed `(cost << 16) | k` of each right pixel, reversed (see `lr_index`).
+    right_best: Vec<u32>,
+    best: Vec<Option<(u16, f32)>>,
+    tex_col: Vec<u32>,
+    band_tmp: Vec<i32>,
+}
+
+/// A reusable matcher: holds the validated parameters and every scratch buffer.
+pub struct StereoMatcher {
+    params: ValidMatchParams,
+    left_pf: Vec<u8>,
+    right_pf_rev: Vec<u8>,
+    stripes: Vec<StripeScratch>,
+    speckle: SpeckleFilter,
+}
+
+impl StereoMatcher {
+    pub fn new(params: ValidMatchParams) -> Self {
+        StereoMatcher { params, left_pf: Vec::new(), right_pf_rev: Vec::new(), stripes: Vec::new(), speckle: SpeckleFilter::default() }
+    }
+
+    pub fn params(&self) -> &ValidMatchParams {
+        &self.params
+    }
+
+    /// The full search range of these parameters for every pixel, or only where `mask` is set.
+    pub fn full_intervals(&self, width: usize, height: usize, mask: Option<&[u8]>) -> DisparityIntervals {
+        let (lo, hi) = (self.params.min_disparity, self.params.max_disparity());
+        match mask {
+            Some(m) => DisparityIntervals::masked(width, height, m, lo, hi),
+            None => DisparityIntervals::full(width, height, lo, hi),
+        }
+    }
+
+    /// Matches a rectified pair. Intervals are clipped to the parameters' disparity range and
+    /// to disparities whose right pixel lies inside the image.
+    pub fn compute(
+        &mut self,
+        left: GrayView,
+        right: GrayView,
+        intervals: &DisparityIntervals,
+        out: &mut DisparityMap,
+    ) -> Result<MatchStats, MatchError> {
+        let (w, h) = (left.width, left.height);
+        if (right.width, right.height) != (w, h) {
+            return Err(MatchError::SizeMismatch(w, h, right.width, right.height));
+        }
+        if (intervals.width, intervals.height) != (w, h) {
+            return Err(MatchError::IntervalSize(intervals.width, intervals.height, w, h));
+        }
+        if w < 2 || h < 1 {
+            return Err(MatchError::TooSmall(w, h, self.params.block));
+        }
+        let r = self.params.radius();
+        let geo = Geometry { w, h, r, wp: w + 2 * r, n: self.params.num_disparities as usize, dmin: self.params.min_disparity };
+        if out.width != w || out.height != h {
+            *out = DisparityMap::new(w, h);
+        }
+
+        prefilter_xsobel(left, self.params.prefilter_cap, r, false, &mut self.left_pf);
+        prefilter_xsobel(right, self.params.prefilter_cap, r, true, &mut self.right_pf_rev);
+
+        let threads = self.params.thread_count().min(h).max(1);
+        self.stripes.resize_with(threads, StripeScratch::default);
+        let rows_per = h.div_ceil(threads);
+        let params = &self.params;
+        let (lpf, rrev) = (&self.left_pf[..], &self.right_pf_rev[..]);
+        let mut totals = MatchStats::default();
+        let out_chunks = out.values_mut().chunks_mut(rows_per * w);
+        let stats: Vec<MatchStats> = std::thread::scope(|scope| {
+            let mut handles = Vec::new();
+            let mut first = None;
+            for (i, (chunk, scratch)) in out_chunks.zip(self.stripes.iter_mut()).enumerate() {
+                let rows = i * rows_per..((i + 1) * rows_per).min(h);
+                let job = move || match_stripe(params, geo, lpf, rrev, intervals, rows, chunk, scratch);
+                if i == 0 {
+                    first = Some(job);
+                } else {
+                    let handle = std::thread::Builder::new()
+                        .name(format!("matcher-{i}"))
+                        .spawn_scoped(scope, job)
+                        .expect("spawning a matcher thread");
+                    handles.push(handle);
+                }
+            }
+            let mut all = vec![first.map(|f| f()).unwrap_or_default()];
+            all.extend(handles.into_iter().map(|h| h.join().expect("matcher thread panicked")));
+            all
+        });
+        for s in stats {
+            totals.searched += s.searched;
+            totals.evaluated += s.evaluated;
+        }
+        if params.speckle_window > 0 {
+            self.speckle.apply(out, params.speckle_window as usize, params.speckle_range_px);
+        }
+        totals.matched = out.valid_count();
+        Ok(totals)
+    }
+}
+
+/// OpenCV BM's x-Sobel prefilter, clipped to ±cap and offset by cap, written with `r` columns
+/// of replicated padding on each side; `reversed` stores each padded row back to front so
+/// that increasing disparity walks forward in memory.
+fn prefilter_xsobel(img: GrayView, cap: u8, r: usize, reversed: bool, out: &mut Vec<u8>) {
+    let (w, h) = (img.width, img.height);
+    let wp = w + 2 * r;
+    out.clear();
+    out.resize(wp * h, 0);
+    let cap_i = cap as i32;
+    let mut row = vec![0u8; w];
+    for y in 0..h {
+        let up = &img.data[y.saturating_sub(1) * w..][..w];
+        let mid = &img.data[y * w..][..w];
+        let down = &img.data[(y + 1).min(h - 1) * w..][..w];
+        row[0] = cap;
+        row[w - 1] = cap;
+        for x in 1..w - 1 {
+            let g = (mid[x + 1] as i32 - mid[x - 1] as i32) * 2 + (up[x + 1] as i32 - up[x - 1] as i32)
+                + (down[x + 1] as i32 - down[x - 1] as i32);
+            row[x] = (g.clamp(-cap_i, cap_i) + cap_i) as u8;
+        }
+        let dst = &mut out[y * wp..][..wp];
+        for (i, v) in dst.iter_mut().enumerate() {
+            let src = i.saturating_sub(r).min(w - 1);
+            *v = row[src];
+        }
+        if reversed {
+            dst.reverse();
+        }
+    }
+}
+
+/// The row of the window that sits `dy` rows from `y`, clamped to the image.
+#[inline(always)]
+fn clamp_row(y: isize, h: usize) -> usize {
+    y.clamp(0, h as isize - 1) as usize
+}
+
+#[allow(clippy::too_many_arguments)]
+fn match_stripe(
+    p: &ValidMatchParams,
+    g: Geometry,
+    lpf: &[u8],
+    rrev: &[u8],
+    intervals: &DisparityIntervals,
+    rows: Range<usize>,
+    out: &mut [f32],
+    s: &mut StripeScratch,
+) -> MatchStats {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2, checked just above.
+            return unsafe { match_stripe_avx2(p, g, lpf, rrev, intervals, rows, out, s) };
+        }
+    }
+    match_stripe_impl(p, g, lpf, rrev, intervals, rows, out, s)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn match_stripe_avx2(
+    p: &ValidMatchParams,
+    g: Geometry,
+    lpf: &[u8],
+    rrev: &[u8],
+    intervals: &DisparityIntervals,
+    rows: Range<usize>,
+    out: &mut [f32],
+    s: &mut StripeScratch,
+) -> MatchStats {
+    match_stripe_impl(p, g, lpf, rrev, intervals, rows, out, s)
+}
+
+/// The whole per-stripe pipeline; inlined into each SIMD-level wrapper so the compiler
+/// vectorises the slice loops for that level.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn match_stripe_impl(
+    p: &ValidMatchParams,
+    g: Geometry,
+    lpf: &[u8],
+    rrev: &[u8],
+    intervals: &DisparityIntervals,
+    rows: Range<usize>,
+    out: &mut [f32],
+    s: &mut StripeScratch,
+) -> MatchStats {
+    let Geometry { w, n, wp, .. } = g;
+    s.cs.resize(wp * n, 0);
+    for v in [&mut s.band_lo, &mut s.need_lo] {
+        v.clear();
+        v.resize(wp, 1);
+    }
+    for v in [&mut s.band_hi, &mut s.need_hi] {
+        v.clear();
+        v.resize(wp, 0);
+    }
+    s.ilo.resize(w, 0);
+    s.ihi.resize(w, 0);
+    s.sad[0].resize(n, 0);
+    s.sad[1].resize(n, 0);
+    s.right_best.resize(w + n, u32::MAX);
+    s.best.resize(w, None);
+    s.tex_col.resize(wp, 0);
+
+    let mut stats = MatchStats::default();
+    let y0 = rows.start;
+    for y in rows {
+        let first_row = y == y0;
+        row_intervals(g, intervals, y, &mut s.ilo, &mut s.ihi, &mut stats);
+        column_bands(g, &s.ilo, &s.ihi, &mut s.need_lo, &mut s.need_hi, &mut s.band_tmp);
+        update_column_sums(g, lpf, rrev, y, first_row, s);
+        if p.texture_threshold > 0 {
+            update_texture(g, lpf, y, first_row, p.prefilter_cap, &mut s.tex_col);
+        }
+        select_row(p, g, s);
+        let out_row = &mut out[(y - y0) * w..][..w];
+        left_right_check(p, g, s, out_row);
+    }
+    stats
+}
+
+/// This row's intervals as disparity indices, clipped to the search range and to right
+/// pixels inside the image; counts searched pixels and evaluated pairs.
+#[inline(always)]
+fn row_intervals(g: Geometry, iv: &DisparityIntervals, y: usize, ilo: &mut [i32], ihi: &mut [i32], stats: &mut MatchStats) {
+    let Geometry { w, n, dmin, .. } = g;
+    for x in 0..w {
+        let i = y * w + x;
+        let (mut lo, mut hi) = (1, 0);
+        let (dlo, dhi) = (iv.lo[i] as i32, iv.hi[i] as i32);
+        if dlo <= dhi {
+            // The right pixel x − d must lie inside the image: x − w + 1 ≤ d ≤ x.
+            let a = dlo.max(x as i32 - w as i32 + 1).max(dmin) - dmin;
+            let b = dhi.min(x as i32).min(dmin + n as i32 - 1) - dmin;
+            if a <= b {
+                (lo, hi) = (a, b);
+                stats.searched += 1;
+                stats.evaluated += (b - a + 1) as u64;
+            }
+        }
+        ilo[x] = lo;
+        ihi[x] = hi;
+    }
+}
+
+/// For each padded column, the union of the intervals of the pixels whose window covers it:
+/// a sliding-window min of `ilo` and max of `ihi` (van Herk / Gil–Werman, O(1) per column).
+#[inline(always)]
+fn column_bands(g: Geometry, ilo: &[i32], ihi: &[i32], need_lo: &mut [i32], need_hi: &mut [i32], tmp: &mut Vec<i32>) {
+    let Geometry { w, r, wp, .. } = g;
+    let b = 2 * r + 1;
+    // Column xp is in the windows of pixels xp − 2r ..= xp; with 2r empty pixels padded on
+    // each side, that is positions xp ..= xp + 2r of the padded row.
+    let len = w + 4 * r;
+    let blocks = len.div_ceil(b) * b;
+    let pad = |x: usize, lo: bool| -> i32 {
+        let i = x.wrapping_sub(2 * r);
+        if x < 2 * r || i >= w || ilo[i] > ihi[i] {
+            if lo { i32::MAX } else { i32::MIN }
+        } else if lo {
+            ilo[i]
+        } else {
+            ihi[i]
+        }
+    };
+    tmp.clear();
+    tmp.resize(2 * blocks, 0);
+    for (lo, out) in [(true, &mut *need_lo), (false, &mut *need_hi)] {
+        let pick = |a: i32, c: i32| if lo { a.min(c) } else { a.max(c) };
+        let (prefix, suffix) = tmp.split_at_mut(blocks);
+        for start in (0..blocks).step_by(b) {
+            let mut acc = pad(start, lo);
+            prefix[start] = acc;
+            for i in start + 1..start + b {
+                acc = pick(acc, pad(i, lo));
+                prefix[i] = acc;
+            }
+            let mut acc = pad(start + b - 1, lo);
+            suffix[start + b - 1] = acc;
+            for i in (start..start + b - 1).rev() {
+                acc = pick(acc, pad(i, lo));
+                suffix[i] = acc;
+            }
+        }
+        for (xp, o) in out.iter_mut().enumerate().take(wp) {
+            *o = pick(suffix[xp], prefix[xp + b - 1]);
+        }
+    }
+    for xp in 0..wp {
+        if need_lo[xp] > need_hi[xp] {
+            need_lo[xp] = 1;
+            need_hi[xp] = 0;
+        }
+    }
+}
+
+/// Start, in the reversed right row, of disparity index 0 for padded column `xp`.
+#[inline(always)]
+fn right_start(g: Geometry, xp: usize) -> isize {
+    // Right sample of (x' = xp − r, d = dmin + k) is padded column xp − dmin − k, stored at
+    // wp − 1 − (xp − dmin − k) in the reversed row.
+    g.wp as isize - 1 - xp as isize + g.dmin as isize
+}
+
+/// Slides the vertical window sums down to row `y` over each column's needed band.
+#[inline(always)]
+fn update_column_sums(g: Geometry, lpf: &[u8], rrev: &[u8], y: usize, first_row: bool, s: &mut StripeScratch) {
+    let Geometry { h, r, wp, n, .. } = g;
+    let y_new = clamp_row(y as isize + r as isize, h);
+    let y_old = clamp_row(y as isize - r as isize - 1, h);
+    let l_new = &lpf[y_new * wp..][..wp];
+    let l_old = &lpf[y_old * wp..][..wp];
+    let r_new = &rrev[y_new * wp..][..wp];
+    let r_old = &rrev[y_old * wp..][..wp];
+    for xp in 0..wp {
+        let (a, b) = (s.need_lo[xp], s.need_hi[xp]);
+        let cs = &mut s.cs[xp * n..][..n];
+        let j0 = right_start(g, xp);
+        if a > b {
+            s.band_lo[xp] = 1;
+            s.band_hi[xp] = 0;
+            continue;
+        }
+        let (ov_lo, ov_hi) = if first_row { (1, 0) } else { (a.max(s.band_lo[xp]), b.min(s.band_hi[xp])) };
+        let rng = |lo: i32, hi: i32| (lo as usize, (hi + 1) as usize);
+        let rs = |lo: i32| (j0 + lo as isize) as usize;
+        if ov_lo <= ov_hi {
+            let (k0, k1) = rng(ov_lo, ov_hi);
+            let len = k1 - k0;
+            slide_column(&mut cs[k0..k1], l_new[xp], &r_new[rs(ov_lo)..][..len], l_old[xp], &r_old[rs(ov_lo)..][..len]);
+            if a < ov_lo {
+                fresh_column(g, lpf, rrev, y, xp, j0, a, ov_lo - 1, cs);
+            }
+            if ov_hi < b {
+                fresh_column(g, lpf, rrev, y, xp, j0, ov_hi + 1, b, cs);
+            }
+        } else {
+            fresh_column(g, lpf, rrev, y, xp, j0, a, b, cs);
+        }
+        s.band_lo[xp] = a;
+        s.band_hi[xp] = b;
+    }
+}
+
+/// `|a − b|` computed in bytes and widened, so it vectorises as byte max/min/sub.
+#[inline(always)]
+fn absdiff(a: u8, b: u8) -> u16 {
+    (a.max(b) - a.min(b)) as u16
+}
+
+/// Smallest value of a slice (`u16::MAX` when empty); written as a fold so it vectorises.
+#[inline(always)]
+fn min_u16(v: &[u16]) -> u16 {
+    v.iter().fold(u16::MAX, |m, &c| m.min(c))
+}
+
+/// `cs[k] += |l_new − r_new[k]| − |l_old − r_old[k]|`.
+#[inline(always)]
+fn slide_column(cs: &mut [u16], l_new: u8, r_new: &[u8], l_old: u8, r_old: &[u8]) {
+    let len = cs.len();
+    let (r_new, r_old) = (&r_new[..len], &r_old[..len]);
+    for k in 0..len {
+        cs[k] = cs[k].wrapping_add(absdiff(l_new, r_new[k])).wrapping_sub(absdiff(l_old, r_old[k]));
+    }
+}
+
+/// Recomputes `cs[k]` for `k in a..=b` as a full vertical window sum.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn fresh_column(g: Geometry, lpf: &[u8], rrev: &[u8], y: usize, xp: usize, j0: isize, a: i32, b: i32, cs: &mut [u16]) {
+    let Geometry { h, r, wp, .. } = g;
+    let dst = &mut cs[a as usize..=b as usize];
+    dst.fill(0);
+    let start = (j0 + a as isize) as usize;
+    for dy in -(r as isize)..=r as isize {
+        let yy = clamp_row(y as isize + dy, h);
+        let l = lpf[yy * wp + xp];
+        let rr = &rrev[yy * wp + start..][..dst.len()];
+        for (c, &rv) in dst.iter_mut().zip(rr) {
+            *c += absdiff(l, rv);
+        }
+    }
+}
+
+/// Vertical sums of |prefiltered − cap| per column (BM's texture measure).
+#[inline(always)]
+fn update_texture(g: Geometry, lpf: &[u8], y: usize, first_row: bool, cap: u8, tex: &mut [u32]) {
+    let Geometry { h, r, wp, .. } = g;
+    if first_row {
+        tex.fill(0);
+        for dy in -(r as isize)..=r as isize {
+            let row = &lpf[clamp_row(y as isize + dy, h) * wp..][..wp];
+            for (t, &v) in tex.iter_mut().zip(row) {
+                *t += v.abs_diff(cap) as u32;
+            }
+        }
+    } else {
+        let new = &lpf[clamp_row(y as isize + r as isize, h) * wp..][..wp];
+        let old = &lpf[clamp_row(y as isize - r as isize - 1, h) * wp..][..wp];
+        for ((t, &a), &b) in tex.iter_mut().zip(new).zip(old) {
+            *t = *t + a.abs_diff(cap) as u32 - b.abs_diff(cap) as u32;
+        }
+    }
+}
+
+/// Window sums, winner-take-all, texture and uniqueness tests, sub-pixel fit, and the
+/// right-image minima for the left–right check.
+#[inline(always)]
+fn select_row(p: &ValidMatchParams, g: Geometry, s: &mut StripeScratch) {
+    let Geometry { w, r, n, .. } = g;
+    let b = 2 * r + 1;
+    s.right_best[..w + n].fill(u32::MAX);
+    let (mut prev_lo, mut prev_hi) = (1, 0);
+    let mut cur = 0;
+    for x in 0..w {
+        let (lo, hi) = (s.ilo[x], s.ihi[x]);
+        if lo > hi {
+            s.best[x] = None;
+            (prev_lo, prev_hi) = (1, 0);
+            continue;
+        }
+        let [s0, s1] = &mut s.sad;
+        let (sad, prev) = if cur == 0 { (s0, &*s1) } else { (s1, &*s0) };
+        let (ov_lo, ov_hi) = (lo.max(prev_lo), hi.min(prev_hi));
+        let cs = &s.cs;
+        let col = |xp: usize, k0: usize, k1: usize| &cs[xp * n + k0..xp * n + k1];
+        let sum_fresh = |k0: usize, k1: usize, sad: &mut [u16]| {
+            let dst = &mut sad[k0..k1];
+            dst.copy_from_slice(col(x, k0, k1));
+            for xp in x + 1..x + b {
+                for (d, &c) in dst.iter_mut().zip(col(xp, k0, k1)) {
+                    *d += c;
+                }
+            }
+        };
+        if ov_lo <= ov_hi {
+            let (k0, k1) = (ov_lo as usize, ov_hi as usize + 1);
+            slide_row(&mut sad[k0..k1], &prev[k0..k1], col(x + b - 1, k0, k1), col(x - 1, k0, k1));
+            if lo < ov_lo {
+                sum_fresh(lo as usize, ov_lo as usize, sad);
+            }
+            if ov_hi < hi {
+                sum_fresh(ov_hi as usize + 1, hi as usize + 1, sad);
+            }
+        } else {
+            sum_fresh(lo as usize, hi as usize + 1, sad);
+        }
+        (prev_lo, prev_hi) = (lo, hi);
+        cur ^= 1;
+
+        let (k0, k1) = (lo as usize, hi as usize + 1);
+        let costs = &sad[k0..k1];
+        // Splat the evaluated pairs onto the right row for the left–right check; the same
+        // pass finds this pixel's cheapest disparity (ties to the smaller one).
+        let packed = record_right_best(&mut s.right_best[w - 1 - x + k0..][..k1 - k0], costs, k0 as u32);
+        let min = (packed >> 16) as u16;
+        let best = (packed & 0xffff) as usize - k0;
+
+        if p.texture_threshold > 0 {
+            let tex: u32 = s.tex_col[x..x + b].iter().sum();
+            if tex < p.texture_threshold {
+                s.best[x] = None;
+                continue;
+            }
+        }
+        if p.uniqueness_ratio > 0 {
+            // Reject when a disparity not adjacent to the best costs nearly as little.
+            let thresh = min as u32 + min as u32 * p.uniqueness_ratio / 100;
+            let rival = min_u16(&costs[..best.saturating_sub(1)]).min(min_u16(costs.get(best + 2..).unwrap_or(&[])));
+            if rival as u32 <= thresh {
+                s.best[x] = None;
+                continue;
+            }
+        }
+        let mut frac = 0.0f32;
+        if p.subpixel && best > 0 && best + 1 < costs.len() {
+            let (c0, c1, c2) = (costs[best - 1] as f32, min as f32, costs[best + 1] as f32);
+            let denom = c0 + c2 - 2.0 * c1;
+            if denom > 0.0 {
+                frac = ((c0 - c2) / (2.0 * denom)).clamp(-0.5, 0.5);
+            }
+        }
+        s.best[x] = Some(((k0 + best) as u16, frac));
+    }
+}
+
+/// `sad[k] = prev[k] + add[k] − sub[k]`.
+#[inline(always)]
+fn slide_row(sad: &mut [u16], prev: &[u16], add: &[u16], sub: &[u16]) {
+    let len = sad.len();
+    let (prev, add, sub) = (&prev[..len], &add[..len], &sub[..len]);
+    for k in 0..len {
+        sad[k] = prev[k].wrapping_add(add[k]).wrapping_sub(sub[k]);
+    }
+}
+
+/// `right[i] = min(right[i], cost[i] << 16 | (k0 + i))`: the cheapest pair per right pixel,
+/// ties to the smaller disparity. Returns the minimum of the packed values themselves: the
+/// left pixel's best cost and disparity index.
+#[inline(always)]
+fn record_right_best(right: &mut [u32], costs: &[u16], k0: u32) -> u32 {
+    let len = right.len();
+    let costs = &costs[..len];
+    let mut best = u32::MAX;
+    for i in 0..len {
+        let packed = ((costs[i] as u32) << 16) | (k0 + i as u32);
+        right[i] = right[i].min(packed);
+        best = best.min(packed);
+    }
+    best
+}
+
+/// Applies the left–right check and writes the row's disparities.
+#[inline(always)]
+fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &mut [f32]) {
+    let Geometry { w, dmin, .. } = g;
+    for x in 0..w {
+        out[x] = match s.best[x] {
+            None => f32::NAN,
+            Some((k, frac)) => {
+                let ok = match p.lr_max_diff {
+                    None => true,
+                    Some(max) => {
+                        let right_k = (s.right_best[w - 1 - x + k as usize] & 0xffff) as i32;
+                        (right_k - k as i32).unsigned_abs() <= max
+                    }
+                };
+                if ok {
+                    (dmin + k as i32) as f32 + frac
+                } else {
+                    f32::NAN
+                }
+            }
+        };
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stereo::MatchParams;
+
+    /// A random-texture pair where the right image is the left shifted by `shift(x, y)`.
+    fn shifted_pair(w: usize, h: usize, shift: impl Fn(usize, usize) -> usize) -> (Vec<u8>, Vec<u8>) {
+        let mut state = 12345u32;
+        let mut left = vec![0u8; w * h];
+        for v in left.iter_mut() {
+            state = state.wrapping_mul(1664525).wrapping_add(1013904223);
+            *v = (state >> 24) as u8;
+        }
+        let mut right = vec![0u8; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                // right(x) = left(x + d): a left pixel x appears at x − d on the right.
+                let d = shift(x, y);
+                right[y * w + x] = left[y * w + (x + d).min(w - 1)];
+            }
+        }
+        (left, right)
+    }
+
+    fn params(n: u32) -> ValidMatchParams {
+        MatchParams { num_disparities: n, threads: 2, ..Default::default() }.validate().unwrap()
+    }
+
+    #[test]
+    fn recovers_a_constant_shift() {
+        let (w, h) = (96, 40);
+        let (l, r) = shifted_pair(w, h, |_, _| 7);
+        let mut m = StereoMatcher::new(params(16));
+        let mut out = DisparityMap::new(w, h);
+        let iv = m.full_intervals(w, h, None);
+        let stats = m.compute(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut out).unwrap();
+        let mut good = 0;
+        for y in 0..h {
+            for x in 20..w - 20 {
+                if out.get(x, y).is_some_and(|d| (d - 7.0).abs() < 0.5) {
+                    good += 1;
+                }
+            }
+        }
+        assert!(good as f64 > 0.95 * (h * (w - 40)) as f64, "{good}");
+        assert_eq!(stats.searched, w * h);
+    }
+
+    #[test]
+    fn narrow_intervals_match_the_full_search_and_do_less_work() {
+        let (w, h) = (120, 48);
+        let (l, r) = shifted_pair(w, h, |x, _| 10 + x / 40);
+        let (lv, rv) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap());
+        let mut m = StereoMatcher::new(params(32));
+        let mut full = DisparityMap::new(w, h);
+        let iv = m.full_intervals(w, h, None);
+        let full_stats = m.compute(lv, rv, &iv, &mut full).unwrap();
+        let mut narrow_iv = DisparityIntervals::full(w, h, 0, 31);
+        for y in 0..h {
+            for x in 0..w {
+                let d = 10 + (x / 40) as i32;
+                narrow_iv.set(x, y, Some((d - 2, d + 2)));
+            }
+        }
+        let mut narrow = DisparityMap::new(w, h);
+        let narrow_stats = m.compute(lv, rv, &narrow_iv, &mut narrow).unwrap();
+        assert!(narrow_stats.evaluated * 5 < full_stats.evaluated);
+        let mut agree = 0;
+        let mut both = 0;
+        for y in 0..h {
+            for x in 16..w - 16 {
+                if let (Some(a), Some(b)) = (full.get(x, y), narrow.get(x, y)) {
+                    both += 1;
+                    agree += ((a - b).abs() < 0.01) as usize;
+                }
+            }
+        }
+        assert!(both > (h * (w - 32)) * 8 / 10, "{both}");
+        assert!(agree * 100 >= both * 99, "{agree} of {both}");
+    }
+
+    #[test]
+    fn masked_pixels_are_not_matched() {
+        let (w, h) = (64, 24);
+        let (l, r) = shifted_pair(w, h, |_, _| 3);
+        let mask: Vec<u8> = (0..w * h).map(|i| if i % w < 32 { 0 } else { 255 }).collect();
+        let mut m = StereoMatcher::new(params(8));
+        let iv = m.full_intervals(w, h, Some(&mask));
+        let mut out = DisparityMap::new(w, h);
+        let stats = m.compute(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut out).unwrap();
+        assert_eq!(stats.searched, 32 * h);
+        assert!((0..h).all(|y| (0..32).all(|x| out.get(x, y).is_none())));
+    }
+
+    #[test]
+    fn negative_disparities() {
+        let (w, h) = (80, 32);
+        // The right image is the left shifted the other way: d = −6.
+        let (l, r) = shifted_pair(w, h, |_, _| 6);
+        let mut m = StereoMatcher::new(MatchParams { min_disparity: -12, num_disparities: 12, threads: 1, ..Default::default() }.validate().unwrap());
+        let iv = m.full_intervals(w, h, None);
+        let mut out = DisparityMap::new(w, h);
+        // Swap roles: matching right→left sees the shift as negative.
+        m.compute(GrayView::new(w, h, &r).unwrap(), GrayView::new(w, h, &l).unwrap(), &iv, &mut out).unwrap();
+        let good = (0..h).flat_map(|y| (16..w - 16).map(move |x| (x, y))).filter(|&(x, y)| out.get(x, y).is_some_and(|d| (d + 6.0).abs() < 0.5)).count();
+        assert!(good * 10 > h * (w - 32) * 9, "{good}");
+    }
+
+    #[test]
+    fn size_mismatch_is_an_error() {
+        let a = vec![0u8; 20 * 10];
+        let b = vec![0u8; 20 * 11];
+        let mut m = StereoMatcher::new(params(8));
+        let iv = m.full_intervals(20, 10, None);
+        let err = m
+            .compute(GrayView::new(20, 10, &a).unwrap(), GrayView::new(20, 11, &b).unwrap(), &iv, &mut DisparityMap::new(20, 10))
+            .unwrap_err();
+        assert_eq!(err, MatchError::SizeMismatch(20, 10, 20, 11));
+    }
+}
