@@ -15,10 +15,11 @@
 //!
 //! ```
 //! use spinscan::pipeline::{Pipeline, PipelineOptions};
+//! use spinscan::stereo::MatchParams;
 //! let scene = hw_sim::SceneConfig { width: 160, height: 120, focal_px: 175.0, ..Default::default() };
 //! let pair = scene.render();
 //! let calib = spinscan::sim::ideal_calib(&scene);
-//! let mut pipe = Pipeline::new(&calib, (160, 120), PipelineOptions { num_disparities: 48, ..Default::default() }).unwrap();
+//! let mut pipe = Pipeline::new(&calib, (160, 120), PipelineOptions { matching: MatchParams { num_disparities: 48, ..Default::default() }, ..Default::default() }).unwrap();
 //! let view = pipe.process_rgb(&pair.left_rgb, &pair.right_rgb, true).unwrap();
 //! assert!(view.cloud.len() > 1000);
 //! ```
