@@ -1,1 +1,96 @@
-fn main(){}
+//! `cargo bench --bench matcher [-- FILTER]`: times the matcher (full range and narrow
+//! intervals) on the Middlebury pairs in `../shared/data` when present, and on a simulated
+//! pair always. Prints min and median milliseconds per case over repeated runs.
+//!
+//! For the side-by-side comparison with OpenCV use `../shared/bench/peer_stereo.py` with
+//! `--eval-cmd "spinscan disparity … --threads 1 --repeat 5 -o {out}"` (see README).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use spinscan::io::load_image;
+use spinscan::stereo::{DisparityIntervals, DisparityMap, GrayView, MatchParams, StereoMatcher};
+
+struct Case {
+    name: String,
+    width: usize,
+    height: usize,
+    left: Vec<u8>,
+    right: Vec<u8>,
+    num_disparities: u32,
+}
+
+fn cases() -> Vec<Case> {
+    let mut out = Vec::new();
+    let data = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/middlebury-stereo");
+    for (name, l, r, n) in [
+        ("tsukuba", "tsukuba/scene1.row3.col3.ppm", "tsukuba/scene1.row3.col4.ppm", 16),
+        ("teddy", "teddy/im2.png", "teddy/im6.png", 64),
+        ("reindeer", "reindeer/view1.png", "reindeer/view5.png", 128),
+    ] {
+        if let (Ok(li), Ok(ri)) = (load_image(&data.join(l)), load_image(&data.join(r))) {
+            out.push(Case { name: name.into(), width: li.width, height: li.height, left: li.gray, right: ri.gray, num_disparities: n });
+        }
+    }
+    let scene = hw_sim::SceneConfig::default();
+    let pair = scene.render();
+    out.push(Case {
+        name: "sim-640x480".into(),
+        width: pair.width,
+        height: pair.height,
+        left: spinscan::io::rgb_to_gray(&pair.left_rgb),
+        right: spinscan::io::rgb_to_gray(&pair.right_rgb),
+        num_disparities: 128,
+    });
+    out
+}
+
+fn time(runs: usize, mut f: impl FnMut()) -> (f64, f64) {
+    f();
+    let mut t: Vec<f64> = (0..runs)
+        .map(|_| {
+            let t0 = Instant::now();
+            f();
+            t0.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    t.sort_by(f64::total_cmp);
+    (t[0], t[t.len() / 2])
+}
+
+fn main() {
+    let filter: Option<String> = std::env::args().skip(1).find(|a| !a.starts_with('-'));
+    println!("{:<34} {:>9} {:>9} {:>10}", "case", "min ms", "median ms", "search px");
+    for case in cases() {
+        for threads in [1, 2] {
+            let params = MatchParams { num_disparities: case.num_disparities, threads, ..Default::default() }.validate().unwrap();
+            let mut m = StereoMatcher::new(params);
+            let (w, h) = (case.width, case.height);
+            let (lv, rv) = (GrayView::new(w, h, &case.left).unwrap(), GrayView::new(w, h, &case.right).unwrap());
+            let mut out = DisparityMap::new(w, h);
+            let full = m.full_intervals(w, h, None);
+            let name = format!("{} full t{threads}", case.name);
+            if filter.as_ref().is_none_or(|f| name.contains(f.as_str())) {
+                let mut stats = Default::default();
+                let (min, med) = time(15, || stats = m.compute(lv, rv, &full, &mut out).unwrap());
+                println!("{name:<34} {min:>9.2} {med:>9.2} {:>10.1}", stats.mean_search_px());
+            }
+            // Narrow intervals (±2 px) around the full-range result, as the registration
+            // constraint gives them: the work must drop in proportion.
+            m.compute(lv, rv, &full, &mut out).unwrap();
+            let mut narrow = DisparityIntervals::full(w, h, 0, case.num_disparities as i32 - 1);
+            for y in 0..h {
+                for x in 0..w {
+                    narrow.set(x, y, out.get(x, y).map(|d| (d.round() as i32 - 2, d.round() as i32 + 2)));
+                }
+            }
+            let name = format!("{} ±2px t{threads}", case.name);
+            if filter.as_ref().is_none_or(|f| name.contains(f.as_str())) {
+                let mut stats = Default::default();
+                let mut o2 = DisparityMap::new(w, h);
+                let (min, med) = time(15, || stats = m.compute(lv, rv, &narrow, &mut o2).unwrap());
+                println!("{name:<34} {min:>9.2} {med:>9.2} {:>10.1}", stats.mean_search_px());
+            }
+        }
+    }
+}

@@ -34,6 +34,7 @@
 
 use std::ops::Range;
 
+use super::kernels::{self, absdiff, add_absdiff, add_into, first_index_of, min_into, min_u16, min_u16_away_from, slide_column, slide_row};
 use super::params::ValidMatchParams;
 use super::speckle::SpeckleFilter;
 
@@ -193,6 +194,10 @@ pub enum MatchError {
     TooSmall(usize, usize, u32),
 }
 
+/// Below this many disparities a from-scratch window sum runs per entry (scalar) instead of
+/// per window line (vectorised).
+const NARROW: usize = 8;
+
 /// Sizes shared by every stripe of one call.
 #[derive(Clone, Copy)]
 struct Geometry {
@@ -218,12 +223,16 @@ struct StripeScratch {
     /// This row's clamped intervals, in disparity index `k = d − dmin`.
     ilo: Vec<i32>,
     ihi: Vec<i32>,
-    sad: [Vec<u16>; 2],
-    /// Best packed `(cost << 16) | k` of each right pixel, reversed (see `lr_index`).
-    right_best: Vec<u32>,
+    /// Window sums of the current row, `w × n`.
+    sad: Vec<u16>,
+    /// Cheapest evaluated cost of each right pixel, stored reversed: entry `w − 1 − x + k`
+    /// is right pixel `x − dmin − k`, so a left pixel's run of disparities is contiguous.
+    right_min: Vec<u16>,
     best: Vec<Option<(u16, f32)>>,
     tex_col: Vec<u32>,
     band_tmp: Vec<i32>,
+    prev_ilo: Vec<i32>,
+    prev_ihi: Vec<i32>,
 }
 
 /// A reusable matcher: holds the validated parameters and every scratch buffer.
@@ -376,7 +385,7 @@ fn match_stripe(
             return unsafe { match_stripe_avx2(p, g, lpf, rrev, intervals, rows, out, s) };
         }
     }
-    match_stripe_impl(p, g, lpf, rrev, intervals, rows, out, s)
+    match_stripe_impl::<false>(p, g, lpf, rrev, intervals, rows, out, s)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -392,14 +401,14 @@ unsafe fn match_stripe_avx2(
     out: &mut [f32],
     s: &mut StripeScratch,
 ) -> MatchStats {
-    match_stripe_impl(p, g, lpf, rrev, intervals, rows, out, s)
+    match_stripe_impl::<true>(p, g, lpf, rrev, intervals, rows, out, s)
 }
 
 /// The whole per-stripe pipeline; inlined into each SIMD-level wrapper so the compiler
 /// vectorises the slice loops for that level.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn match_stripe_impl(
+fn match_stripe_impl<const AVX2: bool>(
     p: &ValidMatchParams,
     g: Geometry,
     lpf: &[u8],
@@ -419,11 +428,11 @@ fn match_stripe_impl(
         v.clear();
         v.resize(wp, 0);
     }
-    s.ilo.resize(w, 0);
-    s.ihi.resize(w, 0);
-    s.sad[0].resize(n, 0);
-    s.sad[1].resize(n, 0);
-    s.right_best.resize(w + n, u32::MAX);
+    for v in [&mut s.ilo, &mut s.ihi, &mut s.prev_ilo, &mut s.prev_ihi] {
+        v.resize(w, 0);
+    }
+    s.sad.resize(w * n, 0);
+    s.right_min.resize(w + n, u16::MAX);
     s.best.resize(w, None);
     s.tex_col.resize(wp, 0);
 
@@ -431,13 +440,18 @@ fn match_stripe_impl(
     let y0 = rows.start;
     for y in rows {
         let first_row = y == y0;
+        std::mem::swap(&mut s.ilo, &mut s.prev_ilo);
+        std::mem::swap(&mut s.ihi, &mut s.prev_ihi);
         row_intervals(g, intervals, y, &mut s.ilo, &mut s.ihi, &mut stats);
-        column_bands(g, &s.ilo, &s.ihi, &mut s.need_lo, &mut s.need_hi, &mut s.band_tmp);
+        // Full-range rows repeat their (clipped) intervals: their bands are still valid.
+        if first_row || s.ilo != s.prev_ilo || s.ihi != s.prev_ihi {
+            column_bands(g, &s.ilo, &s.ihi, &mut s.need_lo, &mut s.need_hi, &mut s.band_tmp);
+        }
         update_column_sums(g, lpf, rrev, y, first_row, s);
         if p.texture_threshold > 0 {
             update_texture(g, lpf, y, first_row, p.prefilter_cap, &mut s.tex_col);
         }
-        select_row(p, g, s);
+        select_row::<AVX2>(p, g, s);
         let out_row = &mut out[(y - y0) * w..][..w];
         left_right_check(p, g, s, out_row);
     }
@@ -476,46 +490,49 @@ fn column_bands(g: Geometry, ilo: &[i32], ihi: &[i32], need_lo: &mut [i32], need
     let b = 2 * r + 1;
     // Column xp is in the windows of pixels xp − 2r ..= xp; with 2r empty pixels padded on
     // each side, that is positions xp ..= xp + 2r of the padded row.
-    let len = w + 4 * r;
-    let blocks = len.div_ceil(b) * b;
-    let pad = |x: usize, lo: bool| -> i32 {
-        let i = x.wrapping_sub(2 * r);
-        if x < 2 * r || i >= w || ilo[i] > ihi[i] {
-            if lo { i32::MAX } else { i32::MIN }
-        } else if lo {
-            ilo[i]
-        } else {
-            ihi[i]
-        }
-    };
+    let blocks = (w + 4 * r).div_ceil(b) * b;
     tmp.clear();
-    tmp.resize(2 * blocks, 0);
-    for (lo, out) in [(true, &mut *need_lo), (false, &mut *need_hi)] {
-        let pick = |a: i32, c: i32| if lo { a.min(c) } else { a.max(c) };
-        let (prefix, suffix) = tmp.split_at_mut(blocks);
-        for start in (0..blocks).step_by(b) {
-            let mut acc = pad(start, lo);
-            prefix[start] = acc;
-            for i in start + 1..start + b {
-                acc = pick(acc, pad(i, lo));
-                prefix[i] = acc;
-            }
-            let mut acc = pad(start + b - 1, lo);
-            suffix[start + b - 1] = acc;
-            for i in (start..start + b - 1).rev() {
-                acc = pick(acc, pad(i, lo));
-                suffix[i] = acc;
-            }
-        }
-        for (xp, o) in out.iter_mut().enumerate().take(wp) {
-            *o = pick(suffix[xp], prefix[xp + b - 1]);
+    tmp.resize(4 * blocks, 0);
+    let (lo_pad, rest) = tmp.split_at_mut(blocks);
+    let (hi_pad, rest) = rest.split_at_mut(blocks);
+    let (prefix, suffix) = rest.split_at_mut(blocks);
+    lo_pad.fill(i32::MAX);
+    hi_pad.fill(i32::MIN);
+    for x in 0..w {
+        if ilo[x] <= ihi[x] {
+            lo_pad[x + 2 * r] = ilo[x];
+            hi_pad[x + 2 * r] = ihi[x];
         }
     }
+    sliding_extreme(lo_pad, b, prefix, suffix, i32::min, &mut need_lo[..wp]);
+    sliding_extreme(hi_pad, b, prefix, suffix, i32::max, &mut need_hi[..wp]);
     for xp in 0..wp {
         if need_lo[xp] > need_hi[xp] {
             need_lo[xp] = 1;
             need_hi[xp] = 0;
         }
+    }
+}
+
+/// `out[i] = pick(v[i ..= i + b − 1])` for every `i < out.len()`; `v.len()` is a multiple of `b`.
+#[inline(always)]
+fn sliding_extreme(v: &[i32], b: usize, prefix: &mut [i32], suffix: &mut [i32], pick: fn(i32, i32) -> i32, out: &mut [i32]) {
+    for start in (0..v.len()).step_by(b) {
+        let mut acc = v[start];
+        prefix[start] = acc;
+        for i in start + 1..start + b {
+            acc = pick(acc, v[i]);
+            prefix[i] = acc;
+        }
+        let mut acc = v[start + b - 1];
+        suffix[start + b - 1] = acc;
+        for i in (start..start + b - 1).rev() {
+            acc = pick(acc, v[i]);
+            suffix[i] = acc;
+        }
+    }
+    for (i, o) in out.iter_mut().enumerate() {
+        *o = pick(suffix[i], prefix[i + b - 1]);
     }
 }
 
@@ -567,43 +584,29 @@ fn update_column_sums(g: Geometry, lpf: &[u8], rrev: &[u8], y: usize, first_row:
     }
 }
 
-/// `|a − b|` computed in bytes and widened, so it vectorises as byte max/min/sub.
-#[inline(always)]
-fn absdiff(a: u8, b: u8) -> u16 {
-    (a.max(b) - a.min(b)) as u16
-}
-
-/// Smallest value of a slice (`u16::MAX` when empty); written as a fold so it vectorises.
-#[inline(always)]
-fn min_u16(v: &[u16]) -> u16 {
-    v.iter().fold(u16::MAX, |m, &c| m.min(c))
-}
-
-/// `cs[k] += |l_new − r_new[k]| − |l_old − r_old[k]|`.
-#[inline(always)]
-fn slide_column(cs: &mut [u16], l_new: u8, r_new: &[u8], l_old: u8, r_old: &[u8]) {
-    let len = cs.len();
-    let (r_new, r_old) = (&r_new[..len], &r_old[..len]);
-    for k in 0..len {
-        cs[k] = cs[k].wrapping_add(absdiff(l_new, r_new[k])).wrapping_sub(absdiff(l_old, r_old[k]));
-    }
-}
-
 /// Recomputes `cs[k]` for `k in a..=b` as a full vertical window sum.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn fresh_column(g: Geometry, lpf: &[u8], rrev: &[u8], y: usize, xp: usize, j0: isize, a: i32, b: i32, cs: &mut [u16]) {
     let Geometry { h, r, wp, .. } = g;
     let dst = &mut cs[a as usize..=b as usize];
-    dst.fill(0);
     let start = (j0 + a as isize) as usize;
+    if dst.len() < NARROW {
+        // Few disparities: one scalar sum per entry beats a vector pass per window row.
+        for (i, c) in dst.iter_mut().enumerate() {
+            let mut acc = 0u16;
+            for dy in -(r as isize)..=r as isize {
+                let row = clamp_row(y as isize + dy, h) * wp;
+                acc += absdiff(lpf[row + xp], rrev[row + start + i]);
+            }
+            *c = acc;
+        }
+        return;
+    }
+    dst.fill(0);
     for dy in -(r as isize)..=r as isize {
         let yy = clamp_row(y as isize + dy, h);
-        let l = lpf[yy * wp + xp];
-        let rr = &rrev[yy * wp + start..][..dst.len()];
-        for (c, &rv) in dst.iter_mut().zip(rr) {
-            *c += absdiff(l, rv);
-        }
+        add_absdiff(dst, lpf[yy * wp + xp], &rrev[yy * wp + start..]);
     }
 }
 
@@ -631,67 +634,62 @@ fn update_texture(g: Geometry, lpf: &[u8], y: usize, first_row: bool, cap: u8, t
 /// Window sums, winner-take-all, texture and uniqueness tests, sub-pixel fit, and the
 /// right-image minima for the left–right check.
 #[inline(always)]
-fn select_row(p: &ValidMatchParams, g: Geometry, s: &mut StripeScratch) {
+fn select_row<const AVX2: bool>(p: &ValidMatchParams, g: Geometry, s: &mut StripeScratch) {
     let Geometry { w, r, n, .. } = g;
     let b = 2 * r + 1;
-    s.right_best[..w + n].fill(u32::MAX);
-    let (mut prev_lo, mut prev_hi) = (1, 0);
-    let mut cur = 0;
+    s.right_min[..w + n].fill(u16::MAX);
+    // Window texture sum of pixel `tex_x`, slid along the row.
+    let (mut tex, mut tex_x) = (0u32, None::<usize>);
     for x in 0..w {
         let (lo, hi) = (s.ilo[x], s.ihi[x]);
         if lo > hi {
             s.best[x] = None;
-            (prev_lo, prev_hi) = (1, 0);
             continue;
         }
-        let [s0, s1] = &mut s.sad;
-        let (sad, prev) = if cur == 0 { (s0, &*s1) } else { (s1, &*s0) };
-        let (ov_lo, ov_hi) = (lo.max(prev_lo), hi.min(prev_hi));
-        let cs = &s.cs;
-        let col = |xp: usize, k0: usize, k1: usize| &cs[xp * n + k0..xp * n + k1];
-        let sum_fresh = |k0: usize, k1: usize, sad: &mut [u16]| {
-            let dst = &mut sad[k0..k1];
-            dst.copy_from_slice(col(x, k0, k1));
-            for xp in x + 1..x + b {
-                for (d, &c) in dst.iter_mut().zip(col(xp, k0, k1)) {
-                    *d += c;
-                }
-            }
-        };
-        if ov_lo <= ov_hi {
-            let (k0, k1) = (ov_lo as usize, ov_hi as usize + 1);
-            slide_row(&mut sad[k0..k1], &prev[k0..k1], col(x + b - 1, k0, k1), col(x - 1, k0, k1));
-            if lo < ov_lo {
-                sum_fresh(lo as usize, ov_lo as usize, sad);
-            }
-            if ov_hi < hi {
-                sum_fresh(ov_hi as usize + 1, hi as usize + 1, sad);
-            }
-        } else {
-            sum_fresh(lo as usize, hi as usize + 1, sad);
-        }
-        (prev_lo, prev_hi) = (lo, hi);
-        cur ^= 1;
-
         let (k0, k1) = (lo as usize, hi as usize + 1);
-        let costs = &sad[k0..k1];
+        window_sums(g, &s.cs, &mut s.sad, &s.ilo, &s.ihi, x);
+        let costs = &s.sad[x * n + k0..x * n + k1];
         // Splat the evaluated pairs onto the right row for the left–right check; the same
-        // pass finds this pixel's cheapest disparity (ties to the smaller one).
-        let packed = record_right_best(&mut s.right_best[w - 1 - x + k0..][..k1 - k0], costs, k0 as u32);
-        let min = (packed >> 16) as u16;
-        let best = (packed & 0xffff) as usize - k0;
-
+        // pass finds the cheapest cost.
+        let right = &mut s.right_min[w - 1 - x + k0..][..k1 - k0];
+        let min = match (AVX2, p.lr_max_diff.is_some()) {
+            // SAFETY (all `avx2::` calls here): AVX2 is only true in the copy compiled for,
+            // and dispatched on, CPUs that have it.
+            #[cfg(target_arch = "x86_64")]
+            (true, true) => unsafe { kernels::avx2::min_into_and_min(right, costs) },
+            #[cfg(target_arch = "x86_64")]
+            (true, false) => unsafe { kernels::avx2::min(costs) },
+            (_, true) => {
+                min_into(right, costs);
+                min_u16(costs)
+            }
+            (_, false) => min_u16(costs),
+        };
         if p.texture_threshold > 0 {
-            let tex: u32 = s.tex_col[x..x + b].iter().sum();
+            if tex_x.map(|t| t + 1) != Some(x) {
+                tex = s.tex_col[x..x + b].iter().sum();
+            } else {
+                tex = tex + s.tex_col[x + b - 1] - s.tex_col[x - 1];
+            }
+            tex_x = Some(x);
             if tex < p.texture_threshold {
                 s.best[x] = None;
                 continue;
             }
         }
+        let best = match AVX2 {
+            #[cfg(target_arch = "x86_64")]
+            true => unsafe { kernels::avx2::first_index_of(costs, min) },
+            _ => first_index_of(costs, min),
+        };
         if p.uniqueness_ratio > 0 {
             // Reject when a disparity not adjacent to the best costs nearly as little.
             let thresh = min as u32 + min as u32 * p.uniqueness_ratio / 100;
-            let rival = min_u16(&costs[..best.saturating_sub(1)]).min(min_u16(costs.get(best + 2..).unwrap_or(&[])));
+            let rival = match AVX2 {
+                #[cfg(target_arch = "x86_64")]
+                true => unsafe { kernels::avx2::min_away_from(costs, best) },
+                _ => min_u16_away_from(costs, best),
+            };
             if rival as u32 <= thresh {
                 s.best[x] = None;
                 continue;
@@ -709,36 +707,55 @@ fn select_row(p: &ValidMatchParams, g: Geometry, s: &mut StripeScratch) {
     }
 }
 
-/// `sad[k] = prev[k] + add[k] − sub[k]`.
+/// `SAD(x, k) = Σ CS(x … x + 2r, k)` over pixel `x`'s interval, written to row `x` of `sad`:
+/// slid from pixel `x − 1` where their intervals overlap, summed from scratch elsewhere.
 #[inline(always)]
-fn slide_row(sad: &mut [u16], prev: &[u16], add: &[u16], sub: &[u16]) {
-    let len = sad.len();
-    let (prev, add, sub) = (&prev[..len], &add[..len], &sub[..len]);
-    for k in 0..len {
-        sad[k] = prev[k].wrapping_add(add[k]).wrapping_sub(sub[k]);
+fn window_sums(g: Geometry, cs: &[u16], sad: &mut [u16], ilo: &[i32], ihi: &[i32], x: usize) {
+    let Geometry { r, n, .. } = g;
+    let b = 2 * r + 1;
+    let (lo, hi) = (ilo[x], ihi[x]);
+    let (prev_lo, prev_hi) = if x > 0 { (ilo[x - 1], ihi[x - 1]) } else { (1, 0) };
+    let (ov_lo, ov_hi) = (lo.max(prev_lo), hi.min(prev_hi));
+    let col = |xp: usize, k0: usize, k1: usize| &cs[xp * n + k0..xp * n + k1];
+    let (before, row) = sad.split_at_mut(x * n);
+    let row = &mut row[..n];
+    let sum_fresh = |k0: usize, k1: usize, row: &mut [u16]| {
+        let dst = &mut row[k0..k1];
+        if dst.len() < NARROW {
+            for (i, d) in dst.iter_mut().enumerate() {
+                *d = (x..x + b).map(|xp| cs[xp * n + k0 + i]).sum();
+            }
+            return;
+        }
+        dst.copy_from_slice(col(x, k0, k1));
+        for xp in x + 1..x + b {
+            add_into(dst, col(xp, k0, k1));
+        }
+    };
+    if ov_lo <= ov_hi {
+        let (k0, k1) = (ov_lo as usize, ov_hi as usize + 1);
+        let prev = &before[(x - 1) * n..][..n];
+        slide_row(&mut row[k0..k1], &prev[k0..k1], col(x + b - 1, k0, k1), col(x - 1, k0, k1));
+        if lo < ov_lo {
+            sum_fresh(lo as usize, ov_lo as usize, row);
+        }
+        if ov_hi < hi {
+            sum_fresh(ov_hi as usize + 1, hi as usize + 1, row);
+        }
+    } else {
+        sum_fresh(lo as usize, hi as usize + 1, row);
     }
-}
-
-/// `right[i] = min(right[i], cost[i] << 16 | (k0 + i))`: the cheapest pair per right pixel,
-/// ties to the smaller disparity. Returns the minimum of the packed values themselves: the
-/// left pixel's best cost and disparity index.
-#[inline(always)]
-fn record_right_best(right: &mut [u32], costs: &[u16], k0: u32) -> u32 {
-    let len = right.len();
-    let costs = &costs[..len];
-    let mut best = u32::MAX;
-    for i in 0..len {
-        let packed = ((costs[i] as u32) << 16) | (k0 + i as u32);
-        right[i] = right[i].min(packed);
-        best = best.min(packed);
-    }
-    best
 }
 
 /// Applies the left–right check and writes the row's disparities.
+///
+/// A match `k` at `x` lands on right pixel `x − d`; the cheapest pair anywhere on that right
+/// pixel's diagonal is `right_min`. The match passes when a pair on the diagonal within
+/// `lr_max_diff` disparities of `k` — pixel `x + j` at index `k + j` — reaches that minimum,
+/// i.e. when the right pixel's own best disparity agrees with `k` to `lr_max_diff`.
 #[inline(always)]
 fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &mut [f32]) {
-    let Geometry { w, dmin, .. } = g;
+    let Geometry { w, n, dmin, .. } = g;
     for x in 0..w {
         out[x] = match s.best[x] {
             None => f32::NAN,
@@ -746,8 +763,16 @@ fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &
                 let ok = match p.lr_max_diff {
                     None => true,
                     Some(max) => {
-                        let right_k = (s.right_best[w - 1 - x + k as usize] & 0xffff) as i32;
-                        (right_k - k as i32).unsigned_abs() <= max
+                        let k = k as isize;
+                        let target = s.right_min[w - 1 - x + k as usize];
+                        let m = max.min(n as u32) as isize;
+                        (-m..=m).any(|j| {
+                            let (xj, kj) = (x as isize + j, k + j);
+                            xj >= 0
+                                && (xj as usize) < w
+                                && (s.ilo[xj as usize] as isize..=s.ihi[xj as usize] as isize).contains(&kj)
+                                && s.sad[xj as usize * n + kj as usize] <= target
+                        })
                     }
                 };
                 if ok {

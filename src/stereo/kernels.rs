@@ -1,0 +1,333 @@
+//! The matcher's inner loops over a run of disparities.
+//!
+//! Each kernel walks its slices in fixed chunks of [`LANES`] elements, then a scalar tail.
+//! A fixed-size chunk compiles to straight SIMD instructions at whatever level the caller was
+//! compiled for (the matcher inlines these into an AVX2 copy and a baseline copy); a plain
+//! `for k in 0..len` loop would instead be vectorised with unrolling that only pays off from
+//! 64 elements on, leaving the common 16…60-disparity runs to scalar code.
+
+/// Elements per chunk: 16 × u16 is one AVX2 register.
+pub const LANES: usize = 16;
+
+/// `|a − b|` computed in bytes and widened, so it vectorises as byte max/min/sub.
+#[inline(always)]
+pub fn absdiff(a: u8, b: u8) -> u16 {
+    (a.max(b) - a.min(b)) as u16
+}
+
+/// `cs[k] += |l_new − r_new[k]| − |l_old − r_old[k]|`: one row down for a column's window.
+#[inline(always)]
+pub fn slide_column(cs: &mut [u16], l_new: u8, r_new: &[u8], l_old: u8, r_old: &[u8]) {
+    let len = cs.len();
+    let (r_new, r_old) = (&r_new[..len], &r_old[..len]);
+    let split = len - len % LANES;
+    for c in (0..split).step_by(LANES) {
+        let dst: &mut [u16; LANES] = (&mut cs[c..c + LANES]).try_into().unwrap();
+        let a: &[u8; LANES] = r_new[c..c + LANES].try_into().unwrap();
+        let b: &[u8; LANES] = r_old[c..c + LANES].try_into().unwrap();
+        for i in 0..LANES {
+            dst[i] = dst[i].wrapping_add(absdiff(l_new, a[i])).wrapping_sub(absdiff(l_old, b[i]));
+        }
+    }
+    for k in split..len {
+        cs[k] = cs[k].wrapping_add(absdiff(l_new, r_new[k])).wrapping_sub(absdiff(l_old, r_old[k]));
+    }
+}
+
+/// `dst[k] += |l − r[k]|`.
+#[inline(always)]
+pub fn add_absdiff(dst: &mut [u16], l: u8, r: &[u8]) {
+    let len = dst.len();
+    let r = &r[..len];
+    let split = len - len % LANES;
+    for c in (0..split).step_by(LANES) {
+        let d: &mut [u16; LANES] = (&mut dst[c..c + LANES]).try_into().unwrap();
+        let a: &[u8; LANES] = r[c..c + LANES].try_into().unwrap();
+        for i in 0..LANES {
+            d[i] += absdiff(l, a[i]);
+        }
+    }
+    for k in split..len {
+        dst[k] += absdiff(l, r[k]);
+    }
+}
+
+/// `sad[k] = prev[k] + add[k] − sub[k]`: the window slid one pixel right.
+#[inline(always)]
+pub fn slide_row(sad: &mut [u16], prev: &[u16], add: &[u16], sub: &[u16]) {
+    let len = sad.len();
+    let (prev, add, sub) = (&prev[..len], &add[..len], &sub[..len]);
+    let split = len - len % LANES;
+    for c in (0..split).step_by(LANES) {
+        let d: &mut [u16; LANES] = (&mut sad[c..c + LANES]).try_into().unwrap();
+        let p: &[u16; LANES] = prev[c..c + LANES].try_into().unwrap();
+        let a: &[u16; LANES] = add[c..c + LANES].try_into().unwrap();
+        let s: &[u16; LANES] = sub[c..c + LANES].try_into().unwrap();
+        for i in 0..LANES {
+            d[i] = p[i].wrapping_add(a[i]).wrapping_sub(s[i]);
+        }
+    }
+    for k in split..len {
+        sad[k] = prev[k].wrapping_add(add[k]).wrapping_sub(sub[k]);
+    }
+}
+
+/// `dst[k] += src[k]`.
+#[inline(always)]
+pub fn add_into(dst: &mut [u16], src: &[u16]) {
+    let len = dst.len();
+    let src = &src[..len];
+    let split = len - len % LANES;
+    for c in (0..split).step_by(LANES) {
+        let d: &mut [u16; LANES] = (&mut dst[c..c + LANES]).try_into().unwrap();
+        let s: &[u16; LANES] = src[c..c + LANES].try_into().unwrap();
+        for i in 0..LANES {
+            d[i] = d[i].wrapping_add(s[i]);
+        }
+    }
+    for k in split..len {
+        dst[k] = dst[k].wrapping_add(src[k]);
+    }
+}
+
+/// `dst[i] = min(dst[i], src[i])`.
+#[inline(always)]
+pub fn min_into(dst: &mut [u16], src: &[u16]) {
+    let len = dst.len();
+    let src = &src[..len];
+    let split = len - len % LANES;
+    for c in (0..split).step_by(LANES) {
+        let d: &mut [u16; LANES] = (&mut dst[c..c + LANES]).try_into().unwrap();
+        let s: &[u16; LANES] = src[c..c + LANES].try_into().unwrap();
+        for i in 0..LANES {
+            d[i] = d[i].min(s[i]);
+        }
+    }
+    for k in split..len {
+        dst[k] = dst[k].min(src[k]);
+    }
+}
+
+/// Index of the first element equal to `target` (`v.len()` if none).
+#[inline(always)]
+pub fn first_index_of(v: &[u16], target: u16) -> usize {
+    let split = v.len() - v.len() % LANES;
+    for c in (0..split).step_by(LANES) {
+        let s: &[u16; LANES] = v[c..c + LANES].try_into().unwrap();
+        // A vector minimum per chunk, then a short scan of the chunk that holds it.
+        if s.iter().fold(u16::MAX, |m, &x| m.min(x)) == target {
+            return c + s.iter().position(|&x| x == target).unwrap_or(0);
+        }
+    }
+    split + v[split..].iter().position(|&x| x == target).unwrap_or(v.len() - split)
+}
+
+/// Smallest value outside `around − 1 ..= around + 1` (`u16::MAX` if none).
+///
+/// The excluded lanes are masked by index arithmetic in registers; masking the slice in
+/// memory instead would stall every vector load on the scalar stores before it.
+#[inline(always)]
+pub fn min_u16_away_from(v: &[u16], around: usize) -> u16 {
+    const IOTA: [u16; LANES] = {
+        let mut a = [0u16; LANES];
+        let mut i = 0;
+        while i < LANES {
+            a[i] = i as u16;
+            i += 1;
+        }
+        a
+    };
+    // `k − (around − 1)` wraps, so "k is within 1 of around" is one unsigned compare.
+    let first = (around as u16).wrapping_sub(1);
+    let split = v.len() - v.len() % LANES;
+    let mut lanes = [u16::MAX; LANES];
+    for c in (0..split).step_by(LANES) {
+        let s: &[u16; LANES] = v[c..c + LANES].try_into().unwrap();
+        for i in 0..LANES {
+            let near = (c as u16).wrapping_add(IOTA[i]).wrapping_sub(first) <= 2;
+            lanes[i] = lanes[i].min(if near { u16::MAX } else { s[i] });
+        }
+    }
+    let head = lanes.iter().fold(u16::MAX, |m, &x| m.min(x));
+    v[split..].iter().enumerate().filter(|(i, _)| (split + i).abs_diff(around) > 1).fold(head, |m, (_, &x)| m.min(x))
+}
+
+/// Smallest value of a slice (`u16::MAX` when empty).
+#[inline(always)]
+pub fn min_u16(v: &[u16]) -> u16 {
+    let split = v.len() - v.len() % LANES;
+    let mut lanes = [u16::MAX; LANES];
+    for c in (0..split).step_by(LANES) {
+        let s: &[u16; LANES] = v[c..c + LANES].try_into().unwrap();
+        for i in 0..LANES {
+            lanes[i] = lanes[i].min(s[i]);
+        }
+    }
+    let head = lanes.iter().fold(u16::MAX, |m, &x| m.min(x));
+    v[split..].iter().fold(head, |m, &x| m.min(x))
+}
+
+/// Hand-written AVX2 versions of the per-pixel reductions, where the auto-vectoriser falls
+/// back to scalar code (index tests, horizontal minima). Callers must have checked that the
+/// CPU has AVX2 (the matcher does, once per call).
+#[cfg(target_arch = "x86_64")]
+pub mod avx2 {
+    use std::arch::x86_64::*;
+
+    #[inline(always)]
+    unsafe fn load(p: *const u16) -> __m256i {
+        _mm256_loadu_si256(p as *const __m256i)
+    }
+
+    /// Horizontal minimum of 16 lanes.
+    #[inline(always)]
+    unsafe fn hmin(v: __m256i) -> u16 {
+        let x = _mm_min_epu16(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
+        _mm_extract_epi16::<0>(_mm_minpos_epu16(x)) as u16
+    }
+
+    /// `right[i] = min(right[i], costs[i])`, and the minimum of `costs`.
+    ///
+    /// # Safety
+    /// AVX2 must be available; `costs.len() >= right.len()`.
+    #[inline(always)]
+    pub unsafe fn min_into_and_min(right: &mut [u16], costs: &[u16]) -> u16 {
+        let len = right.len();
+        assert!(costs.len() >= len);
+        let (rp, cp) = (right.as_mut_ptr(), costs.as_ptr());
+        let mut acc = _mm256_set1_epi16(-1);
+        let mut c = 0;
+        while c + 16 <= len {
+            let v = load(cp.add(c));
+            let r = load(rp.add(c));
+            _mm256_storeu_si256(rp.add(c) as *mut __m256i, _mm256_min_epu16(r, v));
+            acc = _mm256_min_epu16(acc, v);
+            c += 16;
+        }
+        let mut m = hmin(acc);
+        for k in c..len {
+            right[k] = right[k].min(costs[k]);
+            m = m.min(costs[k]);
+        }
+        m
+    }
+
+    /// Minimum of `v`.
+    ///
+    /// # Safety
+    /// AVX2 must be available.
+    #[inline(always)]
+    pub unsafe fn min(v: &[u16]) -> u16 {
+        let mut acc = _mm256_set1_epi16(-1);
+        let mut c = 0;
+        while c + 16 <= v.len() {
+            acc = _mm256_min_epu16(acc, load(v.as_ptr().add(c)));
+            c += 16;
+        }
+        v[c..].iter().fold(hmin(acc), |m, &x| m.min(x))
+    }
+
+    /// Index of the first element equal to `target` (`v.len()` if none).
+    ///
+    /// # Safety
+    /// AVX2 must be available.
+    #[inline(always)]
+    pub unsafe fn first_index_of(v: &[u16], target: u16) -> usize {
+        let t = _mm256_set1_epi16(target as i16);
+        let mut c = 0;
+        while c + 16 <= v.len() {
+            let mask = _mm256_movemask_epi8(_mm256_cmpeq_epi16(load(v.as_ptr().add(c)), t)) as u32;
+            if mask != 0 {
+                return c + mask.trailing_zeros() as usize / 2;
+            }
+            c += 16;
+        }
+        c + v[c..].iter().position(|&x| x == target).unwrap_or(v.len() - c)
+    }
+
+    /// Minimum outside `around − 1 ..= around + 1` (`u16::MAX` if none).
+    ///
+    /// # Safety
+    /// AVX2 must be available.
+    #[inline(always)]
+    pub unsafe fn min_away_from(v: &[u16], around: usize) -> u16 {
+        let iota = _mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+        // `k − (around − 1)` wraps, so "within 1 of around" is `≤ 2` unsigned.
+        let first = _mm256_set1_epi16((around as u16).wrapping_sub(1) as i16);
+        let two = _mm256_set1_epi16(2);
+        let mut acc = _mm256_set1_epi16(-1);
+        let mut c = 0;
+        while c + 16 <= v.len() {
+            let idx = _mm256_add_epi16(_mm256_set1_epi16(c as i16), iota);
+            let d = _mm256_sub_epi16(idx, first);
+            let near = _mm256_cmpeq_epi16(_mm256_min_epu16(d, two), d);
+            acc = _mm256_min_epu16(acc, _mm256_or_si256(load(v.as_ptr().add(c)), near));
+            c += 16;
+        }
+        let mut m = hmin(acc);
+        for (k, &x) in v.iter().enumerate().skip(c) {
+            if k.abs_diff(around) > 1 {
+                m = m.min(x);
+            }
+        }
+        m
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chunked_kernels_match_scalar_for_every_length() {
+        for len in 0..70usize {
+            let r: Vec<u8> = (0..len).map(|i| (i * 37 % 251) as u8).collect();
+            let r2: Vec<u8> = (0..len).map(|i| (i * 91 % 241) as u8).collect();
+            let mut cs: Vec<u16> = (0..len).map(|i| 1000 + i as u16).collect();
+            let want: Vec<u16> = cs.iter().enumerate().map(|(i, &c)| c + 30u8.abs_diff(r[i]) as u16 - 200u8.abs_diff(r2[i]) as u16).collect();
+            slide_column(&mut cs, 30, &r, 200, &r2);
+            assert_eq!(cs, want, "slide_column len {len}");
+
+            let costs: Vec<u16> = (0..len).map(|i| ((i * 7919) % 97) as u16).collect();
+            let mut right = vec![50u16; len];
+            min_into(&mut right, &costs);
+            assert!(right.iter().zip(&costs).all(|(&r, &c)| r == c.min(50)));
+            if len > 0 {
+                let m = *costs.iter().min().unwrap();
+                let at = costs.iter().position(|&c| c == m).unwrap();
+                assert_eq!(min_u16(&costs), m);
+                assert_eq!(first_index_of(&costs, m), at);
+                let away = costs.iter().enumerate().filter(|(i, _)| i.abs_diff(at) > 1).map(|(_, &c)| c).min().unwrap_or(u16::MAX);
+                assert_eq!(min_u16_away_from(&costs, at), away, "len {len}");
+            } else {
+                assert_eq!(min_u16(&costs), u16::MAX);
+            }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_kernels_match_portable_ones() {
+        if !std::is_x86_feature_detected!("avx2") {
+            return; // nothing to compare on this CPU; the portable kernels are tested above
+        }
+        for len in 1..70usize {
+            let costs: Vec<u16> = (0..len).map(|i| ((i * 7919 + len) % 97) as u16).collect();
+            let mut r1 = vec![40u16; len];
+            let mut r2 = r1.clone();
+            // SAFETY: AVX2 is available (checked above).
+            unsafe {
+                assert_eq!(avx2::min_into_and_min(&mut r1, &costs), min_u16(&costs));
+                min_into(&mut r2, &costs);
+                assert_eq!(r1, r2);
+                assert_eq!(avx2::min(&costs), min_u16(&costs));
+                for around in 0..len {
+                    assert_eq!(avx2::min_away_from(&costs, around), min_u16_away_from(&costs, around), "len {len} around {around}");
+                }
+                let m = min_u16(&costs);
+                assert_eq!(avx2::first_index_of(&costs, m), first_index_of(&costs, m));
+                assert_eq!(avx2::first_index_of(&costs, 1000), len);
+            }
+        }
+    }
+}
