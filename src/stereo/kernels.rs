@@ -122,7 +122,8 @@ pub fn first_index_of(v: &[u16], target: u16) -> usize {
     split + v[split..].iter().position(|&x| x == target).unwrap_or(v.len() - split)
 }
 
-/// Smallest value outside `around − 1 ..= around + 1` (`u16::MAX` if none).
+/// Smallest value outside `around − 1 ..= around + 1` (`u16::MAX` if none): the direct
+/// definition that `rival_from_lanes` must agree with.
 ///
 /// The excluded lanes are masked by index arithmetic in registers; masking the slice in
 /// memory instead would stall every vector load on the scalar stores before it.
@@ -174,6 +175,7 @@ pub fn min_u16(v: &[u16]) -> u16 {
 pub mod avx2 {
     use std::arch::x86_64::*;
 
+
     #[inline(always)]
     unsafe fn load(p: *const u16) -> __m256i {
         _mm256_loadu_si256(p as *const __m256i)
@@ -212,6 +214,35 @@ pub mod avx2 {
         m
     }
 
+    /// `row = prev + add − sub`, `right = min(right, row)`, and the minimum of `row`: one
+    /// step of the horizontal window, the left–right splat and the winner search fused.
+    ///
+    /// # Safety
+    /// AVX2 must be available; all slices as long as `row`.
+    #[inline(always)]
+    pub unsafe fn slide_row_min(row: &mut [u16], prev: &[u16], add: &[u16], sub: &[u16], right: &mut [u16]) -> u16 {
+        let len = row.len();
+        assert!(prev.len() == len && add.len() == len && sub.len() == len && right.len() == len);
+        let mut acc = _mm256_set1_epi16(-1);
+        let mut c = 0;
+        while c + 16 <= len {
+            let v = _mm256_sub_epi16(_mm256_add_epi16(load(prev.as_ptr().add(c)), load(add.as_ptr().add(c))), load(sub.as_ptr().add(c)));
+            _mm256_storeu_si256(row.as_mut_ptr().add(c) as *mut __m256i, v);
+            let r = load(right.as_ptr().add(c));
+            _mm256_storeu_si256(right.as_mut_ptr().add(c) as *mut __m256i, _mm256_min_epu16(r, v));
+            acc = _mm256_min_epu16(acc, v);
+            c += 16;
+        }
+        let mut m = hmin(acc);
+        for k in c..len {
+            let v = prev[k].wrapping_add(add[k]).wrapping_sub(sub[k]);
+            row[k] = v;
+            right[k] = right[k].min(v);
+            m = m.min(v);
+        }
+        m
+    }
+
     /// Minimum of `v`.
     ///
     /// # Safety
@@ -225,6 +256,68 @@ pub mod avx2 {
             c += 16;
         }
         v[c..].iter().fold(hmin(acc), |m, &x| m.min(x))
+    }
+
+    /// Minimum outside `around − 1 ..= around + 1` (`u16::MAX` if none).
+    ///
+    /// # Safety
+    /// AVX2 must be available.
+    #[inline(always)]
+    pub unsafe fn min_away_from(v: &[u16], around: usize) -> u16 {
+        let iota = _mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+        // `k − (around − 1)` wraps, so "within 1 of around" is `≤ 2` unsigned.
+        let first = _mm256_set1_epi16((around as u16).wrapping_sub(1) as i16);
+        let two = _mm256_set1_epi16(2);
+        let mut acc = _mm256_set1_epi16(-1);
+        let mut c = 0;
+        while c + 16 <= v.len() {
+            let x = load(v.as_ptr().add(c));
+            // Only the (at most two) chunks that hold around ± 1 need the index mask.
+            if c <= around + 1 && around <= c + 16 {
+                let idx = _mm256_add_epi16(_mm256_set1_epi16(c as i16), iota);
+                let d = _mm256_sub_epi16(idx, first);
+                let near = _mm256_cmpeq_epi16(_mm256_min_epu16(d, two), d);
+                acc = _mm256_min_epu16(acc, _mm256_or_si256(x, near));
+            } else {
+                acc = _mm256_min_epu16(acc, x);
+            }
+            c += 16;
+        }
+        let mut m = hmin(acc);
+        for (k, &x) in v.iter().enumerate().skip(c) {
+            if k.abs_diff(around) > 1 {
+                m = m.min(x);
+            }
+        }
+        m
+    }
+
+    /// `cs[k] += |l_new − r_new[k]| − |l_old − r_old[k]|`, 32 disparities per step: byte
+    /// differences in one register, widened in two halves.
+    ///
+    /// # Safety
+    /// AVX2 must be available; `r_new` and `r_old` at least as long as `cs`.
+    #[inline(always)]
+    pub unsafe fn slide_column(cs: &mut [u16], l_new: u8, r_new: &[u8], l_old: u8, r_old: &[u8]) {
+        let len = cs.len();
+        assert!(r_new.len() >= len && r_old.len() >= len);
+        let (ln, lo) = (_mm256_set1_epi8(l_new as i8), _mm256_set1_epi8(l_old as i8));
+        let cp = cs.as_mut_ptr();
+        let mut c = 0;
+        while c + 32 <= len {
+            let rn = _mm256_loadu_si256(r_new.as_ptr().add(c) as *const __m256i);
+            let ro = _mm256_loadu_si256(r_old.as_ptr().add(c) as *const __m256i);
+            let dn = _mm256_sub_epi8(_mm256_max_epu8(rn, ln), _mm256_min_epu8(rn, ln));
+            let dold = _mm256_sub_epi8(_mm256_max_epu8(ro, lo), _mm256_min_epu8(ro, lo));
+            let (n0, n1) = (_mm256_cvtepu8_epi16(_mm256_castsi256_si128(dn)), _mm256_cvtepu8_epi16(_mm256_extracti128_si256::<1>(dn)));
+            let (o0, o1) = (_mm256_cvtepu8_epi16(_mm256_castsi256_si128(dold)), _mm256_cvtepu8_epi16(_mm256_extracti128_si256::<1>(dold)));
+            let p0 = cp.add(c) as *mut __m256i;
+            let p1 = cp.add(c + 16) as *mut __m256i;
+            _mm256_storeu_si256(p0, _mm256_sub_epi16(_mm256_add_epi16(_mm256_loadu_si256(p0), n0), o0));
+            _mm256_storeu_si256(p1, _mm256_sub_epi16(_mm256_add_epi16(_mm256_loadu_si256(p1), n1), o1));
+            c += 32;
+        }
+        super::slide_column(&mut cs[c..], l_new, &r_new[c..len], l_old, &r_old[c..len]);
     }
 
     /// Index of the first element equal to `target` (`v.len()` if none).
@@ -245,33 +338,6 @@ pub mod avx2 {
         c + v[c..].iter().position(|&x| x == target).unwrap_or(v.len() - c)
     }
 
-    /// Minimum outside `around − 1 ..= around + 1` (`u16::MAX` if none).
-    ///
-    /// # Safety
-    /// AVX2 must be available.
-    #[inline(always)]
-    pub unsafe fn min_away_from(v: &[u16], around: usize) -> u16 {
-        let iota = _mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-        // `k − (around − 1)` wraps, so "within 1 of around" is `≤ 2` unsigned.
-        let first = _mm256_set1_epi16((around as u16).wrapping_sub(1) as i16);
-        let two = _mm256_set1_epi16(2);
-        let mut acc = _mm256_set1_epi16(-1);
-        let mut c = 0;
-        while c + 16 <= v.len() {
-            let idx = _mm256_add_epi16(_mm256_set1_epi16(c as i16), iota);
-            let d = _mm256_sub_epi16(idx, first);
-            let near = _mm256_cmpeq_epi16(_mm256_min_epu16(d, two), d);
-            acc = _mm256_min_epu16(acc, _mm256_or_si256(load(v.as_ptr().add(c)), near));
-            c += 16;
-        }
-        let mut m = hmin(acc);
-        for (k, &x) in v.iter().enumerate().skip(c) {
-            if k.abs_diff(around) > 1 {
-                m = m.min(x);
-            }
-        }
-        m
-    }
 }
 
 #[cfg(test)]
@@ -327,6 +393,21 @@ mod tests {
                 let m = min_u16(&costs);
                 assert_eq!(avx2::first_index_of(&costs, m), first_index_of(&costs, m));
                 assert_eq!(avx2::first_index_of(&costs, 1000), len);
+                let (add, sub): (Vec<u16>, Vec<u16>) = (costs.iter().map(|c| c * 3).collect(), costs.iter().map(|c| c / 2).collect());
+                let mut row = vec![0u16; len];
+                let mut right = vec![60u16; len];
+                let got = avx2::slide_row_min(&mut row, &costs, &add, &sub, &mut right);
+                let want: Vec<u16> = (0..len).map(|i| costs[i] + add[i] - sub[i]).collect();
+                assert_eq!(row, want);
+                assert_eq!(got, *want.iter().min().unwrap());
+                assert!(right.iter().zip(&want).all(|(&r, &v)| r == v.min(60)));
+                let rn: Vec<u8> = (0..len).map(|i| (i * 37 % 251) as u8).collect();
+                let ro: Vec<u8> = (0..len).map(|i| (i * 91 % 241) as u8).collect();
+                let mut a: Vec<u16> = (0..len).map(|i| 1000 + i as u16).collect();
+                let mut b = a.clone();
+                avx2::slide_column(&mut a, 30, &rn, 200, &ro);
+                slide_column(&mut b, 30, &rn, 200, &ro);
+                assert_eq!(a, b);
             }
         }
     }

@@ -337,24 +337,26 @@ fn prefilter_xsobel(img: GrayView, cap: u8, r: usize, reversed: bool, out: &mut 
     let wp = w + 2 * r;
     out.clear();
     out.resize(wp * h, 0);
-    let cap_i = cap as i32;
-    let mut row = vec![0u8; w];
+    let cap_i = cap as i16;
     for y in 0..h {
         let up = &img.data[y.saturating_sub(1) * w..][..w];
         let mid = &img.data[y * w..][..w];
         let down = &img.data[(y + 1).min(h - 1) * w..][..w];
-        row[0] = cap;
-        row[w - 1] = cap;
-        for x in 1..w - 1 {
-            let g = (mid[x + 1] as i32 - mid[x - 1] as i32) * 2 + (up[x + 1] as i32 - up[x - 1] as i32)
-                + (down[x + 1] as i32 - down[x - 1] as i32);
-            row[x] = (g.clamp(-cap_i, cap_i) + cap_i) as u8;
-        }
         let dst = &mut out[y * wp..][..wp];
-        for (i, v) in dst.iter_mut().enumerate() {
-            let src = i.saturating_sub(r).min(w - 1);
-            *v = row[src];
+        {
+            // Interior: written straight into the padded row (vectorises as i16 lanes).
+            let row = &mut dst[r..r + w];
+            row[0] = cap;
+            row[w - 1] = cap;
+            for x in 1..w - 1 {
+                let g = (mid[x + 1] as i16 - mid[x - 1] as i16) * 2 + (up[x + 1] as i16 - up[x - 1] as i16)
+                    + (down[x + 1] as i16 - down[x - 1] as i16);
+                row[x] = (g.clamp(-cap_i, cap_i) + cap_i) as u8;
+            }
         }
+        let (first, last) = (dst[r], dst[r + w - 1]);
+        dst[..r].fill(first);
+        dst[r + w..].fill(last);
         if reversed {
             dst.reverse();
         }
@@ -447,7 +449,7 @@ fn match_stripe_impl<const AVX2: bool>(
         if first_row || s.ilo != s.prev_ilo || s.ihi != s.prev_ihi {
             column_bands(g, &s.ilo, &s.ihi, &mut s.need_lo, &mut s.need_hi, &mut s.band_tmp);
         }
-        update_column_sums(g, lpf, rrev, y, first_row, s);
+        update_column_sums::<AVX2>(g, lpf, rrev, y, first_row, s);
         if p.texture_threshold > 0 {
             update_texture(g, lpf, y, first_row, p.prefilter_cap, &mut s.tex_col);
         }
@@ -463,23 +465,24 @@ fn match_stripe_impl<const AVX2: bool>(
 #[inline(always)]
 fn row_intervals(g: Geometry, iv: &DisparityIntervals, y: usize, ilo: &mut [i32], ihi: &mut [i32], stats: &mut MatchStats) {
     let Geometry { w, n, dmin, .. } = g;
+    let (row_lo, row_hi) = (&iv.lo[y * w..][..w], &iv.hi[y * w..][..w]);
+    let (mut searched, mut evaluated) = (0usize, 0u64);
     for x in 0..w {
-        let i = y * w + x;
         let (mut lo, mut hi) = (1, 0);
-        let (dlo, dhi) = (iv.lo[i] as i32, iv.hi[i] as i32);
-        if dlo <= dhi {
-            // The right pixel x − d must lie inside the image: x − w + 1 ≤ d ≤ x.
-            let a = dlo.max(x as i32 - w as i32 + 1).max(dmin) - dmin;
-            let b = dhi.min(x as i32).min(dmin + n as i32 - 1) - dmin;
-            if a <= b {
-                (lo, hi) = (a, b);
-                stats.searched += 1;
-                stats.evaluated += (b - a + 1) as u64;
-            }
+        let (dlo, dhi) = (row_lo[x] as i32, row_hi[x] as i32);
+        // The right pixel x − d must lie inside the image: x − w + 1 ≤ d ≤ x.
+        let a = dlo.max(x as i32 - w as i32 + 1).max(dmin) - dmin;
+        let b = dhi.min(x as i32).min(dmin + n as i32 - 1) - dmin;
+        if dlo <= dhi && a <= b {
+            (lo, hi) = (a, b);
+            searched += 1;
+            evaluated += (b - a + 1) as u64;
         }
         ilo[x] = lo;
         ihi[x] = hi;
     }
+    stats.searched += searched;
+    stats.evaluated += evaluated;
 }
 
 /// For each padded column, the union of the intervals of the pixels whose window covers it:
@@ -546,7 +549,7 @@ fn right_start(g: Geometry, xp: usize) -> isize {
 
 /// Slides the vertical window sums down to row `y` over each column's needed band.
 #[inline(always)]
-fn update_column_sums(g: Geometry, lpf: &[u8], rrev: &[u8], y: usize, first_row: bool, s: &mut StripeScratch) {
+fn update_column_sums<const AVX2: bool>(g: Geometry, lpf: &[u8], rrev: &[u8], y: usize, first_row: bool, s: &mut StripeScratch) {
     let Geometry { h, r, wp, n, .. } = g;
     let y_new = clamp_row(y as isize + r as isize, h);
     let y_old = clamp_row(y as isize - r as isize - 1, h);
@@ -569,7 +572,13 @@ fn update_column_sums(g: Geometry, lpf: &[u8], rrev: &[u8], y: usize, first_row:
         if ov_lo <= ov_hi {
             let (k0, k1) = rng(ov_lo, ov_hi);
             let len = k1 - k0;
-            slide_column(&mut cs[k0..k1], l_new[xp], &r_new[rs(ov_lo)..][..len], l_old[xp], &r_old[rs(ov_lo)..][..len]);
+            let (dst, rn, ro) = (&mut cs[k0..k1], &r_new[rs(ov_lo)..][..len], &r_old[rs(ov_lo)..][..len]);
+            match AVX2 {
+                // SAFETY: AVX2 is only true in the copy dispatched on CPUs that have it.
+                #[cfg(target_arch = "x86_64")]
+                true => unsafe { kernels::avx2::slide_column(dst, l_new[xp], rn, l_old[xp], ro) },
+                _ => slide_column(dst, l_new[xp], rn, l_old[xp], ro),
+            }
             if a < ov_lo {
                 fresh_column(g, lpf, rrev, y, xp, j0, a, ov_lo - 1, cs);
             }
@@ -647,12 +656,33 @@ fn select_row<const AVX2: bool>(p: &ValidMatchParams, g: Geometry, s: &mut Strip
             continue;
         }
         let (k0, k1) = (lo as usize, hi as usize + 1);
-        window_sums(g, &s.cs, &mut s.sad, &s.ilo, &s.ihi, x);
+        // The common case — this interval lies inside the previous pixel's — slides the
+        // window, splats onto the right row and takes the minimum in one fused pass.
+        let pure_slide = x > 0 && s.ilo[x - 1] <= lo && hi <= s.ihi[x - 1];
+        #[cfg(target_arch = "x86_64")]
+        let fused = if AVX2 && pure_slide && p.lr_max_diff.is_some() {
+            let (before, rest) = s.sad.split_at_mut(x * n);
+            let row = &mut rest[k0..k1];
+            let prev = &before[(x - 1) * n + k0..(x - 1) * n + k1];
+            let add = &s.cs[(x + b - 1) * n + k0..(x + b - 1) * n + k1];
+            let sub = &s.cs[(x - 1) * n + k0..(x - 1) * n + k1];
+            let right = &mut s.right_min[w - 1 - x + k0..][..k1 - k0];
+            // SAFETY: AVX2 is only true in the copy dispatched on CPUs that have it.
+            Some(unsafe { kernels::avx2::slide_row_min(row, prev, add, sub, right) })
+        } else {
+            None
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        let fused: Option<u16> = None;
+        if fused.is_none() {
+            window_sums(g, &s.cs, &mut s.sad, &s.ilo, &s.ihi, x);
+        }
         let costs = &s.sad[x * n + k0..x * n + k1];
         // Splat the evaluated pairs onto the right row for the left–right check; the same
         // pass finds the cheapest cost.
         let right = &mut s.right_min[w - 1 - x + k0..][..k1 - k0];
         let min = match (AVX2, p.lr_max_diff.is_some()) {
+            _ if fused.is_some() => fused.unwrap_or_default(),
             // SAFETY (all `avx2::` calls here): AVX2 is only true in the copy compiled for,
             // and dispatched on, CPUs that have it.
             #[cfg(target_arch = "x86_64")]
@@ -766,13 +796,22 @@ fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &
                         let k = k as isize;
                         let target = s.right_min[w - 1 - x + k as usize];
                         let m = max.min(n as u32) as isize;
-                        (-m..=m).any(|j| {
-                            let (xj, kj) = (x as isize + j, k + j);
-                            xj >= 0
-                                && (xj as usize) < w
-                                && (s.ilo[xj as usize] as isize..=s.ihi[xj as usize] as isize).contains(&kj)
-                                && s.sad[xj as usize * n + kj as usize] <= target
-                        })
+                        // The pixel's own pair decides almost always; neighbours on the
+                        // diagonal only when another pair is cheaper.
+                        let mut ok = s.sad[x * n + k as usize] <= target;
+                        let mut j = 1;
+                        while !ok && j <= m {
+                            for xj in [x as isize + j, x as isize - j] {
+                                let kj = k + (xj - x as isize);
+                                ok |= xj >= 0
+                                    && (xj as usize) < w
+                                    && s.ilo[xj as usize] as isize <= kj
+                                    && kj <= s.ihi[xj as usize] as isize
+                                    && s.sad[xj as usize * n + kj as usize] <= target;
+                            }
+                            j += 1;
+                        }
+                        ok
                     }
                 };
                 if ok {

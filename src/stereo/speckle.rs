@@ -15,6 +15,7 @@ impl SpeckleFilter {
     /// most `max_size` pixels.
     pub fn apply(&mut self, map: &mut DisparityMap, max_size: usize, range_px: f32) {
         let (w, h) = (map.width, map.height);
+        debug_assert!(w < 1 << 16 && h < 1 << 16);
         self.labels.clear();
         self.labels.resize(w * h, 0);
         let data = map.values_mut();
@@ -27,29 +28,34 @@ impl SpeckleFilter {
             self.labels[start] = next_label;
             self.stack.clear();
             self.region.clear();
-            self.stack.push(start as u32);
-            while let Some(i) = self.stack.pop() {
-                let i = i as usize;
-                self.region.push(i as u32);
+            // Stack entries are packed (y << 16) | x, so no division per pixel.
+            self.stack.push((((start / w) << 16) | (start % w)) as u32);
+            while let Some(packed) = self.stack.pop() {
+                let (x, y) = ((packed & 0xffff) as usize, (packed >> 16) as usize);
+                let i = y * w + x;
+                // Only small regions are ever erased, so only their pixels are kept.
+                if self.region.len() <= max_size {
+                    self.region.push(i as u32);
+                }
                 let d = data[i];
-                let (x, y) = (i % w, i / w);
-                let mut visit = |j: usize| {
-                    if self.labels[j] == 0 && data[j].is_finite() && (data[j] - d).abs() <= range_px {
+                let mut visit = |j: usize, xx: usize, yy: usize| {
+                    if self.labels[j] == 0 && (data[j] - d).abs() <= range_px {
+                        // NaN fails the comparison, so holes are never joined.
                         self.labels[j] = next_label;
-                        self.stack.push(j as u32);
+                        self.stack.push(((yy << 16) | xx) as u32);
                     }
                 };
                 if x > 0 {
-                    visit(i - 1);
+                    visit(i - 1, x - 1, y);
                 }
                 if x + 1 < w {
-                    visit(i + 1);
+                    visit(i + 1, x + 1, y);
                 }
                 if y > 0 {
-                    visit(i - w);
+                    visit(i - w, x, y - 1);
                 }
                 if y + 1 < h {
-                    visit(i + w);
+                    visit(i + w, x, y + 1);
                 }
             }
             if self.region.len() <= max_size {
