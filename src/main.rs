@@ -51,25 +51,25 @@ struct MatchArgs {
     #[arg(long, default_value_t = 64)]
     max_disparity: u32,
     /// Correlation window side (odd, 3…31).
-    #[arg(long, default_value_t = 9)]
+    #[arg(long, default_value_t = MatchParams::default().block)]
     block: u32,
     /// Worker threads; default all cores.
     #[arg(long)]
     threads: Option<usize>,
     /// Uniqueness ratio in percent (0 disables).
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = MatchParams::default().uniqueness_ratio)]
     uniqueness: u32,
     /// Texture threshold: minimum summed |x-gradient| in the window (0 disables).
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = MatchParams::default().texture_threshold)]
     texture_threshold: u32,
     /// Left–right check tolerance in pixels; a negative value disables the check.
     #[arg(long, default_value_t = 1, allow_hyphen_values = true)]
     lr_max_diff: i32,
     /// Speckle filter: largest blob (pixels) removed; 0 disables.
-    #[arg(long, default_value_t = 100)]
+    #[arg(long, default_value_t = MatchParams::default().speckle_window)]
     speckle_window: u32,
     /// Speckle filter: largest disparity step inside a blob, pixels.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = MatchParams::default().speckle_range_px)]
     speckle_range: f32,
 }
 

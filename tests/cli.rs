@@ -1,0 +1,146 @@
+//! The `spinscan` command line as users and acceptance checks call it: output contracts,
+//! and one clear line with a non-zero exit for every kind of bad input.
+
+mod support;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn spinscan(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_spinscan")).args(args).output().expect("spinscan runs")
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// A small simulated pair written as PNG files, with its calibration.
+fn sim_pair(dir: &Path) -> (PathBuf, PathBuf) {
+    let scene = hw_sim::SceneConfig { width: 200, height: 150, focal_px: 220.0, ..Default::default() };
+    let pair = scene.render();
+    let (l, r) = (dir.join("left.png"), dir.join("right.png"));
+    spinscan::io::write_rgb_png(&l, pair.width, pair.height, &pair.left_rgb).unwrap();
+    spinscan::io::write_rgb_png(&r, pair.width, pair.height, &pair.right_rgb).unwrap();
+    std::fs::write(dir.join("calib.yaml"), spinscan::sim::ideal_calib(&scene).to_yaml()).unwrap();
+    (l, r)
+}
+
+fn json_line(o: &Output) -> serde_json::Value {
+    let text = String::from_utf8_lossy(&o.stdout);
+    let line = text.lines().last().unwrap_or_default();
+    serde_json::from_str(line).unwrap_or_else(|e| panic!("stdout is not one JSON line ({e}): {text}"))
+}
+
+#[test]
+fn disparity_prints_its_json_contract_and_writes_every_format() {
+    let dir = support::temp_dir("cli-disparity");
+    let (l, r) = sim_pair(&dir);
+    let out = dir.join("d.png");
+    let o = spinscan(&[
+        "disparity", "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--max-disparity", "48", "--block", "9",
+        "--threads", "1", "--repeat", "3", "-o", out.to_str().unwrap(), "--pfm", dir.join("d.pfm").to_str().unwrap(),
+        "--color", dir.join("c.png").to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j = json_line(&o);
+    assert!(j["match_ms"].as_f64().unwrap() > 0.0);
+    assert!((0.0..=1.0).contains(&j["valid_fraction"].as_f64().unwrap()));
+    assert_eq!(j["disparity_sign"], 1);
+    let png = spinscan::io::read_disparity_png(&out, 1.0).unwrap();
+    let pfm = spinscan::io::read_pfm(&dir.join("d.pfm")).unwrap();
+    assert_eq!(png.valid_count(), pfm.valid_count());
+    assert!(png.valid_count() > 1000);
+    assert!(dir.join("c.png").is_file());
+}
+
+#[test]
+fn uncalibrated_negative_range_reports_negative_sign() {
+    let dir = support::temp_dir("cli-negative");
+    let (l, r) = sim_pair(&dir);
+    // Swapping the images makes every disparity negative.
+    let o = spinscan(&[
+        "disparity", "--left", r.to_str().unwrap(), "--right", l.to_str().unwrap(), "--min-disparity", "-47", "--max-disparity",
+        "48", "-o", dir.join("d.png").to_str().unwrap(), "--pfm", dir.join("d.pfm").to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(json_line(&o)["disparity_sign"], -1);
+    let pfm = spinscan::io::read_pfm(&dir.join("d.pfm")).unwrap();
+    assert!(pfm.values().iter().filter(|v| v.is_finite()).all(|&v| v <= 0.0));
+    assert!(pfm.valid_count() > 1000);
+}
+
+/// Runs a command that must fail with the input-error code and one line naming `needle`.
+fn check_bad_input(args: &[&str], needle: &str) {
+    let o = spinscan(args);
+    assert_eq!(o.status.code(), Some(3), "expected exit 3 for {args:?}; stderr: {}", stderr(&o));
+    let err = stderr(&o);
+    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
+    assert!(err.contains(needle), "`{needle}` not in: {err}");
+}
+
+#[test]
+fn bad_inputs_give_one_clear_line() {
+    let dir = support::temp_dir("cli-bad");
+    let (l, r) = sim_pair(&dir);
+    let (l, r) = (l.to_str().unwrap(), r.to_str().unwrap());
+    let out = dir.join("o.png");
+    let out = out.to_str().unwrap();
+    let missing = dir.join("nope.png");
+    check_bad_input(&["disparity", "--left", missing.to_str().unwrap(), "--right", r, "-o", out], "nope.png");
+
+    let small = dir.join("small.png");
+    spinscan::io::write_gray_png(&small, 20, 10, &[0; 200]).unwrap();
+    check_bad_input(&["disparity", "--left", l, "--right", small.to_str().unwrap(), "-o", out], "200×150");
+
+    check_bad_input(&["disparity", "--left", l, "--right", r, "--block", "8", "-o", out], "block = 8");
+    check_bad_input(&["disparity", "--left", l, "--right", r, "--max-disparity", "0", "-o", out], "num_disparities = 0");
+
+    let text = std::fs::read_to_string(dir.join("calib.yaml")).unwrap();
+    let broken = dir.join("broken.yaml");
+    std::fs::write(&broken, text.replace("   rows: 3\n   cols: 1", "   rows: 2\n   cols: 1")).unwrap();
+    check_bad_input(&["points", "--calib", broken.to_str().unwrap(), "--left", l, "--right", r, "-o", out], "`T`");
+
+    let empty = support::temp_dir("cli-bad-empty");
+    check_bad_input(&["points", "--calib", empty.to_str().unwrap(), "--left", l, "--right", r, "-o", out], "holds no calibration");
+}
+
+#[test]
+fn points_and_rectify_on_the_real_negative_disparity_rig() {
+    let data = support::shared_data("stereo-calib-chessboard-ximea");
+    let dir = support::temp_dir("cli-ximea");
+    let (l, r) = (data.join("left25.jpg"), data.join("right25.jpg"));
+    let ply = dir.join("p.ply");
+    let o = spinscan(&[
+        "points", "--calib", data.to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(),
+        "--max-disparity", "112", "-o", ply.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j = json_line(&o);
+    assert_eq!(j["disparity_sign"], -1);
+    let mesh = spinscan::io::ply::read_ply(&ply).unwrap();
+    assert!(mesh.cloud.len() > 5000, "{} points", mesh.cloud.len());
+    // The chessboard stands in front of the rig: positive depth in the left camera frame.
+    let median_z = {
+        let mut z: Vec<f32> = mesh.cloud.points.iter().map(|p| p[2]).collect();
+        z.sort_by(f32::total_cmp);
+        z[z.len() / 2]
+    };
+    assert!(median_z > 100.0 && median_z < 3000.0, "median depth {median_z} mm");
+
+    let o = spinscan(&["rectify", "--calib", data.to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "-o", dir.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(dir.join("left.png").is_file() && dir.join("right.png").is_file() && dir.join("rectification.json").is_file());
+}
+
+#[test]
+fn demo_runs_on_the_simulated_lab() {
+    let dir = support::temp_dir("cli-demo");
+    let o = spinscan(&["demo", "-o", dir.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j = json_line(&o);
+    assert!(j["bad2"].as_f64().unwrap() < 20.0, "{j}");
+    assert!(j["mask_recall"].as_f64().unwrap() > 0.97, "{j}");
+    for f in ["left.png", "right.png", "calib.yaml", "mask.png", "disparity.png", "disparity.pfm", "points.ply", "report.json"] {
+        assert!(dir.join(f).is_file(), "{f} missing");
+    }
+}
