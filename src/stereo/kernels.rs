@@ -284,9 +284,9 @@ pub mod avx2 {
             c += 16;
         }
         let mut m = hmin(acc);
-        for (k, &x) in v.iter().enumerate().skip(c) {
+        for k in c..v.len() {
             if k.abs_diff(around) > 1 {
-                m = m.min(x);
+                m = m.min(v[k]);
             }
         }
         m

@@ -230,6 +230,8 @@ struct StripeScratch {
     right_min: Vec<u16>,
     best: Vec<Option<(u16, f32)>>,
     tex_col: Vec<u32>,
+    /// Window texture of each pixel of the row.
+    tex_row: Vec<u32>,
     band_tmp: Vec<i32>,
     prev_ilo: Vec<i32>,
     prev_ihi: Vec<i32>,
@@ -437,6 +439,7 @@ fn match_stripe_impl<const AVX2: bool>(
     s.right_min.resize(w + n, u16::MAX);
     s.best.resize(w, None);
     s.tex_col.resize(wp, 0);
+    s.tex_row.resize(w, 0);
 
     let mut stats = MatchStats::default();
     let y0 = rows.start;
@@ -557,13 +560,29 @@ fn update_column_sums<const AVX2: bool>(g: Geometry, lpf: &[u8], rrev: &[u8], y:
     let l_old = &lpf[y_old * wp..][..wp];
     let r_new = &rrev[y_new * wp..][..wp];
     let r_old = &rrev[y_old * wp..][..wp];
-    for xp in 0..wp {
+    let mut xp = 0;
+    while xp < wp {
         let (a, b) = (s.need_lo[xp], s.need_hi[xp]);
+        // The common case — the band is the one the column already holds — runs as one
+        // tight loop over the columns that share it.
+        #[cfg(target_arch = "x86_64")]
+        if AVX2 && !first_row && a <= b && s.band_lo[xp] == a && s.band_hi[xp] == b {
+            let mut end = xp + 1;
+            while end < wp && s.need_lo[end] == a && s.need_hi[end] == b && s.band_lo[end] == a && s.band_hi[end] == b {
+                end += 1;
+            }
+            // SAFETY: AVX2 is only true in the copy dispatched on CPUs that have it; the
+            // bands lie inside the buffers (checked inside).
+            unsafe { slide_columns_avx2(g, &mut s.cs, (l_new, r_new), (l_old, r_old), xp..end, a as usize, b as usize + 1) };
+            xp = end;
+            continue;
+        }
         let cs = &mut s.cs[xp * n..][..n];
         let j0 = right_start(g, xp);
         if a > b {
             s.band_lo[xp] = 1;
             s.band_hi[xp] = 0;
+            xp += 1;
             continue;
         }
         let (ov_lo, ov_hi) = if first_row { (1, 0) } else { (a.max(s.band_lo[xp]), b.min(s.band_hi[xp])) };
@@ -590,6 +609,28 @@ fn update_column_sums<const AVX2: bool>(g: Geometry, lpf: &[u8], rrev: &[u8], y:
         }
         s.band_lo[xp] = a;
         s.band_hi[xp] = b;
+        xp += 1;
+    }
+}
+
+/// Slides the column sums of the columns `xps`, which all hold and need the band `k0..k1`,
+/// down one row.
+///
+/// # Safety
+/// AVX2 must be available.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn slide_columns_avx2(g: Geometry, cs: &mut [u16], new: (&[u8], &[u8]), old: (&[u8], &[u8]), xps: Range<usize>, k0: usize, k1: usize) {
+    let Geometry { wp, n, .. } = g;
+    let len = k1 - k0;
+    assert!(xps.end <= wp && k1 <= n && cs.len() >= wp * n);
+    for xp in xps {
+        let start = right_start(g, xp) + k0 as isize;
+        assert!(start >= 0 && start as usize + len <= wp);
+        let dst = std::slice::from_raw_parts_mut(cs.as_mut_ptr().add(xp * n + k0), len);
+        let rn = new.1.get_unchecked(start as usize..start as usize + len);
+        let ro = old.1.get_unchecked(start as usize..start as usize + len);
+        kernels::avx2::slide_column(dst, *new.0.get_unchecked(xp), rn, *old.0.get_unchecked(xp), ro);
     }
 }
 
@@ -647,42 +688,45 @@ fn select_row<const AVX2: bool>(p: &ValidMatchParams, g: Geometry, s: &mut Strip
     let Geometry { w, r, n, .. } = g;
     let b = 2 * r + 1;
     s.right_min[..w + n].fill(u16::MAX);
-    // Window texture sum of pixel `tex_x`, slid along the row.
-    let (mut tex, mut tex_x) = (0u32, None::<usize>);
-    for x in 0..w {
+    if p.texture_threshold > 0 {
+        // Window texture of every pixel: the column sums slid along the row.
+        let mut tex: u32 = s.tex_col[..b].iter().sum();
+        s.tex_row[0] = tex;
+        for x in 1..w {
+            tex = tex + s.tex_col[x + b - 1] - s.tex_col[x - 1];
+            s.tex_row[x] = tex;
+        }
+    }
+    let mut x = 0;
+    while x < w {
         let (lo, hi) = (s.ilo[x], s.ihi[x]);
         if lo > hi {
             s.best[x] = None;
+            x += 1;
+            continue;
+        }
+        // The common case — this interval lies inside the previous pixel's, and the next
+        // pixels repeat it — runs as one tight loop.
+        let pure_slide = x > 0 && s.ilo[x - 1] <= lo && hi <= s.ihi[x - 1];
+        #[cfg(target_arch = "x86_64")]
+        if AVX2 && pure_slide && p.lr_max_diff.is_some() {
+            let mut end = x + 1;
+            while end < w && s.ilo[end] == lo && s.ihi[end] == hi {
+                end += 1;
+            }
+            // SAFETY: AVX2 is only true in the copy dispatched on CPUs that have it; the run
+            // is a pure slide by construction.
+            unsafe { select_run_avx2(p, g, s, x..end, lo as usize, hi as usize + 1) };
+            x = end;
             continue;
         }
         let (k0, k1) = (lo as usize, hi as usize + 1);
-        // The common case — this interval lies inside the previous pixel's — slides the
-        // window, splats onto the right row and takes the minimum in one fused pass.
-        let pure_slide = x > 0 && s.ilo[x - 1] <= lo && hi <= s.ihi[x - 1];
-        #[cfg(target_arch = "x86_64")]
-        let fused = if AVX2 && pure_slide && p.lr_max_diff.is_some() {
-            let (before, rest) = s.sad.split_at_mut(x * n);
-            let row = &mut rest[k0..k1];
-            let prev = &before[(x - 1) * n + k0..(x - 1) * n + k1];
-            let add = &s.cs[(x + b - 1) * n + k0..(x + b - 1) * n + k1];
-            let sub = &s.cs[(x - 1) * n + k0..(x - 1) * n + k1];
-            let right = &mut s.right_min[w - 1 - x + k0..][..k1 - k0];
-            // SAFETY: AVX2 is only true in the copy dispatched on CPUs that have it.
-            Some(unsafe { kernels::avx2::slide_row_min(row, prev, add, sub, right) })
-        } else {
-            None
-        };
-        #[cfg(not(target_arch = "x86_64"))]
-        let fused: Option<u16> = None;
-        if fused.is_none() {
-            window_sums(g, &s.cs, &mut s.sad, &s.ilo, &s.ihi, x);
-        }
+        window_sums(g, &s.cs, &mut s.sad, &s.ilo, &s.ihi, x);
         let costs = &s.sad[x * n + k0..x * n + k1];
         // Splat the evaluated pairs onto the right row for the left–right check; the same
         // pass finds the cheapest cost.
         let right = &mut s.right_min[w - 1 - x + k0..][..k1 - k0];
         let min = match (AVX2, p.lr_max_diff.is_some()) {
-            _ if fused.is_some() => fused.unwrap_or_default(),
             // SAFETY (all `avx2::` calls here): AVX2 is only true in the copy compiled for,
             // and dispatched on, CPUs that have it.
             #[cfg(target_arch = "x86_64")]
@@ -695,46 +739,75 @@ fn select_row<const AVX2: bool>(p: &ValidMatchParams, g: Geometry, s: &mut Strip
             }
             (_, false) => min_u16(costs),
         };
-        if p.texture_threshold > 0 {
-            if tex_x.map(|t| t + 1) != Some(x) {
-                tex = s.tex_col[x..x + b].iter().sum();
-            } else {
-                tex = tex + s.tex_col[x + b - 1] - s.tex_col[x - 1];
-            }
-            tex_x = Some(x);
-            if tex < p.texture_threshold {
-                s.best[x] = None;
-                continue;
-            }
-        }
-        let best = match AVX2 {
-            #[cfg(target_arch = "x86_64")]
-            true => unsafe { kernels::avx2::first_index_of(costs, min) },
-            _ => first_index_of(costs, min),
-        };
-        if p.uniqueness_ratio > 0 {
-            // Reject when a disparity not adjacent to the best costs nearly as little.
-            let thresh = min as u32 + min as u32 * p.uniqueness_ratio / 100;
-            let rival = match AVX2 {
-                #[cfg(target_arch = "x86_64")]
-                true => unsafe { kernels::avx2::min_away_from(costs, best) },
-                _ => min_u16_away_from(costs, best),
-            };
-            if rival as u32 <= thresh {
-                s.best[x] = None;
-                continue;
-            }
-        }
-        let mut frac = 0.0f32;
-        if p.subpixel && best > 0 && best + 1 < costs.len() {
-            let (c0, c1, c2) = (costs[best - 1] as f32, min as f32, costs[best + 1] as f32);
-            let denom = c0 + c2 - 2.0 * c1;
-            if denom > 0.0 {
-                frac = ((c0 - c2) / (2.0 * denom)).clamp(-0.5, 0.5);
-            }
-        }
-        s.best[x] = Some(((k0 + best) as u16, frac));
+        let tex = if p.texture_threshold > 0 { s.tex_row[x] } else { 0 };
+        s.best[x] = decide::<AVX2>(p, costs, min, tex).map(|(best, frac)| ((k0 + best) as u16, frac));
+        x += 1;
     }
+}
+
+/// A run of pixels `xs` that all search `k0..k1`, each sliding from its left neighbour:
+/// the window step, the left–right splat and the minimum fused in one AVX2 pass per pixel,
+/// with no per-pixel slicing.
+///
+/// # Safety
+/// AVX2 must be available; pixel `xs.start − 1` searched a superset of `k0..k1` and every
+/// pixel of `xs` searches exactly `k0..k1` (so all buffers below are in bounds).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn select_run_avx2(p: &ValidMatchParams, g: Geometry, s: &mut StripeScratch, xs: Range<usize>, k0: usize, k1: usize) {
+    let Geometry { w, r, n, .. } = g;
+    let b = 2 * r + 1;
+    let len = k1 - k0;
+    assert!(xs.start >= 1 && xs.end <= w && k1 <= n && len > 0);
+    assert!(s.cs.len() >= (xs.end + b - 1) * n && s.sad.len() >= xs.end * n && s.right_min.len() >= w + n);
+    let (cs, sad, right_min) = (s.cs.as_ptr(), s.sad.as_mut_ptr(), s.right_min.as_mut_ptr());
+    for x in xs {
+        let row = std::slice::from_raw_parts_mut(sad.add(x * n + k0), len);
+        let prev = std::slice::from_raw_parts(sad.add((x - 1) * n + k0), len);
+        let add = std::slice::from_raw_parts(cs.add((x + b - 1) * n + k0), len);
+        let sub = std::slice::from_raw_parts(cs.add((x - 1) * n + k0), len);
+        let right = std::slice::from_raw_parts_mut(right_min.add(w - 1 - x + k0), len);
+        let min = kernels::avx2::slide_row_min(row, prev, add, sub, right);
+        let tex = if p.texture_threshold > 0 { *s.tex_row.get_unchecked(x) } else { 0 };
+        *s.best.get_unchecked_mut(x) = decide::<true>(p, row, min, tex).map(|(best, frac)| ((k0 + best) as u16, frac));
+    }
+}
+
+/// Texture and uniqueness tests and the sub-pixel fit for one pixel's costs (`min` is their
+/// minimum, `tex` the window texture): the best index in `costs` and its sub-pixel offset.
+#[inline(always)]
+fn decide<const AVX2: bool>(p: &ValidMatchParams, costs: &[u16], min: u16, tex: u32) -> Option<(usize, f32)> {
+    if tex < p.texture_threshold {
+        return None;
+    }
+    let best = match AVX2 {
+        // SAFETY (both `avx2::` calls): AVX2 is only true in the copy dispatched on CPUs
+        // that have it.
+        #[cfg(target_arch = "x86_64")]
+        true => unsafe { kernels::avx2::first_index_of(costs, min) },
+        _ => first_index_of(costs, min),
+    };
+    if p.uniqueness_ratio > 0 {
+        // Reject when a disparity not adjacent to the best costs nearly as little.
+        let thresh = min as u32 + min as u32 * p.uniqueness_ratio / 100;
+        let rival = match AVX2 {
+            #[cfg(target_arch = "x86_64")]
+            true => unsafe { kernels::avx2::min_away_from(costs, best) },
+            _ => min_u16_away_from(costs, best),
+        };
+        if rival as u32 <= thresh {
+            return None;
+        }
+    }
+    let mut frac = 0.0f32;
+    if p.subpixel && best > 0 && best + 1 < costs.len() {
+        let (c0, c1, c2) = (costs[best - 1] as f32, min as f32, costs[best + 1] as f32);
+        let denom = c0 + c2 - 2.0 * c1;
+        if denom > 0.0 {
+            frac = ((c0 - c2) / (2.0 * denom)).clamp(-0.5, 0.5);
+        }
+    }
+    Some((best, frac))
 }
 
 /// `SAD(x, k) = Σ CS(x … x + 2r, k)` over pixel `x`'s interval, written to row `x` of `sad`:
