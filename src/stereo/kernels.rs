@@ -243,6 +243,34 @@ pub mod avx2 {
         m
     }
 
+    /// One computed block of exactly 16 costs whose searched interval is lanes `t0..t1`:
+    /// splats the searched costs onto `right` (16 entries; lanes outside the interval leave it
+    /// unchanged) and returns the minimum over the interval, its first lane, and the minimum
+    /// over the interval away from that lane by more than one — all in registers.
+    ///
+    /// # Safety
+    /// AVX2 must be available; `row` and `right` hold 16 entries; `t0 < t1 <= 16`.
+    #[inline(always)]
+    pub unsafe fn block16(row: &[u16], t0: usize, t1: usize, right: &mut [u16]) -> (u16, usize, u16) {
+        assert!(row.len() == 16 && right.len() == 16 && t0 < t1 && t1 <= 16);
+        let iota = _mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+        // Lanes outside t0..t1 read as u16::MAX: (lane − t0) ≥ (t1 − t0) unsigned.
+        let rel = _mm256_sub_epi16(iota, _mm256_set1_epi16(t0 as i16));
+        let width = _mm256_set1_epi16((t1 - t0 - 1) as i16);
+        let inside = _mm256_cmpeq_epi16(_mm256_min_epu16(rel, width), rel);
+        let v = _mm256_or_si256(load(row.as_ptr()), _mm256_andnot_si256(inside, _mm256_set1_epi16(-1)));
+        let r = load(right.as_ptr());
+        _mm256_storeu_si256(right.as_mut_ptr() as *mut __m256i, _mm256_min_epu16(r, v));
+        let min = hmin(v);
+        let eq = _mm256_movemask_epi8(_mm256_cmpeq_epi16(v, _mm256_set1_epi16(min as i16))) as u32;
+        let best = eq.trailing_zeros() as usize / 2;
+        // Mask best − 1 ..= best + 1 as well: (lane − (best − 1)) ≤ 2 unsigned.
+        let d = _mm256_sub_epi16(iota, _mm256_set1_epi16(best as i16 - 1));
+        let near = _mm256_cmpeq_epi16(_mm256_min_epu16(d, _mm256_set1_epi16(2)), d);
+        let rival = hmin(_mm256_or_si256(v, near));
+        (min, best, rival)
+    }
+
     /// Minimum of `v`.
     ///
     /// # Safety
@@ -401,6 +429,21 @@ mod tests {
                 assert_eq!(row, want);
                 assert_eq!(got, *want.iter().min().unwrap());
                 assert!(right.iter().zip(&want).all(|(&r, &v)| r == v.min(60)));
+                if len == 16 {
+                    for t0 in 0..16 {
+                        for t1 in t0 + 1..=16 {
+                            let mut r1 = vec![50u16; 16];
+                            let mut r2 = r1.clone();
+                            let (min, best, rival) = avx2::block16(&costs, t0, t1, &mut r1);
+                            let sub = &costs[t0..t1];
+                            min_into(&mut r2[t0..t1], sub);
+                            assert_eq!(r1, r2);
+                            assert_eq!(min, min_u16(sub));
+                            assert_eq!(best, t0 + first_index_of(sub, min));
+                            assert_eq!(rival, min_u16_away_from(sub, best - t0), "t0 {t0} t1 {t1}");
+                        }
+                    }
+                }
                 let rn: Vec<u8> = (0..len).map(|i| (i * 37 % 251) as u8).collect();
                 let ro: Vec<u8> = (0..len).map(|i| (i * 91 % 241) as u8).collect();
                 let mut a: Vec<u16> = (0..len).map(|i| 1000 + i as u16).collect();

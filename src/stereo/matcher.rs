@@ -198,6 +198,12 @@ pub enum MatchError {
 /// per window line (vectorised).
 const NARROW: usize = 8;
 
+/// Window sums are computed over whole blocks of this many disparities (clipped to the valid
+/// range) around each searched interval: one AVX2 register of costs. Neighbouring pixels
+/// whose narrow intervals differ slightly then share a range and slide, instead of
+/// recomputing window sums from scratch at every shift.
+const BLOCK: usize = 16;
+
 /// Sizes shared by every stripe of one call.
 #[derive(Clone, Copy)]
 struct Geometry {
@@ -220,7 +226,10 @@ struct StripeScratch {
     band_hi: Vec<i32>,
     need_lo: Vec<i32>,
     need_hi: Vec<i32>,
-    /// This row's clamped intervals, in disparity index `k = d − dmin`.
+    /// This row's searched intervals, in disparity index `k = d − dmin`.
+    tlo: Vec<i32>,
+    thi: Vec<i32>,
+    /// The block-aligned ranges the window sums are computed over (⊇ the searched ones).
     ilo: Vec<i32>,
     ihi: Vec<i32>,
     /// Window sums of the current row, `w × n`.
@@ -432,11 +441,12 @@ fn match_stripe_impl<const AVX2: bool>(
         v.clear();
         v.resize(wp, 0);
     }
-    for v in [&mut s.ilo, &mut s.ihi, &mut s.prev_ilo, &mut s.prev_ihi] {
+    for v in [&mut s.ilo, &mut s.ihi, &mut s.prev_ilo, &mut s.prev_ihi, &mut s.tlo, &mut s.thi] {
         v.resize(w, 0);
     }
-    s.sad.resize(w * n, 0);
-    s.right_min.resize(w + n, u16::MAX);
+    // LANES entries of slack: narrow intervals are searched as one 16-lane load.
+    s.sad.resize(w * n + kernels::LANES, 0);
+    s.right_min.resize(w + n + kernels::LANES, u16::MAX);
     s.best.resize(w, None);
     s.tex_col.resize(wp, 0);
     s.tex_row.resize(w, 0);
@@ -447,7 +457,7 @@ fn match_stripe_impl<const AVX2: bool>(
         let first_row = y == y0;
         std::mem::swap(&mut s.ilo, &mut s.prev_ilo);
         std::mem::swap(&mut s.ihi, &mut s.prev_ihi);
-        row_intervals(g, intervals, y, &mut s.ilo, &mut s.ihi, &mut stats);
+        row_intervals(g, intervals, y, &mut s.tlo, &mut s.thi, &mut s.ilo, &mut s.ihi, &mut stats);
         // Full-range rows repeat their (clipped) intervals: their bands are still valid.
         if first_row || s.ilo != s.prev_ilo || s.ihi != s.prev_ihi {
             column_bands(g, &s.ilo, &s.ihi, &mut s.need_lo, &mut s.need_hi, &mut s.band_tmp);
@@ -464,25 +474,34 @@ fn match_stripe_impl<const AVX2: bool>(
 }
 
 /// This row's intervals as disparity indices, clipped to the search range and to right
-/// pixels inside the image; counts searched pixels and evaluated pairs.
+/// pixels inside the image (`tlo..=thi`, what is searched), and the block-aligned ranges the
+/// sums are computed over (`ilo..=ihi`, see [`BLOCK`]); counts searched pixels and pairs.
 #[inline(always)]
-fn row_intervals(g: Geometry, iv: &DisparityIntervals, y: usize, ilo: &mut [i32], ihi: &mut [i32], stats: &mut MatchStats) {
+#[allow(clippy::too_many_arguments)]
+fn row_intervals(g: Geometry, iv: &DisparityIntervals, y: usize, tlo: &mut [i32], thi: &mut [i32], ilo: &mut [i32], ihi: &mut [i32], stats: &mut MatchStats) {
     let Geometry { w, n, dmin, .. } = g;
     let (row_lo, row_hi) = (&iv.lo[y * w..][..w], &iv.hi[y * w..][..w]);
     let (mut searched, mut evaluated) = (0usize, 0u64);
+    let block = BLOCK as i32;
     for x in 0..w {
-        let (mut lo, mut hi) = (1, 0);
+        let (mut lo, mut hi, mut clo, mut chi) = (1, 0, 1, 0);
         let (dlo, dhi) = (row_lo[x] as i32, row_hi[x] as i32);
         // The right pixel x − d must lie inside the image: x − w + 1 ≤ d ≤ x.
-        let a = dlo.max(x as i32 - w as i32 + 1).max(dmin) - dmin;
-        let b = dhi.min(x as i32).min(dmin + n as i32 - 1) - dmin;
-        if dlo <= dhi && a <= b {
-            (lo, hi) = (a, b);
+        let kmin = (x as i32 - w as i32 + 1).max(dmin) - dmin;
+        let kmax = (x as i32).min(dmin + n as i32 - 1) - dmin;
+        let (a, b) = (dlo - dmin, dhi - dmin);
+        if dlo <= dhi && a.max(kmin) <= b.min(kmax) {
+            (lo, hi) = (a.max(kmin), b.min(kmax));
+            // Whole blocks, so that neighbours with slightly different intervals share one
+            // range and slide instead of recomputing.
+            (clo, chi) = ((lo - lo.rem_euclid(block)).max(kmin), (hi - hi.rem_euclid(block) + block - 1).min(kmax));
             searched += 1;
-            evaluated += (b - a + 1) as u64;
+            evaluated += (hi - lo + 1) as u64;
         }
-        ilo[x] = lo;
-        ihi[x] = hi;
+        tlo[x] = lo;
+        thi[x] = hi;
+        ilo[x] = clo;
+        ihi[x] = chi;
     }
     stats.searched += searched;
     stats.evaluated += evaluated;
@@ -497,7 +516,7 @@ fn column_bands(g: Geometry, ilo: &[i32], ihi: &[i32], need_lo: &mut [i32], need
     // Column xp is in the windows of pixels xp − 2r ..= xp; with 2r empty pixels padded on
     // each side, that is positions xp ..= xp + 2r of the padded row.
     let blocks = (w + 4 * r).div_ceil(b) * b;
-    tmp.clear();
+    // Every entry is overwritten below: no need to clear.
     tmp.resize(4 * blocks, 0);
     let (lo_pad, rest) = tmp.split_at_mut(blocks);
     let (hi_pad, rest) = rest.split_at_mut(blocks);
@@ -705,7 +724,7 @@ fn select_row<const AVX2: bool>(p: &ValidMatchParams, g: Geometry, s: &mut Strip
             x += 1;
             continue;
         }
-        // The common case — this interval lies inside the previous pixel's, and the next
+        // The common case — this range lies inside the previous pixel's, and the next
         // pixels repeat it — runs as one tight loop.
         let pure_slide = x > 0 && s.ilo[x - 1] <= lo && hi <= s.ihi[x - 1];
         #[cfg(target_arch = "x86_64")]
@@ -720,10 +739,23 @@ fn select_row<const AVX2: bool>(p: &ValidMatchParams, g: Geometry, s: &mut Strip
             x = end;
             continue;
         }
-        let (k0, k1) = (lo as usize, hi as usize + 1);
         window_sums(g, &s.cs, &mut s.sad, &s.ilo, &s.ihi, x);
+        let (k0, k1) = (s.tlo[x] as usize, s.thi[x] as usize + 1);
+        let tex = if p.texture_threshold > 0 { s.tex_row[x] } else { 0 };
+        #[cfg(target_arch = "x86_64")]
+        if AVX2 && k1 - k0 <= kernels::LANES {
+            // A narrow interval, searched as one 16-lane load (the buffers have the slack).
+            let lanes = &s.sad[x * n + k0..x * n + k0 + kernels::LANES];
+            let right = &mut s.right_min[w - 1 - x + k0..][..kernels::LANES];
+            // SAFETY: AVX2 is only true in the copy dispatched on CPUs that have it.
+            let (min, best, rival) = unsafe { kernels::avx2::block16(lanes, 0, k1 - k0, right) };
+            let costs = &s.sad[x * n + k0..x * n + k1];
+            s.best[x] = decide_at(p, costs, min, best, rival, tex).map(|(best, frac)| ((k0 + best) as u16, frac));
+            x += 1;
+            continue;
+        }
         let costs = &s.sad[x * n + k0..x * n + k1];
-        // Splat the evaluated pairs onto the right row for the left–right check; the same
+        // Splat the searched pairs onto the right row for the left–right check; the same
         // pass finds the cheapest cost.
         let right = &mut s.right_min[w - 1 - x + k0..][..k1 - k0];
         let min = match (AVX2, p.lr_max_diff.is_some()) {
@@ -739,7 +771,6 @@ fn select_row<const AVX2: bool>(p: &ValidMatchParams, g: Geometry, s: &mut Strip
             }
             (_, false) => min_u16(costs),
         };
-        let tex = if p.texture_threshold > 0 { s.tex_row[x] } else { 0 };
         s.best[x] = decide::<AVX2>(p, costs, min, tex).map(|(best, frac)| ((k0 + best) as u16, frac));
         x += 1;
     }
@@ -759,17 +790,34 @@ unsafe fn select_run_avx2(p: &ValidMatchParams, g: Geometry, s: &mut StripeScrat
     let b = 2 * r + 1;
     let len = k1 - k0;
     assert!(xs.start >= 1 && xs.end <= w && k1 <= n && len > 0);
-    assert!(s.cs.len() >= (xs.end + b - 1) * n && s.sad.len() >= xs.end * n && s.right_min.len() >= w + n);
+    assert!(s.cs.len() >= (xs.end + b - 1) * n && s.sad.len() >= xs.end * n + kernels::LANES && s.right_min.len() >= w + n + kernels::LANES);
     let (cs, sad, right_min) = (s.cs.as_ptr(), s.sad.as_mut_ptr(), s.right_min.as_mut_ptr());
     for x in xs {
         let row = std::slice::from_raw_parts_mut(sad.add(x * n + k0), len);
         let prev = std::slice::from_raw_parts(sad.add((x - 1) * n + k0), len);
         let add = std::slice::from_raw_parts(cs.add((x + b - 1) * n + k0), len);
         let sub = std::slice::from_raw_parts(cs.add((x - 1) * n + k0), len);
-        let right = std::slice::from_raw_parts_mut(right_min.add(w - 1 - x + k0), len);
-        let min = kernels::avx2::slide_row_min(row, prev, add, sub, right);
+        let (t0, t1) = (*s.tlo.get_unchecked(x) as usize, *s.thi.get_unchecked(x) as usize + 1);
+        let right = std::slice::from_raw_parts_mut(right_min.add(w - 1 - x + t0), t1 - t0);
         let tex = if p.texture_threshold > 0 { *s.tex_row.get_unchecked(x) } else { 0 };
-        *s.best.get_unchecked_mut(x) = decide::<true>(p, row, min, tex).map(|(best, frac)| ((k0 + best) as u16, frac));
+        let chosen = if (t0, t1) == (k0, k1) {
+            let min = kernels::avx2::slide_row_min(row, prev, add, sub, right);
+            decide::<true>(p, row, min, tex)
+        } else if t1 - t0 <= kernels::LANES {
+            // A narrow interval: slide the computed range, then search the 16 lanes from the
+            // interval's start in registers (lanes past its end are masked; the buffers have
+            // LANES entries of slack for them).
+            slide_row(row, prev, add, sub);
+            let lanes = std::slice::from_raw_parts(sad.add(x * n + t0), kernels::LANES);
+            let right = std::slice::from_raw_parts_mut(right_min.add(w - 1 - x + t0), kernels::LANES);
+            let (min, best, rival) = kernels::avx2::block16(lanes, 0, t1 - t0, right);
+            decide_at(p, &row[t0 - k0..t1 - k0], min, best, rival, tex)
+        } else {
+            slide_row(row, prev, add, sub);
+            let min = kernels::avx2::min_into_and_min(right, &row[t0 - k0..t1 - k0]);
+            decide::<true>(p, &row[t0 - k0..t1 - k0], min, tex)
+        };
+        *s.best.get_unchecked_mut(x) = chosen.map(|(best, frac)| ((t0 + best) as u16, frac));
     }
 }
 
@@ -787,14 +835,27 @@ fn decide<const AVX2: bool>(p: &ValidMatchParams, costs: &[u16], min: u16, tex: 
         true => unsafe { kernels::avx2::first_index_of(costs, min) },
         _ => first_index_of(costs, min),
     };
-    if p.uniqueness_ratio > 0 {
-        // Reject when a disparity not adjacent to the best costs nearly as little.
-        let thresh = min as u32 + min as u32 * p.uniqueness_ratio / 100;
-        let rival = match AVX2 {
+    let rival = if p.uniqueness_ratio == 0 {
+        u16::MAX
+    } else {
+        match AVX2 {
             #[cfg(target_arch = "x86_64")]
             true => unsafe { kernels::avx2::min_away_from(costs, best) },
             _ => min_u16_away_from(costs, best),
-        };
+        }
+    };
+    decide_at(p, costs, min, best, rival, tex)
+}
+
+/// [`decide`] with the best index and the best non-adjacent rival cost already known.
+#[inline(always)]
+fn decide_at(p: &ValidMatchParams, costs: &[u16], min: u16, best: usize, rival: u16, tex: u32) -> Option<(usize, f32)> {
+    if tex < p.texture_threshold {
+        return None;
+    }
+    if p.uniqueness_ratio > 0 {
+        // Reject when a disparity not adjacent to the best costs nearly as little.
+        let thresh = min as u32 + min as u32 * p.uniqueness_ratio / 100;
         if rival as u32 <= thresh {
             return None;
         }
@@ -878,8 +939,8 @@ fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &
                                 let kj = k + (xj - x as isize);
                                 ok |= xj >= 0
                                     && (xj as usize) < w
-                                    && s.ilo[xj as usize] as isize <= kj
-                                    && kj <= s.ihi[xj as usize] as isize
+                                    && s.tlo[xj as usize] as isize <= kj
+                                    && kj <= s.thi[xj as usize] as isize
                                     && s.sad[xj as usize * n + kj as usize] <= target;
                             }
                             j += 1;
