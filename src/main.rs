@@ -10,6 +10,7 @@ use serde_json::json;
 use spinscan::calib::StereoCalib;
 use spinscan::io::{self, LoadedImage};
 use spinscan::pipeline::{Pipeline, PipelineOptions};
+use spinscan::segment::ChromaKey;
 use spinscan::stereo::{DisparityMap, GrayView, MatchParams, StereoMatcher};
 
 /// Exit codes, so scripts and systemd can tell kinds of failure apart.
@@ -92,8 +93,10 @@ impl MatchArgs {
 
 #[derive(Args)]
 struct DisparityArgs {
+    /// Left image (PNG, JPEG or PNM; colour is converted to grey).
     #[arg(long)]
     left: PathBuf,
+    /// Right image, the same size.
     #[arg(long)]
     right: PathBuf,
     /// Calibration (file or folder); without it the pair is taken as rectified.
@@ -120,12 +123,16 @@ struct DisparityArgs {
 
 #[derive(Args)]
 struct RectifyArgs {
+    /// Calibration: calib.yaml, or a folder with it or with intrinsics.yml + extrinsics.yml.
     #[arg(long)]
     calib: PathBuf,
+    /// Raw left image.
     #[arg(long)]
     left: PathBuf,
+    /// Raw right image, the same size.
     #[arg(long)]
     right: PathBuf,
+    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
     alpha: f64,
     /// Output folder: left.png, right.png, rectification.json.
@@ -135,19 +142,26 @@ struct RectifyArgs {
 
 #[derive(Args)]
 struct PointsArgs {
+    /// Calibration: calib.yaml, or a folder with it or with intrinsics.yml + extrinsics.yml.
     #[arg(long)]
     calib: PathBuf,
+    /// Raw left image (colours the points).
     #[arg(long)]
     left: PathBuf,
+    /// Raw right image, the same size.
     #[arg(long)]
     right: PathBuf,
     /// `auto` (blue-screen chroma key) or a mask image in raw left coordinates (non-zero = object).
     #[arg(long)]
     mask: Option<String>,
+    #[command(flatten)]
+    key: KeyArgs,
+    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
     alpha: f64,
     #[command(flatten)]
     matching: MatchArgs,
+    /// Output point cloud: binary PLY, x y z float (mm, left raw camera frame), red green blue.
     #[arg(short = 'o', long = "out")]
     out: PathBuf,
     /// Also write the disparity (16-bit PNG).
@@ -156,6 +170,39 @@ struct PointsArgs {
     /// Also write the rectified mask used (PNG).
     #[arg(long)]
     mask_out: Option<PathBuf>,
+}
+
+/// Blue-screen segmentation knobs (used by `--mask auto`).
+#[derive(Args, Clone)]
+struct KeyArgs {
+    /// Background colour to key out, as R,G,B (0…255 each).
+    #[arg(long, value_parser = parse_rgb, default_value = "40,70,190")]
+    key_color: [u8; 3],
+    /// Largest chromaticity distance from the key colour still counted as background (0…1).
+    #[arg(long, default_value_t = ChromaKey::default().tolerance)]
+    key_tolerance: f32,
+    /// Image of the empty scene (raw left camera): pixels close to it are background too.
+    #[arg(long)]
+    plate: Option<PathBuf>,
+}
+
+impl KeyArgs {
+    fn chroma(&self) -> ChromaKey {
+        ChromaKey { key_rgb: self.key_color, tolerance: self.key_tolerance, ..ChromaKey::default() }
+    }
+}
+
+fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let err = || format!("`{s}` is not a colour: expected R,G,B with three numbers 0…255, e.g. 40,70,190");
+    if parts.len() != 3 {
+        return Err(err());
+    }
+    let mut rgb = [0u8; 3];
+    for (c, p) in rgb.iter_mut().zip(parts) {
+        *c = p.parse().map_err(|_| err())?;
+    }
+    Ok(rgb)
 }
 
 #[derive(Args)]
@@ -332,11 +379,29 @@ fn cmd_rectify(a: RectifyArgs) -> Result<(), Failure> {
 fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
     let (l, r) = load_pair(&a.left, &a.right)?;
     let calib = StereoCalib::load(&a.calib).map_err(input)?;
-    let opts = PipelineOptions { alpha: a.alpha, min_disparity: a.matching.min_disparity, matching: a.matching.params(), ..Default::default() };
+    let opts = PipelineOptions {
+        alpha: a.alpha,
+        min_disparity: a.matching.min_disparity,
+        matching: a.matching.params(),
+        chroma: a.key.chroma(),
+    };
     let mut pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts).map_err(input)?;
+    let plate = match &a.key.plate {
+        Some(p) => {
+            let img = io::load_image(p).map_err(input)?;
+            if (img.width, img.height) != (l.width, l.height) {
+                return Err(input(format!("plate {} is {}×{} but the images are {}×{}", p.display(), img.width, img.height, l.width, l.height)));
+            }
+            Some(img.rgb)
+        }
+        None => None,
+    };
+    if plate.is_some() && a.mask.as_deref() != Some("auto") {
+        return Err(input("--plate is used by the blue-screen segmentation: add --mask auto"));
+    }
     let view = match a.mask.as_deref() {
         None => pipe.process_rgb(&l.rgb, &r.rgb, false),
-        Some("auto") => pipe.process_rgb(&l.rgb, &r.rgb, true),
+        Some("auto") => pipe.process_rgb_with_plate(&l.rgb, &r.rgb, true, plate.as_deref()),
         Some(file) => {
             let m = io::load_image(Path::new(file)).map_err(input)?;
             if (m.width, m.height) != (l.width, l.height) {

@@ -104,9 +104,20 @@ impl Pipeline {
 
     /// Processes a raw RGB pair. `segment`: match only the chroma-keyed foreground.
     pub fn process_rgb(&mut self, left: &[u8], right: &[u8], segment: bool) -> Result<View, PipelineError> {
+        self.process_rgb_with_plate(left, right, segment, None)
+    }
+
+    /// As [`Pipeline::process_rgb`], with an optional background plate (raw left image of the
+    /// empty scene, RGB) that the segmentation also keys against.
+    pub fn process_rgb_with_plate(&mut self, left: &[u8], right: &[u8], segment: bool, plate: Option<&[u8]>) -> Result<View, PipelineError> {
         let (w, h) = self.size;
         let (lr, rr) = self.rectify_rgb(left, right);
-        let mask = if segment { Some(self.chroma.segment(&lr, w, h, None)?) } else { None };
+        let mask = if segment {
+            let plate = plate.map(|p| self.maps.0.remap::<3>(p, w as u32, h as u32));
+            Some(self.chroma.segment(&lr, w, h, plate.as_deref())?)
+        } else {
+            None
+        };
         self.process_rectified(lr, &rr, mask)
     }
 

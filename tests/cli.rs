@@ -144,3 +144,39 @@ fn demo_runs_on_the_simulated_lab() {
         assert!(dir.join(f).is_file(), "{f} missing");
     }
 }
+
+#[test]
+fn help_defaults_match_the_library_defaults() {
+    // The CLI repeats the chroma key's default colour as text; keep the two in step.
+    let o = spinscan(&["points", "--help"]);
+    let k = spinscan::segment::ChromaKey::default().key_rgb;
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(text.contains(&format!("[default: {},{},{}]", k[0], k[1], k[2])), "{text}");
+}
+
+#[test]
+fn points_with_auto_mask_and_plate_on_the_simulated_lab() {
+    let dir = support::temp_dir("cli-plate");
+    let (l, r) = sim_pair(&dir);
+    let scene = hw_sim::SceneConfig { width: 200, height: 150, focal_px: 220.0, ..Default::default() };
+    // A plate of the empty scene: the same render with the object far behind the screen.
+    let empty = hw_sim::SceneConfig { object_depth_mm: 1e6, ..scene }.render();
+    let plate = dir.join("plate.png");
+    spinscan::io::write_rgb_png(&plate, empty.width, empty.height, &empty.left_rgb).unwrap();
+    let (ply, mask) = (dir.join("p.ply"), dir.join("mask.png"));
+    let o = spinscan(&[
+        "points", "--calib", dir.join("calib.yaml").to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(),
+        "--mask", "auto", "--plate", plate.to_str().unwrap(), "--max-disparity", "48", "-o", ply.to_str().unwrap(),
+        "--mask-out", mask.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let m = spinscan::io::load_image(&mask).unwrap();
+    let fg = m.gray.iter().filter(|&&v| v > 0).count();
+    // The sphere (radius 70 mm at 450 mm, f = 220 px) covers about π·(220·70/450)² ≈ 3.7k px.
+    assert!((2500..5000).contains(&fg), "{fg} foreground pixels");
+    check_bad_input(
+        &["points", "--calib", dir.join("calib.yaml").to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(),
+          "--plate", plate.to_str().unwrap(), "-o", ply.to_str().unwrap()],
+        "--mask auto",
+    );
+}
