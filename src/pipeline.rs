@@ -135,8 +135,8 @@ impl Pipeline {
     pub fn match_gray(&mut self, left: &[u8], right: &[u8], intervals: &DisparityIntervals) -> Result<(DisparityMap, MatchStats, f64), PipelineError> {
         let (w, h) = self.size;
         let mut out = DisparityMap::new(w, h);
-        let lv = GrayView::new(w, h, left).ok_or(MatchError::SizeMismatch(w, h, left.len(), 1))?;
-        let rv = GrayView::new(w, h, right).ok_or(MatchError::SizeMismatch(w, h, right.len(), 1))?;
+        let lv = GrayView::new(w, h, left).ok_or(MatchError::Buffer(left.len(), w * h))?;
+        let rv = GrayView::new(w, h, right).ok_or(MatchError::Buffer(right.len(), w * h))?;
         let t0 = Instant::now();
         let stats = self.matcher.compute(lv, rv, intervals, &mut out)?;
         let ms = t0.elapsed().as_secs_f64() * 1e3;

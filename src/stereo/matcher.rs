@@ -18,8 +18,10 @@
 //!   recomputed from scratch (`block` terms) where it does not;
 //! - per pixel, the window cost `SAD(x, d) = Σ CS(x−r … x+r, d)` is slid from pixel `x−1` where
 //!   their intervals overlap, summed from scratch elsewhere.
-//! With narrow intervals that follow a smooth disparity field the from-scratch terms are the
-//! band edges only, so the work is proportional to the summed interval widths.
+//! Sums are computed over whole blocks of [`BLOCK`] disparities around each searched interval
+//! (clipped to the valid range), so that neighbours with slightly different narrow intervals
+//! share a range and slide; the work is proportional to the summed interval widths rounded up
+//! to blocks. Runs of pixels and columns sharing one range go through tight AVX2 loops.
 //!
 //! # The left–right check with left intervals only
 //! The right image gets no intervals of its own: the candidate set of a right pixel `x_r` is
@@ -192,6 +194,8 @@ pub enum MatchError {
     IntervalSize(usize, usize, usize, usize),
     #[error("images of {0}×{1} are too small for a {2}×{2} window")]
     TooSmall(usize, usize, u32),
+    #[error("image buffer holds {0} bytes, expected {1} (width × height)")]
+    Buffer(usize, usize),
 }
 
 /// Below this many disparities a from-scratch window sum runs per entry (scalar) instead of
