@@ -107,7 +107,8 @@ struct DisparityArgs {
     alpha: f64,
     #[command(flatten)]
     matching: MatchArgs,
-    /// Times the matcher K times and reports the median.
+    /// Times the matcher K times and reports the median as `match_ms`; with K > 1 an untimed
+    /// warm-up run comes first (as the peer script does for OpenCV).
     #[arg(long, default_value_t = 1)]
     repeat: u32,
     /// Disparity as 16-bit PNG (|d| × 256, 0 = none).
@@ -326,6 +327,10 @@ fn cmd_disparity(a: DisparityArgs) -> Result<(), Failure> {
     let mut disp = DisparityMap::new(w, h);
     let mut times = Vec::new();
     let mut stats = Default::default();
+    if a.repeat > 1 {
+        // One untimed warm-up (buffers, caches), as the peer script does for OpenCV.
+        matcher.compute(lv, rv, &intervals, &mut disp).map_err(input)?;
+    }
     for _ in 0..a.repeat {
         let t0 = Instant::now();
         stats = matcher.compute(lv, rv, &intervals, &mut disp).map_err(input)?;
