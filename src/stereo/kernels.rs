@@ -368,6 +368,117 @@ pub mod avx2 {
 
 }
 
+/// AVX-512BW versions of the run kernels: 32 costs (64 byte differences) per instruction.
+/// Callers must have checked that the CPU has AVX-512F and AVX-512BW.
+#[cfg(target_arch = "x86_64")]
+pub mod avx512 {
+    use std::arch::x86_64::*;
+
+    #[inline(always)]
+    unsafe fn load(p: *const u16) -> __m512i {
+        _mm512_loadu_si512(p as *const _)
+    }
+
+    /// Horizontal minimum of 32 lanes.
+    #[inline(always)]
+    unsafe fn hmin(v: __m512i) -> u16 {
+        let h = _mm256_min_epu16(_mm512_castsi512_si256(v), _mm512_extracti64x4_epi64::<1>(v));
+        let x = _mm_min_epu16(_mm256_castsi256_si128(h), _mm256_extracti128_si256::<1>(h));
+        _mm_extract_epi16::<0>(_mm_minpos_epu16(x)) as u16
+    }
+
+    /// As [`super::avx2::slide_column`], 64 disparities per step.
+    ///
+    /// # Safety
+    /// AVX-512BW must be available; `r_new` and `r_old` at least as long as `cs`.
+    #[inline(always)]
+    pub unsafe fn slide_column(cs: &mut [u16], l_new: u8, r_new: &[u8], l_old: u8, r_old: &[u8]) {
+        let len = cs.len();
+        assert!(r_new.len() >= len && r_old.len() >= len);
+        let (ln, lo) = (_mm512_set1_epi8(l_new as i8), _mm512_set1_epi8(l_old as i8));
+        let cp = cs.as_mut_ptr();
+        let mut c = 0;
+        while c + 64 <= len {
+            let rn = _mm512_loadu_si512(r_new.as_ptr().add(c) as *const _);
+            let ro = _mm512_loadu_si512(r_old.as_ptr().add(c) as *const _);
+            let dn = _mm512_sub_epi8(_mm512_max_epu8(rn, ln), _mm512_min_epu8(rn, ln));
+            let dold = _mm512_sub_epi8(_mm512_max_epu8(ro, lo), _mm512_min_epu8(ro, lo));
+            let (n0, n1) = (_mm512_cvtepu8_epi16(_mm512_castsi512_si256(dn)), _mm512_cvtepu8_epi16(_mm512_extracti64x4_epi64::<1>(dn)));
+            let (o0, o1) = (_mm512_cvtepu8_epi16(_mm512_castsi512_si256(dold)), _mm512_cvtepu8_epi16(_mm512_extracti64x4_epi64::<1>(dold)));
+            let p0 = cp.add(c);
+            let p1 = cp.add(c + 32);
+            _mm512_storeu_si512(p0 as *mut _, _mm512_sub_epi16(_mm512_add_epi16(load(p0), n0), o0));
+            _mm512_storeu_si512(p1 as *mut _, _mm512_sub_epi16(_mm512_add_epi16(load(p1), n1), o1));
+            c += 64;
+        }
+        super::avx2::slide_column(&mut cs[c..], l_new, &r_new[c..len], l_old, &r_old[c..len]);
+    }
+
+    /// As [`super::avx2::slide_row_min`], 32 costs per step.
+    ///
+    /// # Safety
+    /// AVX-512BW must be available; all slices as long as `row`.
+    #[inline(always)]
+    pub unsafe fn slide_row_min(row: &mut [u16], prev: &[u16], add: &[u16], sub: &[u16], right: &mut [u16]) -> u16 {
+        let len = row.len();
+        assert!(prev.len() == len && add.len() == len && sub.len() == len && right.len() == len);
+        let mut acc = _mm512_set1_epi16(-1);
+        let mut c = 0;
+        while c + 32 <= len {
+            let v = _mm512_sub_epi16(_mm512_add_epi16(load(prev.as_ptr().add(c)), load(add.as_ptr().add(c))), load(sub.as_ptr().add(c)));
+            _mm512_storeu_si512(row.as_mut_ptr().add(c) as *mut _, v);
+            let r = load(right.as_ptr().add(c));
+            _mm512_storeu_si512(right.as_mut_ptr().add(c) as *mut _, _mm512_min_epu16(r, v));
+            acc = _mm512_min_epu16(acc, v);
+            c += 32;
+        }
+        let tail = super::avx2::slide_row_min(&mut row[c..], &prev[c..], &add[c..], &sub[c..], &mut right[c..]);
+        hmin(acc).min(tail)
+    }
+
+    /// As [`super::avx2::first_index_of`], 32 lanes per step.
+    ///
+    /// # Safety
+    /// AVX-512BW must be available.
+    #[inline(always)]
+    pub unsafe fn first_index_of(v: &[u16], target: u16) -> usize {
+        let t = _mm512_set1_epi16(target as i16);
+        let mut c = 0;
+        while c + 32 <= v.len() {
+            let mask = _mm512_cmpeq_epi16_mask(load(v.as_ptr().add(c)), t);
+            if mask != 0 {
+                return c + mask.trailing_zeros() as usize;
+            }
+            c += 32;
+        }
+        c + super::avx2::first_index_of(&v[c..], target)
+    }
+
+    /// As [`super::avx2::min_away_from`], with the excluded lanes as a mask register.
+    ///
+    /// # Safety
+    /// AVX-512BW must be available.
+    #[inline(always)]
+    pub unsafe fn min_away_from(v: &[u16], around: usize) -> u16 {
+        let mut acc = _mm512_set1_epi16(-1);
+        let mut c = 0;
+        while c + 32 <= v.len() {
+            // Bits of around − 1 ..= around + 1 that fall in lanes c .. c + 32.
+            let shift = around as i64 + 1 - c as i64; // bit position of around − 1, plus 2
+            let near = if (0..34).contains(&shift) { ((0b111u64 << shift) >> 2) as u32 } else { 0 };
+            acc = _mm512_mask_min_epu16(acc, !near, acc, load(v.as_ptr().add(c)));
+            c += 32;
+        }
+        let mut m = hmin(acc);
+        for k in c..v.len() {
+            if k.abs_diff(around) > 1 {
+                m = m.min(v[k]);
+            }
+        }
+        m
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -449,6 +560,41 @@ mod tests {
                 let mut a: Vec<u16> = (0..len).map(|i| 1000 + i as u16).collect();
                 let mut b = a.clone();
                 avx2::slide_column(&mut a, 30, &rn, 200, &ro);
+                slide_column(&mut b, 30, &rn, 200, &ro);
+                assert_eq!(a, b);
+            }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx512_kernels_match_portable_ones() {
+        if !(std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512bw")) {
+            return; // nothing to compare on this CPU; the portable kernels are tested above
+        }
+        for len in 1..140usize {
+            let costs: Vec<u16> = (0..len).map(|i| ((i * 7919 + len) % 97) as u16).collect();
+            // SAFETY: AVX-512F/BW are available (checked above).
+            unsafe {
+                let m = min_u16(&costs);
+                assert_eq!(avx512::first_index_of(&costs, m), first_index_of(&costs, m));
+                assert_eq!(avx512::first_index_of(&costs, 1000), len);
+                for around in 0..len {
+                    assert_eq!(avx512::min_away_from(&costs, around), min_u16_away_from(&costs, around), "len {len} around {around}");
+                }
+                let (add, sub): (Vec<u16>, Vec<u16>) = (costs.iter().map(|c| c * 3).collect(), costs.iter().map(|c| c / 2).collect());
+                let mut row = vec![0u16; len];
+                let mut right = vec![60u16; len];
+                let got = avx512::slide_row_min(&mut row, &costs, &add, &sub, &mut right);
+                let want: Vec<u16> = (0..len).map(|i| costs[i] + add[i] - sub[i]).collect();
+                assert_eq!(row, want);
+                assert_eq!(got, *want.iter().min().unwrap());
+                assert!(right.iter().zip(&want).all(|(&r, &v)| r == v.min(60)));
+                let rn: Vec<u8> = (0..len).map(|i| (i * 37 % 251) as u8).collect();
+                let ro: Vec<u8> = (0..len).map(|i| (i * 91 % 241) as u8).collect();
+                let mut a: Vec<u16> = (0..len).map(|i| 1000 + i as u16).collect();
+                let mut b = a.clone();
+                avx512::slide_column(&mut a, 30, &rn, 200, &ro);
                 slide_column(&mut b, 30, &rn, 200, &ro);
                 assert_eq!(a, b);
             }
