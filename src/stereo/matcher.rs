@@ -759,7 +759,9 @@ fn select_row<const AVX2: bool, const AVX512: bool>(p: &ValidMatchParams, g: Geo
         // pixels repeat it — runs as one tight loop.
         let pure_slide = x > 0 && s.ilo[x - 1] <= lo && hi <= s.ihi[x - 1];
         #[cfg(target_arch = "x86_64")]
-        if AVX2 && pure_slide && p.lr_max_diff.is_some() {
+        // (The run splats onto the right row even when the left–right check is off: one
+        // vector `min` per 16 pairs, cheaper than leaving the fused loop.)
+        if AVX2 && pure_slide {
             let mut end = x + 1;
             while end < w && s.ilo[end] == lo && s.ihi[end] == hi {
                 end += 1;
