@@ -411,7 +411,9 @@ pub mod avx512 {
             _mm512_storeu_si512(p1 as *mut _, _mm512_sub_epi16(_mm512_add_epi16(load(p1), n1), o1));
             c += 64;
         }
-        super::avx2::slide_column(&mut cs[c..], l_new, &r_new[c..len], l_old, &r_old[c..len]);
+        if c < len {
+            super::avx2::slide_column(&mut cs[c..], l_new, &r_new[c..len], l_old, &r_old[c..len]);
+        }
     }
 
     /// As [`super::avx2::slide_row_min`], 32 costs per step.
@@ -432,8 +434,11 @@ pub mod avx512 {
             acc = _mm512_min_epu16(acc, v);
             c += 32;
         }
-        let tail = super::avx2::slide_row_min(&mut row[c..], &prev[c..], &add[c..], &sub[c..], &mut right[c..]);
-        hmin(acc).min(tail)
+        let m = hmin(acc);
+        if c == len {
+            return m;
+        }
+        m.min(super::avx2::slide_row_min(&mut row[c..], &prev[c..], &add[c..], &sub[c..], &mut right[c..]))
     }
 
     /// As [`super::avx2::first_index_of`], 32 lanes per step.
@@ -450,6 +455,9 @@ pub mod avx512 {
                 return c + mask.trailing_zeros() as usize;
             }
             c += 32;
+        }
+        if c == v.len() {
+            return c;
         }
         c + super::avx2::first_index_of(&v[c..], target)
     }
