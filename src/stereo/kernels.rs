@@ -52,60 +52,44 @@ pub fn add_absdiff(dst: &mut [u16], l: u8, r: &[u8]) {
     }
 }
 
+/// `dst[k] = f(dst[k], a[k], b[k])` in fixed chunks, then a scalar tail: the shape of every
+/// element-wise kernel below.
+#[inline(always)]
+fn zip3(dst: &mut [u16], a: &[u16], b: &[u16], f: impl Fn(u16, u16, u16) -> u16) {
+    let len = dst.len();
+    let (a, b) = (&a[..len], &b[..len]);
+    let split = len - len % LANES;
+    for c in (0..split).step_by(LANES) {
+        let d: &mut [u16; LANES] = (&mut dst[c..c + LANES]).try_into().unwrap();
+        let x: &[u16; LANES] = a[c..c + LANES].try_into().unwrap();
+        let y: &[u16; LANES] = b[c..c + LANES].try_into().unwrap();
+        for i in 0..LANES {
+            d[i] = f(d[i], x[i], y[i]);
+        }
+    }
+    for k in split..len {
+        dst[k] = f(dst[k], a[k], b[k]);
+    }
+}
+
 /// `sad[k] = prev[k] + add[k] − sub[k]`: the window slid one pixel right.
 #[inline(always)]
 pub fn slide_row(sad: &mut [u16], prev: &[u16], add: &[u16], sub: &[u16]) {
     let len = sad.len();
-    let (prev, add, sub) = (&prev[..len], &add[..len], &sub[..len]);
-    let split = len - len % LANES;
-    for c in (0..split).step_by(LANES) {
-        let d: &mut [u16; LANES] = (&mut sad[c..c + LANES]).try_into().unwrap();
-        let p: &[u16; LANES] = prev[c..c + LANES].try_into().unwrap();
-        let a: &[u16; LANES] = add[c..c + LANES].try_into().unwrap();
-        let s: &[u16; LANES] = sub[c..c + LANES].try_into().unwrap();
-        for i in 0..LANES {
-            d[i] = p[i].wrapping_add(a[i]).wrapping_sub(s[i]);
-        }
-    }
-    for k in split..len {
-        sad[k] = prev[k].wrapping_add(add[k]).wrapping_sub(sub[k]);
-    }
+    sad.copy_from_slice(&prev[..len]);
+    zip3(sad, add, sub, |p, a, s| p.wrapping_add(a).wrapping_sub(s));
 }
 
 /// `dst[k] += src[k]`.
 #[inline(always)]
 pub fn add_into(dst: &mut [u16], src: &[u16]) {
-    let len = dst.len();
-    let src = &src[..len];
-    let split = len - len % LANES;
-    for c in (0..split).step_by(LANES) {
-        let d: &mut [u16; LANES] = (&mut dst[c..c + LANES]).try_into().unwrap();
-        let s: &[u16; LANES] = src[c..c + LANES].try_into().unwrap();
-        for i in 0..LANES {
-            d[i] = d[i].wrapping_add(s[i]);
-        }
-    }
-    for k in split..len {
-        dst[k] = dst[k].wrapping_add(src[k]);
-    }
+    zip3(dst, src, src, |d, s, _| d.wrapping_add(s));
 }
 
 /// `dst[i] = min(dst[i], src[i])`.
 #[inline(always)]
 pub fn min_into(dst: &mut [u16], src: &[u16]) {
-    let len = dst.len();
-    let src = &src[..len];
-    let split = len - len % LANES;
-    for c in (0..split).step_by(LANES) {
-        let d: &mut [u16; LANES] = (&mut dst[c..c + LANES]).try_into().unwrap();
-        let s: &[u16; LANES] = src[c..c + LANES].try_into().unwrap();
-        for i in 0..LANES {
-            d[i] = d[i].min(s[i]);
-        }
-    }
-    for k in split..len {
-        dst[k] = dst[k].min(src[k]);
-    }
+    zip3(dst, src, src, |d, s, _| d.min(s));
 }
 
 /// Index of the first element equal to `target` (`v.len()` if none).
