@@ -397,9 +397,10 @@ fn match_stripe(
 ) -> MatchStats {
     #[cfg(target_arch = "x86_64")]
     {
-        // 512-bit registers pay off only over long runs of disparities; on short ones the
-        // AVX2 copy measured faster (Tsukuba, 16 disparities: ≈ 20 % slower with AVX-512).
-        let wide = g.n >= 64;
+        // 512-bit registers pay off only over long runs of disparities: measured here,
+        // AVX-512 was ≈ 5 % faster on Reindeer (128 disparities) but ≈ 10 % slower on Teddy
+        // (64) and ≈ 20 % slower on Tsukuba (16) than the AVX2 copy.
+        let wide = g.n >= 128;
         if wide && std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512bw") {
             // SAFETY: the CPU supports AVX-512F/BW (and so AVX2), checked just above.
             return unsafe { match_stripe_avx512(p, g, lpf, rrev, intervals, rows, out, s) };
