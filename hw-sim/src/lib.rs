@@ -127,12 +127,17 @@ impl SceneConfig {
         let (cx, cy) = self.principal_point();
         let dir = [(u - cx) / self.focal_px, (v - cy) / self.focal_px, 1.0];
         let centre = [0.0, 0.0, self.object_depth_mm];
-        if let Some((t, normal)) = self.intersect([origin_x, 0.0, 0.0], dir, centre) {
+        // The object turns with the table about the vertical axis through its centre: ray
+        // and shape meet in the object's own frame.
+        let (s, c) = self.table_deg.to_radians().sin_cos();
+        let obj_from_cam = |q: [f64; 3]| [c * q[0] + s * q[2], q[1], -s * q[0] + c * q[2]];
+        let cam_from_obj = |q: [f64; 3]| [c * q[0] - s * q[2], q[1], s * q[0] + c * q[2]];
+        let origin = obj_from_cam([origin_x - centre[0], -centre[1], -centre[2]]);
+        if let Some((t, normal_obj)) = self.intersect(origin, obj_from_cam(dir), [0.0; 3]) {
+            let normal = cam_from_obj(normal_obj);
             let p = [origin_x + t * dir[0], t * dir[1], t * dir[2]];
-            // Texture lives on the object: undo the table rotation about the vertical axis.
-            let (s, c) = self.table_deg.to_radians().sin_cos();
-            let q = [p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]];
-            let obj = [c * q[0] + s * q[2], q[1], -s * q[0] + c * q[2]];
+            // Texture lives on the object.
+            let obj = obj_from_cam([p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]]);
             let tex = 1.0 + self.texture_contrast * (fbm(obj, self.seed) - 0.5) * 1.6;
             // Light from above-left-front; y points down in camera coordinates.
             let l = normalize([-0.4, -0.6, -0.7]);
@@ -149,8 +154,8 @@ impl SceneConfig {
         ([40.0 * shade, 70.0 * shade, 190.0 * shade], None)
     }
 
-    /// Ray–object intersection: distance along `dir` (z component 1, so it is the depth
-    /// travelled) and the outward unit normal.
+    /// Ray–object intersection in the object's frame (shape centred at `centre`): the ray
+    /// parameter along `dir` and the outward unit normal.
     fn intersect(&self, o: [f64; 3], dir: [f64; 3], centre: [f64; 3]) -> Option<(f64, [f64; 3])> {
         let semi = match self.shape {
             Shape::Sphere { radius_mm } => [radius_mm; 3],
@@ -261,6 +266,15 @@ mod tests {
         let expect = cfg.focal_px * cfg.baseline_mm / 380.0;
         assert!((d as f64 - expect).abs() < 0.05, "{d} vs {expect}");
         assert!(pair.gt_disparity[0].is_nan(), "corners see the screen");
+    }
+
+    #[test]
+    fn the_object_turns_with_the_table() {
+        // An egg wider along x than z: a quarter turn shows its narrow side.
+        let egg = SceneConfig { shape: Shape::Ellipsoid { semi_axes_mm: [80.0, 60.0, 40.0] }, ..small() };
+        let width = |cfg: SceneConfig| cfg.render().gt_disparity[60 * 160..61 * 160].iter().filter(|d| d.is_finite()).count();
+        let (front, side) = (width(egg.clone()), width(SceneConfig { table_deg: 90.0, ..egg }));
+        assert!(front as f64 > 1.5 * side as f64, "{front} vs {side} pixels across");
     }
 
     #[test]
