@@ -214,10 +214,23 @@ struct Geometry {
     w: usize,
     h: usize,
     r: usize,
-    /// Padded width of the prefiltered rows (`w + 2r`).
+    /// Padded width of the prefiltered left rows (`w + 2r`).
     wp: usize,
     n: usize,
     dmin: i32,
+    /// Replicated padding of the prefiltered right rows on the left and right: wide enough
+    /// for every disparity at every column, so that window sums may be computed over whole
+    /// blocks even where the right pixel falls outside the image (those pairs are never
+    /// searched).
+    rpad_left: usize,
+    rpad_right: usize,
+}
+
+impl Geometry {
+    /// Width of a padded right row.
+    fn wr(&self) -> usize {
+        self.w + self.rpad_left + self.rpad_right
+    }
 }
 
 /// Per-thread buffers, grown to fit and reused across frames.
@@ -297,13 +310,23 @@ impl StereoMatcher {
             return Err(MatchError::TooSmall(w, h, self.params.block));
         }
         let r = self.params.radius();
-        let geo = Geometry { w, h, r, wp: w + 2 * r, n: self.params.num_disparities as usize, dmin: self.params.min_disparity };
+        let (dmin, dmax) = (self.params.min_disparity, self.params.max_disparity());
+        let geo = Geometry {
+            w,
+            h,
+            r,
+            wp: w + 2 * r,
+            n: self.params.num_disparities as usize,
+            dmin,
+            rpad_left: r + dmax.max(0) as usize,
+            rpad_right: r + (-dmin).max(0) as usize,
+        };
         if out.width != w || out.height != h {
             *out = DisparityMap::new(w, h);
         }
 
-        prefilter_xsobel(left, self.params.prefilter_cap, r, false, &mut self.left_pf);
-        prefilter_xsobel(right, self.params.prefilter_cap, r, true, &mut self.right_pf_rev);
+        prefilter_xsobel(left, self.params.prefilter_cap, (r, r), false, &mut self.left_pf);
+        prefilter_xsobel(right, self.params.prefilter_cap, (geo.rpad_left, geo.rpad_right), true, &mut self.right_pf_rev);
 
         let threads = self.params.thread_count().min(h).max(1);
         self.stripes.resize_with(threads, StripeScratch::default);
@@ -344,12 +367,12 @@ impl StereoMatcher {
     }
 }
 
-/// OpenCV BM's x-Sobel prefilter, clipped to ±cap and offset by cap, written with `r` columns
-/// of replicated padding on each side; `reversed` stores each padded row back to front so
-/// that increasing disparity walks forward in memory.
-fn prefilter_xsobel(img: GrayView, cap: u8, r: usize, reversed: bool, out: &mut Vec<u8>) {
+/// OpenCV BM's x-Sobel prefilter, clipped to ±cap and offset by cap, written with
+/// `pad = (left, right)` columns of replicated padding; `reversed` stores each padded row back
+/// to front so that increasing disparity walks forward in memory.
+fn prefilter_xsobel(img: GrayView, cap: u8, pad: (usize, usize), reversed: bool, out: &mut Vec<u8>) {
     let (w, h) = (img.width, img.height);
-    let wp = w + 2 * r;
+    let (r, wp) = (pad.0, w + pad.0 + pad.1);
     out.clear();
     out.resize(wp * h, 0);
     let cap_i = cap as i16;
@@ -521,8 +544,9 @@ fn row_intervals(g: Geometry, iv: &DisparityIntervals, y: usize, tlo: &mut [i32]
         if dlo <= dhi && a.max(kmin) <= b.min(kmax) {
             (lo, hi) = (a.max(kmin), b.min(kmax));
             // Whole blocks, so that neighbours with slightly different intervals share one
-            // range and slide instead of recomputing.
-            (clo, chi) = ((lo - lo.rem_euclid(block)).max(kmin), (hi - hi.rem_euclid(block) + block - 1).min(kmax));
+            // range and slide instead of recomputing; not clipped to the image (the right
+            // rows are padded for that), so border pixels share their neighbours' blocks.
+            (clo, chi) = (lo - lo.rem_euclid(block), (hi - hi.rem_euclid(block) + block - 1).min(n as i32 - 1));
             searched += 1;
             evaluated += (hi - lo + 1) as u64;
         }
@@ -592,9 +616,9 @@ fn sliding_extreme(v: &[i32], b: usize, prefix: &mut [i32], suffix: &mut [i32], 
 /// Start, in the reversed right row, of disparity index 0 for padded column `xp`.
 #[inline(always)]
 fn right_start(g: Geometry, xp: usize) -> isize {
-    // Right sample of (x' = xp − r, d = dmin + k) is padded column xp − dmin − k, stored at
-    // wp − 1 − (xp − dmin − k) in the reversed row.
-    g.wp as isize - 1 - xp as isize + g.dmin as isize
+    // Right sample of (x' = xp − r, d = dmin + k) is padded column x' − d + rpad_left, stored
+    // at wr − 1 − (that) in the reversed row.
+    g.wr() as isize - 1 - (xp as isize - g.r as isize - g.dmin as isize + g.rpad_left as isize)
 }
 
 /// Slides the vertical window sums down to row `y` over each column's needed band.
@@ -605,8 +629,9 @@ fn update_column_sums<const AVX2: bool, const AVX512: bool>(g: Geometry, lpf: &[
     let y_old = clamp_row(y as isize - r as isize - 1, h);
     let l_new = &lpf[y_new * wp..][..wp];
     let l_old = &lpf[y_old * wp..][..wp];
-    let r_new = &rrev[y_new * wp..][..wp];
-    let r_old = &rrev[y_old * wp..][..wp];
+    let wr = g.wr();
+    let r_new = &rrev[y_new * wr..][..wr];
+    let r_old = &rrev[y_old * wr..][..wr];
     let mut xp = 0;
     while xp < wp {
         let (a, b) = (s.need_lo[xp], s.need_hi[xp]);
@@ -673,7 +698,7 @@ unsafe fn slide_columns_avx2<const AVX512: bool>(g: Geometry, cs: &mut [u16], ne
     assert!(xps.end <= wp && k1 <= n && cs.len() >= wp * n);
     for xp in xps {
         let start = right_start(g, xp) + k0 as isize;
-        assert!(start >= 0 && start as usize + len <= wp);
+        assert!(start >= 0 && start as usize + len <= g.wr());
         let dst = std::slice::from_raw_parts_mut(cs.as_mut_ptr().add(xp * n + k0), len);
         let rn = new.1.get_unchecked(start as usize..start as usize + len);
         let ro = old.1.get_unchecked(start as usize..start as usize + len);
@@ -697,8 +722,8 @@ fn fresh_column(g: Geometry, lpf: &[u8], rrev: &[u8], y: usize, xp: usize, j0: i
         for (i, c) in dst.iter_mut().enumerate() {
             let mut acc = 0u16;
             for dy in -(r as isize)..=r as isize {
-                let row = clamp_row(y as isize + dy, h) * wp;
-                acc += absdiff(lpf[row + xp], rrev[row + start + i]);
+                let yy = clamp_row(y as isize + dy, h);
+                acc += absdiff(lpf[yy * wp + xp], rrev[yy * g.wr() + start + i]);
             }
             *c = acc;
         }
@@ -707,7 +732,7 @@ fn fresh_column(g: Geometry, lpf: &[u8], rrev: &[u8], y: usize, xp: usize, j0: i
     dst.fill(0);
     for dy in -(r as isize)..=r as isize {
         let yy = clamp_row(y as isize + dy, h);
-        add_absdiff(dst, lpf[yy * wp + xp], &rrev[yy * wp + start..]);
+        add_absdiff(dst, lpf[yy * wp + xp], &rrev[yy * g.wr() + start..]);
     }
 }
 
