@@ -283,16 +283,11 @@ pub mod avx2 {
         let mut acc = _mm256_set1_epi16(-1);
         let mut c = 0;
         while c + 16 <= v.len() {
-            let x = load(v.as_ptr().add(c));
-            // Only the (at most two) chunks that hold around ± 1 need the index mask.
-            if c <= around + 1 && around <= c + 16 {
-                let idx = _mm256_add_epi16(_mm256_set1_epi16(c as i16), iota);
-                let d = _mm256_sub_epi16(idx, first);
-                let near = _mm256_cmpeq_epi16(_mm256_min_epu16(d, two), d);
-                acc = _mm256_min_epu16(acc, _mm256_or_si256(x, near));
-            } else {
-                acc = _mm256_min_epu16(acc, x);
-            }
+            // Every chunk is masked (no branch on where `around` lies: it would mispredict).
+            let idx = _mm256_add_epi16(_mm256_set1_epi16(c as i16), iota);
+            let d = _mm256_sub_epi16(idx, first);
+            let near = _mm256_cmpeq_epi16(_mm256_min_epu16(d, two), d);
+            acc = _mm256_min_epu16(acc, _mm256_or_si256(load(v.as_ptr().add(c)), near));
             c += 16;
         }
         let mut m = hmin(acc);
@@ -332,22 +327,27 @@ pub mod avx2 {
         super::slide_column(&mut cs[c..], l_new, &r_new[c..len], l_old, &r_old[c..len]);
     }
 
-    /// Index of the first element equal to `target` (`v.len()` if none).
+    /// Index of the first element equal to `target` (`v.len()` if none). No data-dependent
+    /// branch: every chunk is compared and the first hit is kept with a conditional move
+    /// (the chunk that holds the winner is unpredictable, so an early exit mispredicts).
     ///
     /// # Safety
     /// AVX2 must be available.
     #[inline(always)]
     pub unsafe fn first_index_of(v: &[u16], target: u16) -> usize {
         let t = _mm256_set1_epi16(target as i16);
+        let mut first = usize::MAX;
         let mut c = 0;
         while c + 16 <= v.len() {
             let mask = _mm256_movemask_epi8(_mm256_cmpeq_epi16(load(v.as_ptr().add(c)), t)) as u32;
-            if mask != 0 {
-                return c + mask.trailing_zeros() as usize / 2;
-            }
+            let hit = c + mask.trailing_zeros() as usize / 2;
+            first = if mask != 0 { first.min(hit) } else { first };
             c += 16;
         }
-        c + v[c..].iter().position(|&x| x == target).unwrap_or(v.len() - c)
+        for (k, &x) in v.iter().enumerate().skip(c) {
+            first = if x == target { first.min(k) } else { first };
+        }
+        first.min(v.len())
     }
 
 }
