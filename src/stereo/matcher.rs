@@ -233,11 +233,49 @@ impl Geometry {
     }
 }
 
+/// A `u16` buffer whose contents start on a 64-byte boundary, so that the column and window
+/// sums (rows of 16-lane multiples) are read with aligned vector loads: a load that splits
+/// a cache line costs extra, and a plain `Vec` gives no alignment guarantee beyond 16 bytes.
+#[derive(Default)]
+struct AlignedBuf {
+    buf: Vec<u16>,
+    start: usize,
+    len: usize,
+}
+
+impl AlignedBuf {
+    const ALIGN: usize = 64;
+
+    /// Makes the buffer `len` long. Contents are not kept: callers overwrite before reading.
+    fn resize(&mut self, len: usize, value: u16) {
+        let slack = Self::ALIGN / std::mem::size_of::<u16>();
+        if self.buf.len() < len + slack {
+            self.buf = vec![value; len + slack];
+        }
+        let misalign = self.buf.as_ptr() as usize % Self::ALIGN;
+        self.start = if misalign == 0 { 0 } else { (Self::ALIGN - misalign) / std::mem::size_of::<u16>() };
+        self.len = len;
+    }
+}
+
+impl std::ops::Deref for AlignedBuf {
+    type Target = [u16];
+    fn deref(&self) -> &[u16] {
+        &self.buf[self.start..self.start + self.len]
+    }
+}
+
+impl std::ops::DerefMut for AlignedBuf {
+    fn deref_mut(&mut self) -> &mut [u16] {
+        &mut self.buf[self.start..self.start + self.len]
+    }
+}
+
 /// Per-thread buffers, grown to fit and reused across frames.
 #[derive(Default)]
 struct StripeScratch {
     /// Vertical window sums, `wp × n`, column-major in disparity.
-    cs: Vec<u16>,
+    cs: AlignedBuf,
     /// Band of valid entries per column (empty when lo > hi).
     band_lo: Vec<i32>,
     band_hi: Vec<i32>,
@@ -250,7 +288,7 @@ struct StripeScratch {
     ilo: Vec<i32>,
     ihi: Vec<i32>,
     /// Window sums of the current row, `w × n`.
-    sad: Vec<u16>,
+    sad: AlignedBuf,
     /// Cheapest evaluated cost of each right pixel, stored reversed: entry `w − 1 − x + k`
     /// is right pixel `x − dmin − k`, so a left pixel's run of disparities is contiguous.
     right_min: Vec<u16>,
@@ -798,7 +836,7 @@ fn select_row<const AVX2: bool, const AVX512: bool>(p: &ValidMatchParams, g: Geo
             x = end;
             continue;
         }
-        window_sums(g, &s.cs, &mut s.sad, &s.ilo, &s.ihi, x);
+        window_sums(g, &s.cs, &mut s.sad[..], &s.ilo, &s.ihi, x);
         let (k0, k1) = (s.tlo[x] as usize, s.thi[x] as usize + 1);
         let tex = if p.texture_threshold > 0 { s.tex_row[x] } else { 0 };
         #[cfg(target_arch = "x86_64")]
