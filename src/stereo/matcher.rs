@@ -18,6 +18,7 @@
 //!   recomputed from scratch (`block` terms) where it does not;
 //! - per pixel, the window cost `SAD(x, d) = Σ CS(x−r … x+r, d)` is slid from pixel `x−1` where
 //!   their intervals overlap, summed from scratch elsewhere.
+//!
 //! Sums are computed over whole blocks of [`BLOCK`] disparities around each searched interval
 //! (clipped to the valid range), so that neighbours with slightly different narrow intervals
 //! share a range and slide; the work is proportional to the summed interval widths rounded up
