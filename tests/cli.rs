@@ -180,3 +180,26 @@ fn points_with_auto_mask_and_plate_on_the_simulated_lab() {
         "--mask auto",
     );
 }
+
+#[test]
+fn points_with_a_mask_file_match_only_inside_it() {
+    let dir = support::temp_dir("cli-maskfile");
+    let (l, r) = sim_pair(&dir);
+    let scene = hw_sim::SceneConfig { width: 200, height: 150, focal_px: 220.0, ..Default::default() };
+    let pair = scene.render();
+    // The left half of the object only.
+    let mask: Vec<u8> = pair.gt_disparity.iter().enumerate().map(|(i, d)| if d.is_finite() && i % 200 < 100 { 255 } else { 0 }).collect();
+    let inside = mask.iter().filter(|&&m| m > 0).count();
+    let mask_path = dir.join("mask.png");
+    spinscan::io::write_gray_png(&mask_path, 200, 150, &mask).unwrap();
+    let ply = dir.join("p.ply");
+    let o = spinscan(&[
+        "points", "--calib", dir.join("calib.yaml").to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(),
+        "--mask", mask_path.to_str().unwrap(), "--max-disparity", "48", "-o", ply.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let cloud = spinscan::io::ply::read_ply(&ply).unwrap().cloud;
+    assert!(cloud.len() > inside / 2 && cloud.len() <= inside, "{} points for {inside} mask pixels", cloud.len());
+    // Left half of the image: x < 0 in the left camera frame.
+    assert!(cloud.points.iter().all(|p| p[0] < 5.0), "a point right of the mask");
+}
