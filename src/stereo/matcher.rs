@@ -898,7 +898,7 @@ unsafe fn select_run_avx2<const AVX512: bool>(p: &ValidMatchParams, g: Geometry,
         let (t0, t1) = (*s.tlo.get_unchecked(x) as usize, *s.thi.get_unchecked(x) as usize + 1);
         let right = std::slice::from_raw_parts_mut(right_min.add(w - 1 - x + t0), t1 - t0);
         let tex = if p.texture_threshold > 0 { *s.tex_row.get_unchecked(x) } else { 0 };
-        let chosen = if (t0, t1) == (k0, k1) {
+        let chosen = if (t0, t1) == (k0, k1) && t1 - t0 > kernels::LANES {
             if AVX512 {
                 let min = kernels::avx512::slide_row_min(row, prev, add, sub, right);
                 decide_avx512(p, row, min, tex)
@@ -907,9 +907,9 @@ unsafe fn select_run_avx2<const AVX512: bool>(p: &ValidMatchParams, g: Geometry,
                 decide::<true>(p, row, min, tex)
             }
         } else if t1 - t0 <= kernels::LANES {
-            // A narrow interval: slide the computed range, then search the 16 lanes from the
-            // interval's start in registers (lanes past its end are masked; the buffers have
-            // LANES entries of slack for them).
+            // At most 16 searched disparities: slide the computed range, then search the 16
+            // lanes from the interval's start in registers (lanes past its end are masked; the
+            // buffers have LANES entries of slack for them).
             slide_row(row, prev, add, sub);
             let lanes = std::slice::from_raw_parts(sad.add(x * n + t0), kernels::LANES);
             let right = std::slice::from_raw_parts_mut(right_min.add(w - 1 - x + t0), kernels::LANES);
