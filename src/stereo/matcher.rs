@@ -548,7 +548,8 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         std::mem::swap(&mut s.ilo, &mut s.prev_ilo);
         std::mem::swap(&mut s.ihi, &mut s.prev_ihi);
         row_intervals(g, intervals, y, &mut s.tlo, &mut s.thi, &mut s.ilo, &mut s.ihi, &mut stats);
-        // Full-range rows repeat their (clipped) intervals: their bands are still valid.
+        // A row whose computed ranges repeat the previous row's (always so with the full
+        // range) keeps the previous row's column bands.
         if first_row || s.ilo != s.prev_ilo || s.ihi != s.prev_ihi {
             column_bands(g, &s.ilo, &s.ihi, &mut s.need_lo, &mut s.need_hi, &mut s.band_tmp);
         }
@@ -821,11 +822,11 @@ fn select_row<const AVX2: bool, const AVX512: bool>(p: &ValidMatchParams, g: Geo
             continue;
         }
         // The common case — this range lies inside the previous pixel's, and the next
-        // pixels repeat it — runs as one tight loop.
+        // pixels repeat it — runs as one tight loop. (The run splats onto the right row even
+        // when the left–right check is off: one vector `min` per 16 pairs, cheaper than
+        // leaving the fused loop.)
         let pure_slide = x > 0 && s.ilo[x - 1] <= lo && hi <= s.ihi[x - 1];
         #[cfg(target_arch = "x86_64")]
-        // (The run splats onto the right row even when the left–right check is off: one
-        // vector `min` per 16 pairs, cheaper than leaving the fused loop.)
         if AVX2 && pure_slide {
             let mut end = x + 1;
             while end < w && s.ilo[end] == lo && s.ihi[end] == hi {
