@@ -1185,6 +1185,60 @@ mod tests {
         assert!(good * 10 > h * (w - 32) * 9, "{good}");
     }
 
+    /// Runs one stripe through the chosen code path, as `compute` does for a single thread.
+    fn run_path<const AVX2: bool, const AVX512: bool>(m: &mut StereoMatcher, l: GrayView, r: GrayView, iv: &DisparityIntervals) -> Vec<f32> {
+        let mut out = DisparityMap::new(l.width, l.height);
+        m.compute(l, r, iv, &mut out).unwrap(); // fills the prefiltered rows
+        let p = m.params.clone();
+        let geo = Geometry {
+            w: l.width,
+            h: l.height,
+            r: p.radius(),
+            wp: l.width + 2 * p.radius(),
+            n: p.num_disparities as usize,
+            dmin: p.min_disparity,
+            rpad_left: p.radius() + p.max_disparity().max(0) as usize,
+            rpad_right: p.radius() + (-p.min_disparity).max(0) as usize,
+        };
+        let mut scratch = StripeScratch::default();
+        let mut vals = vec![0f32; l.width * l.height];
+        match_stripe_impl::<AVX2, AVX512>(&p, geo, &m.left_pf, &m.right_pf_rev, iv, 0..l.height, &mut vals, &mut scratch);
+        vals
+    }
+
+    #[test]
+    fn portable_and_simd_paths_agree() {
+        // Full range and narrow, shifting intervals; 16, 40 and 128 disparities.
+        for n in [16u32, 40, 128] {
+            let (w, h) = (160, 40);
+            let (l, r) = shifted_pair(w, h, |x, y| 3 + (x + y) / 20);
+            let (lv, rv) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap());
+            let mut m = StereoMatcher::new(MatchParams { num_disparities: n, threads: 1, speckle_window: 0, ..Default::default() }.validate().unwrap());
+            let full = m.full_intervals(w, h, None);
+            let mut narrow = DisparityIntervals::full(w, h, 0, n as i32 - 1);
+            for y in 0..h {
+                for x in 0..w {
+                    let d = 3 + ((x + y) / 20) as i32;
+                    narrow.set(x, y, (x % 7 != 0).then_some((d - 2 + (x % 3) as i32, d + 2)));
+                }
+            }
+            for iv in [&full, &narrow] {
+                let portable = run_path::<false, false>(&mut m, lv, rv, iv);
+                #[cfg(target_arch = "x86_64")]
+                {
+                    let same = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| x == y || (x.is_nan() && y.is_nan()));
+                    if std::is_x86_feature_detected!("avx2") {
+                        assert!(same(&portable, &run_path::<true, false>(&mut m, lv, rv, iv)), "AVX2 differs, n = {n}");
+                    }
+                    if std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512bw") {
+                        assert!(same(&portable, &run_path::<true, true>(&mut m, lv, rv, iv)), "AVX-512 differs, n = {n}");
+                    }
+                }
+                assert!(portable.iter().filter(|v| v.is_finite()).count() > w * h / 2, "n = {n}");
+            }
+        }
+    }
+
     #[test]
     fn size_mismatch_is_an_error() {
         let a = vec![0u8; 20 * 10];
