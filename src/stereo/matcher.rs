@@ -228,6 +228,22 @@ struct Geometry {
 }
 
 impl Geometry {
+    /// The sizes of matching a `w × h` pair with these parameters.
+    fn new(p: &ValidMatchParams, w: usize, h: usize) -> Geometry {
+        let r = p.radius();
+        let (dmin, dmax) = (p.min_disparity, p.max_disparity());
+        Geometry {
+            w,
+            h,
+            r,
+            wp: w + 2 * r,
+            n: p.num_disparities as usize,
+            dmin,
+            rpad_left: r + dmax.max(0) as usize,
+            rpad_right: r + (-dmin).max(0) as usize,
+        }
+    }
+
     /// Width of a padded right row.
     fn wr(&self) -> usize {
         self.w + self.rpad_left + self.rpad_right
@@ -270,6 +286,17 @@ impl std::ops::DerefMut for AlignedBuf {
     fn deref_mut(&mut self) -> &mut [u16] {
         &mut self.buf[self.start..self.start + self.len]
     }
+}
+
+/// What every stripe of one call reads: parameters, sizes, the prefiltered rows (left
+/// padded, right padded and reversed) and the search intervals.
+#[derive(Clone, Copy)]
+struct StripeInput<'a> {
+    p: &'a ValidMatchParams,
+    g: Geometry,
+    lpf: &'a [u8],
+    rrev: &'a [u8],
+    intervals: &'a DisparityIntervals,
 }
 
 /// Per-thread buffers, grown to fit and reused across frames.
@@ -348,30 +375,19 @@ impl StereoMatcher {
         if w < 2 || h < 1 {
             return Err(MatchError::TooSmall(w, h, self.params.block));
         }
-        let r = self.params.radius();
-        let (dmin, dmax) = (self.params.min_disparity, self.params.max_disparity());
-        let geo = Geometry {
-            w,
-            h,
-            r,
-            wp: w + 2 * r,
-            n: self.params.num_disparities as usize,
-            dmin,
-            rpad_left: r + dmax.max(0) as usize,
-            rpad_right: r + (-dmin).max(0) as usize,
-        };
+        let geo = Geometry::new(&self.params, w, h);
         if out.width != w || out.height != h {
             *out = DisparityMap::new(w, h);
         }
 
-        prefilter_xsobel(left, self.params.prefilter_cap, (r, r), false, &mut self.left_pf);
+        prefilter_xsobel(left, self.params.prefilter_cap, (geo.r, geo.r), false, &mut self.left_pf);
         prefilter_xsobel(right, self.params.prefilter_cap, (geo.rpad_left, geo.rpad_right), true, &mut self.right_pf_rev);
 
         let threads = self.params.thread_count().min(h).max(1);
         self.stripes.resize_with(threads, StripeScratch::default);
         let rows_per = h.div_ceil(threads);
         let params = &self.params;
-        let (lpf, rrev) = (&self.left_pf[..], &self.right_pf_rev[..]);
+        let input = StripeInput { p: params, g: geo, lpf: &self.left_pf, rrev: &self.right_pf_rev, intervals };
         let mut totals = MatchStats::default();
         let out_chunks = out.values_mut().chunks_mut(rows_per * w);
         let stats: Vec<MatchStats> = std::thread::scope(|scope| {
@@ -379,7 +395,7 @@ impl StereoMatcher {
             let mut first = None;
             for (i, (chunk, scratch)) in out_chunks.zip(self.stripes.iter_mut()).enumerate() {
                 let rows = i * rows_per..((i + 1) * rows_per).min(h);
-                let job = move || match_stripe(params, geo, lpf, rrev, intervals, rows, chunk, scratch);
+                let job = move || match_stripe(input, rows, chunk, scratch);
                 if i == 0 {
                     first = Some(job);
                 } else {
@@ -446,13 +462,8 @@ fn clamp_row(y: isize, h: usize) -> usize {
     y.clamp(0, h as isize - 1) as usize
 }
 
-#[allow(clippy::too_many_arguments)]
 fn match_stripe(
-    p: &ValidMatchParams,
-    g: Geometry,
-    lpf: &[u8],
-    rrev: &[u8],
-    intervals: &DisparityIntervals,
+    input: StripeInput,
     rows: Range<usize>,
     out: &mut [f32],
     s: &mut StripeScratch,
@@ -462,65 +473,51 @@ fn match_stripe(
         // 512-bit registers pay off only over long runs of disparities: measured here,
         // AVX-512 was ≈ 5 % faster on Reindeer (128 disparities) but ≈ 10 % slower on Teddy
         // (64) and ≈ 20 % slower on Tsukuba (16) than the AVX2 copy.
-        let wide = g.n >= 128;
+        let wide = input.g.n >= 128;
         if wide && std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512bw") {
             // SAFETY: the CPU supports AVX-512F/BW (and so AVX2), checked just above.
-            return unsafe { match_stripe_avx512(p, g, lpf, rrev, intervals, rows, out, s) };
+            return unsafe { match_stripe_avx512(input, rows, out, s) };
         }
         if std::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU supports AVX2, checked just above.
-            return unsafe { match_stripe_avx2(p, g, lpf, rrev, intervals, rows, out, s) };
+            return unsafe { match_stripe_avx2(input, rows, out, s) };
         }
     }
-    match_stripe_impl::<false, false>(p, g, lpf, rrev, intervals, rows, out, s)
+    match_stripe_impl::<false, false>(input, rows, out, s)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-#[allow(clippy::too_many_arguments)]
 unsafe fn match_stripe_avx2(
-    p: &ValidMatchParams,
-    g: Geometry,
-    lpf: &[u8],
-    rrev: &[u8],
-    intervals: &DisparityIntervals,
+    input: StripeInput,
     rows: Range<usize>,
     out: &mut [f32],
     s: &mut StripeScratch,
 ) -> MatchStats {
-    match_stripe_impl::<true, false>(p, g, lpf, rrev, intervals, rows, out, s)
+    match_stripe_impl::<true, false>(input, rows, out, s)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,avx512f,avx512bw")]
-#[allow(clippy::too_many_arguments)]
 unsafe fn match_stripe_avx512(
-    p: &ValidMatchParams,
-    g: Geometry,
-    lpf: &[u8],
-    rrev: &[u8],
-    intervals: &DisparityIntervals,
+    input: StripeInput,
     rows: Range<usize>,
     out: &mut [f32],
     s: &mut StripeScratch,
 ) -> MatchStats {
-    match_stripe_impl::<true, true>(p, g, lpf, rrev, intervals, rows, out, s)
+    match_stripe_impl::<true, true>(input, rows, out, s)
 }
 
 /// The whole per-stripe pipeline; inlined into each SIMD-level wrapper so the compiler
 /// vectorises the slice loops for that level.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
-    p: &ValidMatchParams,
-    g: Geometry,
-    lpf: &[u8],
-    rrev: &[u8],
-    intervals: &DisparityIntervals,
+    input: StripeInput,
     rows: Range<usize>,
     out: &mut [f32],
     s: &mut StripeScratch,
 ) -> MatchStats {
+    let StripeInput { p, g, lpf, rrev, intervals } = input;
     let Geometry { w, n, wp, .. } = g;
     s.cs.resize(wp * n, 0);
     for v in [&mut s.band_lo, &mut s.need_lo] {
@@ -1190,19 +1187,11 @@ mod tests {
         let mut out = DisparityMap::new(l.width, l.height);
         m.compute(l, r, iv, &mut out).unwrap(); // fills the prefiltered rows
         let p = m.params.clone();
-        let geo = Geometry {
-            w: l.width,
-            h: l.height,
-            r: p.radius(),
-            wp: l.width + 2 * p.radius(),
-            n: p.num_disparities as usize,
-            dmin: p.min_disparity,
-            rpad_left: p.radius() + p.max_disparity().max(0) as usize,
-            rpad_right: p.radius() + (-p.min_disparity).max(0) as usize,
-        };
+        let geo = Geometry::new(&p, l.width, l.height);
         let mut scratch = StripeScratch::default();
         let mut vals = vec![0f32; l.width * l.height];
-        match_stripe_impl::<AVX2, AVX512>(&p, geo, &m.left_pf, &m.right_pf_rev, iv, 0..l.height, &mut vals, &mut scratch);
+        let input = StripeInput { p: &p, g: geo, lpf: &m.left_pf, rrev: &m.right_pf_rev, intervals: iv };
+        match_stripe_impl::<AVX2, AVX512>(input, 0..l.height, &mut vals, &mut scratch);
         vals
     }
 
