@@ -32,8 +32,8 @@ fn cases() -> Vec<Case> {
             out.push(Case { name: name.into(), width: li.width, height: li.height, left: li.gray, right: ri.gray, num_disparities: n });
         }
     }
-    let scene = hw_sim::SceneConfig::default();
-    let pair = scene.render();
+    let scene = hw_sim::SceneConfig::ideal(hw_sim::Mesh::builtin("egg", 100_000).unwrap());
+    let pair = hw_sim::Renderer::new(scene).unwrap().render(30.0, 0);
     out.push(Case {
         name: "sim-640x480".into(),
         width: pair.width,

@@ -16,18 +16,21 @@
 //! ```
 //! use spinscan::pipeline::{Pipeline, PipelineOptions};
 //! use spinscan::stereo::MatchParams;
-//! let scene = hw_sim::SceneConfig { width: 160, height: 120, focal_px: 175.0, ..Default::default() };
-//! let pair = scene.render();
-//! let calib = spinscan::sim::ideal_calib(&scene);
+//! let scene = spinscan::sim::small_scene("egg", 160, 120, 175.0);
+//! let calib = spinscan::sim::calib_of(&scene.rig);
+//! let pair = hw_sim::Renderer::new(scene).unwrap().render(30.0, 0);
 //! let mut pipe = Pipeline::new(&calib, (160, 120), PipelineOptions { matching: MatchParams { num_disparities: 48, ..Default::default() }, ..Default::default() }).unwrap();
 //! let view = pipe.process_rgb(&pair.left_rgb, &pair.right_rgb, true).unwrap();
 //! assert!(view.cloud.len() > 1000);
 //! ```
 
 pub mod calib;
+pub mod capture;
 pub mod cloud;
 pub mod io;
 pub mod pipeline;
+pub mod recording;
+pub mod replay;
 pub mod segment;
 pub mod sim;
 pub mod stereo;

@@ -10,6 +10,9 @@ use serde_json::json;
 use spinscan::calib::StereoCalib;
 use spinscan::io::{self, LoadedImage};
 use spinscan::pipeline::{Pipeline, PipelineOptions};
+use spinscan::recording::{Recording, ReplaySource};
+use spinscan::replay::{self, ReplayOptions};
+use spinscan::sim::{RenderOptions, SimObject};
 use spinscan::segment::ChromaKey;
 use spinscan::stereo::{DisparityMap, GrayView, MatchParams, StereoMatcher};
 
@@ -36,9 +39,85 @@ enum Command {
     Rectify(RectifyArgs),
     /// Coloured point cloud (PLY, mm, left raw camera frame) of a calibrated raw pair.
     Points(PointsArgs),
-    /// Renders a pair in the simulated lab and runs the stereo core on it, scored against
-    /// the ground truth. Needs no devices and no files.
+    /// Renders a short scan in the simulated lab, records it, and replays it through the
+    /// pipeline, scored against the ground truth. Needs no devices and no files.
     Demo(DemoArgs),
+    /// The simulated lab.
+    #[command(subcommand)]
+    Sim(SimCommand),
+    /// Runs the pipeline on a recording and writes the results folder (views, disparity,
+    /// report, manifest).
+    Replay(ReplayArgs),
+}
+
+#[derive(Subcommand)]
+enum SimCommand {
+    /// Renders a recording (calib.yaml, frames.jsonl, left/, right/) with ground truth (gt/).
+    Render(SimRenderArgs),
+}
+
+#[derive(Args)]
+struct SimRenderArgs {
+    /// Built-in object: sphere, egg, vase or torus.
+    #[arg(long, conflicts_with = "mesh")]
+    object: Option<String>,
+    /// A triangle mesh (PLY) to put on the turntable instead, +y up.
+    #[arg(long)]
+    mesh: Option<PathBuf>,
+    /// Scale applied to the mesh's coordinates to get millimetres (e.g. 1000 for metres).
+    #[arg(long, default_value_t = 1.0, requires = "mesh")]
+    mesh_scale: f64,
+    /// Triangles of a built-in object's tessellation.
+    #[arg(long, default_value_t = 100_000)]
+    triangles: usize,
+    /// Number of stereo pairs.
+    #[arg(long, default_value_t = 30)]
+    frames: usize,
+    /// Turntable rotation between consecutive pairs, degrees (counterclockwise from above).
+    #[arg(long, default_value_t = 2.0, allow_hyphen_values = true)]
+    deg_per_frame: f64,
+    /// Turntable angle of the first pair, degrees.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    start_deg: f64,
+    /// Ideal rectified rig (no distortion, no misalignment) with gt/disparity/.
+    #[arg(long)]
+    ideal: bool,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Contrast of the object's texture, 0 (plain) … 1.
+    #[arg(long, default_value_t = 0.8)]
+    texture_contrast: f64,
+    /// Sensor noise, grey levels (standard deviation).
+    #[arg(long, default_value_t = 1.5)]
+    noise: f64,
+    /// Probability that a pair is dropped (a gap in seq), 0 … <1.
+    #[arg(long, default_value_t = 0.0)]
+    drop_probability: f64,
+    /// Output folder (must not hold a recording already).
+    #[arg(short = 'o', long = "out")]
+    out: PathBuf,
+}
+
+#[derive(Args)]
+struct ReplayArgs {
+    /// Recording folder (calib.yaml or intrinsics.yml + extrinsics.yml, frames.jsonl, images).
+    dir: PathBuf,
+    /// Results folder (may be the recording folder itself).
+    #[arg(short = 'o', long = "out")]
+    out: PathBuf,
+    /// Process at most this many frames.
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Match every pixel instead of segmenting the blue screen.
+    #[arg(long)]
+    no_segment: bool,
+    #[command(flatten)]
+    key: KeyArgs,
+    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    alpha: f64,
+    #[command(flatten)]
+    matching: MatchArgs,
 }
 
 /// Matcher knobs shared by the commands that match.
@@ -48,9 +127,10 @@ struct MatchArgs {
     /// whose rectified disparities are negative.
     #[arg(long, allow_hyphen_values = true)]
     min_disparity: Option<i32>,
-    /// Number of disparities N: the search covers D … D+N−1.
-    #[arg(long, default_value_t = 64)]
-    max_disparity: u32,
+    /// Number of disparities N: the search covers D … D+N−1. Default: 64 for single pairs;
+    /// 128 for `demo`, `sim` and `replay` (the simulated lab's disparities span 0…127).
+    #[arg(long)]
+    max_disparity: Option<u32>,
     /// Correlation window side (odd, 3…31).
     #[arg(long, default_value_t = MatchParams::default().block)]
     block: u32,
@@ -76,9 +156,14 @@ struct MatchArgs {
 
 impl MatchArgs {
     fn params(&self) -> MatchParams {
+        self.params_with_default(64)
+    }
+
+    /// The parameters, with `num_disparities` defaulting to `default_range`.
+    fn params_with_default(&self, default_range: u32) -> MatchParams {
         MatchParams {
             min_disparity: self.min_disparity.unwrap_or(0),
-            num_disparities: self.max_disparity,
+            num_disparities: self.max_disparity.unwrap_or(default_range),
             block: self.block,
             uniqueness_ratio: self.uniqueness,
             texture_threshold: self.texture_threshold,
@@ -208,15 +293,22 @@ fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
 
 #[derive(Args)]
 struct DemoArgs {
-    /// Output folder.
+    /// Output folder: the recording in `recording/`, the results in `results/`.
     #[arg(short = 'o', long = "out", default_value = "out/demo")]
     out: PathBuf,
-    /// Built-in object.
+    /// Built-in object: sphere, egg, vase or torus.
     #[arg(long, default_value = "egg")]
     object: String,
-    /// Turntable angle of the object, degrees.
-    #[arg(long, default_value_t = 30.0, allow_hyphen_values = true)]
-    table_deg: f64,
+    /// Number of stereo pairs.
+    #[arg(long, default_value_t = 8)]
+    frames: usize,
+    /// Turntable rotation between pairs, degrees.
+    #[arg(long, default_value_t = 3.0, allow_hyphen_values = true)]
+    deg_per_frame: f64,
+    /// Use the realistic rig (distortion, misalignment; no ground-truth disparity) instead of
+    /// the ideal one.
+    #[arg(long)]
+    realistic: bool,
     #[arg(long, default_value_t = 1)]
     seed: u64,
     #[command(flatten)]
@@ -244,6 +336,8 @@ fn main() -> ExitCode {
         Command::Rectify(a) => cmd_rectify(a),
         Command::Points(a) => cmd_points(a),
         Command::Demo(a) => cmd_demo(a),
+        Command::Sim(SimCommand::Render(a)) => cmd_sim_render(a),
+        Command::Replay(a) => cmd_replay(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -434,74 +528,114 @@ fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
     Ok(())
 }
 
-fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
-    let shape = hw_sim::Shape::by_name(&a.object)
-        .ok_or_else(|| input(format!("unknown object `{}`; built-in objects: {}", a.object, hw_sim::Shape::NAMES.join(", "))))?;
-    let scene = hw_sim::SceneConfig { shape, table_deg: a.table_deg, seed: a.seed, ..Default::default() };
-    eprintln!("demo: rendering a {}×{} stereo pair of the `{}` in the simulated lab…", scene.width, scene.height, a.object);
-    let pair = scene.render();
-    let calib = spinscan::sim::ideal_calib(&scene);
-    let out = &a.out;
-    std::fs::create_dir_all(out).map_err(|e| output(format!("cannot create {}: {e}", out.display())))?;
-    io::write_rgb_png(&out.join("left.png"), pair.width, pair.height, &pair.left_rgb).map_err(output)?;
-    io::write_rgb_png(&out.join("right.png"), pair.width, pair.height, &pair.right_rgb).map_err(output)?;
-    io::write_atomic(&out.join("calib.yaml"), calib.to_yaml().as_bytes()).map_err(output)?;
-    let gt = DisparityMap::from_values(pair.width, pair.height, pair.gt_disparity.clone());
-    io::write_disparity_png(&out.join("gt_disparity.png"), &gt).map_err(output)?;
-
-    // The same path a user takes: read the calibration back from disk.
-    let calib = StereoCalib::load(&out.join("calib.yaml")).map_err(input)?;
-    let mut matching = a.matching.params();
-    if a.matching.max_disparity == 64 {
-        matching.num_disparities = 128; // the default rig's disparities span 0…127
-    }
-    let opts = PipelineOptions { min_disparity: a.matching.min_disparity, matching, ..Default::default() };
-    let mut pipe = Pipeline::new(&calib, (pair.width as u32, pair.height as u32), opts).map_err(input)?;
-    eprintln!("demo: segmenting the blue screen, matching, triangulating…");
-    let view = pipe.process_rgb(&pair.left_rgb, &pair.right_rgb, true).map_err(input)?;
-    let mask = view.mask.as_deref().unwrap_or_default();
-    io::write_gray_png(&out.join("mask.png"), pair.width, pair.height, mask).map_err(output)?;
-    io::write_disparity_png(&out.join("disparity.png"), &view.disparity).map_err(output)?;
-    io::write_pfm(&out.join("disparity.pfm"), &view.disparity).map_err(output)?;
-    let (lo, hi) = (40.0, 127.0);
-    io::write_rgb_png(&out.join("disparity_color.png"), pair.width, pair.height, &io::disparity_false_color(&view.disparity, (lo, hi))).map_err(output)?;
-    io::ply::write_ply(&out.join("points.ply"), &view.cloud).map_err(output)?;
-
-    // Score against the ground truth, as ../shared/bench/peer_stereo.py counts bad2.
-    let (mut with_gt, mut bad2, mut err_sum, mut matched) = (0usize, 0usize, 0f64, 0usize);
-    let (mut mask_agree, mut gt_px) = (0usize, 0usize);
-    for y in 0..pair.height {
-        for x in 0..pair.width {
-            let i = y * pair.width + x;
-            let truth = pair.gt_disparity[i];
-            if truth.is_finite() {
-                gt_px += 1;
-                mask_agree += (mask[i] != 0) as usize;
-                with_gt += 1;
-                match view.disparity.get(x, y) {
-                    Some(d) => {
-                        matched += 1;
-                        err_sum += (d - truth).abs() as f64;
-                        bad2 += ((d - truth).abs() > 2.0) as usize;
-                    }
-                    None => bad2 += 1,
-                }
+fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
+    let object = match (&a.object, &a.mesh) {
+        (_, Some(path)) => {
+            let mesh = io::ply::read_ply(path).map_err(input)?;
+            if mesh.triangles.is_empty() {
+                return Err(input(format!("{} has no faces: `sim render --mesh` needs a triangle mesh, not a point cloud", path.display())));
             }
+            if !(a.mesh_scale.is_finite() && a.mesh_scale > 0.0) {
+                return Err(input(format!("--mesh-scale must be a positive number, got {}", a.mesh_scale)));
+            }
+            SimObject::Mesh(hw_sim::Mesh { vertices: mesh.cloud.points, triangles: mesh.triangles }.scaled(a.mesh_scale))
         }
+        (name, None) => SimObject::Builtin { name: name.clone().unwrap_or_else(|| "egg".into()), triangles: a.triangles },
+    };
+    let opts = RenderOptions {
+        object,
+        frames: a.frames,
+        start_deg: a.start_deg,
+        deg_per_frame: a.deg_per_frame,
+        ideal: a.ideal,
+        seed: a.seed,
+        texture_contrast: a.texture_contrast,
+        noise_sigma: a.noise,
+        drop_probability: a.drop_probability,
+    };
+    let t0 = Instant::now();
+    let rec = spinscan::sim::render_recording(&opts, &a.out, &mut |done, total| eprint!("\rsim render: {done}/{total} pairs")).map_err(|e| match e {
+        spinscan::sim::SimError::Recording(spinscan::recording::RecordingError::Io { .. } | spinscan::recording::RecordingError::Write { .. }) => output(e),
+        other => input(other),
+    })?;
+    eprintln!();
+    let seconds = t0.elapsed().as_secs_f64();
+    println!(
+        "{}",
+        json!({"out": a.out, "frames": rec.frames.len(), "ideal": a.ideal, "width": rec.image_size.0, "height": rec.image_size.1,
+               "seconds": seconds, "gt_disparity": a.ideal})
+    );
+    Ok(())
+}
+
+fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
+    let rec = Recording::open(&a.dir).map_err(input)?;
+    if let Some(line) = rec.torn_line {
+        eprintln!("replay: warning: skipped the torn last line {line} of {}", a.dir.join("frames.jsonl").display());
     }
-    let report = json!({
-        "out": out,
-        "points": view.cloud.len(),
-        "match_ms": view.match_ms,
-        "valid_fraction": view.stats.valid_fraction(),
-        "disparity_sign": pipe.rect.disparity_sign,
-        "mask_recall": mask_agree as f64 / gt_px.max(1) as f64,
-        "bad2": 100.0 * bad2 as f64 / with_gt.max(1) as f64,
-        "density": 100.0 * matched as f64 / with_gt.max(1) as f64,
-        "avgerr_px": err_sum / matched.max(1) as f64,
+    let opts = ReplayOptions {
+        pipeline: PipelineOptions {
+            alpha: a.alpha,
+            min_disparity: a.matching.min_disparity,
+            matching: a.matching.params_with_default(128),
+            chroma: a.key.chroma(),
+        },
+        max_frames: a.frames,
+        segment: !a.no_segment,
+    };
+    let total = a.frames.map_or(rec.frames.len(), |m| m.min(rec.frames.len()));
+    let gt_rec = rec.clone();
+    let mut source = ReplaySource::new(rec);
+    let summary = replay::run(&mut source, &a.out, &opts, &|seq| gt_rec.gt_disparity_path(seq), &mut |done, seq, ms| {
+        eprint!("\rreplay: {done}/{total} frames (seq {seq}, matched in {ms:.0} ms)")
     });
-    io::write_atomic(&out.join("report.json"), serde_json::to_string_pretty(&report).unwrap().as_bytes()).map_err(output)?;
-    eprintln!("demo: wrote {} (open points.ply in MeshLab or Open3D)", out.display());
-    println!("{report}");
+    eprintln!();
+    let summary = summary.map_err(|e| match e {
+        replay::ReplayError::Output { .. } => output(format!("{e} (results so far are in {}, manifest status `failed`)", a.out.display())),
+        other => input(format!("{other} (results so far are in {}, manifest status `failed`)", a.out.display())),
+    })?;
+    println!("{}", summary_json(&summary, &a.out));
+    Ok(())
+}
+
+fn summary_json(s: &replay::ReplaySummary, out: &Path) -> serde_json::Value {
+    let mut j = json!({"out": out, "frames": s.frames, "mean_match_ms": s.mean_match_ms, "disparity_sign": s.disparity_sign});
+    if let Some(gt) = s.gt {
+        j["gt_coverage"] = json!(gt.coverage);
+        j["gt_bad2_of_matched"] = json!(gt.bad2_of_matched);
+        j["gt_mean_abs_err_px"] = json!(gt.mean_abs_err_px);
+    }
+    j
+}
+
+fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
+    let (rec_dir, results_dir) = (a.out.join("recording"), a.out.join("results"));
+    if rec_dir.join("frames.jsonl").exists() {
+        std::fs::remove_dir_all(&rec_dir).map_err(|e| output(format!("cannot clear the previous demo in {}: {e}", rec_dir.display())))?;
+    }
+    let opts = RenderOptions {
+        object: SimObject::Builtin { name: a.object.clone(), triangles: 100_000 },
+        frames: a.frames,
+        deg_per_frame: a.deg_per_frame,
+        ideal: !a.realistic,
+        seed: a.seed,
+        ..RenderOptions::default()
+    };
+    eprintln!("demo: rendering {} stereo pairs of the `{}` turning on the simulated turntable…", a.frames, a.object);
+    let rec = spinscan::sim::render_recording(&opts, &rec_dir, &mut |done, total| eprint!("\rdemo: rendered {done}/{total}")).map_err(input)?;
+    eprintln!("\ndemo: replaying {} (segment the blue screen, rectify, match, triangulate)…", rec_dir.display());
+    let replay_opts = ReplayOptions {
+        pipeline: PipelineOptions { min_disparity: a.matching.min_disparity, matching: a.matching.params_with_default(128), ..Default::default() },
+        max_frames: None,
+        segment: true,
+    };
+    let gt_rec = rec.clone();
+    let mut source = ReplaySource::new(rec);
+    let summary = replay::run(&mut source, &results_dir, &replay_opts, &|seq| gt_rec.gt_disparity_path(seq), &mut |done, seq, ms| {
+        eprint!("\rdemo: replayed {done}/{} (seq {seq}, {ms:.0} ms)", a.frames)
+    })
+    .map_err(input)?;
+    eprintln!("\ndemo: recording in {}, results in {} (views/*.ply open in MeshLab or Open3D)", rec_dir.display(), results_dir.display());
+    println!("{}", summary_json(&summary, &results_dir));
     Ok(())
 }

@@ -16,12 +16,12 @@ fn stderr(o: &Output) -> String {
 
 /// A small simulated pair written as PNG files, with its calibration.
 fn sim_pair(dir: &Path) -> (PathBuf, PathBuf) {
-    let scene = hw_sim::SceneConfig { width: 200, height: 150, focal_px: 220.0, ..Default::default() };
-    let pair = scene.render();
+    let scene = spinscan::sim::small_scene("sphere", 200, 150, 220.0);
+    let pair = hw_sim::Renderer::new(scene.clone()).unwrap().render(0.0, 0);
     let (l, r) = (dir.join("left.png"), dir.join("right.png"));
     spinscan::io::write_rgb_png(&l, pair.width, pair.height, &pair.left_rgb).unwrap();
     spinscan::io::write_rgb_png(&r, pair.width, pair.height, &pair.right_rgb).unwrap();
-    std::fs::write(dir.join("calib.yaml"), spinscan::sim::ideal_calib(&scene).to_yaml()).unwrap();
+    std::fs::write(dir.join("calib.yaml"), spinscan::sim::calib_of(&scene.rig).to_yaml()).unwrap();
     (l, r)
 }
 
@@ -133,16 +133,20 @@ fn points_and_rectify_on_the_real_negative_disparity_rig() {
 }
 
 #[test]
-fn demo_runs_on_the_simulated_lab() {
+fn demo_records_and_replays_a_scan_on_the_simulated_lab() {
     let dir = support::temp_dir("cli-demo");
-    let o = spinscan(&["demo", "-o", dir.to_str().unwrap()]);
+    let o = spinscan(&["demo", "-o", dir.to_str().unwrap(), "--frames", "3"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let j = json_line(&o);
-    assert!(j["bad2"].as_f64().unwrap() < 20.0, "{j}");
-    assert!(j["mask_recall"].as_f64().unwrap() > 0.97, "{j}");
-    for f in ["left.png", "right.png", "calib.yaml", "mask.png", "disparity.png", "disparity.pfm", "points.ply", "report.json"] {
+    assert_eq!(j["frames"], 3);
+    assert!(j["gt_coverage"].as_f64().unwrap() > 0.8, "{j}");
+    assert!(j["gt_bad2_of_matched"].as_f64().unwrap() < 0.05, "{j}");
+    for f in ["recording/calib.yaml", "recording/frames.jsonl", "recording/gt/poses.jsonl", "recording/gt/mesh.ply", "recording/gt/disparity/000002.png",
+              "results/manifest.json", "results/report.json", "results/views/000002.ply", "results/disparity/000002.png"] {
         assert!(dir.join(f).is_file(), "{f} missing");
     }
+    let manifest: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("results/manifest.json")).unwrap()).unwrap();
+    assert_eq!((manifest["status"].as_str(), manifest["frames"].as_u64(), manifest["format"].as_u64()), (Some("complete"), Some(3), Some(1)));
 }
 
 #[test]
@@ -158,9 +162,9 @@ fn help_defaults_match_the_library_defaults() {
 fn points_with_auto_mask_and_plate_on_the_simulated_lab() {
     let dir = support::temp_dir("cli-plate");
     let (l, r) = sim_pair(&dir);
-    let scene = hw_sim::SceneConfig { width: 200, height: 150, focal_px: 220.0, ..Default::default() };
-    // A plate of the empty scene: the same render with the object far behind the screen.
-    let empty = hw_sim::SceneConfig { object_depth_mm: 1e6, ..scene }.render();
+    let scene = spinscan::sim::small_scene("sphere", 200, 150, 220.0);
+    // A plate of the empty scene: the same view without the object.
+    let empty = hw_sim::Renderer::new(scene).unwrap().render_plate(0.0, 0);
     let plate = dir.join("plate.png");
     spinscan::io::write_rgb_png(&plate, empty.width, empty.height, &empty.left_rgb).unwrap();
     let (ply, mask) = (dir.join("p.ply"), dir.join("mask.png"));
@@ -185,10 +189,11 @@ fn points_with_auto_mask_and_plate_on_the_simulated_lab() {
 fn points_with_a_mask_file_match_only_inside_it() {
     let dir = support::temp_dir("cli-maskfile");
     let (l, r) = sim_pair(&dir);
-    let scene = hw_sim::SceneConfig { width: 200, height: 150, focal_px: 220.0, ..Default::default() };
-    let pair = scene.render();
+    let scene = spinscan::sim::small_scene("sphere", 200, 150, 220.0);
+    let pair = hw_sim::Renderer::new(scene).unwrap().render(0.0, 0);
+    let gt_disparity = pair.gt_disparity.clone().unwrap();
     // The left half of the object only.
-    let mask: Vec<u8> = pair.gt_disparity.iter().enumerate().map(|(i, d)| if d.is_finite() && i % 200 < 100 { 255 } else { 0 }).collect();
+    let mask: Vec<u8> = gt_disparity.iter().enumerate().map(|(i, d)| if d.is_finite() && i % 200 < 100 { 255 } else { 0 }).collect();
     let inside = mask.iter().filter(|&&m| m > 0).count();
     let mask_path = dir.join("mask.png");
     spinscan::io::write_gray_png(&mask_path, 200, 150, &mask).unwrap();

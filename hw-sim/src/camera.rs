@@ -104,6 +104,9 @@ pub struct SimStereoCamera {
     /// Next frame number on the nominal clock (counts dropped pairs too).
     next: u64,
     rng: Rng,
+    /// Scripted steady rotation `(start_deg, deg_per_frame)`: the table angle follows the
+    /// frame number instead of [`TableAngle`] (which is then kept up to date).
+    motion: Option<(f64, f64)>,
     /// Pace delivery in real time (live scans); off for tests and offline rendering.
     realtime: bool,
     /// How long a consumer waits for a frame before a stopped camera counts as stopped.
@@ -114,11 +117,17 @@ pub struct SimStereoCamera {
 impl SimStereoCamera {
     pub fn new(renderer: Renderer, timing: Timing, angle: TableAngle) -> SimStereoCamera {
         let rng = Rng::new(renderer.scene().seed ^ 0x71_3E);
-        SimStereoCamera { renderer, timing, faults: Vec::new(), angle, next: 0, rng, realtime: false, frame_timeout: Duration::from_millis(500), started: None }
+        SimStereoCamera { renderer, timing, faults: Vec::new(), angle, next: 0, rng, motion: None, realtime: false, frame_timeout: Duration::from_millis(500), started: None }
     }
 
     pub fn with_faults(mut self, faults: Vec<CameraFault>) -> Self {
         self.faults = faults;
+        self
+    }
+
+    /// Turns the table steadily by `deg_per_frame` per frame period from `start_deg`.
+    pub fn with_motion(mut self, start_deg: f64, deg_per_frame: f64) -> Self {
+        self.motion = Some((start_deg, deg_per_frame));
         self
     }
 
@@ -182,7 +191,16 @@ impl SimStereoCamera {
                     std::thread::sleep(wait);
                 }
             }
-            let table_deg = self.angle.get();
+            // Both images see the table at one angle: the skew lives in the timestamps only,
+            // so the ground-truth disparity stays exact.
+            let table_deg = match self.motion {
+                Some((start, step)) => {
+                    let deg = start + seq as f64 * step;
+                    self.angle.set(deg);
+                    deg
+                }
+                None => self.angle.get(),
+            };
             let pair = self.renderer.render(table_deg, seq);
             return Ok(SimFrame { seq, t_left_ns: t_left.round() as u64, t_right_ns: t_right.round() as u64, table_deg, pair });
         }

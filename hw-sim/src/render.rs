@@ -243,7 +243,19 @@ impl Renderer {
         RenderedPair { width: rig.width, height: rig.height, left_rgb, right_rgb, gt_disparity: gt, cam_from_obj }
     }
 
-    #[inline(never)]
+    /// The empty scene (table and screen, no object): a background plate for segmentation.
+    pub fn render_plate(&mut self, table_deg: f64, frame: u64) -> RenderedPair {
+        let object = std::mem::replace(&mut self.object_triangles, 0);
+        let triangles = self.triangles.split_off(object);
+        let kept = std::mem::replace(&mut self.triangles, triangles);
+        let mut pair = self.render(table_deg, frame);
+        let mut tail = std::mem::replace(&mut self.triangles, kept);
+        self.triangles.append(&mut tail);
+        self.object_triangles = object;
+        pair.gt_disparity = pair.gt_disparity.map(|g| vec![f32::NAN; g.len()]);
+        pair
+    }
+
     /// Z-buffer pass: the nearest triangle and its 1/Z at every canvas pixel centre.
     fn rasterize(&mut self, cam: usize, pose: &Pose) {
         let view = &mut self.views[cam];
@@ -302,7 +314,6 @@ impl Renderer {
         }
     }
 
-    #[inline(never)]
     /// Shading pass: colour of every canvas pixel, without noise.
     fn shade(&mut self, cam: usize, pose: &Pose) {
         let view = &mut self.views[cam];

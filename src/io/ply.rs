@@ -289,6 +289,16 @@ impl<'a> Source<'a> {
 /// Writes a binary little-endian PLY: `x y z` float, `red green blue` uchar, and
 /// `nx ny nz` float when the cloud has normals.
 pub fn write_ply(path: &Path, cloud: &PointCloud) -> Result<(), PlyError> {
+    write_ply_with_faces(path, cloud, &[])
+}
+
+/// Writes a binary little-endian mesh PLY: the vertices as [`write_ply`] does, then
+/// `element face` with `property list uchar int vertex_indices`.
+pub fn write_mesh_ply(path: &Path, mesh: &Mesh) -> Result<(), PlyError> {
+    write_ply_with_faces(path, &mesh.cloud, &mesh.triangles)
+}
+
+fn write_ply_with_faces(path: &Path, cloud: &PointCloud, triangles: &[[u32; 3]]) -> Result<(), PlyError> {
     let io = |source| PlyError::Io { path: path.to_path_buf(), source };
     let mut out = Vec::with_capacity(64 * 4 + cloud.len() * 27);
     let with_normals = cloud.normals.as_ref().is_some_and(|n| n.len() == cloud.len());
@@ -297,7 +307,11 @@ pub fn write_ply(path: &Path, cloud: &PointCloud) -> Result<(), PlyError> {
     if with_normals {
         out.extend_from_slice(b"property float nx\nproperty float ny\nproperty float nz\n");
     }
-    out.extend_from_slice(b"property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n");
+    out.extend_from_slice(b"property uchar red\nproperty uchar green\nproperty uchar blue\n");
+    if !triangles.is_empty() {
+        write!(out, "element face {}\nproperty list uchar int vertex_indices\n", triangles.len()).unwrap();
+    }
+    out.extend_from_slice(b"end_header\n");
     for (i, p) in cloud.points.iter().enumerate() {
         for v in p {
             out.extend_from_slice(&v.to_le_bytes());
@@ -308,6 +322,12 @@ pub fn write_ply(path: &Path, cloud: &PointCloud) -> Result<(), PlyError> {
             }
         }
         out.extend_from_slice(&cloud.colors.get(i).copied().unwrap_or([200, 200, 200]));
+    }
+    for t in triangles {
+        out.push(3);
+        for &v in t {
+            out.extend_from_slice(&(v as i32).to_le_bytes());
+        }
     }
     super::write_atomic(path, &out).map_err(io)
 }
@@ -331,6 +351,18 @@ mod tests {
         write_ply(&p, &cloud).unwrap();
         let back = read_ply(&p).unwrap();
         assert_eq!(back.cloud, cloud);
+        std::fs::remove_file(p).unwrap();
+    }
+
+    #[test]
+    fn mesh_round_trip() {
+        let mesh = Mesh {
+            cloud: PointCloud { points: vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], colors: vec![[9, 9, 9]; 3], normals: None },
+            triangles: vec![[0, 1, 2]],
+        };
+        let p = tmp("mesh.ply");
+        write_mesh_ply(&p, &mesh).unwrap();
+        assert_eq!(read_ply(&p).unwrap(), mesh);
         std::fs::remove_file(p).unwrap();
     }
 
