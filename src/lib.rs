@@ -34,3 +34,4 @@ pub mod replay;
 pub mod segment;
 pub mod sim;
 pub mod stereo;
+pub mod turntable;

@@ -72,17 +72,17 @@ impl Emulator {
     /// Starts the firmware on a new pseudo-terminal. `angle` receives the table's physical
     /// angle (spinscan's convention) as it moves, for the simulated cameras.
     pub fn spawn(config: FirmwareConfig, angle: TableAngle) -> io::Result<Emulator> {
-        let (mut master, mut slave) = TTYPort::pair().map_err(io::Error::other)?;
-        // The driver opens the slave by path; this handle only keeps the pty alive until then.
-        slave.set_exclusive(false).map_err(io::Error::other)?;
+        let (mut master, slave) = TTYPort::pair().map_err(io::Error::other)?;
         let path = slave.name().ok_or_else(|| io::Error::other("pseudo-terminal has no name"))?;
+        // The slave handle holds the port's lock; the driver opens the slave by path. The pty
+        // lives as long as the master.
+        drop(slave);
         master.set_timeout(Duration::from_millis(2)).map_err(io::Error::other)?;
         let stop = Arc::new(AtomicBool::new(false));
         let flag = stop.clone();
         let thread = std::thread::Builder::new().name("turntable-emulator".into()).spawn(move || {
             let mut fw = Firmware::new(config, angle);
             fw.run(&mut master, &flag);
-            drop(slave);
         })?;
         Ok(Emulator { path, stop, thread: Some(thread) })
     }
@@ -205,10 +205,8 @@ impl Firmware {
 
     fn run(&mut self, port: &mut TTYPort, stop: &AtomicBool) {
         let mut buf = [0u8; 256];
-        // A real board prints its greeting at power-up.
-        if self.send(port, &format!("\r\n{}\r\n", self.config.greeting)).is_err() {
-            return;
-        }
+        // A real board prints its greeting at power-up (lost if nobody listens yet).
+        let _ = self.send(port, &format!("\r\n{}\r\n", self.config.greeting));
         while !stop.load(Ordering::Acquire) {
             let n = match port.read(&mut buf) {
                 Ok(n) => n,
