@@ -552,6 +552,7 @@ fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
         texture_contrast: a.texture_contrast,
         noise_sigma: a.noise,
         drop_probability: a.drop_probability,
+        image_size: (640, 480),
     };
     let t0 = Instant::now();
     let rec = spinscan::sim::render_recording(&opts, &a.out, &mut |done, total| eprint!("\rsim render: {done}/{total} pairs")).map_err(|e| match e {

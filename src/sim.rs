@@ -108,6 +108,9 @@ pub struct RenderOptions {
     pub noise_sigma: f64,
     /// Probability that a pair is lost (a gap in `seq`).
     pub drop_probability: f64,
+    /// Image size; the focal length scales with the width (700 px at 640), so the view is
+    /// the default lab's at another resolution.
+    pub image_size: (usize, usize),
 }
 
 impl Default for RenderOptions {
@@ -122,6 +125,7 @@ impl Default for RenderOptions {
             texture_contrast: 0.8,
             noise_sigma: 1.5,
             drop_probability: 0.0,
+            image_size: (640, 480),
         }
     }
 }
@@ -155,6 +159,12 @@ pub fn render_recording(opts: &RenderOptions, out: &std::path::Path, progress: &
         SimObject::Mesh(m) => m.clone(),
     };
     let mut scene = if opts.ideal { hw_sim::SceneConfig::ideal(mesh.clone()) } else { hw_sim::SceneConfig::realistic(mesh.clone()) };
+    let (w, h) = opts.image_size;
+    if w < 32 || h < 32 {
+        return Err(SimError::Option { what: "image size", expected: "at least 32×32", got: format!("{w}×{h}") });
+    }
+    let focal = 700.0 * w as f64 / 640.0;
+    scene.rig = if opts.ideal { hw_sim::Rig::ideal(w, h, focal, 60.0) } else { hw_sim::Rig::realistic(w, h, focal, 60.0) };
     scene.seed = opts.seed;
     scene.texture_contrast = opts.texture_contrast;
     scene.noise_sigma = opts.noise_sigma;
