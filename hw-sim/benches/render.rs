@@ -9,7 +9,7 @@ use hw_sim::{Mesh, Renderer, SceneConfig};
 
 fn main() {
     let frames = 60;
-    for (object, ideal) in [("egg", true), ("egg", false), ("torus", true), ("vase", false)] {
+    for (object, ideal) in [("egg", true), ("egg", false), ("torus", true), ("vase", false), ("egg", true)] {
         let mesh = Mesh::builtin(object, 100_000).unwrap();
         let triangles = mesh.triangles.len();
         let scene = if ideal { SceneConfig::ideal(mesh) } else { SceneConfig::realistic(mesh) };
@@ -23,12 +23,15 @@ fn main() {
             std::hint::black_box(pair);
         }
         times.sort_by(f64::total_cmp);
-        let median = times[times.len() / 2];
+        let (median, best) = (times[times.len() / 2], times[0]);
+        // The median is the figure; the best run shows the rate on an unloaded core (this
+        // machine is shared, and slow phases stretch whole runs).
         println!(
-            "{{\"object\": \"{object}\", \"rig\": \"{}\", \"triangles\": {triangles}, \"size\": \"640x480\", \"threads\": 1, \"median_ms_per_pair\": {:.2}, \"pairs_per_s\": {:.1}}}",
+            "{{\"object\": \"{object}\", \"rig\": \"{}\", \"triangles\": {triangles}, \"size\": \"640x480\", \"threads\": 1, \"median_ms_per_pair\": {:.2}, \"pairs_per_s\": {:.1}, \"best_ms_per_pair\": {:.2}}}",
             if ideal { "ideal" } else { "realistic" },
             median * 1e3,
-            1.0 / median
+            1.0 / median,
+            best * 1e3
         );
     }
 }
