@@ -556,7 +556,9 @@ fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
     };
     let t0 = Instant::now();
     let rec = spinscan::sim::render_recording(&opts, &a.out, &mut |done, total| eprint!("\rsim render: {done}/{total} pairs")).map_err(|e| match e {
-        spinscan::sim::SimError::Recording(spinscan::recording::RecordingError::Io { .. } | spinscan::recording::RecordingError::Write { .. }) => output(e),
+        spinscan::sim::SimError::Recording(
+            spinscan::recording::RecordingError::Io { .. } | spinscan::recording::RecordingError::Write { .. } | spinscan::recording::RecordingError::Exists(_),
+        ) => output(e),
         other => input(other),
     })?;
     eprintln!();

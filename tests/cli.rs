@@ -208,3 +208,35 @@ fn points_with_a_mask_file_match_only_inside_it() {
     // Left half of the image: x < 0 in the left camera frame.
     assert!(cloud.points.iter().all(|p| p[0] < 5.0), "a point right of the mask");
 }
+
+#[test]
+fn sim_render_of_a_ply_mesh_replays_from_the_command_line() {
+    let dir = support::temp_dir("cli-bunny");
+    let mesh = support::shared_data("stanford-bunny-scans").join("bun_zipper.ply");
+    let rec = dir.join("rec");
+    let o = spinscan(&["sim", "render", "--mesh", mesh.to_str().unwrap(), "--mesh-scale", "1000", "--frames", "2", "--deg-per-frame", "5", "--ideal", "-o", rec.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(json_line(&o)["frames"], 2);
+    let poses = std::fs::read_to_string(rec.join("gt/poses.jsonl")).unwrap();
+    assert_eq!(poses.lines().count(), 2);
+    let frames = std::fs::read_to_string(rec.join("frames.jsonl")).unwrap();
+    assert!(frames.lines().nth(1).unwrap().contains("\"table_deg\":5.0"), "{frames}");
+    let out = dir.join("out");
+    let o = spinscan(&["replay", rec.to_str().unwrap(), "-o", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j = json_line(&o);
+    assert!(j["gt_coverage"].as_f64().unwrap() > 0.8 && j["gt_bad2_of_matched"].as_f64().unwrap() < 0.05, "{j}");
+    // A second render into the same folder would mix two scans: refused.
+    let o = spinscan(&["sim", "render", "--frames", "1", "-o", rec.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(4), "{}", stderr(&o));
+    assert!(stderr(&o).contains("already holds a recording"), "{}", stderr(&o));
+}
+
+#[test]
+fn sim_and_replay_reject_bad_input_in_one_line() {
+    let dir = support::temp_dir("cli-sim-bad");
+    let out = dir.join("o");
+    check_bad_input(&["sim", "render", "--object", "teapot", "-o", out.to_str().unwrap()], "unknown object `teapot`; built-in objects: sphere, egg, vase, torus");
+    check_bad_input(&["sim", "render", "--frames", "0", "-o", out.to_str().unwrap()], "--frames must be at least 1");
+    check_bad_input(&["replay", dir.join("nothing").to_str().unwrap(), "-o", out.to_str().unwrap()], "is not a recording: it has no frames.jsonl");
+}
