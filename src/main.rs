@@ -576,6 +576,17 @@ fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
     if let Some(line) = rec.torn_line {
         eprintln!("replay: warning: skipped the torn last line {line} of {}", a.dir.join("frames.jsonl").display());
     }
+    let plate = match &a.key.plate {
+        Some(p) if a.no_segment => return Err(input(format!("--plate {} is used by the blue-screen segmentation, which --no-segment turns off", p.display()))),
+        Some(p) => {
+            let img = io::load_image(p).map_err(input)?;
+            if (img.width as u32, img.height as u32) != rec.image_size {
+                return Err(input(format!("plate {} is {}×{} but the recording's images are {}×{}", p.display(), img.width, img.height, rec.image_size.0, rec.image_size.1)));
+            }
+            Some(img.rgb)
+        }
+        None => None,
+    };
     let opts = ReplayOptions {
         pipeline: PipelineOptions {
             alpha: a.alpha,
@@ -585,6 +596,7 @@ fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
         },
         max_frames: a.frames,
         segment: !a.no_segment,
+        plate,
     };
     let total = a.frames.map_or(rec.frames.len(), |m| m.min(rec.frames.len()));
     let gt_rec = rec.clone();
@@ -631,6 +643,7 @@ fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
         pipeline: PipelineOptions { min_disparity: a.matching.min_disparity, matching: a.matching.params_with_default(128), ..Default::default() },
         max_frames: None,
         segment: true,
+        plate: None,
     };
     let gt_rec = rec.clone();
     let mut source = ReplaySource::new(rec);

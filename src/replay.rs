@@ -37,6 +37,8 @@ pub struct ReplayOptions {
     pub max_frames: Option<usize>,
     /// Segment the blue screen (else every pixel is matched).
     pub segment: bool,
+    /// An image of the empty scene (raw left camera, RGB) that segmentation also keys against.
+    pub plate: Option<Vec<u8>>,
 }
 
 /// Ground-truth comparison of one disparity map (recordings of ideal rigs carry it).
@@ -201,7 +203,7 @@ fn process_all(
         if (lw, lh) != size || (rw, rh) != size {
             return Err(bad(format!("images are {lw}×{lh} and {rw}×{rh}, expected {}×{}", size.0, size.1)));
         }
-        let view = pipe.process_rgb(&left, &right, opts.segment).map_err(|source| ReplayError::Pipeline { seq, source })?;
+        let view = pipe.process_rgb_with_plate(&left, &right, opts.segment, opts.plate.as_deref()).map_err(|source| ReplayError::Pipeline { seq, source })?;
         let view_path = results.dir.join("views").join(format!("{seq:06}.ply"));
         io::ply::write_ply(&view_path, &view.cloud).map_err(|e| ReplayError::Output { path: view_path, what: e.to_string() })?;
         let disp_path = results.dir.join("disparity").join(format!("{seq:06}.png"));
