@@ -175,6 +175,9 @@ fn driver_reports_a_stall_with_port_and_angle() {
     assert!(matches!(e, TurntableError::Stalled { .. }), "{e}");
     let msg = e.to_string();
     assert!(msg.contains(emu.port_path()) && msg.contains("stalled at 5.000°") && msg.contains("30.000°"), "{msg}");
+    // A reset clears the stall where the table stopped; the driver can start again.
+    t.reset().unwrap();
+    assert!((t.angle().unwrap() - 5.0).abs() < 1e-3, "after reset: {}", t.angle().unwrap());
 }
 
 #[test]

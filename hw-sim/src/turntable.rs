@@ -256,9 +256,8 @@ impl Firmware {
     fn reset(&mut self) {
         // Ctrl-X stops motion where it is and clears everything queued.
         self.advance();
-        if let Some(m) = self.current.take() {
-            self.position = m.position(self.now_s());
-        }
+        self.position = self.current_position();
+        self.current = None;
         self.queue.clear();
         self.pending.clear();
         self.line.clear();
@@ -270,8 +269,13 @@ impl Firmware {
         self.publish();
     }
 
+    /// Where the motor is now (a stalled move stays where it stalled).
     fn current_position(&self) -> f64 {
-        self.current.map_or(self.position, |m| m.position(self.now_s()))
+        match self.current {
+            Some(m) if self.stalled => m.from,
+            Some(m) => m.position(self.now_s()),
+            None => self.position,
+        }
     }
 
     fn publish(&self) {
@@ -311,8 +315,7 @@ impl Firmware {
 
     fn status(&self) -> String {
         let state = if self.current.is_some() || !self.queue.is_empty() { "Run" } else { "Idle" };
-        let pos = if self.stalled { self.current.map_or(self.position, |m| m.from) } else { self.current_position() };
-        format!("<{state},MPos:{:.3},0.000,0.000>\r\n", pos - self.origin)
+        format!("<{state},MPos:{:.3},0.000,0.000>\r\n", self.current_position() - self.origin)
     }
 
     /// Works through received lines; false when the device vanished.
