@@ -10,7 +10,7 @@ use serde_json::json;
 use spinscan::calib::StereoCalib;
 use spinscan::io::{self, LoadedImage};
 use spinscan::pipeline::{Pipeline, PipelineOptions};
-use spinscan::recording::{Recording, ReplaySource};
+use spinscan::recording::Recording;
 use spinscan::replay::{self, ReplayOptions};
 use spinscan::sim::{RenderOptions, SimObject};
 use spinscan::segment::ChromaKey;
@@ -599,9 +599,7 @@ fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
         plate,
     };
     let total = a.frames.map_or(rec.frames.len(), |m| m.min(rec.frames.len()));
-    let gt_rec = rec.clone();
-    let mut source = ReplaySource::new(rec);
-    let summary = replay::run(&mut source, &a.out, &opts, &|seq| gt_rec.gt_disparity_path(seq), &mut |done, seq, ms| {
+    let summary = replay::run_recording(rec, &a.out, &opts, &mut |done, seq, ms| {
         eprint!("\rreplay: {done}/{total} frames (seq {seq}, matched in {ms:.0} ms)")
     });
     eprintln!();
@@ -645,9 +643,7 @@ fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
         segment: true,
         plate: None,
     };
-    let gt_rec = rec.clone();
-    let mut source = ReplaySource::new(rec);
-    let summary = replay::run(&mut source, &results_dir, &replay_opts, &|seq| gt_rec.gt_disparity_path(seq), &mut |done, seq, ms| {
+    let summary = replay::run_recording(rec, &results_dir, &replay_opts, &mut |done, seq, ms| {
         eprint!("\rdemo: replayed {done}/{} (seq {seq}, {ms:.0} ms)", a.frames)
     })
     .map_err(input)?;

@@ -240,8 +240,13 @@ impl Recording {
 
     /// The ground-truth disparity of frame `seq`, when the recording has one (ideal rigs).
     pub fn gt_disparity_path(&self, seq: u64) -> Option<PathBuf> {
-        Some(self.dir.join("gt/disparity").join(format!("{seq:06}.png"))).filter(|p| p.is_file())
+        gt_disparity_path(&self.dir, seq)
     }
+}
+
+/// `DIR/gt/disparity/NNNNNN.png` when it exists.
+pub fn gt_disparity_path(dir: &Path, seq: u64) -> Option<PathBuf> {
+    Some(dir.join("gt/disparity").join(format!("{seq:06}.png"))).filter(|p| p.is_file())
 }
 
 /// Replays a recording through the camera seam, frame by frame.

@@ -158,6 +158,14 @@ pub struct ReplaySummary {
     pub disparity_sign: i32,
 }
 
+/// Replays a recording into `out`, scoring each frame against its `gt/disparity` file where
+/// the recording has one.
+pub fn run_recording(recording: crate::recording::Recording, out: &Path, opts: &ReplayOptions, progress: &mut dyn FnMut(usize, u64, f64)) -> Result<ReplaySummary, ReplayError> {
+    let dir = recording.dir.clone();
+    let gt_for = move |seq: u64| crate::recording::gt_disparity_path(&dir, seq);
+    run(&mut crate::recording::ReplaySource::new(recording), out, opts, &gt_for, progress)
+}
+
 /// Processes every frame of `source` into `out`. `gt_for(seq)` gives a ground-truth
 /// disparity file where one exists. `progress(done, seq)` is called after each frame.
 pub fn run(

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 use spinscan::capture::{CaptureError, StereoSource};
 use spinscan::io;
-use spinscan::recording::{Recording, ReplaySource};
+use spinscan::recording::Recording;
 use spinscan::replay::{self, ReplayOptions};
 use spinscan::sim::{RenderOptions, SimObject};
 use spinscan::stereo::MatchParams;
@@ -34,8 +34,7 @@ fn replay_opts() -> ReplayOptions {
 
 fn replay(dir: &Path, out: &Path) -> Result<replay::ReplaySummary, String> {
     let rec = Recording::open(dir).map_err(|e| e.to_string())?;
-    let gt = rec.clone();
-    replay::run(&mut ReplaySource::new(rec), out, &replay_opts(), &|seq| gt.gt_disparity_path(seq), &mut |_, _, _| {}).map_err(|e| e.to_string())
+    replay::run_recording(rec, out, &replay_opts(), &mut |_, _, _| {}).map_err(|e| e.to_string())
 }
 
 fn read_json(p: &Path) -> serde_json::Value {
