@@ -30,6 +30,7 @@ pub mod cloud;
 pub mod io;
 pub mod pipeline;
 pub mod recording;
+pub mod register;
 pub mod replay;
 pub mod segment;
 pub mod sim;

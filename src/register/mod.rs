@@ -1,0 +1,153 @@
+//! Registration of partial views (the paper's section 3): ICP, block registration, isolated
+//! point removal, the voxel-merged model, the shared pose store, turntable axis estimation
+//! and loop closure.
+//!
+//! Everything here is pure computation on point sets; [`crate::replay`] wires it to
+//! recordings and results folders, and `spinscan register` to PLY files.
+//!
+//! Conventions: a pose `b_from_a` is an [`Isometry3`] mapping points of frame `a` into frame
+//! `b`; `first_from_view` maps a view's points (its LEFT raw camera frame) into the first
+//! view's. Units are the caller's (spinscan's own clouds are millimetres).
+
+pub mod axis;
+pub mod denoise;
+pub mod icp;
+pub mod kdtree;
+pub mod normals;
+pub mod posestore;
+pub mod ring;
+pub mod voxel;
+
+use nalgebra::{Isometry3, Matrix3, Matrix4, Rotation3, Translation3, UnitQuaternion, Vector3};
+
+pub use icp::{icp, IcpMethod, IcpParams, IcpResult, Kernel};
+pub use kdtree::KdTree;
+
+/// Why a registration could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum RegisterError {
+    #[error("{what} has no points")]
+    Empty { what: String },
+    #[error("{what} has a non-finite coordinate at point #{index}")]
+    NotFinite { what: String, index: usize },
+    #[error("{what} has too few points ({got}) for {purpose}; at least {need} are needed")]
+    TooFew { what: String, got: usize, need: usize, purpose: String },
+    #[error("invalid parameter: {0}")]
+    Param(String),
+    #[error("k-d tree construction failed: {0}")]
+    Tree(String),
+}
+
+/// A 4×4 row-major matrix as stored in JSON files (`[[…4 rows of 4…]]`).
+pub type Rows4 = [[f64; 4]; 4];
+
+/// The rows of a rigid transform.
+pub fn to_rows(t: &Isometry3<f64>) -> Rows4 {
+    let m = t.to_homogeneous();
+    std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))
+}
+
+/// Reads a rigid transform from rows, checking that it is one (orthonormal rotation with
+/// determinant +1 to `tol`, last row 0 0 0 1). The rotation is re-orthonormalised.
+pub fn from_rows(rows: &Rows4, tol: f64) -> Result<Isometry3<f64>, String> {
+    if rows.iter().flatten().any(|v| !v.is_finite()) {
+        return Err("a matrix entry is not a finite number".into());
+    }
+    let m = Matrix4::from_fn(|r, c| rows[r][c]);
+    let last = [m[(3, 0)], m[(3, 1)], m[(3, 2)], m[(3, 3)]];
+    if last[0].abs() > tol || last[1].abs() > tol || last[2].abs() > tol || (last[3] - 1.0).abs() > tol {
+        return Err(format!("last row is {last:?}, expected [0, 0, 0, 1]"));
+    }
+    let r: Matrix3<f64> = m.fixed_view::<3, 3>(0, 0).into_owned();
+    let err = (r.transpose() * r - Matrix3::identity()).abs().max();
+    if err > tol || r.determinant() < 0.0 {
+        return Err(format!("the upper-left 3×3 block is not a rotation (RᵀR differs from I by {err:.2e}, det {:.4})", r.determinant()));
+    }
+    let rot = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&r));
+    Ok(Isometry3::from_parts(Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]), rot))
+}
+
+/// Rotation angle of a transform, degrees.
+pub fn angle_deg(t: &Isometry3<f64>) -> f64 {
+    t.rotation.angle().to_degrees()
+}
+
+/// `exp(s · log(t))`: the transform `s` of the way along the screw from identity to `t`
+/// (rotation and translation interpolated separately, which is what loop closure needs).
+pub fn scale_transform(t: &Isometry3<f64>, s: f64) -> Isometry3<f64> {
+    let rot = UnitQuaternion::from_scaled_axis(t.rotation.scaled_axis() * s);
+    Isometry3::from_parts(Translation3::from(t.translation.vector * s), rot)
+}
+
+/// Rotation by `deg` degrees about the line through `point` with direction `dir` (unit).
+pub fn rotation_about_axis(point: &Vector3<f64>, dir: &Vector3<f64>, deg: f64) -> Isometry3<f64> {
+    let rot = UnitQuaternion::from_scaled_axis(dir.normalize() * deg.to_radians());
+    // p' = R (p − c) + c
+    let t = point - rot * point;
+    Isometry3::from_parts(Translation3::from(t), rot)
+}
+
+/// Checks that a point set is non-empty and finite.
+pub fn check_points(points: &[[f32; 3]], what: &str) -> Result<(), RegisterError> {
+    if points.is_empty() {
+        return Err(RegisterError::Empty { what: what.to_string() });
+    }
+    if let Some(index) = points.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
+        return Err(RegisterError::NotFinite { what: what.to_string(), index });
+    }
+    Ok(())
+}
+
+/// Applies `t` to a point.
+#[inline]
+pub fn apply(t: &Isometry3<f64>, p: &[f32; 3]) -> [f32; 3] {
+    let q = t * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+    [q.x as f32, q.y as f32, q.z as f32]
+}
+
+/// Every `n`-th point, so that at most `max` remain (deterministic, keeps the scan order's
+/// spatial spread). Returns indices.
+pub fn subsample_indices(len: usize, max: usize) -> Vec<usize> {
+    if max == 0 || len <= max {
+        return (0..len).collect();
+    }
+    let step = len as f64 / max as f64;
+    (0..max).map(|i| ((i as f64 + 0.5) * step) as usize).filter(|&i| i < len).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rows_round_trip_and_reject_non_rigid() {
+        let t = rotation_about_axis(&Vector3::new(1.0, 2.0, 3.0), &Vector3::new(0.0, 1.0, 0.0), 30.0);
+        let back = from_rows(&to_rows(&t), 1e-9).unwrap();
+        assert!((back.to_homogeneous() - t.to_homogeneous()).abs().max() < 1e-12);
+        let mut rows = to_rows(&t);
+        rows[0][0] *= 2.0;
+        assert!(from_rows(&rows, 1e-6).unwrap_err().contains("not a rotation"));
+        let mut rows = to_rows(&t);
+        rows[3][3] = 2.0;
+        assert!(from_rows(&rows, 1e-6).unwrap_err().contains("last row"));
+    }
+
+    #[test]
+    fn rotation_about_axis_fixes_the_axis() {
+        let c = Vector3::new(10.0, -5.0, 400.0);
+        let t = rotation_about_axis(&c, &Vector3::new(0.0, -1.0, 0.2), 40.0);
+        let p = t * nalgebra::Point3::from(c + Vector3::new(0.0, -1.0, 0.2) * 7.0);
+        assert!((p.coords - (c + Vector3::new(0.0, -1.0, 0.2) * 7.0)).norm() < 1e-9);
+        assert!((angle_deg(&t) - 40.0).abs() < 1e-9);
+        assert!((angle_deg(&scale_transform(&t, 0.25)) - 10.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn subsample_spreads_evenly() {
+        assert_eq!(subsample_indices(5, 10), vec![0, 1, 2, 3, 4]);
+        let s = subsample_indices(1000, 10);
+        assert_eq!(s.len(), 10);
+        assert_eq!(s[0], 50);
+        assert_eq!(s[9], 950);
+    }
+}
