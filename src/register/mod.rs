@@ -11,6 +11,7 @@
 
 pub mod axis;
 pub mod denoise;
+pub mod files;
 pub mod icp;
 pub mod kdtree;
 pub mod normals;

@@ -339,3 +339,53 @@ mod tests {
         }
     }
 }
+
+/// One registration of a ring: `source` onto `target` (indices of the scans).
+#[derive(Debug, Clone)]
+pub struct RingEdge {
+    pub source: usize,
+    pub target: usize,
+    pub icp: IcpResult,
+}
+
+/// A registered ring of scans.
+#[derive(Debug, Clone)]
+pub struct RingResult {
+    /// Pose of every scan in the frame of the first scan's initial pose.
+    pub world_from_scan: Vec<Isometry3<f64>>,
+    /// Scan k onto scan k − 1 for every k, then the last onto the first.
+    pub edges: Vec<RingEdge>,
+    /// Disagreement of the chain and the closing edge before it was spread.
+    pub loop_error_deg: f64,
+    pub loop_error_translation: f64,
+}
+
+/// Registers a ring of scans, each onto the one before it starting from their initial poses'
+/// relative motion, then the last onto the first, and spreads the loop's disagreement over
+/// the ring ([`distribute_loop_error`]). The first scan keeps its initial pose.
+pub fn register_ring(scans: &[Vec<[f32; 3]>], init_world: &[Isometry3<f64>], params: &IcpParams) -> Result<RingResult, RegisterError> {
+    let n = scans.len();
+    if n < 3 || init_world.len() != n {
+        return Err(RegisterError::Param(format!("a ring needs at least 3 scans with one initial pose each (got {n} scans, {} poses)", init_world.len())));
+    }
+    let targets: Vec<KdTree> = scans.iter().enumerate().map(|(k, s)| KdTree::build(s.clone(), &format!("scan {k}"))).collect::<Result<_, _>>()?;
+    let mut targets: Vec<Target> = targets.into_iter().map(|t| Target::new(t, params.normals)).collect();
+    let mut chain = vec![Isometry3::identity()];
+    let mut edges = Vec::new();
+    for k in 1..n {
+        let init = init_world[k - 1].inverse() * init_world[k];
+        let r = icp(&scans[k], &mut targets[k - 1], &init, params)?;
+        chain.push(chain[k - 1] * r.transform);
+        edges.push(RingEdge { source: k, target: k - 1, icp: r });
+    }
+    let r = icp(&scans[n - 1], &mut targets[0], &chain[n - 1], params)?;
+    let e = r.transform * chain[n - 1].inverse();
+    let closed = distribute_loop_error(&chain, &r.transform);
+    edges.push(RingEdge { source: n - 1, target: 0, icp: r });
+    Ok(RingResult {
+        world_from_scan: closed.iter().map(|p| init_world[0] * p).collect(),
+        edges,
+        loop_error_deg: e.rotation.angle().to_degrees(),
+        loop_error_translation: e.translation.vector.norm(),
+    })
+}
