@@ -122,6 +122,8 @@ struct ReplayArgs {
     alpha: f64,
     #[command(flatten)]
     matching: MatchArgs,
+    #[command(flatten)]
+    reg: RegistrationArgs,
 }
 
 #[derive(Args)]
@@ -165,6 +167,62 @@ struct RegisterArgs {
     /// Result JSON: target_from_source, fitness, rmse, iterations, register_ms, …
     #[arg(short = 'o', long = "out")]
     out: Option<PathBuf>,
+}
+
+/// Registration knobs of `replay` and `demo`.
+#[derive(Args, Clone)]
+struct RegistrationArgs {
+    /// Only match: no registration, no poses.jsonl, model.ply or turntable_estimated.yaml.
+    #[arg(long)]
+    no_register: bool,
+    /// m of the paper's block registration: every m views are registered together to the
+    /// model of the views before them (0 = pairwise only).
+    #[arg(long = "block-views", id = "block_views", default_value_t = 5)]
+    block_views: usize,
+    /// ICP correspondence distance between consecutive views, mm.
+    #[arg(long, default_value_t = 8.0)]
+    icp_max_distance: f64,
+    /// ICP method: point-to-plane or point-to-point (the paper's).
+    #[arg(long, default_value = "point-to-plane")]
+    icp_method: String,
+    /// Voxel side of model.ply, mm.
+    #[arg(long, default_value_t = 1.0)]
+    voxel: f64,
+    /// Keep isolated points in model.ply (no noise removal).
+    #[arg(long)]
+    no_denoise: bool,
+    /// Do not close the loop after a full turn.
+    #[arg(long)]
+    no_loop_closure: bool,
+}
+
+impl RegistrationArgs {
+    fn options(&self, pipeline: PipelineOptions) -> Result<ReplayOptions, Failure> {
+        let mut opts = ReplayOptions::with_registration(pipeline);
+        if !(self.voxel > 0.0 && self.voxel.is_finite()) {
+            return Err(input(format!("--voxel must be a positive number of mm, got {}", self.voxel)));
+        }
+        if !(self.icp_max_distance > 0.0 && self.icp_max_distance.is_finite()) {
+            return Err(input(format!("--icp-max-distance must be a positive number of mm, got {}", self.icp_max_distance)));
+        }
+        opts.model_voxel_mm = self.voxel;
+        if self.no_denoise {
+            opts.denoise = None;
+        }
+        if self.no_register {
+            opts.registration = None;
+        } else if let Some(r) = opts.registration.as_mut() {
+            r.block = self.block_views;
+            r.close_loop = !self.no_loop_closure;
+            let method = self.icp_method.parse().map_err(input)?;
+            let keep = r.icp.clone();
+            r.icp = IcpParams { method, ..IcpParams::new(self.icp_max_distance) };
+            r.icp.max_source_points = keep.max_source_points;
+            r.icp.kernel = keep.kernel;
+            r.icp.max_iterations = keep.max_iterations;
+        }
+        Ok(opts)
+    }
 }
 
 /// Matcher knobs shared by the commands that match.
@@ -360,6 +418,8 @@ struct DemoArgs {
     seed: u64,
     #[command(flatten)]
     matching: MatchArgs,
+    #[command(flatten)]
+    reg: RegistrationArgs,
 }
 
 /// A failure with the exit code it maps to.
@@ -378,6 +438,11 @@ fn output<E: std::fmt::Display>(e: E) -> Failure {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // Warnings (and more with RUST_LOG=info|debug) go to stderr.
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")))
+        .init();
     let result = match cli.command {
         Command::Disparity(a) => cmd_disparity(a),
         Command::Rectify(a) => cmd_rectify(a),
@@ -636,15 +701,15 @@ fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
         None => None,
     };
     let opts = ReplayOptions {
-        pipeline: PipelineOptions {
+        max_frames: a.frames,
+        segment: !a.no_segment,
+        plate,
+        ..a.reg.options(PipelineOptions {
             alpha: a.alpha,
             min_disparity: a.matching.min_disparity,
             matching: a.matching.params_with_default(128),
             chroma: a.key.chroma(),
-        },
-        max_frames: a.frames,
-        segment: !a.no_segment,
-        plate,
+        })?
     };
     let total = a.frames.map_or(rec.frames.len(), |m| m.min(rec.frames.len()));
     let summary = replay::run_recording(rec, &a.out, &opts, &mut |done, seq, ms| {
@@ -666,6 +731,9 @@ fn summary_json(s: &replay::ReplaySummary, out: &Path) -> serde_json::Value {
         j["gt_bad2_of_matched"] = json!(gt.bad2_of_matched);
         j["gt_mean_abs_err_px"] = json!(gt.mean_abs_err_px);
     }
+    if let Some(r) = &s.registration {
+        j["registration"] = r.clone();
+    }
     j
 }
 
@@ -685,12 +753,7 @@ fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
     eprintln!("demo: rendering {} stereo pairs of the `{}` turning on the simulated turntable…", a.frames, a.object);
     let rec = spinscan::sim::render_recording(&opts, &rec_dir, &mut |done, total| eprint!("\rdemo: rendered {done}/{total}")).map_err(input)?;
     eprintln!("\ndemo: replaying {} (segment the blue screen, rectify, match, triangulate)…", rec_dir.display());
-    let replay_opts = ReplayOptions {
-        pipeline: PipelineOptions { min_disparity: a.matching.min_disparity, matching: a.matching.params_with_default(128), ..Default::default() },
-        max_frames: None,
-        segment: true,
-        plate: None,
-    };
+    let replay_opts = a.reg.options(PipelineOptions { min_disparity: a.matching.min_disparity, matching: a.matching.params_with_default(128), ..Default::default() })?;
     let summary = replay::run_recording(rec, &results_dir, &replay_opts, &mut |done, seq, ms| {
         eprint!("\rdemo: replayed {done}/{} (seq {seq}, {ms:.0} ms)", a.frames)
     })

@@ -48,6 +48,9 @@ pub enum RecordingError {
     WriteOrder { seq: u64, previous: u64 },
     #[error("cannot write {path}: {what}")]
     Write { path: PathBuf, what: String },
+    /// A line of a side file (`turntable.yaml`, `gt/poses.jsonl`); line 0 = the whole file.
+    #[error("{path}:{line}: {what}")]
+    Invalid { path: PathBuf, line: usize, what: String },
 }
 
 /// One line of `frames.jsonl`.
@@ -75,6 +78,51 @@ pub struct TurntableAxis {
 }
 
 impl TurntableAxis {
+    /// Reads the keys [`TurntableAxis::to_yaml`] writes (`axis_point_mm: [x, y, z]`,
+    /// `axis_dir: [x, y, z]`, `source: "…"`); `#` comments and unknown keys are ignored.
+    pub fn parse(path: &Path, text: &str) -> Result<TurntableAxis, RecordingError> {
+        let bad = |line: usize, what: String| RecordingError::Invalid { path: path.to_path_buf(), line, what };
+        let (mut point, mut dir, mut source) = (None, None, String::from("calibrated"));
+        for (i, raw) in text.lines().enumerate() {
+            let line = raw.split('#').next().unwrap_or("").trim();
+            let Some((key, value)) = line.split_once(':') else { continue };
+            let value = value.trim();
+            let vec3 = |v: &str| -> Result<[f64; 3], RecordingError> {
+                let inner = v.strip_prefix('[').and_then(|v| v.strip_suffix(']')).ok_or_else(|| bad(i + 1, format!("`{}` must be a list [x, y, z]", key.trim())))?;
+                let nums: Vec<f64> = inner.split(',').map(|x| x.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|_| bad(i + 1, format!("`{}` must hold three numbers, found `{v}`", key.trim())))?;
+                let arr: [f64; 3] = nums.try_into().map_err(|_| bad(i + 1, format!("`{}` must hold three numbers, found `{v}`", key.trim())))?;
+                if arr.iter().all(|x| x.is_finite()) { Ok(arr) } else { Err(bad(i + 1, format!("`{}` has a non-finite number", key.trim()))) }
+            };
+            match key.trim() {
+                "axis_point_mm" => point = Some(vec3(value)?),
+                "axis_dir" => {
+                    let d = vec3(value)?;
+                    let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                    if n < 1e-9 {
+                        return Err(bad(i + 1, "`axis_dir` is the zero vector; expected a direction".into()));
+                    }
+                    dir = Some([d[0] / n, d[1] / n, d[2] / n]);
+                }
+                "source" => source = value.trim_matches('"').to_string(),
+                _ => {}
+            }
+        }
+        match (point, dir) {
+            (Some(axis_point_mm), Some(axis_dir)) => Ok(TurntableAxis { axis_point_mm, axis_dir, source }),
+            _ => Err(bad(0, "expected both `axis_point_mm: [x, y, z]` and `axis_dir: [x, y, z]`".into())),
+        }
+    }
+
+    /// `turntable.yaml` of a recording (a calibrated axis), when it has one.
+    pub fn read_calibrated(dir: &Path) -> Result<Option<TurntableAxis>, RecordingError> {
+        let path = dir.join("turntable.yaml");
+        match std::fs::read_to_string(&path) {
+            Ok(text) => TurntableAxis::parse(&path, &text).map(Some),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+            Err(source) => Err(RecordingError::Io { path, source }),
+        }
+    }
+
     pub fn to_yaml(&self) -> String {
         let v = |a: [f64; 3]| format!("[{:.9}, {:.9}, {:.9}]", a[0], a[1], a[2]);
         format!("axis_point_mm: {}\naxis_dir: {}\nsource: \"{}\"\n", v(self.axis_point_mm), v(self.axis_dir), self.source)
@@ -247,6 +295,31 @@ impl Recording {
 /// `DIR/gt/disparity/NNNNNN.png` when it exists.
 pub fn gt_disparity_path(dir: &Path, seq: u64) -> Option<PathBuf> {
     Some(dir.join("gt/disparity").join(format!("{seq:06}.png"))).filter(|p| p.is_file())
+}
+
+/// `gt/poses.jsonl` of a simulated recording: `(seq, cam_from_obj)` per frame, or `None`
+/// when the recording has none.
+pub fn read_gt_poses(dir: &Path) -> Result<Option<Vec<(u64, [[f64; 4]; 4])>>, RecordingError> {
+    let path = dir.join("gt/poses.jsonl");
+    let text = match std::fs::read_to_string(&path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(source) => return Err(RecordingError::Io { path, source }),
+    };
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        if line.trim().is_empty() {
+            continue;
+        }
+        #[derive(serde::Deserialize)]
+        struct GtPose {
+            seq: u64,
+            cam_from_obj: [[f64; 4]; 4],
+        }
+        let p: GtPose = serde_json::from_str(line).map_err(|e| RecordingError::Invalid { path: path.clone(), line: i + 1, what: format!("expected {{\"seq\": N, \"cam_from_obj\": [[4x4]]}}: {e}") })?;
+        out.push((p.seq, p.cam_from_obj));
+    }
+    Ok(Some(out))
 }
 
 /// Replays a recording through the camera seam, frame by frame.

@@ -3,17 +3,30 @@
 //!
 //! The manifest says `running` from the first frame on and is rewritten after every frame,
 //! so an interrupted run leaves its finished views and an honest status behind; it ends
-//! `complete`, or `failed` with the reason. Registration (model.ply, poses.jsonl) is not part
-//! of this stage; per-frame `register_ms` is null until it runs.
+//! `complete`, or `failed` with the reason.
+//!
+//! With registration on, every view is registered as it comes ([`crate::register::ring`]) and
+//! `poses.jsonl` is rewritten after each frame; at the end the loop is closed (when the views
+//! complete a turn), the model is merged from `views/` with the final poses into 1 mm voxels,
+//! cleaned of isolated points, and written as `model.ply`, and the axis estimated from the
+//! poses as `turntable_estimated.yaml`. Where the recording has `gt/poses.jsonl` (and
+//! `gt/mesh.ply`), the poses (and the model) are scored against them in `report.json`.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use serde_json::{json, Value};
 
+use nalgebra::Isometry3;
+
 use crate::capture::{CaptureError, StereoSource};
 use crate::io;
 use crate::pipeline::{Pipeline, PipelineError, PipelineOptions};
+use crate::recording::TurntableAxis;
+use crate::register::denoise::{keep_mask, DenoiseParams};
+use crate::register::posestore::{PoseStore, ViewPose};
+use crate::register::ring::{LoopClosure, Registrar, RegistrationParams};
+use crate::register::voxel::VoxelModel;
 use crate::stereo::DisparityMap;
 
 /// Why a run stopped.
@@ -39,6 +52,31 @@ pub struct ReplayOptions {
     pub segment: bool,
     /// An image of the empty scene (raw left camera, RGB) that segmentation also keys against.
     pub plate: Option<Vec<u8>>,
+    /// Register the views and build the model (None: views only).
+    pub registration: Option<RegistrationParams>,
+    /// Voxel side of `model.ply`, mm (0 is taken as the default, 1 mm).
+    pub model_voxel_mm: f64,
+    /// Isolated-point removal on the model (None: keep every voxel).
+    pub denoise: Option<DenoiseParams>,
+}
+
+impl ReplayOptions {
+    /// What `spinscan replay` does by default: segment, register, a 1 mm model cleaned with
+    /// the default thresholds.
+    pub fn with_registration(pipeline: PipelineOptions) -> ReplayOptions {
+        ReplayOptions { pipeline, segment: true, registration: Some(RegistrationParams::default()), model_voxel_mm: 1.0, denoise: Some(DenoiseParams::default()), ..Default::default() }
+    }
+}
+
+/// What a run can compare its registration with, and seed it from.
+#[derive(Debug, Clone, Default)]
+pub struct RegistrationInputs {
+    /// The recording's calibrated axis (`turntable.yaml`).
+    pub calibrated_axis: Option<TurntableAxis>,
+    /// `gt/poses.jsonl`: cam_from_obj per seq.
+    pub gt_poses: Option<Vec<(u64, Isometry3<f64>)>>,
+    /// `gt/mesh.ply`, the object in its own frame.
+    pub gt_mesh: Option<PathBuf>,
 }
 
 /// Ground-truth comparison of one disparity map (recordings of ideal rigs carry it).
@@ -84,6 +122,7 @@ pub struct ResultsWriter {
     frames: Vec<Value>,
     disparity_sign: i32,
     started: Instant,
+    registration: Option<Value>,
 }
 
 impl ResultsWriter {
@@ -92,7 +131,7 @@ impl ResultsWriter {
             let d = dir.join(sub);
             std::fs::create_dir_all(&d).map_err(|e| ReplayError::Output { path: d, what: e.to_string() })?;
         }
-        let w = ResultsWriter { dir: dir.to_path_buf(), source: source.to_string(), frames: Vec::new(), disparity_sign, started: Instant::now() };
+        let w = ResultsWriter { dir: dir.to_path_buf(), source: source.to_string(), frames: Vec::new(), disparity_sign, started: Instant::now(), registration: None };
         w.write_manifest("running", None)?;
         Ok(w)
     }
@@ -100,6 +139,17 @@ impl ResultsWriter {
     fn write_json(&self, name: &str, value: &Value) -> Result<(), ReplayError> {
         let path = self.dir.join(name);
         io::write_atomic(&path, serde_json::to_string_pretty(value).unwrap().as_bytes()).map_err(|e| ReplayError::Output { path, what: e.to_string() })
+    }
+
+    /// `poses.jsonl`: `{"seq", "first_from_view": [[4x4]]}` per registered view.
+    pub fn write_poses(&self, poses: &[ViewPose]) -> Result<(), ReplayError> {
+        let mut text = String::new();
+        for p in poses {
+            text.push_str(&json!({"seq": p.seq, "first_from_view": crate::register::to_rows(&p.first_from_view)}).to_string());
+            text.push('\n');
+        }
+        let path = self.dir.join("poses.jsonl");
+        io::write_atomic(&path, text.as_bytes()).map_err(|e| ReplayError::Output { path, what: e.to_string() })
     }
 
     fn write_manifest(&self, status: &str, reason: Option<&str>) -> Result<(), ReplayError> {
@@ -134,7 +184,9 @@ impl ResultsWriter {
                 "gt_frames": scored.len(),
                 "mean_gt_coverage": mean("gt_coverage", &scored),
                 "mean_gt_bad2_of_matched": mean("gt_bad2_of_matched", &scored),
+                "mean_register_ms": mean("register_ms", &all),
             },
+            "registration": self.registration,
         });
         self.write_json("report.json", &report)
     }
@@ -156,14 +208,29 @@ pub struct ReplaySummary {
     pub mean_match_ms: f64,
     pub gt: Option<GtScore>,
     pub disparity_sign: i32,
+    /// The `registration` section of `report.json`, when registration ran.
+    pub registration: Option<Value>,
 }
 
 /// Replays a recording into `out`, scoring each frame against its `gt/disparity` file where
 /// the recording has one.
 pub fn run_recording(recording: crate::recording::Recording, out: &Path, opts: &ReplayOptions, progress: &mut dyn FnMut(usize, u64, f64)) -> Result<ReplaySummary, ReplayError> {
     let dir = recording.dir.clone();
+    let mut inputs = RegistrationInputs { calibrated_axis: TurntableAxis::read_calibrated(&dir).map_err(|e| ReplayError::Frame { seq: 0, what: e.to_string() })?, ..Default::default() };
+    if opts.registration.is_some() {
+        let gt = crate::recording::read_gt_poses(&dir).map_err(|e| ReplayError::Frame { seq: 0, what: format!("ground truth: {e}") })?;
+        inputs.gt_poses = match gt {
+            Some(list) => Some(
+                list.into_iter()
+                    .map(|(seq, rows)| crate::register::from_rows(&rows, 1e-4).map(|t| (seq, t)).map_err(|e| ReplayError::Frame { seq, what: format!("gt/poses.jsonl: cam_from_obj: {e}") }))
+                    .collect::<Result<_, _>>()?,
+            ),
+            None => None,
+        };
+        inputs.gt_mesh = Some(dir.join("gt/mesh.ply")).filter(|p| p.is_file());
+    }
     let gt_for = move |seq: u64| crate::recording::gt_disparity_path(&dir, seq);
-    run(&mut crate::recording::ReplaySource::new(recording), out, opts, &gt_for, progress)
+    run(&mut crate::recording::ReplaySource::new(recording), out, opts, &gt_for, &inputs, progress)
 }
 
 /// Processes every frame of `source` into `out`. `gt_for(seq)` gives a ground-truth
@@ -173,6 +240,7 @@ pub fn run(
     out: &Path,
     opts: &ReplayOptions,
     gt_for: &dyn Fn(u64) -> Option<PathBuf>,
+    inputs: &RegistrationInputs,
     progress: &mut dyn FnMut(usize, u64, f64),
 ) -> Result<ReplaySummary, ReplayError> {
     let calib = source.calibration().clone();
@@ -180,12 +248,23 @@ pub fn run(
     let Some(first) = first else {
         let w = ResultsWriter::create(out, &source.describe(), 1)?;
         w.finish(None)?;
-        return Ok(ReplaySummary { frames: 0, mean_match_ms: 0.0, gt: None, disparity_sign: 1 });
+        return Ok(ReplaySummary { frames: 0, mean_match_ms: 0.0, gt: None, disparity_sign: 1, registration: None });
     };
     let (w, h, _) = first.left.to_rgb().map_err(|what| ReplayError::Frame { seq: first.seq, what })?;
     let mut pipe = Pipeline::new(&calib, (w as u32, h as u32), opts.pipeline.clone()).map_err(|source| ReplayError::Pipeline { seq: first.seq, source })?;
     let mut results = ResultsWriter::create(out, &source.describe(), pipe.rect.disparity_sign)?;
-    let outcome = process_all(source, first, &mut pipe, &mut results, opts, gt_for, progress);
+    let mut registrar = opts.registration.clone().map(|mut p| {
+        if let Some(axis) = &inputs.calibrated_axis {
+            p.calibrated_axis = Some((nalgebra::Vector3::from(axis.axis_point_mm), nalgebra::Vector3::from(axis.axis_dir)));
+        }
+        Registrar::new(p, std::sync::Arc::new(PoseStore::new()))
+    });
+    let outcome = process_all(source, first, &mut pipe, &mut results, opts, gt_for, registrar.as_mut(), progress).and_then(|mut summary| {
+        if let Some(reg) = registrar.as_mut() {
+            summary.registration = Some(finish_registration(reg, &mut results, opts, inputs)?);
+        }
+        Ok(summary)
+    });
     let failure = outcome.as_ref().err().map(|e| e.to_string());
     results.finish(failure.as_deref())?;
     outcome
@@ -198,6 +277,7 @@ fn process_all(
     results: &mut ResultsWriter,
     opts: &ReplayOptions,
     gt_for: &dyn Fn(u64) -> Option<PathBuf>,
+    mut registrar: Option<&mut Registrar>,
     progress: &mut dyn FnMut(usize, u64, f64),
 ) -> Result<ReplaySummary, ReplayError> {
     let (mut match_ms, mut gt_sum, mut gt_frames) = (0.0, (0usize, 0.0, 0.0, 0.0), 0usize);
@@ -222,7 +302,8 @@ fn process_all(
             "register_ms": null,
             "mean_search_px": view.stats.mean_search_px(),
             "valid_fraction": view.stats.valid_fraction(),
-            // Every frame here is matched with the full search range (no registration yet).
+            // Every frame here is matched with the full search range (registration-assisted
+            // matching is not in the replay yet).
             "fallback": true,
             "points": view.cloud.len(),
             "table_deg": frame.table_deg,
@@ -241,6 +322,34 @@ fn process_all(
             gt_sum = (gt_sum.0 + s.gt_pixels, gt_sum.1 + s.coverage, gt_sum.2 + s.bad2_of_matched, gt_sum.3 + s.mean_abs_err_px);
             gt_frames += 1;
         }
+        if let Some(reg) = registrar.as_deref_mut() {
+            match reg.add_view(seq, frame.table_deg, &view.cloud) {
+                Ok(r) => {
+                    entry["register_ms"] = json!(r.register_ms);
+                    entry["seed"] = json!(r.seed);
+                    if let Some(icp) = &r.icp {
+                        entry["icp_fitness"] = json!(icp.fitness);
+                        entry["icp_rmse_mm"] = json!(icp.rmse);
+                        entry["icp_iterations"] = json!(icp.iterations);
+                    }
+                    if let Some(b) = &r.block {
+                        entry["block_fitness"] = json!(b.fitness);
+                        entry["block_correction_deg"] = json!(b.transform.rotation.angle().to_degrees());
+                    }
+                    for w in &r.warnings {
+                        tracing::warn!("{w}");
+                    }
+                    if !r.warnings.is_empty() {
+                        entry["warnings"] = json!(r.warnings);
+                    }
+                }
+                Err(e) => {
+                    tracing::warn!("frame seq {seq}: not registered: {e}");
+                    entry["register_error"] = json!(e.to_string());
+                }
+            }
+            results.write_poses(reg.poses())?;
+        }
         match_ms += view.match_ms;
         results.frames.push(entry);
         results.write_manifest("running", None)?;
@@ -255,5 +364,86 @@ fn process_all(
         let k = gt_frames as f64;
         GtScore { gt_pixels: gt_sum.0, coverage: gt_sum.1 / k, bad2_of_matched: gt_sum.2 / k, mean_abs_err_px: gt_sum.3 / k }
     });
-    Ok(ReplaySummary { frames: n, mean_match_ms: match_ms / n.max(1) as f64, gt, disparity_sign: results.disparity_sign })
+    Ok(ReplaySummary { frames: n, mean_match_ms: match_ms / n.max(1) as f64, gt, disparity_sign: results.disparity_sign, registration: None })
+}
+
+/// Closes the loop, writes the final poses, merges and cleans the model from `views/`,
+/// writes the estimated axis, and scores against ground truth where the recording has it.
+fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opts: &ReplayOptions, inputs: &RegistrationInputs) -> Result<Value, ReplayError> {
+    let closure = reg.finish().map_err(|e| ReplayError::Frame { seq: reg.poses().last().map_or(0, |p| p.seq), what: format!("loop closure: {e}") })?;
+    let poses: Vec<ViewPose> = reg.poses().to_vec();
+    results.write_poses(&poses)?;
+
+    let voxel = if opts.model_voxel_mm > 0.0 { opts.model_voxel_mm } else { 1.0 };
+    let mut model = VoxelModel::new(voxel);
+    for p in &poses {
+        let path = results.dir.join("views").join(format!("{:06}.ply", p.seq));
+        let view = io::ply::read_ply(&path).map_err(|e| ReplayError::Output { path: path.clone(), what: format!("cannot read the view back: {e}") })?;
+        model.add(&view.cloud, &p.first_from_view);
+    }
+    let (mut cloud, _) = model.to_cloud();
+    let voxels = cloud.len();
+    if let Some(d) = &opts.denoise {
+        let keep = keep_mask(&cloud.points, d);
+        let mut k = keep.iter();
+        cloud.points.retain(|_| *k.next().unwrap());
+        let mut k = keep.iter();
+        cloud.colors.retain(|_| *k.next().unwrap());
+    }
+    let model_path = results.dir.join("model.ply");
+    io::ply::write_ply(&model_path, &cloud).map_err(|e| ReplayError::Output { path: model_path, what: e.to_string() })?;
+
+    let mut section = json!({
+        "views": poses.len(),
+        "model_points": cloud.len(),
+        "model_voxels_before_denoise": voxels,
+        "model_voxel_mm": voxel,
+        "turned_deg": reg.turned_deg(),
+        "loop_closure": closure.as_ref().map(loop_json),
+    });
+    if let Some(axis) = reg.estimated_axis() {
+        let est = TurntableAxis { axis_point_mm: axis.point.into(), axis_dir: axis.dir.into(), source: "estimated".into() };
+        let path = results.dir.join("turntable_estimated.yaml");
+        io::write_atomic(&path, est.to_yaml().as_bytes()).map_err(|e| ReplayError::Output { path, what: e.to_string() })?;
+        section["axis"] = json!({"point_mm": est.axis_point_mm, "dir": est.axis_dir, "rms_axis_deg": axis.rms_axis_deg, "rms_offset_mm": axis.rms_offset, "views": axis.views});
+    }
+    if let Some(gt) = &inputs.gt_poses {
+        score_registration(&mut section, results, &poses, gt, inputs.gt_mesh.as_deref(), &cloud.points)?;
+    }
+    results.registration = Some(section.clone());
+    Ok(section)
+}
+
+fn loop_json(c: &LoopClosure) -> Value {
+    json!({"views": c.views, "error_deg": c.error_deg, "error_mm": c.error_translation, "fitness": c.icp.fitness, "rmse_mm": c.icp.rmse})
+}
+
+/// Pose error of every view against `gt/poses.jsonl`, and the model's distance to the placed
+/// `gt/mesh.ply`, into the report.
+fn score_registration(section: &mut Value, results: &mut ResultsWriter, poses: &[ViewPose], gt: &[(u64, Isometry3<f64>)], gt_mesh: Option<&Path>, model: &[[f32; 3]]) -> Result<(), ReplayError> {
+    let truth = |seq: u64| gt.iter().find(|g| g.0 == seq).map(|g| g.1);
+    let Some(first) = poses.first().and_then(|p| truth(p.seq)) else { return Ok(()) };
+    let mut last = None;
+    for p in poses {
+        let Some(cam_from_obj) = truth(p.seq) else { continue };
+        let true_pose = first * cam_from_obj.inverse();
+        let err = p.first_from_view.inverse() * true_pose;
+        let (deg, mm) = (err.rotation.angle().to_degrees(), (p.first_from_view.translation.vector - true_pose.translation.vector).norm());
+        if let Some(f) = results.frames.iter_mut().find(|f| f["seq"] == json!(p.seq)) {
+            f["gt_pose_err_deg"] = json!(deg);
+            f["gt_pose_err_mm"] = json!(mm);
+        }
+        last = Some((p.seq, deg, mm));
+    }
+    if let Some((seq, deg, mm)) = last {
+        section["gt_last_view"] = json!({"seq": seq, "pose_err_deg": deg, "pose_err_mm": mm});
+    }
+    if let Some(mesh_path) = gt_mesh {
+        let mesh = io::ply::read_ply(mesh_path).map_err(|e| ReplayError::Frame { seq: 0, what: format!("ground truth: {e}") })?;
+        let surface = crate::register::surface::Surface::new(&mesh, &first).map_err(|e| ReplayError::Frame { seq: 0, what: format!("ground truth {}: {e}", mesh_path.display()) })?;
+        let d = surface.distances(model);
+        use crate::register::surface::quantile;
+        section["gt_model_distance_mm"] = json!({"median": quantile(&d, 0.5), "p95": quantile(&d, 0.95), "points": d.len()});
+    }
+    Ok(())
 }

@@ -50,8 +50,11 @@ pub fn estimate_axis(poses: &[(Isometry3<f64>, Option<f64>)], reference: &Vector
     let mut have_table = false;
     for (p, dt) in poses {
         if let Some(dt) = dt {
+            // Both as angles in (−180°, 180°]: past half a turn a rotation reads as the
+            // opposite turn about the opposite axis.
             let signed = p.rotation.scaled_axis().dot(&dir);
-            agreement += signed * dt;
+            let wrapped = (dt + 180.0).rem_euclid(360.0) - 180.0;
+            agreement += signed * wrapped;
             have_table = true;
         }
     }
@@ -102,7 +105,8 @@ mod tests {
         // Table axis 450 mm in front, tilted towards the camera; up is image-up (−y).
         let up = Vector3::new(0.0, -0.978, -0.208).normalize();
         let c = Vector3::new(5.0, 40.0, 450.0);
-        let poses: Vec<(Isometry3<f64>, Option<f64>)> = (1..20).map(|k| (rotation_about_axis(&c, &up, -3.0 * k as f64), Some(3.0 * k as f64))).collect();
+        // A whole turn: past 180° the rotations read as turns about −up.
+        let poses: Vec<(Isometry3<f64>, Option<f64>)> = (1..120).map(|k| (rotation_about_axis(&c, &up, -3.0 * k as f64), Some(3.0 * k as f64))).collect();
         let est = estimate_axis(&poses, &Vector3::new(0.0, 0.0, 430.0), 5.0).unwrap();
         assert!((est.dir - up).norm() < 1e-9, "{:?}", est.dir);
         // The estimated point is on the line.

@@ -17,6 +17,7 @@ pub mod kdtree;
 pub mod normals;
 pub mod posestore;
 pub mod ring;
+pub mod surface;
 pub mod voxel;
 
 use nalgebra::{Isometry3, Matrix3, Matrix4, Rotation3, Translation3, UnitQuaternion, Vector3};
