@@ -400,6 +400,8 @@ fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opts: &
         "model_voxel_mm": voxel,
         "turned_deg": reg.turned_deg(),
         "loop_closure": closure.as_ref().map(loop_json),
+        "turntable_fit": reg.turntable_fit().map(|f| json!({"steps": f.steps, "rms_deviation_deg": f.rms_deviation_deg, "max_deviation_deg": f.max_deviation_deg, "worst_seq": f.worst_seq, "applied": f.applied, "axis_source": f.axis_source})),
+        "pose_source": if reg.turntable_fit().is_some_and(|f| f.applied) { "turntable" } else { "registration" },
     });
     if let Some(axis) = reg.estimated_axis() {
         let est = TurntableAxis { axis_point_mm: axis.point.into(), axis_dir: axis.dir.into(), source: "estimated".into() };
