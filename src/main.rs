@@ -149,7 +149,7 @@ struct RegisterArgs {
     method: String,
     /// Largest distance between corresponding points, in the files' units. Default: 10 × the
     /// target's median point spacing.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     max_distance: Option<f64>,
     /// Run the registration K times and report the median time.
     #[arg(long, default_value_t = 1)]
@@ -194,6 +194,10 @@ struct RegistrationArgs {
     /// Do not close the loop after a full turn.
     #[arg(long)]
     no_loop_closure: bool,
+    /// Keep the registered poses even when every step agrees with the turntable's angles
+    /// (by default the turntable's predictions about the estimated axis replace them then).
+    #[arg(long)]
+    no_turntable_poses: bool,
 }
 
 impl RegistrationArgs {
@@ -214,6 +218,7 @@ impl RegistrationArgs {
         } else if let Some(r) = opts.registration.as_mut() {
             r.block = self.block_views;
             r.close_loop = !self.no_loop_closure;
+            r.turntable_poses = !self.no_turntable_poses;
             let method = self.icp_method.parse().map_err(input)?;
             let keep = r.icp.clone();
             r.icp = IcpParams { method, ..IcpParams::new(self.icp_max_distance) };
