@@ -840,6 +840,7 @@ fn cmd_register(a: RegisterArgs) -> Result<(), Failure> {
     j["source_points"] = json!(source.len());
     j["target_points"] = json!(target.len());
     j["degenerate"] = json!(r.degenerate.iter().map(|d| d.to_string()).collect::<Vec<_>>());
+    j["conditioning"] = json!(r.conditioning);
     io::write_atomic(out, serde_json::to_string_pretty(&j).unwrap().as_bytes()).map_err(|e| output(format!("{}: {e}", out.display())))?;
     println!("{}", json!({"out": out, "fitness": r.fitness, "rmse": r.rmse, "iterations": r.iterations, "register_ms": j["register_ms"], "converged": r.converged}));
     Ok(())

@@ -331,6 +331,7 @@ fn process_all(
                         entry["icp_fitness"] = json!(icp.fitness);
                         entry["icp_rmse_mm"] = json!(icp.rmse);
                         entry["icp_iterations"] = json!(icp.iterations);
+                        entry["icp_conditioning"] = json!(icp.conditioning);
                     }
                     if let Some(b) = &r.block {
                         entry["block_fitness"] = json!(b.fitness);

@@ -107,6 +107,8 @@ pub struct IcpParams {
     pub normals: NormalParams,
     /// Directions whose eigenvalue is below this fraction of the largest are degenerate.
     pub degeneracy_ratio: f64,
+    /// Directions below this fraction are probed with a finite move (see [`Degeneracy`]).
+    pub degeneracy_probe_ratio: f64,
 }
 
 impl IcpParams {
@@ -126,6 +128,7 @@ impl IcpParams {
             max_source_points: 0,
             normals: NormalParams { radius: (4.0 * max_distance) as f32, max_nn: 30 },
             degeneracy_ratio: 2e-3,
+            degeneracy_probe_ratio: 0.08,
         }
     }
 
@@ -156,6 +159,9 @@ pub struct Degeneracy {
     pub translation: [f64; 3],
     /// Its eigenvalue over the largest.
     pub ratio: f64,
+    /// When the free motion is a rotation: the line it turns about (point, unit direction),
+    /// e.g. the symmetry axis of a surface of revolution.
+    pub axis: Option<([f64; 3], [f64; 3])>,
 }
 
 impl std::fmt::Display for Degeneracy {
@@ -188,6 +194,12 @@ pub struct IcpResult {
     pub correspondences: usize,
     /// Motions the surfaces cannot fix; left at the initial guess.
     pub degenerate: Vec<Degeneracy>,
+    /// Smallest over largest eigenvalue of the point-to-plane normal matrix at the result
+    /// (rotations scaled by the source's RMS radius): 0 = some motion is free, larger = every
+    /// motion is pinned down. Degenerate below `degeneracy_ratio`.
+    pub conditioning: f64,
+    /// The least constrained motion at the result.
+    pub weakest: Option<Degeneracy>,
 }
 
 impl IcpResult {
@@ -307,18 +319,32 @@ pub fn icp(source: &[[f32; 3]], target: &mut Target, init: &Isometry3<f64>, para
             converged = true;
         }
     }
-    if params.method == IcpMethod::PointToPoint && last_pairs.len() >= 6 {
+    if last_pairs.len() >= 6 {
         // Measure what the surfaces constrain, and take back any motion along what they don't.
-        target.ensure_normals(last_pairs.iter().map(|p| p.tgt));
-        let (h, _, c) = plane_system(&src, target, &t, &last_pairs, params, scale);
-        degenerate = degenerate_directions(&h, params.degeneracy_ratio).into_iter().map(|(v, ratio)| as_degeneracy(&v, ratio)).collect();
-        if !degenerate.is_empty() {
-            t = remove_motion_along(&t, init, &degenerate_directions(&h, params.degeneracy_ratio), &c, scale);
+        let free = free_directions(&src, target, &t, &last_pairs, params, scale);
+        if !free.is_empty() {
+            let c = moved_centroid(&src, &t, &last_pairs);
+            degenerate = free.iter().map(|(v, ratio)| as_degeneracy(v, *ratio, &c, scale)).collect();
+            t = remove_motion_along(&t, init, &free, &c, scale);
             last_pairs = correspondences(&src, &target.tree, &t, params);
+        } else if params.method == IcpMethod::PointToPoint {
+            degenerate.clear();
         }
     }
     let (fitness, rmse) = stats(&last_pairs, src.len());
-    Ok(IcpResult { transform: t, fitness, rmse, iterations, converged, correspondences: last_pairs.len(), degenerate })
+    let (mut conditioning, mut weakest) = (0.0, None);
+    if last_pairs.len() >= 6 {
+        target.ensure_normals(last_pairs.iter().map(|p| p.tgt));
+        let (h, _, _) = plane_system(&src, target, &t, &last_pairs, params, scale);
+        let eig = SymmetricEigen::new(h);
+        let max = eig.eigenvalues.max();
+        if max > 0.0 {
+            let k = (0..6).min_by(|&i, &j| eig.eigenvalues[i].total_cmp(&eig.eigenvalues[j])).unwrap();
+            conditioning = eig.eigenvalues[k].max(0.0) / max;
+            weakest = Some(as_degeneracy(&eig.eigenvectors.column(k).into_owned(), conditioning, &moved_centroid(&src, &t, &last_pairs), scale));
+        }
+    }
+    Ok(IcpResult { transform: t, fitness, rmse, iterations, converged, correspondences: last_pairs.len(), degenerate, conditioning, weakest })
 }
 
 fn correspondences(src: &[[f32; 3]], tree: &KdTree, t: &Isometry3<f64>, params: &IcpParams) -> Vec<Pair> {
@@ -409,18 +435,82 @@ fn plane_system(src: &[[f32; 3]], target: &Target, t: &Isometry3<f64>, pairs: &[
     (h, b, c)
 }
 
-/// Eigenvectors of `h` whose eigenvalue is below `ratio` × the largest, with their ratios.
-fn degenerate_directions(h: &Matrix6<f64>, ratio: f64) -> Vec<(Vector6<f64>, f64)> {
-    let eig = SymmetricEigen::new(*h);
-    let max = eig.eigenvalues.max();
-    if max <= 0.0 {
-        return Vec::new();
-    }
-    (0..6).filter(|&k| eig.eigenvalues[k] < ratio * max).map(|k| (eig.eigenvectors.column(k).into_owned(), eig.eigenvalues[k].max(0.0) / max)).collect()
+fn moved_centroid(src: &[[f32; 3]], t: &Isometry3<f64>, pairs: &[Pair]) -> Vector3<f64> {
+    pairs.iter().map(|p| (t * Point3::from(v3(&src[p.src]))).coords).sum::<Vector3<f64>>() / pairs.len().max(1) as f64
 }
 
-fn as_degeneracy(v: &Vector6<f64>, ratio: f64) -> Degeneracy {
-    Degeneracy { rotation: [v[0], v[1], v[2]], translation: [v[3], v[4], v[5]], ratio }
+/// RMS point-to-plane residual of `pairs` under `t`.
+fn plane_rms(src: &[[f32; 3]], target: &Target, t: &Isometry3<f64>, pairs: &[Pair]) -> f64 {
+    let (mut sum, mut n) = (0.0, 0usize);
+    for p in pairs {
+        if let Some(nrm) = target.normal(p.tgt) {
+            let a = (t * Point3::from(v3(&src[p.src]))).coords;
+            sum += v3(&nrm).dot(&(a - v3(&target.tree.points[p.tgt]))).powi(2);
+            n += 1;
+        }
+    }
+    if n == 0 {
+        0.0
+    } else {
+        (sum / n as f64).sqrt()
+    }
+}
+
+/// The motions the surfaces leave free at `t`: eigen-directions of the point-to-plane normal
+/// matrix below `degeneracy_ratio`, and — because sensor noise in the normals lifts the
+/// eigenvalue of a truly free motion to a few percent — those below `degeneracy_probe_ratio`
+/// along which a finite move of 10 × the residual (at the source's RMS radius, either way,
+/// with fresh correspondences) leaves the residual below twice what it was.
+fn free_directions(src: &[[f32; 3]], target: &mut Target, t: &Isometry3<f64>, pairs: &[Pair], params: &IcpParams, scale: f64) -> Vec<(Vector6<f64>, f64)> {
+    target.ensure_normals(pairs.iter().map(|p| p.tgt));
+    let (h, _, c) = plane_system(src, target, t, pairs, params, scale);
+    let eig = SymmetricEigen::new(h);
+    let max = eig.eigenvalues.max();
+    if !(max > 0.0) {
+        return Vec::new();
+    }
+    let base = plane_rms(src, target, t, pairs).max(1e-9 * scale);
+    let fitness = pairs.len();
+    let mut free = Vec::new();
+    for k in 0..6 {
+        let ratio = eig.eigenvalues[k].max(0.0) / max;
+        let v: Vector6<f64> = eig.eigenvectors.column(k).into_owned();
+        if ratio < params.degeneracy_ratio {
+            free.push((v, ratio));
+            continue;
+        }
+        if ratio >= params.degeneracy_probe_ratio {
+            continue;
+        }
+        let moved_rms = [1.0, -1.0]
+            .iter()
+            .map(|sign| {
+                let tt = twist_to_step(&(v * (10.0 * base * sign)), &c, scale) * t;
+                let pp = correspondences(src, &target.tree, &tt, params);
+                if (pp.len() as f64) < 0.9 * fitness as f64 {
+                    return f64::INFINITY;
+                }
+                target.ensure_normals(pp.iter().map(|p| p.tgt));
+                plane_rms(src, target, &tt, &pp)
+            })
+            .fold(f64::INFINITY, f64::min);
+        if moved_rms < 2.0 * base {
+            free.push((v, ratio));
+        }
+    }
+    free
+}
+
+/// A twist `v = (ω·s, t)` about `c` as a [`Degeneracy`], with its screw axis when it is
+/// mostly a rotation: the line through `c + ω × t / |ω|²` along ω.
+fn as_degeneracy(v: &Vector6<f64>, ratio: f64, c: &Vector3<f64>, scale: f64) -> Degeneracy {
+    let (rot, trans) = (Vector3::new(v[0], v[1], v[2]), Vector3::new(v[3], v[4], v[5]));
+    let axis = (rot.norm() >= trans.norm()).then(|| {
+        let w = rot / scale;
+        let point = c + w.cross(&trans) / w.norm_squared();
+        (point.into(), w.normalize().into())
+    });
+    Degeneracy { rotation: rot.into(), translation: trans.into(), ratio, axis }
 }
 
 /// The update for a twist `x = (ω·s, v)` about `c`: p ↦ R(ω)(p − c) + c + v.
@@ -451,7 +541,7 @@ fn point_to_plane_step(src: &[[f32; 3]], target: &Target, t: &Isometry3<f64>, pa
         let v = eig.eigenvectors.column(k).into_owned();
         let l = eig.eigenvalues[k];
         if l < params.degeneracy_ratio * max {
-            degenerate.push(as_degeneracy(&v, l.max(0.0) / max));
+            degenerate.push(as_degeneracy(&v, l.max(0.0) / max, &c, scale));
             dirs.push(v);
         } else {
             x += v * (v.dot(&b) / l);

@@ -218,6 +218,8 @@ pub struct Registrar {
     reference: Vector3<f64>,
     turned_deg: f64,
     turntable_fit: Option<TurntableFit>,
+    /// The symmetry axis of a surface of revolution, found by ICP's degeneracy.
+    symmetry_axis: Option<(Vector3<f64>, Vector3<f64>)>,
     /// `prev_from_view` found by ICP for each view (None: first view, or ICP distrusted).
     steps: Vec<Option<Isometry3<f64>>>,
     /// [`edge_variance`] of each view's step (first view: unused).
@@ -227,7 +229,7 @@ pub struct Registrar {
 impl Registrar {
     pub fn new(params: RegistrationParams, store: std::sync::Arc<PoseStore>) -> Registrar {
         let model = VoxelModel::new(params.model_voxel);
-        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, steps: Vec::new(), step_variance: Vec::new() }
+        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, symmetry_axis: None, steps: Vec::new(), step_variance: Vec::new() }
     }
 
     /// The latest pose of every view.
@@ -258,7 +260,7 @@ impl Registrar {
     }
 
     fn seed_axis(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
-        self.params.calibrated_axis.or_else(|| self.axis.as_ref().map(|a| (a.point, a.dir)))
+        self.params.calibrated_axis.or(self.symmetry_axis).or_else(|| self.axis.as_ref().map(|a| (a.point, a.dir)))
     }
 
     /// Registers the next view (its cloud in its own LEFT raw camera frame).
@@ -290,7 +292,26 @@ impl Registrar {
             _ => (Isometry3::identity(), "identity"),
         };
         let mut prev_target = prev.target;
-        let result = icp(&target.tree.points, &mut prev_target, &seed, &self.params.icp)?;
+        let mut result = icp(&target.tree.points, &mut prev_target, &seed, &self.params.icp)?;
+        let mut seed = seed;
+        let mut seed_kind = seed_kind;
+        // A surface of revolution turning about its own axis: ICP cannot see the turn. With
+        // no axis known yet, a free rotation about a line that stands roughly upright in the
+        // image (within 45° of the image's vertical) is the table's axis — an object off the
+        // axis would not be degenerate — so lean on the table's step about it. (A free
+        // rotation about another line, such as a ring facing the camera, is left alone.)
+        if let (None, Some(now), Some(before)) = (self.seed_axis(), table_deg, prev.table_deg) {
+            if let Some((point, dir)) = result.degenerate.iter().filter_map(|d| d.axis).find(|(_, dir)| dir[1].abs() > std::f64::consts::FRAC_1_SQRT_2) {
+                let mut up = Vector3::from(dir);
+                if up.y > 0.0 {
+                    up = -up;
+                }
+                self.symmetry_axis = Some((Vector3::from(point), up));
+                seed = rotation_about_axis(&Vector3::from(point), &up, -(now - before));
+                seed_kind = "turntable";
+                result = icp(&target.tree.points, &mut prev_target, &seed, &self.params.icp)?;
+            }
+        }
         let prev_from_view = if result.fitness < self.params.min_fitness {
             warnings.push(format!("view {seq}: ICP onto view {} found too little overlap (fitness {:.2} < {:.2}); kept the {seed_kind} guess", prev.seq, result.fitness, self.params.min_fitness));
             seed
