@@ -407,7 +407,7 @@ struct DemoArgs {
     #[arg(short = 'o', long = "out", default_value = "out/demo")]
     out: PathBuf,
     /// Built-in object: sphere, egg, vase or torus.
-    #[arg(long, default_value = "egg")]
+    #[arg(long, default_value = "torus")]
     object: String,
     /// Number of stereo pairs.
     #[arg(long, default_value_t = 8)]

@@ -142,9 +142,13 @@ fn demo_records_and_replays_a_scan_on_the_simulated_lab() {
     assert!(j["gt_coverage"].as_f64().unwrap() > 0.8, "{j}");
     assert!(j["gt_bad2_of_matched"].as_f64().unwrap() < 0.05, "{j}");
     for f in ["recording/calib.yaml", "recording/frames.jsonl", "recording/gt/poses.jsonl", "recording/gt/mesh.ply", "recording/gt/disparity/000002.png",
-              "results/manifest.json", "results/report.json", "results/views/000002.ply", "results/disparity/000002.png"] {
+              "results/manifest.json", "results/report.json", "results/views/000002.ply", "results/disparity/000002.png",
+              "results/poses.jsonl", "results/model.ply"] {
         assert!(dir.join(f).is_file(), "{f} missing");
     }
+    // The views are registered: three poses, and a model near the true surface.
+    assert_eq!(std::fs::read_to_string(dir.join("results/poses.jsonl")).unwrap().lines().count(), 3);
+    assert!(j["registration"]["gt_model_distance_mm"]["median"].as_f64().unwrap() < 2.0, "{j}");
     let manifest: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("results/manifest.json")).unwrap()).unwrap();
     assert_eq!((manifest["status"].as_str(), manifest["frames"].as_u64(), manifest["format"].as_u64()), (Some("complete"), Some(3), Some(1)));
 }

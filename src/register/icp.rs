@@ -501,11 +501,13 @@ fn free_directions(src: &[[f32; 3]], target: &mut Target, t: &Isometry3<f64>, pa
     free
 }
 
-/// A twist `v = (ω·s, t)` about `c` as a [`Degeneracy`], with its screw axis when it is
-/// mostly a rotation: the line through `c + ω × t / |ω|²` along ω.
+/// A twist `v = (ω·s, t)` about `c` as a [`Degeneracy`], with its screw axis when it has a
+/// real rotation part: the line through `c + ω × t / |ω|²` along ω.
 fn as_degeneracy(v: &Vector6<f64>, ratio: f64, c: &Vector3<f64>, scale: f64) -> Degeneracy {
     let (rot, trans) = (Vector3::new(v[0], v[1], v[2]), Vector3::new(v[3], v[4], v[5]));
-    let axis = (rot.norm() >= trans.norm()).then(|| {
+    // A rotation about a line away from the centroid carries a translation too (of about
+    // the same size when the line is a radius away): any real rotation part has an axis.
+    let axis = (rot.norm() >= 0.2 * (rot.norm_squared() + trans.norm_squared()).sqrt()).then(|| {
         let w = rot / scale;
         let point = c + w.cross(&trans) / w.norm_squared();
         (point.into(), w.normalize().into())

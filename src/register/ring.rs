@@ -300,16 +300,26 @@ impl Registrar {
         // image (within 45° of the image's vertical) is the table's axis — an object off the
         // axis would not be degenerate — so lean on the table's step about it. (A free
         // rotation about another line, such as a ring facing the camera, is left alone.)
+        // A nearly free one (an egg: the weakest motion is such a rotation, conditioning below
+        // the probe ratio) gets the same second try, kept when it fits as well (RMSE within
+        // 5 %): ICP from the identity would settle on "no turn" there.
+        let upright = |d: &super::icp::Degeneracy| d.axis.filter(|(_, dir)| dir[1].abs() > std::f64::consts::FRAC_1_SQRT_2);
         if let (None, Some(now), Some(before)) = (self.seed_axis(), table_deg, prev.table_deg) {
-            if let Some((point, dir)) = result.degenerate.iter().filter_map(|d| d.axis).find(|(_, dir)| dir[1].abs() > std::f64::consts::FRAC_1_SQRT_2) {
+            let free = result.degenerate.iter().find_map(upright);
+            let weak = result.weakest.as_ref().filter(|_| result.conditioning < self.params.icp.degeneracy_probe_ratio).and_then(upright);
+            if let Some((point, dir)) = free.or(weak) {
                 let mut up = Vector3::from(dir);
                 if up.y > 0.0 {
                     up = -up;
                 }
-                self.symmetry_axis = Some((Vector3::from(point), up));
-                seed = rotation_about_axis(&Vector3::from(point), &up, -(now - before));
-                seed_kind = "turntable";
-                result = icp(&target.tree.points, &mut prev_target, &seed, &self.params.icp)?;
+                let table_seed = rotation_about_axis(&Vector3::from(point), &up, -(now - before));
+                let retry = icp(&target.tree.points, &mut prev_target, &table_seed, &self.params.icp)?;
+                if free.is_some() || retry.rmse <= 1.05 * result.rmse {
+                    self.symmetry_axis = Some((Vector3::from(point), up));
+                    seed = table_seed;
+                    seed_kind = "turntable";
+                    result = retry;
+                }
             }
         }
         let prev_from_view = if result.fitness < self.params.min_fitness {
