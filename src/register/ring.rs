@@ -122,6 +122,11 @@ pub struct RegistrationParams {
     pub min_fitness: f64,
     /// Estimate the axis once the poses span this much rotation, degrees.
     pub axis_min_span_deg: f64,
+    /// Every `axis_long_step_every`-th view is also registered to the earlier view about this
+    /// many degrees before it (at most 32 views back), and the axis is estimated from those
+    /// long steps (0 = off: the axis comes from the chained poses).
+    pub axis_baseline_deg: f64,
+    pub axis_long_step_every: usize,
     /// A calibrated axis (point, unit up), when the recording has one.
     pub calibrated_axis: Option<(Vector3<f64>, Vector3<f64>)>,
 }
@@ -147,6 +152,8 @@ impl Default for RegistrationParams {
             max_turntable_deviation_deg: 1.5,
             min_fitness: 0.3,
             axis_min_span_deg: 9.0,
+            axis_baseline_deg: 24.0,
+            axis_long_step_every: 2,
             calibrated_axis: None,
         }
     }
@@ -218,6 +225,10 @@ pub struct Registrar {
     reference: Vector3<f64>,
     turned_deg: f64,
     turntable_fit: Option<TurntableFit>,
+    /// Recent views as ICP targets for the long steps: (index into poses, table angle, target).
+    history: std::collections::VecDeque<(usize, Option<f64>, Target)>,
+    /// Long steps `earlier_from_view` with their table-angle differences.
+    long_steps: Vec<(Isometry3<f64>, Option<f64>)>,
     /// The symmetry axis of a surface of revolution, found by ICP's degeneracy.
     symmetry_axis: Option<(Vector3<f64>, Vector3<f64>)>,
     /// `prev_from_view` found by ICP for each view (None: first view, or ICP distrusted).
@@ -229,7 +240,7 @@ pub struct Registrar {
 impl Registrar {
     pub fn new(params: RegistrationParams, store: std::sync::Arc<PoseStore>) -> Registrar {
         let model = VoxelModel::new(params.model_voxel);
-        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, symmetry_axis: None, steps: Vec::new(), step_variance: Vec::new() }
+        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, steps: Vec::new(), step_variance: Vec::new() }
     }
 
     /// The latest pose of every view.
@@ -281,6 +292,9 @@ impl Registrar {
             self.step_variance.push(1.0);
             self.block.push((0, target.tree.points.clone()));
             self.remember(0, &target.tree.points);
+            if let Err(e) = self.long_step(0, table_deg, &target.tree.points) {
+                warnings.push(format!("view {seq}: long step for the axis: {e}"));
+            }
             self.prev = Some(Stored { seq, table_deg, target });
             self.end_block_if_full(&mut warnings);
             self.store.publish(self.poses.clone());
@@ -292,7 +306,14 @@ impl Registrar {
             _ => (Isometry3::identity(), "identity"),
         };
         let mut prev_target = prev.target;
-        let mut result = icp(&target.tree.points, &mut prev_target, &seed, &self.params.icp)?;
+        let mut result = match icp(&target.tree.points, &mut prev_target, &seed, &self.params.icp) {
+            Ok(r) => r,
+            Err(e) => {
+                // Keep the previous view, so the next one registers to it.
+                self.prev = Some(Stored { seq: prev.seq, table_deg: prev.table_deg, target: prev_target });
+                return Err(e);
+            }
+        };
         let mut seed = seed;
         let mut seed_kind = seed_kind;
         // A surface of revolution turning about its own axis: ICP cannot see the turn. With
@@ -313,8 +334,8 @@ impl Registrar {
                     up = -up;
                 }
                 let table_seed = rotation_about_axis(&Vector3::from(point), &up, -(now - before));
-                let retry = icp(&target.tree.points, &mut prev_target, &table_seed, &self.params.icp)?;
-                if free.is_some() || retry.rmse <= 1.05 * result.rmse {
+                let retry = icp(&target.tree.points, &mut prev_target, &table_seed, &self.params.icp);
+                if let Some(retry) = retry.ok().filter(|r| free.is_some() || r.rmse <= 1.05 * result.rmse) {
                     self.symmetry_axis = Some((Vector3::from(point), up));
                     seed = table_seed;
                     seed_kind = "turntable";
@@ -343,6 +364,9 @@ impl Registrar {
         self.step_variance.push(if result.fitness >= self.params.min_fitness { edge_variance(&result) } else { f64::MAX / 1e6 });
         self.block.push((self.poses.len() - 1, target.tree.points.clone()));
         self.remember(self.poses.len() - 1, &target.tree.points);
+        if let Err(e) = self.long_step(self.poses.len() - 1, table_deg, &target.tree.points) {
+            warnings.push(format!("view {seq}: long step for the axis: {e}"));
+        }
         self.prev = Some(Stored { seq, table_deg, target });
         let block = self.end_block_if_full(&mut warnings);
         self.update_axis();
@@ -371,9 +395,57 @@ impl Registrar {
     }
 
     fn update_axis(&mut self) {
+        if self.long_steps.len() >= 3 {
+            self.axis = estimate_axis(&self.long_steps, &self.reference, self.params.axis_min_span_deg);
+            if self.axis.is_some() {
+                return;
+            }
+        }
         let first_deg = self.poses.first().and_then(|p| p.table_deg);
         let poses: Vec<(Isometry3<f64>, Option<f64>)> = self.poses.iter().skip(1).map(|p| (p.first_from_view, p.table_deg.zip(first_deg).map(|(a, b)| a - b))).collect();
         self.axis = estimate_axis(&poses, &self.reference, self.params.axis_min_span_deg);
+    }
+
+    /// Registers the newest view (index `k`, points `pts`) to the recent view closest to
+    /// `axis_baseline_deg` before it, keeps the result as a long step, and remembers the view.
+    fn long_step(&mut self, k: usize, table_deg: Option<f64>, pts: &[[f32; 3]]) -> Result<(), RegisterError> {
+        const MAX_BACK: usize = 32;
+        let baseline = self.params.axis_baseline_deg;
+        if baseline <= 0.0 {
+            return Ok(());
+        }
+        let step = if k > 0 { self.turned_deg / k as f64 } else { 0.0 };
+        let pick = self
+            .history
+            .iter()
+            .enumerate()
+            .map(|(h, (j, deg, _))| {
+                let apart = match (table_deg, deg) {
+                    (Some(a), Some(b)) => (a - b).abs(),
+                    _ => (k - j) as f64 * step,
+                };
+                (h, apart)
+            })
+            .filter(|(_, apart)| *apart >= baseline / 2.0 && *apart <= baseline * 1.25)
+            .min_by(|a, b| (a.1 - baseline).abs().total_cmp(&(b.1 - baseline).abs()));
+        if let Some((h, _)) = pick.filter(|_| k % self.params.axis_long_step_every.max(1) == 0) {
+            let (j, deg) = (self.history[h].0, self.history[h].1);
+            let init = self.poses[j].first_from_view.inverse() * self.poses[k].first_from_view;
+            let r = icp(pts, &mut self.history[h].2, &init, &self.params.icp)?;
+            // A step that cannot see the turn about an upright line (a surface of revolution on
+            // the table) kept its seed's turn, and with it the seed's axis: it says nothing new.
+            // Other free motions (a ring spinning about its own axis) leave the tilt it measures.
+            let blind = r.degenerate.iter().any(|d| d.axis.is_some_and(|(_, dir)| dir[1].abs() > std::f64::consts::FRAC_1_SQRT_2));
+            if r.fitness >= self.params.min_fitness && !blind {
+                self.long_steps.push((r.transform, table_deg.zip(deg).map(|(a, b)| a - b)));
+            }
+        }
+        let keep = subsample_indices(pts.len(), 20_000).into_iter().map(|i| pts[i]).collect();
+        self.history.push_back((k, table_deg, Target::new(KdTree::build(keep, "view")?, self.params.icp.normals)));
+        while self.history.len() > MAX_BACK {
+            self.history.pop_front();
+        }
+        Ok(())
     }
 
     /// Algorithm 1's block step: once m views are chained, register their union to the model
@@ -419,45 +491,59 @@ impl Registrar {
     }
 
     /// Ends the sequence: closes the loop when the views complete a turn (and loop closure is
-    /// on), publishes the final poses, and returns the closure.
+    /// on), compares the poses with the turntable, publishes the final poses, and returns the
+    /// closure. A loop that cannot be closed leaves the chained poses and a warning.
     pub fn finish(&mut self) -> Result<Option<LoopClosure>, RegisterError> {
-        let n = self.poses.len();
-        let mut closure = None;
-        if self.params.close_loop && n >= 3 {
-            let step = self.turned_deg / (n - 1) as f64;
-            if step > 0.0 && self.turned_deg + 1.5 * step >= 360.0 && self.turned_deg < 360.0 + 0.5 * step {
-                if let Some(last) = self.prev.as_ref() {
-                    let chain: Vec<Isometry3<f64>> = self.poses.iter().map(|p| p.first_from_view).collect();
-                    // The closing views in the last view's frame, the opening ones in the first's;
-                    // a view on both sides (a short ring) stays on the opening side only.
-                    let last_from_first = chain[n - 1].inverse();
-                    let opening: Vec<usize> = self.opening.iter().map(|(k, _)| *k).collect();
-                    let source: Vec<[f32; 3]> = self.closing.iter().filter(|(k, _)| !opening.contains(k)).flat_map(|(k, pts)| pts.iter().map(|p| super::apply(&(last_from_first * chain[*k]), p)).collect::<Vec<_>>()).collect();
-                    let target: Vec<[f32; 3]> = self.opening.iter().flat_map(|(k, pts)| pts.iter().map(|p| super::apply(&chain[*k], p)).collect::<Vec<_>>()).collect();
-                    if source.is_empty() {
-                        return Err(RegisterError::Empty { what: format!("closing views of the ring (last view {})", last.seq) });
-                    }
-                    let mut first = Target::new(KdTree::build(target, "opening views of the ring")?, self.params.icp.normals);
-                    let r = icp(&source, &mut first, &chain[n - 1], &self.params.icp)?;
-                    if r.fitness >= self.params.min_fitness {
-                        let e = r.transform * chain[n - 1].inverse();
-                        let mut variances = self.step_variance.clone();
-                        variances[0] = edge_variance(&r);
-                        let closed = distribute_loop_error_weighted(&chain, &r.transform, &variances);
-                        for (p, c) in self.poses.iter_mut().zip(closed) {
-                            p.first_from_view = c;
-                        }
-                        closure = Some(LoopClosure { views: n, error_deg: e.rotation.angle().to_degrees(), error_translation: e.translation.vector.norm(), icp: r });
-                        self.update_axis();
-                    } else {
-                        tracing::warn!("loop closure: last view {} overlaps the first too little (fitness {:.2}); poses left as chained", last.seq, r.fitness);
-                    }
-                }
+        let closure = match self.close_loop() {
+            Ok(c) => c,
+            Err(e) => {
+                tracing::warn!("loop closure: {e}; poses left as chained");
+                None
             }
-        }
+        };
         self.fit_turntable();
         self.store.publish(self.poses.clone());
         Ok(closure)
+    }
+
+    fn close_loop(&mut self) -> Result<Option<LoopClosure>, RegisterError> {
+        let n = self.poses.len();
+        if !self.params.close_loop || n < 3 {
+            return Ok(None);
+        }
+        let step = self.turned_deg / (n - 1) as f64;
+        if !(step > 0.0 && self.turned_deg + 1.5 * step >= 360.0 && self.turned_deg < 360.0 + 0.5 * step) {
+            return Ok(None);
+        }
+        let Some(last_seq) = self.prev.as_ref().map(|p| p.seq) else { return Ok(None) };
+        let chain: Vec<Isometry3<f64>> = self.poses.iter().map(|p| p.first_from_view).collect();
+        // The closing views in the last view's frame, the opening ones in the first's; a view
+        // on both sides (a short ring) stays on the opening side only.
+        let last_from_first = chain[n - 1].inverse();
+        let opening: Vec<usize> = self.opening.iter().map(|(k, _)| *k).collect();
+        let source: Vec<[f32; 3]> = self.closing.iter().filter(|(k, _)| !opening.contains(k)).flat_map(|(k, pts)| pts.iter().map(|p| super::apply(&(last_from_first * chain[*k]), p)).collect::<Vec<_>>()).collect();
+        let target: Vec<[f32; 3]> = self.opening.iter().flat_map(|(k, pts)| pts.iter().map(|p| super::apply(&chain[*k], p)).collect::<Vec<_>>()).collect();
+        if source.is_empty() {
+            return Err(RegisterError::Empty { what: format!("closing views of the ring (last view {last_seq})") });
+        }
+        let mut first = Target::new(KdTree::build(target, "opening views of the ring")?, self.params.icp.normals);
+        let r = icp(&source, &mut first, &chain[n - 1], &self.params.icp)?;
+        if let Some(w) = r.degeneracy_warning() {
+            tracing::warn!("loop closure: {w}");
+        }
+        if r.fitness < self.params.min_fitness {
+            tracing::warn!("loop closure: last view {last_seq} overlaps the first too little (fitness {:.2}); poses left as chained", r.fitness);
+            return Ok(None);
+        }
+        let e = r.transform * chain[n - 1].inverse();
+        let mut variances = self.step_variance.clone();
+        variances[0] = edge_variance(&r);
+        let closed = distribute_loop_error_weighted(&chain, &r.transform, &variances);
+        for (p, c) in self.poses.iter_mut().zip(closed) {
+            p.first_from_view = c;
+        }
+        self.update_axis();
+        Ok(Some(LoopClosure { views: n, error_deg: e.rotation.angle().to_degrees(), error_translation: e.translation.vector.norm(), icp: r }))
     }
 
     /// Compares every pose with the turntable's prediction and uses the predictions when
