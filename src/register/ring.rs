@@ -395,7 +395,14 @@ impl Registrar {
     }
 
     fn update_axis(&mut self) {
-        if self.long_steps.len() >= 3 {
+        self.update_axis_from(false)
+    }
+
+    /// The axis from the chained poses (while views come: it seeds the next ones) or, with
+    /// `long` and at least three long steps, from the long steps (at the end: it is the
+    /// better estimate, but early in a scan it rests on too few steps to seed with).
+    fn update_axis_from(&mut self, long: bool) {
+        if long && self.long_steps.len() >= 3 {
             self.axis = estimate_axis(&self.long_steps, &self.reference, self.params.axis_min_span_deg);
             if self.axis.is_some() {
                 return;
@@ -501,6 +508,7 @@ impl Registrar {
                 None
             }
         };
+        self.update_axis_from(true);
         self.fit_turntable();
         self.store.publish(self.poses.clone());
         Ok(closure)
