@@ -360,8 +360,8 @@ impl Registrar {
         };
         self.poses.push(ViewPose { seq, first_from_view: pose, table_deg });
         self.steps.push((result.fitness >= self.params.min_fitness).then_some(result.transform));
-        // A distrusted step kept its seed: give it a large share of any loop correction.
-        self.step_variance.push(if result.fitness >= self.params.min_fitness { edge_variance(&result) } else { f64::MAX / 1e6 });
+        // A distrusted step kept its seed: it takes (nearly) all of any loop correction.
+        self.step_variance.push(if result.fitness >= self.params.min_fitness { edge_variance(&result) } else { 1e12 });
         self.block.push((self.poses.len() - 1, target.tree.points.clone()));
         self.remember(self.poses.len() - 1, &target.tree.points);
         if let Err(e) = self.long_step(self.poses.len() - 1, table_deg, &target.tree.points) {
