@@ -40,6 +40,9 @@ pub enum ReplayError {
     Frame { seq: u64, what: String },
     #[error("cannot write {path}: {what}")]
     Output { path: PathBuf, what: String },
+    /// A file beside the frames (calibrated axis, ground truth) is unusable.
+    #[error("{0}")]
+    SideFile(String),
 }
 
 /// What to do besides matching.
@@ -216,13 +219,13 @@ pub struct ReplaySummary {
 /// the recording has one.
 pub fn run_recording(recording: crate::recording::Recording, out: &Path, opts: &ReplayOptions, progress: &mut dyn FnMut(usize, u64, f64)) -> Result<ReplaySummary, ReplayError> {
     let dir = recording.dir.clone();
-    let mut inputs = RegistrationInputs { calibrated_axis: TurntableAxis::read_calibrated(&dir).map_err(|e| ReplayError::Frame { seq: 0, what: e.to_string() })?, ..Default::default() };
+    let mut inputs = RegistrationInputs { calibrated_axis: TurntableAxis::read_calibrated(&dir).map_err(|e| ReplayError::SideFile(format!("calibrated turntable axis: {e}")))?, ..Default::default() };
     if opts.registration.is_some() {
-        let gt = crate::recording::read_gt_poses(&dir).map_err(|e| ReplayError::Frame { seq: 0, what: format!("ground truth: {e}") })?;
+        let gt = crate::recording::read_gt_poses(&dir).map_err(|e| ReplayError::SideFile(format!("ground truth: {e}")))?;
         inputs.gt_poses = match gt {
             Some(list) => Some(
                 list.into_iter()
-                    .map(|(seq, rows)| crate::register::from_rows(&rows, 1e-4).map(|t| (seq, t)).map_err(|e| ReplayError::Frame { seq, what: format!("gt/poses.jsonl: cam_from_obj: {e}") }))
+                    .map(|(seq, rows)| crate::register::from_rows(&rows, 1e-4).map(|t| (seq, t)).map_err(|e| ReplayError::SideFile(format!("{}: seq {seq}: cam_from_obj: {e}", dir.join("gt/poses.jsonl").display()))))
                     .collect::<Result<_, _>>()?,
             ),
             None => None,
@@ -442,8 +445,8 @@ fn score_registration(section: &mut Value, results: &mut ResultsWriter, poses: &
         section["gt_last_view"] = json!({"seq": seq, "pose_err_deg": deg, "pose_err_mm": mm});
     }
     if let Some(mesh_path) = gt_mesh {
-        let mesh = io::ply::read_ply(mesh_path).map_err(|e| ReplayError::Frame { seq: 0, what: format!("ground truth: {e}") })?;
-        let surface = crate::register::surface::Surface::new(&mesh, &first).map_err(|e| ReplayError::Frame { seq: 0, what: format!("ground truth {}: {e}", mesh_path.display()) })?;
+        let mesh = io::ply::read_ply(mesh_path).map_err(|e| ReplayError::SideFile(format!("ground truth: {e}")))?;
+        let surface = crate::register::surface::Surface::new(&mesh, &first).map_err(|e| ReplayError::SideFile(format!("ground truth {}: {e}", mesh_path.display())))?;
         let d = surface.distances(model);
         use crate::register::surface::quantile;
         section["gt_model_distance_mm"] = json!({"median": quantile(&d, 0.5), "p95": quantile(&d, 0.95), "points": d.len()});

@@ -236,3 +236,17 @@ fn a_simulated_turn_replays_into_poses_model_and_axis() {
     assert!(frames[1]["icp_fitness"].as_f64().unwrap() > 0.5);
     assert!(frames.iter().skip(3).any(|f| f["seed"] == "turntable"), "later views are seeded by the estimated axis");
 }
+
+#[test]
+fn a_bad_turntable_yaml_is_named_before_any_work() {
+    let dir = support::temp_dir("register-bad-axis");
+    let rec_dir = dir.join("rec");
+    let opts = spinscan::sim::RenderOptions { frames: 2, image_size: (160, 120), ..Default::default() };
+    spinscan::sim::render_recording(&opts, &rec_dir, &mut |_, _| {}).unwrap();
+    std::fs::write(rec_dir.join("turntable.yaml"), "axis_point_mm: [0, 0, 450]\naxis_dir: [0, zero, 0]\n").unwrap();
+    let out = dir.join("out");
+    let o = spinscan(&["replay", rec_dir.to_str().unwrap(), "-o", out.to_str().unwrap(), "--max-disparity", "32"]);
+    assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+    let e = stderr(&o);
+    assert!(e.contains("turntable.yaml:2") && e.contains("`axis_dir` must hold three numbers"), "{e}");
+}
