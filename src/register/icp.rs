@@ -319,31 +319,21 @@ pub fn icp(source: &[[f32; 3]], target: &mut Target, init: &Isometry3<f64>, para
             converged = true;
         }
     }
+    let (mut conditioning, mut weakest) = (0.0, None);
     if last_pairs.len() >= 6 {
         // Measure what the surfaces constrain, and take back any motion along what they don't.
-        let free = free_directions(&src, target, &t, &last_pairs, params, scale);
-        if !free.is_empty() {
-            let c = moved_centroid(&src, &t, &last_pairs);
-            degenerate = free.iter().map(|(v, ratio)| as_degeneracy(v, *ratio, &c, scale)).collect();
-            t = remove_motion_along(&t, init, &free, &c, scale);
+        let found = constraints(&src, target, &t, &last_pairs, params, scale);
+        conditioning = found.conditioning;
+        weakest = found.weakest.map(|(v, ratio)| as_degeneracy(&v, ratio, &found.centroid, scale));
+        if !found.free.is_empty() {
+            degenerate = found.free.iter().map(|(v, ratio)| as_degeneracy(v, *ratio, &found.centroid, scale)).collect();
+            t = remove_motion_along(&t, init, &found.free, &found.centroid, scale);
             last_pairs = correspondences(&src, &target.tree, &t, params);
         } else if params.method == IcpMethod::PointToPoint {
             degenerate.clear();
         }
     }
     let (fitness, rmse) = stats(&last_pairs, src.len());
-    let (mut conditioning, mut weakest) = (0.0, None);
-    if last_pairs.len() >= 6 {
-        target.ensure_normals(last_pairs.iter().map(|p| p.tgt));
-        let (h, _, _) = plane_system(&src, target, &t, &last_pairs, params, scale);
-        let eig = SymmetricEigen::new(h);
-        let max = eig.eigenvalues.max();
-        if max > 0.0 {
-            let k = (0..6).min_by(|&i, &j| eig.eigenvalues[i].total_cmp(&eig.eigenvalues[j])).unwrap();
-            conditioning = eig.eigenvalues[k].max(0.0) / max;
-            weakest = Some(as_degeneracy(&eig.eigenvectors.column(k).into_owned(), conditioning, &moved_centroid(&src, &t, &last_pairs), scale));
-        }
-    }
     Ok(IcpResult { transform: t, fitness, rmse, iterations, converged, correspondences: last_pairs.len(), degenerate, conditioning, weakest })
 }
 
@@ -435,10 +425,6 @@ fn plane_system(src: &[[f32; 3]], target: &Target, t: &Isometry3<f64>, pairs: &[
     (h, b, c)
 }
 
-fn moved_centroid(src: &[[f32; 3]], t: &Isometry3<f64>, pairs: &[Pair]) -> Vector3<f64> {
-    pairs.iter().map(|p| (t * Point3::from(v3(&src[p.src]))).coords).sum::<Vector3<f64>>() / pairs.len().max(1) as f64
-}
-
 /// RMS point-to-plane residual of `pairs` under `t`.
 fn plane_rms(src: &[[f32; 3]], target: &Target, t: &Isometry3<f64>, pairs: &[Pair]) -> f64 {
     let (mut sum, mut n) = (0.0, 0usize);
@@ -456,19 +442,33 @@ fn plane_rms(src: &[[f32; 3]], target: &Target, t: &Isometry3<f64>, pairs: &[Pai
     }
 }
 
+/// What the surfaces constrain at a result.
+struct Constraints {
+    /// Free twists with their eigenvalue ratios.
+    free: Vec<(Vector6<f64>, f64)>,
+    /// Smallest over largest eigenvalue, and its twist.
+    conditioning: f64,
+    weakest: Option<(Vector6<f64>, f64)>,
+    /// The moved source's centroid the twists turn about.
+    centroid: Vector3<f64>,
+}
+
 /// The motions the surfaces leave free at `t`: eigen-directions of the point-to-plane normal
 /// matrix below `degeneracy_ratio`, and — because sensor noise in the normals lifts the
 /// eigenvalue of a truly free motion to a few percent — those below `degeneracy_probe_ratio`
 /// along which a finite move of 10 × the residual (at the source's RMS radius, either way,
 /// with fresh correspondences) leaves the residual below twice what it was.
-fn free_directions(src: &[[f32; 3]], target: &mut Target, t: &Isometry3<f64>, pairs: &[Pair], params: &IcpParams, scale: f64) -> Vec<(Vector6<f64>, f64)> {
+fn constraints(src: &[[f32; 3]], target: &mut Target, t: &Isometry3<f64>, pairs: &[Pair], params: &IcpParams, scale: f64) -> Constraints {
     target.ensure_normals(pairs.iter().map(|p| p.tgt));
     let (h, _, c) = plane_system(src, target, t, pairs, params, scale);
     let eig = SymmetricEigen::new(h);
     let max = eig.eigenvalues.max();
     if !(max > 0.0) {
-        return Vec::new();
+        return Constraints { free: Vec::new(), conditioning: 0.0, weakest: None, centroid: c };
     }
+    let k = (0..6).min_by(|&i, &j| eig.eigenvalues[i].total_cmp(&eig.eigenvalues[j])).unwrap_or(0);
+    let conditioning = eig.eigenvalues[k].max(0.0) / max;
+    let weakest = Some((eig.eigenvectors.column(k).into_owned(), conditioning));
     let base = plane_rms(src, target, t, pairs).max(1e-9 * scale);
     let fitness = pairs.len();
     let mut free = Vec::new();
@@ -498,7 +498,7 @@ fn free_directions(src: &[[f32; 3]], target: &mut Target, t: &Isometry3<f64>, pa
             free.push((v, ratio));
         }
     }
-    free
+    Constraints { free, conditioning, weakest, centroid: c }
 }
 
 /// A twist `v = (ω·s, t)` about `c` as a [`Degeneracy`], with its screw axis when it has a
