@@ -28,10 +28,6 @@ impl VoxelModel {
         VoxelModel { size, cells: HashMap::new() }
     }
 
-    pub fn voxel_size(&self) -> f64 {
-        self.size
-    }
-
     /// Occupied voxels.
     pub fn len(&self) -> usize {
         self.cells.len()
@@ -39,11 +35,6 @@ impl VoxelModel {
 
     pub fn is_empty(&self) -> bool {
         self.cells.is_empty()
-    }
-
-    /// Approximate heap use, bytes (hash map slots and their contents).
-    pub fn memory_bytes(&self) -> usize {
-        self.cells.capacity() * (std::mem::size_of::<[i32; 3]>() + std::mem::size_of::<Cell>() + 8)
     }
 
     /// Adds `cloud`, moved by `t` (e.g. `first_from_view`).
