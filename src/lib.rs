@@ -24,6 +24,7 @@
 //! assert!(view.cloud.len() > 1000);
 //! ```
 
+pub mod assist;
 pub mod calib;
 pub mod capture;
 pub mod cloud;

@@ -1,0 +1,204 @@
+use super::*;
+use crate::register::posestore::ViewPose;
+use nalgebra::{Translation3, Vector3};
+
+/// A sphere turning about a vertical axis that does not pass through its centre, seen by an
+/// ideal 320×240 rig: true disparity per pixel for each frame.
+struct Scene {
+    rect: Rectification,
+    cam: RectCamera,
+    axis_point: Vector3<f64>,
+    step_deg: f64,
+}
+
+impl Scene {
+    fn new() -> Scene {
+        let rig = hw_sim::Rig::ideal(320, 240, 300.0, 60.0);
+        let rect = Rectification::compute(&crate::sim::calib_of(&rig), (320, 240), 0.0).unwrap();
+        let cam = RectCamera::new(&rect);
+        Scene { rect, cam, axis_point: Vector3::new(0.0, 0.0, 420.0), step_deg: 2.0 }
+    }
+
+    /// `view_from_first`: the object turned by `k` steps.
+    fn turn(&self, k: f64) -> Isometry3<f64> {
+        let a = Translation3::from(self.axis_point);
+        a * UnitQuaternion::from_scaled_axis(Vector3::y() * (k * self.step_deg).to_radians()) * a.inverse()
+    }
+
+    fn disparity(&self, k: f64) -> DisparityMap {
+        let centre = self.turn(k) * Point3::new(30.0, 0.0, 420.0);
+        let radius = 70.0;
+        let (w, h) = (320, 240);
+        let mut d = DisparityMap::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let dir = Vector3::new((x as f64 - self.cam.cx) / self.cam.fx, (y as f64 - self.cam.cy) / self.cam.fy, 1.0);
+                // |s·dir − c|² = R²: the nearer root.
+                let (a, b, c) = (dir.norm_squared(), -2.0 * dir.dot(&centre.coords), centre.coords.norm_squared() - radius * radius);
+                let disc = b * b - 4.0 * a * c;
+                if disc < 0.0 {
+                    continue;
+                }
+                let s = (-b - disc.sqrt()) / (2.0 * a);
+                let p = dir * s;
+                d.set(x, y, Some(self.cam.project(&p).unwrap().2 as f32));
+            }
+        }
+        d
+    }
+
+    fn mask(d: &DisparityMap) -> Vec<u8> {
+        d.values().iter().map(|v| if v.is_finite() { 255 } else { 0 }).collect()
+    }
+
+    fn poses(&self, views: std::ops::Range<u64>) -> PoseSnapshot {
+        let views = views.map(|k| ViewPose { seq: k, first_from_view: self.turn(k as f64).inverse(), table_deg: Some(k as f64 * self.step_deg) }).collect();
+        PoseSnapshot { generation: 1, views }
+    }
+}
+
+fn stats(valid: f64) -> MatchStats {
+    MatchStats { searched: 1000, matched: (1000.0 * valid) as usize, ..Default::default() }
+}
+
+/// Share of foreground pixels whose interval holds the true disparity, and the mean width.
+fn containment(plan: &Plan, truth: &DisparityMap) -> (f64, f64, usize) {
+    let (mut n, mut inside, mut width) = (0usize, 0usize, 0f64);
+    for y in 0..truth.height {
+        for x in 0..truth.width {
+            let Some(t) = truth.get(x, y) else { continue };
+            n += 1;
+            if let Some((lo, hi)) = plan.intervals.get(x, y) {
+                inside += (lo as f32 <= t && t <= hi as f32) as usize;
+                width += (hi - lo + 1) as f64;
+            }
+        }
+    }
+    (inside as f64 / n as f64, width / n as f64, n)
+}
+
+fn assistant(scene: &Scene, mode: AssistMode, frames: u64) -> Assistant {
+    let mut a = Assistant::new(AssistParams { mode, ..Default::default() }, &scene.rect, (0, 127));
+    for k in 0..frames {
+        let d = scene.disparity(k as f64);
+        let plan = a.plan(k, Some(&Scene::mask(&d)), &scene.poses(0..k));
+        assert!(a.accept(k, &plan, &d, Some(&Scene::mask(&d)), &stats(0.9)).is_none());
+    }
+    a
+}
+
+#[test]
+fn the_first_frames_and_no_assistance_search_the_full_range() {
+    let scene = Scene::new();
+    let mut a = Assistant::new(AssistParams { mode: AssistMode::Paper { w: 0.8 }, ..Default::default() }, &scene.rect, (0, 127));
+    let d = scene.disparity(0.0);
+    let mask = Scene::mask(&d);
+    let plan = a.plan(0, Some(&mask), &scene.poses(0..0));
+    assert_eq!(plan.full_range.as_deref(), Some("no previous frame"));
+    a.accept(0, &plan, &d, Some(&mask), &stats(0.9));
+    let plan = a.plan(1, Some(&mask), &scene.poses(0..1));
+    assert_eq!(plan.full_range.as_deref(), Some("no registered motion yet"));
+    assert_eq!(plan.intervals.get(160, 120), Some((0, 127)));
+    assert_eq!(plan.intervals.get(0, 0), None, "background is not searched");
+    let mut none = assistant(&scene, AssistMode::None, 3);
+    assert_eq!(none.plan(3, Some(&mask), &scene.poses(0..3)).full_range.as_deref(), Some("assistance off"));
+}
+
+#[test]
+fn paper_intervals_hold_the_true_disparity_and_are_narrow() {
+    let scene = Scene::new();
+    for w in [0.6, 0.8, 1.0, 2.0] {
+        let mut a = assistant(&scene, AssistMode::Paper { w }, 3);
+        let truth = scene.disparity(3.0);
+        let plan = a.plan(3, Some(&Scene::mask(&truth)), &scene.poses(0..3));
+        assert!(plan.assisted(), "{:?}", plan.full_range);
+        let (inside, width, n) = containment(&plan, &truth);
+        assert!(inside > 0.99, "w = {w}: {inside}");
+        assert!(width < 16.0, "w = {w}: {width}");
+        // The single circle covers most of the object; the rest came from the union.
+        assert!(plan.single_px as f64 > 0.8 * n as f64, "w = {w}: {} of {n}", plan.single_px);
+        assert!(plan.union_px > 0, "w = {w}");
+        assert_eq!(plan.lag, 0);
+    }
+    // A larger w searches more.
+    let width = |w| {
+        let mut a = assistant(&scene, AssistMode::Paper { w }, 3);
+        let truth = scene.disparity(3.0);
+        containment(&a.plan(3, Some(&Scene::mask(&truth)), &scene.poses(0..3)), &truth).1
+    };
+    assert!(width(2.0) > width(0.6));
+}
+
+#[test]
+fn predicted_intervals_hold_the_true_disparity_and_are_narrow() {
+    let scene = Scene::new();
+    let truth = scene.disparity(4.0);
+    let mask = Scene::mask(&truth);
+    let mut p = assistant(&scene, AssistMode::Predicted, 4);
+    let plan = p.plan(4, Some(&mask), &scene.poses(0..4));
+    assert!(plan.assisted());
+    let (inside, width, _) = containment(&plan, &truth);
+    assert!(inside > 0.99, "{inside}");
+    // ±(3 × 0.5 px) around the prediction, rounded outwards, hull of 2 × 2 splats.
+    assert!(width < 7.0, "{width}");
+    assert!(plan.single_px > 0 && plan.uncovered_px * 50 < plan.single_px, "{} single, {} uncovered", plan.single_px, plan.uncovered_px);
+}
+
+#[test]
+fn a_lagging_registration_is_extrapolated_and_widened() {
+    let scene = Scene::new();
+    let truth = scene.disparity(5.0);
+    let mask = Scene::mask(&truth);
+    for mode in [AssistMode::Paper { w: 0.8 }, AssistMode::Predicted] {
+        // Frames 0–4 matched, but only views 0–2 registered: two frames of lag.
+        let mut lagging = Assistant::new(AssistParams { mode, ..Default::default() }, &scene.rect, (0, 127));
+        let mut current = Assistant::new(AssistParams { mode, ..Default::default() }, &scene.rect, (0, 127));
+        for k in 0..5u64 {
+            let d = scene.disparity(k as f64);
+            let m = Scene::mask(&d);
+            let pl = lagging.plan(k, Some(&m), &scene.poses(0..k.min(3)));
+            lagging.accept(k, &pl, &d, Some(&m), &stats(0.9));
+            let pc = current.plan(k, Some(&m), &scene.poses(0..k));
+            current.accept(k, &pc, &d, Some(&m), &stats(0.9));
+        }
+        let late = lagging.plan(5, Some(&mask), &scene.poses(0..3));
+        let on_time = current.plan(5, Some(&mask), &scene.poses(0..5));
+        assert_eq!((late.lag, on_time.lag), (2, 0));
+        let (inside, late_width, _) = containment(&late, &truth);
+        let (_, width, _) = containment(&on_time, &truth);
+        assert!(inside > 0.99, "{mode:?}: {inside}");
+        assert!(late_width >= width, "{mode:?}: {late_width} < {width}");
+    }
+}
+
+#[test]
+fn a_frame_that_looks_wrong_is_sent_back_and_a_bad_registration_is_not_trusted() {
+    let scene = Scene::new();
+    let mut a = assistant(&scene, AssistMode::Paper { w: 0.8 }, 3);
+    let truth = scene.disparity(3.0);
+    let mask = Scene::mask(&truth);
+    let plan = a.plan(3, Some(&mask), &scene.poses(0..3));
+    let why = a.accept(3, &plan, &truth, Some(&mask), &stats(0.4)).expect("a collapse of the valid fraction is caught");
+    assert!(why.contains("valid fraction 0.400"), "{why}");
+    // The full-range redo is accepted.
+    let full = Plan { full_range: Some("fallback".into()), ..plan.clone() };
+    assert!(a.accept(3, &full, &truth, Some(&mask), &stats(0.4)).is_none());
+    a.observe_registration(3, 0.1);
+    let next = a.plan(4, Some(&mask), &scene.poses(0..4));
+    assert!(next.full_range.as_deref().is_some_and(|r| r.contains("fitness 0.10")), "{:?}", next.full_range);
+}
+
+#[test]
+fn rect_camera_inverts_its_projection_and_agrees_with_triangulation() {
+    let scene = Scene::new();
+    let p = Vector3::new(12.0, -30.0, 450.0);
+    let (x, y, d) = scene.cam.project(&p).unwrap();
+    let back = scene.cam.point(x, y, d).unwrap();
+    assert!((back - p).norm() < 1e-9);
+    let mut map = DisparityMap::new(320, 240);
+    map.set(100, 50, Some(40.0));
+    let cloud = crate::stereo::triangulate::triangulate(&map, &scene.rect, &vec![0u8; 320 * 240 * 3]);
+    let q = scene.cam.point(100.0, 50.0, 40.0).unwrap();
+    let t = cloud.points[0];
+    assert!((Vector3::new(t[0] as f64, t[1] as f64, t[2] as f64) - q).norm() < 1e-3, "{t:?} vs {q}");
+}
