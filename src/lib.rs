@@ -25,6 +25,7 @@
 //! ```
 
 pub mod assist;
+pub mod bench;
 pub mod calib;
 pub mod capture;
 pub mod cloud;

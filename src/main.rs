@@ -7,6 +7,7 @@ use std::time::Instant;
 use clap::{Args, Parser, Subcommand};
 use serde_json::json;
 
+use spinscan::assist::{AssistMode, AssistParams};
 use spinscan::calib::StereoCalib;
 use spinscan::io::{self, LoadedImage};
 use spinscan::pipeline::{Pipeline, PipelineOptions};
@@ -52,6 +53,91 @@ enum Command {
     /// Registers two scans by ICP (SOURCE onto TARGET), or, with --ring, a ring of scans into
     /// Stanford .conf poses.
     Register(RegisterArgs),
+    /// Benchmarks.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// The paper's Table 1 on a recording: matcher time per frame without registration
+    /// assistance, with it at each weighting factor w, and with the Kalman-predicted search;
+    /// plus accuracy, valid fraction and search width per row, and a Fig. 4-style image.
+    Table1(Table1Args),
+}
+
+#[derive(Args)]
+struct Table1Args {
+    /// Recording folder (e.g. from `spinscan sim render`).
+    recording: PathBuf,
+    /// Weighting factors of the paper's rows, comma-separated.
+    #[arg(long, default_value = "0.6,0.8,1,2", value_delimiter = ',')]
+    weights: Vec<f64>,
+    /// Write the table as JSON here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// The Fig. 4-style image (left image, then each row's disparity map).
+    #[arg(long, default_value = "table1-fig4.png")]
+    fig: PathBuf,
+    /// Frame shown in the figure (1-based, as in the table).
+    #[arg(long, default_value_t = 5)]
+    fig_frame: usize,
+    /// Use at most this many frames.
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Runs per frame and row (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    repeat: usize,
+    /// Let registration run this many views behind the matcher (the daemon's situation).
+    #[arg(long, default_value_t = 0)]
+    lag: u64,
+    /// Frame columns printed (all are in the JSON).
+    #[arg(long, default_value_t = 10)]
+    columns: usize,
+    /// Leave out the predicted row.
+    #[arg(long)]
+    no_predicted: bool,
+    #[command(flatten)]
+    assist: AssistArgs,
+    #[command(flatten)]
+    matching: MatchArgs,
+}
+
+/// Knobs of registration-assisted matching (see docs/assisted-matching.md).
+#[derive(Args, Clone)]
+struct AssistArgs {
+    /// Smallest half-width of an assisted interval, pixels.
+    #[arg(long, default_value_t = AssistParams::default().min_half_width_px)]
+    assist_min_half_width: f64,
+    /// Predicted mode: the matcher's own disparity noise σ, pixels.
+    #[arg(long, default_value_t = AssistParams::default().predicted_sigma_px)]
+    predict_sigma_px: f64,
+    /// Predicted mode: interval half-width in σ.
+    #[arg(long, default_value_t = AssistParams::default().predicted_k)]
+    predict_k: f64,
+    /// Self-correction: rematch a frame over the full range when its valid fraction falls
+    /// below this share of the recent median.
+    #[arg(long, default_value_t = AssistParams::default().fallback_valid_ratio)]
+    fallback_valid_ratio: f64,
+    /// Self-correction: do not let a registration with lower ICP fitness guide the next frame.
+    #[arg(long, default_value_t = AssistParams::default().min_fitness)]
+    assist_min_fitness: f64,
+}
+
+impl AssistArgs {
+    fn params(&self, mode: AssistMode) -> Result<AssistParams, Failure> {
+        let positive = |name: &str, v: f64| if v > 0.0 && v.is_finite() { Ok(v) } else { Err(input(format!("--{name} must be a positive number, got {v}"))) };
+        let share = |name: &str, v: f64| if (0.0..=1.0).contains(&v) { Ok(v) } else { Err(input(format!("--{name} must lie in 0…1, got {v}"))) };
+        Ok(AssistParams {
+            mode,
+            min_half_width_px: positive("assist-min-half-width", self.assist_min_half_width)?,
+            predicted_sigma_px: positive("predict-sigma-px", self.predict_sigma_px)?,
+            predicted_k: positive("predict-k", self.predict_k)?,
+            fallback_valid_ratio: share("fallback-valid-ratio", self.fallback_valid_ratio)?,
+            min_fitness: share("assist-min-fitness", self.assist_min_fitness)?,
+            ..AssistParams::default()
+        })
+    }
 }
 
 #[derive(Subcommand)]
@@ -443,10 +529,12 @@ fn output<E: std::fmt::Display>(e: E) -> Failure {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    // Warnings (and more with RUST_LOG=info|debug) go to stderr.
+    // Warnings (and more with RUST_LOG=info|debug) go to stderr. A benchmark registers every
+    // row's views: their registration warnings only with RUST_LOG=warn.
+    let default_level = if matches!(cli.command, Command::Bench(_)) { "error" } else { "warn" };
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")))
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level)))
         .init();
     let result = match cli.command {
         Command::Disparity(a) => cmd_disparity(a),
@@ -456,6 +544,7 @@ fn main() -> ExitCode {
         Command::Sim(SimCommand::Render(a)) => cmd_sim_render(a),
         Command::Replay(a) => cmd_replay(a),
         Command::Register(a) => cmd_register(a),
+        Command::Bench(BenchCommand::Table1(a)) => cmd_table1(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -885,5 +974,40 @@ fn cmd_register_ring(a: RegisterArgs) -> Result<(), Failure> {
     };
     io::write_atomic(conf_out, conf.to_text().as_bytes()).map_err(|e| output(format!("{}: {e}", conf_out.display())))?;
     println!("{}", json!({"conf_out": conf_out, "scans": names.len(), "loop_error_deg": ring.loop_error_deg, "loop_error_translation": ring.loop_error_translation, "register_ms": t0.elapsed().as_secs_f64() * 1e3}));
+    Ok(())
+}
+
+fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
+    if let Some(w) = a.weights.iter().find(|w| !(**w > 0.0 && w.is_finite())) {
+        return Err(input(format!("--weights: {w} is not a weighting factor (expected positive numbers, e.g. 0.6,0.8,1,2)")));
+    }
+    if a.repeat == 0 {
+        return Err(input("--repeat must be at least 1"));
+    }
+    if a.fig_frame == 0 {
+        return Err(input("--fig-frame counts from 1"));
+    }
+    let mut matching = a.matching.params_with_default(128);
+    // One thread unless asked: steadier timings on a shared machine.
+    matching.threads = a.matching.threads.unwrap_or(1);
+    let opts = spinscan::bench::Table1Options {
+        pipeline: PipelineOptions { min_disparity: a.matching.min_disparity, matching, ..Default::default() },
+        weights: a.weights.clone(),
+        predicted: !a.no_predicted,
+        max_frames: a.frames,
+        repeat: a.repeat,
+        lag: a.lag,
+        assist: a.assist.params(AssistMode::Predicted)?,
+        fig_frame: Some(a.fig_frame - 1),
+        ..Default::default()
+    };
+    let table = spinscan::bench::table1(&a.recording, &opts, &mut |row, done, total| eprint!("\rbench table1: {row:<10} {done}/{total}   ")).map_err(input)?;
+    eprintln!();
+    print!("{}", table.render(a.columns));
+    table.write_figure(&a.fig).map_err(output)?;
+    println!("figure: {} (left image of frame {}, then {})", a.fig.display(), opts.fig_frame.unwrap_or(0).min(table.frames.len() - 1) + 1, table.to_json()["fig_tiles"].as_array().map(|t| t[1..].iter().filter_map(|v| v.as_str()).collect::<Vec<_>>().join(", ")).unwrap_or_default());
+    if let Some(path) = &a.json {
+        io::write_atomic(path, serde_json::to_string_pretty(&table.to_json()).unwrap().as_bytes()).map_err(|e| output(format!("cannot write {}: {e}", path.display())))?;
+    }
     Ok(())
 }

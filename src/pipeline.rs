@@ -2,6 +2,7 @@
 
 use std::time::Instant;
 
+use crate::assist::{Assistant, Plan};
 use crate::calib::StereoCalib;
 use crate::cloud::PointCloud;
 use crate::io::rgb_to_gray;
@@ -57,8 +58,68 @@ pub struct View {
     pub mask: Option<Vec<u8>>,
     pub cloud: PointCloud,
     pub stats: MatchStats,
-    /// Time of the matcher alone, milliseconds.
+    /// Time of the matcher alone, milliseconds (with assistance: every matcher call of the
+    /// frame, a full-range redo included).
     pub match_ms: f64,
+    /// How the search range was chosen, when an [`Assistant`] chose it.
+    pub assist: Option<AssistOutcome>,
+}
+
+/// A rectified, segmented pair ready to match.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    pub left_rgb: Vec<u8>,
+    pub left_gray: Vec<u8>,
+    pub right_gray: Vec<u8>,
+    pub mask: Option<Vec<u8>>,
+}
+
+/// One frame matched with registration assistance.
+#[derive(Debug, Clone)]
+pub struct AssistedMatch {
+    pub disparity: DisparityMap,
+    pub stats: MatchStats,
+    pub outcome: AssistOutcome,
+}
+
+/// What the assistant did for one frame.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct AssistOutcome {
+    /// Why the frame was planned over the full range (None: assisted).
+    pub full_range: Option<String>,
+    /// Why an assisted result was rejected and the frame matched again over the full range.
+    pub fallback: Option<String>,
+    pub single_px: usize,
+    pub union_px: usize,
+    pub filled_px: usize,
+    pub uncovered_px: usize,
+    pub lag: u64,
+    /// Building the intervals and keeping the frame for the next one, ms.
+    pub interval_ms: f64,
+    /// Every matcher call of the frame, ms (left–right check included).
+    pub match_ms: f64,
+    /// The assisted attempt's statistics when it was rejected.
+    pub rejected: Option<MatchStats>,
+}
+
+impl AssistOutcome {
+    /// Whether this frame's result came from the full range.
+    pub fn searched_full_range(&self) -> bool {
+        self.full_range.is_some() || self.fallback.is_some()
+    }
+
+    fn of(plan: &Plan) -> AssistOutcome {
+        AssistOutcome {
+            full_range: plan.full_range.clone(),
+            single_px: plan.single_px,
+            union_px: plan.union_px,
+            filled_px: plan.filled_px,
+            uncovered_px: plan.uncovered_px,
+            lag: plan.lag,
+            interval_ms: plan.build_ms,
+            ..Default::default()
+        }
+    }
 }
 
 /// The stereo core set up for one rig: rectification, remap tables and a matcher whose
@@ -102,14 +163,8 @@ impl Pipeline {
         m.into_iter().map(|v| if v >= 128 { 255 } else { 0 }).collect()
     }
 
-    /// Processes a raw RGB pair. `segment`: match only the chroma-keyed foreground.
-    pub fn process_rgb(&mut self, left: &[u8], right: &[u8], segment: bool) -> Result<View, PipelineError> {
-        self.process_rgb_with_plate(left, right, segment, None)
-    }
-
-    /// As [`Pipeline::process_rgb`], with an optional background plate (raw left image of the
-    /// empty scene, RGB) that the segmentation also keys against.
-    pub fn process_rgb_with_plate(&mut self, left: &[u8], right: &[u8], segment: bool, plate: Option<&[u8]>) -> Result<View, PipelineError> {
+    /// Rectifies (and, with `segment`, segments) a raw RGB pair for matching.
+    pub fn prepare_rgb(&self, left: &[u8], right: &[u8], segment: bool, plate: Option<&[u8]>) -> Result<Prepared, PipelineError> {
         let (w, h) = self.size;
         let (lr, rr) = self.rectify_rgb(left, right);
         let mask = if segment {
@@ -118,17 +173,62 @@ impl Pipeline {
         } else {
             None
         };
-        self.process_rectified(lr, &rr, mask)
+        Ok(Prepared { left_gray: rgb_to_gray(&lr), right_gray: rgb_to_gray(&rr), left_rgb: lr, mask })
+    }
+
+    /// Matches frame `seq` over the intervals the assistant plans from `poses`; a result the
+    /// assistant rejects is matched again over the full range (both calls are timed).
+    pub fn match_assisted(&mut self, seq: u64, frame: &Prepared, assistant: &mut Assistant, poses: &crate::register::posestore::PoseSnapshot) -> Result<AssistedMatch, PipelineError> {
+        let plan = assistant.plan(seq, frame.mask.as_deref(), poses);
+        let mut outcome = AssistOutcome::of(&plan);
+        let (mut disparity, mut stats, ms) = self.match_gray(&frame.left_gray, &frame.right_gray, &plan.intervals)?;
+        outcome.match_ms = ms;
+        let t0 = Instant::now();
+        let verdict = assistant.accept(seq, &plan, &disparity, frame.mask.as_deref(), &stats);
+        outcome.interval_ms += t0.elapsed().as_secs_f64() * 1e3;
+        if let Some(why) = verdict {
+            let full = Plan { intervals: self.matcher.full_intervals(self.size.0, self.size.1, frame.mask.as_deref()), full_range: Some(why.clone()), ..plan };
+            let (d, s, ms) = self.match_gray(&frame.left_gray, &frame.right_gray, &full.intervals)?;
+            let accepted = assistant.accept(seq, &full, &d, frame.mask.as_deref(), &s);
+            debug_assert!(accepted.is_none(), "a full-range result is always accepted");
+            outcome.rejected = Some(stats);
+            outcome.fallback = Some(why);
+            outcome.match_ms += ms;
+            (disparity, stats) = (d, s);
+        }
+        Ok(AssistedMatch { disparity, stats, outcome })
+    }
+
+    /// Triangulates a matched frame into a [`View`].
+    pub fn finish_view(&self, frame: Prepared, m: AssistedMatch) -> View {
+        let cloud = triangulate(&m.disparity, &self.rect, &frame.left_rgb);
+        View { disparity: m.disparity, left_rgb: frame.left_rgb, mask: frame.mask, cloud, stats: m.stats, match_ms: m.outcome.match_ms, assist: Some(m.outcome) }
+    }
+
+    /// Processes a raw RGB pair. `segment`: match only the chroma-keyed foreground.
+    pub fn process_rgb(&mut self, left: &[u8], right: &[u8], segment: bool) -> Result<View, PipelineError> {
+        self.process_rgb_with_plate(left, right, segment, None)
+    }
+
+    /// As [`Pipeline::process_rgb`], with an optional background plate (raw left image of the
+    /// empty scene, RGB) that the segmentation also keys against.
+    pub fn process_rgb_with_plate(&mut self, left: &[u8], right: &[u8], segment: bool, plate: Option<&[u8]>) -> Result<View, PipelineError> {
+        let frame = self.prepare_rgb(left, right, segment, plate)?;
+        self.process_prepared(frame)
     }
 
     /// Matches and triangulates an already rectified RGB pair, with an optional rectified mask.
     pub fn process_rectified(&mut self, left_rgb: Vec<u8>, right_rgb: &[u8], mask: Option<Vec<u8>>) -> Result<View, PipelineError> {
+        self.process_prepared(Prepared { left_gray: rgb_to_gray(&left_rgb), right_gray: rgb_to_gray(right_rgb), left_rgb, mask })
+    }
+
+    /// Matches a prepared pair over the full range and triangulates it.
+    pub fn process_prepared(&mut self, frame: Prepared) -> Result<View, PipelineError> {
         let (w, h) = self.size;
-        let (lg, rg) = (rgb_to_gray(&left_rgb), rgb_to_gray(right_rgb));
-        let intervals = self.matcher.full_intervals(w, h, mask.as_deref());
-        let (disparity, stats, match_ms) = self.match_gray(&lg, &rg, &intervals)?;
-        let cloud = triangulate(&disparity, &self.rect, &left_rgb);
-        Ok(View { disparity, left_rgb, mask, cloud, stats, match_ms })
+        let intervals = self.matcher.full_intervals(w, h, frame.mask.as_deref());
+        let (disparity, stats, match_ms) = self.match_gray(&frame.left_gray, &frame.right_gray, &intervals)?;
+        let cloud = triangulate(&disparity, &self.rect, &frame.left_rgb);
+        Ok(View { disparity, left_rgb: frame.left_rgb, mask: frame.mask, cloud, stats, match_ms, assist: None })
     }
 
     /// Runs the matcher alone on rectified grey images and times it.

@@ -41,7 +41,7 @@ pub mod motion;
 use std::collections::VecDeque;
 use std::time::Instant;
 
-use nalgebra::{Isometry3, Matrix3, Point3, UnitQuaternion, Vector3, Vector6};
+use nalgebra::{Isometry3, Matrix3, UnitQuaternion, Vector3};
 
 use crate::register::posestore::PoseSnapshot;
 use crate::stereo::{DisparityIntervals, DisparityMap, MatchStats, Rectification};
@@ -185,8 +185,10 @@ pub struct Plan {
     pub full_range: Option<String>,
     /// Pixels given the paper's single circle (or, `predicted`, a predicted interval).
     pub single_px: usize,
-    /// Pixels given the union of projected circles (or a hole-filled prediction).
+    /// Pixels given the union of projected circles.
     pub union_px: usize,
+    /// Pixels nothing reached, given the hull of the intervals around them (6 px, ±2 px).
+    pub filled_px: usize,
     /// Foreground pixels no interval reached: searched over the full range.
     pub uncovered_px: usize,
     /// Frames by which the pose of the previous frame was missing (0: registered).
@@ -201,10 +203,13 @@ impl Plan {
     }
 }
 
+#[derive(Clone)]
 struct PrevFrame {
     seq: u64,
     disparity: DisparityMap,
     mask: Option<Vec<u8>>,
+    /// Bounding box of the disparities.
+    region: Region,
 }
 
 /// One registered step in the rectified frame, per frame of motion.
@@ -216,7 +221,9 @@ struct Step {
     per_frame: Isometry3<f64>,
 }
 
-/// Follows one scan; see the module docs.
+/// Follows one scan; see the module docs. Cloning copies the state (to time a frame again
+/// without moving the scan on).
+#[derive(Clone)]
 pub struct Assistant {
     params: AssistParams,
     cam: RectCamera,
@@ -232,8 +239,13 @@ pub struct Assistant {
     /// ICP fitness of the newest registration, when told.
     last_fitness: Option<(u64, f64)>,
     recent_valid: VecDeque<f64>,
+    /// Splatted bounds per pixel, valid inside `region`.
     lo: Vec<f32>,
     hi: Vec<f32>,
+    region: Region,
+    /// `paper`: projected sphere radius per previous pixel, and the pixels needing the union.
+    rho: Vec<f32>,
+    union_needed: Vec<u8>,
 }
 
 impl Assistant {
@@ -253,6 +265,9 @@ impl Assistant {
             recent_valid: VecDeque::new(),
             lo: Vec::new(),
             hi: Vec::new(),
+            region: Region::default(),
+            rho: Vec::new(),
+            union_needed: Vec::new(),
         }
     }
 
@@ -298,7 +313,7 @@ impl Assistant {
     pub fn plan(&mut self, seq: u64, mask: Option<&[u8]>, poses: &PoseSnapshot) -> Plan {
         let t0 = Instant::now();
         self.ingest(poses);
-        let mut plan = Plan { intervals: DisparityIntervals::full(0, 0, 0, 0), full_range: None, single_px: 0, union_px: 0, uncovered_px: 0, lag: 0, build_ms: 0.0 };
+        let mut plan = Plan { intervals: DisparityIntervals::full(0, 0, 0, 0), full_range: None, single_px: 0, union_px: 0, filled_px: 0, uncovered_px: 0, lag: 0, build_ms: 0.0 };
         let reason = match (&self.params.mode, &self.prev, self.steps.back()) {
             (AssistMode::None, _, _) => Some("assistance off".to_string()),
             (_, None, _) => Some("no previous frame".to_string()),
@@ -320,35 +335,76 @@ impl Assistant {
         plan.lag = prev.seq.saturating_sub(newest);
         let gap = seq - prev.seq;
         let (w, h) = self.size;
-        self.lo.clear();
+        // Work only where the object is: this frame's foreground and the previous frame's
+        // disparities, with room for the largest sphere and the hole fill.
+        let reach = self.params.max_radius_px.ceil() as usize + FILL + 2;
+        let Some(region) = Region::of(mask, w, h).map(|r| r.union(&prev.region).grow(reach, w, h)) else {
+            plan.intervals = DisparityIntervals::empty(w, h);
+            plan.build_ms = t0.elapsed().as_secs_f64() * 1e3;
+            return plan;
+        };
+        self.region = region;
         self.lo.resize(w * h, f32::INFINITY);
-        self.hi.clear();
         self.hi.resize(w * h, f32::NEG_INFINITY);
-        let mut iv = DisparityIntervals::full(w, h, self.range.0, self.range.1);
-        let fg = |i: usize| mask.is_none_or(|m| m[i] != 0);
+        for y in region.ys() {
+            self.lo[y * w + region.x0..y * w + region.x1].fill(f32::INFINITY);
+            self.hi[y * w + region.x0..y * w + region.x1].fill(f32::NEG_INFINITY);
+        }
         match self.params.mode {
-            AssistMode::Paper { w: weight } => self.plan_paper(weight, gap, plan.lag, mask, &mut iv, &mut plan),
-            AssistMode::Predicted => self.plan_predicted(gap, plan.lag, mask, &mut iv, &mut plan),
+            AssistMode::Paper { w: weight } => self.splat_paper(weight, gap, plan.lag, mask, &mut plan),
+            AssistMode::Predicted => self.splat_predicted(gap, plan.lag, mask, &mut plan),
             AssistMode::None => unreachable!("handled above"),
         }
-        // Foreground pixels nothing reached: full range. Background: nothing.
-        for y in 0..h {
-            for x in 0..w {
-                let i = y * w + x;
-                if !fg(i) {
-                    iv.set(x, y, None);
-                } else if iv.get(x, y).is_none() {
-                    iv.set(x, y, Some(self.range));
-                    plan.uncovered_px += 1;
-                }
-            }
-        }
-        plan.intervals = iv;
+        plan.intervals = self.intervals(mask, &mut plan);
         plan.build_ms = t0.elapsed().as_secs_f64() * 1e3;
         plan
     }
 
-    fn plan_paper(&mut self, weight: f64, gap: u64, lag: u64, mask: Option<&[u8]>, iv: &mut DisparityIntervals, plan: &mut Plan) {
+    /// The intervals from the splatted bounds: foreground pixels with bounds search them;
+    /// those without take the hull of the bounds within `FILL` pixels, widened by `MARGIN`
+    /// (the disparity of a surface continues across a small gap); the rest the full range.
+    fn intervals(&self, mask: Option<&[u8]>, plan: &mut Plan) -> DisparityIntervals {
+        const MARGIN: f32 = 2.0;
+        let (w, h) = self.size;
+        let (lo, hi, range, region) = (&self.lo, &self.hi, self.range, self.region);
+        let mut iv = DisparityIntervals::empty(w, h);
+        for y in region.ys() {
+            for x in region.xs() {
+                let i = y * w + x;
+                if mask.is_some_and(|m| m[i] == 0) {
+                    continue;
+                }
+                if lo[i] <= hi[i] {
+                    if let Some(r) = interval(range, lo[i], hi[i]) {
+                        iv.set_index(i, r);
+                    }
+                    continue;
+                }
+                let (mut a, mut b) = (f32::INFINITY, f32::NEG_INFINITY);
+                for yy in y.saturating_sub(FILL).max(region.y0)..(y + FILL + 1).min(region.y1) {
+                    let row = yy * w;
+                    for xx in x.saturating_sub(FILL).max(region.x0)..(x + FILL + 1).min(region.x1) {
+                        a = a.min(lo[row + xx]);
+                        b = b.max(hi[row + xx]);
+                    }
+                }
+                match (a <= b).then(|| interval(range, a - MARGIN, b + MARGIN)).flatten() {
+                    Some(r) => {
+                        iv.set(x, y, Some(r));
+                        plan.filled_px += 1;
+                    }
+                    None => {
+                        iv.set(x, y, Some(range));
+                        plan.uncovered_px += 1;
+                    }
+                }
+            }
+        }
+        iv
+    }
+
+    /// The paper's two cases into `lo`/`hi` (see the module docs).
+    fn splat_paper(&mut self, weight: f64, gap: u64, lag: u64, mask: Option<&[u8]>, plan: &mut Plan) {
         let (w, h) = self.size;
         let prev = self.prev.as_ref().expect("planned with a previous frame");
         let step = self.steps.back().expect("planned with a step").per_frame;
@@ -361,161 +417,152 @@ impl Assistant {
             _ => 0.1,
         };
         let widen = gap as f64 * (1.0 + lag as f64 * kappa);
+        // P − M⁻¹·P = A·P + b with A = I − R⁻¹, b = R⁻¹·t.
         let back = step.inverse();
+        let a_m = Matrix3::identity() - back.rotation.to_rotation_matrix().into_inner();
+        let b_v = -back.translation.vector;
         let cam = self.cam;
-        let fg = |i: usize| mask.is_none_or(|m| m[i] != 0);
-        let prev_fg = |i: usize| prev.mask.as_ref().is_none_or(|m| m[i] != 0);
-        let min_half = self.params.min_half_width_px;
-        let (max_radius, range) = (self.params.max_radius_px, self.range);
-        // Projected radius (pixels) of the sphere of each previous pixel with a disparity.
-        let radius = |x: usize, y: usize, d: f64| -> Option<f64> {
-            let p = cam.point(x as f64, y as f64, d)?;
-            let r = (p - (back * Point3::from(p)).coords).norm();
-            Some((cam.fx * weight * r * widen / p.z).min(max_radius))
-        };
-        // Case 1: a single circle around the previous correspondence.
-        let mut union_needed = vec![0u8; w * h];
-        for y in 0..h {
-            for x in 0..w {
+        let min_half = self.params.min_half_width_px as f32;
+        let (max_radius, scale) = (self.params.max_radius_px as f32, cam.fx * weight * widen);
+        let prev_d = prev.disparity.values();
+        let (lo, hi, region) = (&mut self.lo, &mut self.hi, self.region);
+        // The projected radius (pixels) of every previous point's sphere, once:
+        // ρ = fx·w·r/Z = fx·w·|A·(u, v, 1) + b/Z|, at least `min_half`; NaN where no point.
+        self.rho.resize(w * h, f32::NAN);
+        let rho = &mut self.rho;
+        let (ifx, ify) = (1.0 / cam.fx, 1.0 / cam.fy);
+        for y in region.ys() {
+            let v = (y as f64 - cam.cy) * ify;
+            // A·(u, v, 1) = A·(0, v, 1) + u·A[:, 0].
+            let base = a_m * Vector3::new(0.0, v, 1.0);
+            let col0 = a_m.column(0).into_owned();
+            for x in region.xs() {
                 let i = y * w + x;
-                if !fg(i) {
+                let d = prev_d[i];
+                rho[i] = f32::NAN;
+                if !d.is_finite() {
                     continue;
                 }
-                let single = prev_fg(i).then(|| prev.disparity.get(x, y)).flatten().and_then(|d| Some((d as f64, radius(x, y, d as f64)?)));
-                match single.and_then(|(d, rho)| interval(range, d - rho.max(min_half), d + rho.max(min_half))) {
-                    Some(range) => {
-                        iv.set(x, y, Some(range));
-                        plan.single_px += 1;
-                    }
-                    None => {
-                        iv.set(x, y, None);
-                        union_needed[i] = 1;
-                    }
+                let inv_z = (d as f64 - cam.dcx) / -cam.tx;
+                if !(inv_z > 0.0) {
+                    continue;
+                }
+                let u = (x as f64 - cam.cx) * ifx;
+                let r = (base + col0 * u + b_v * inv_z).norm();
+                rho[i] = ((scale * r) as f32).min(max_radius).max(min_half);
+            }
+        }
+        let prev_fg = |i: usize| prev.mask.as_ref().is_none_or(|m| m[i] != 0);
+        // Case 1: a single circle around the previous correspondence.
+        self.union_needed.resize(w * h, 0);
+        let union_needed = &mut self.union_needed;
+        let mut any_union = false;
+        for y in region.ys() {
+            for x in region.xs() {
+                let i = y * w + x;
+                union_needed[i] = 0;
+                if mask.is_some_and(|m| m[i] == 0) {
+                    continue;
+                }
+                let r = rho[i];
+                if r.is_finite() && prev_fg(i) {
+                    let d = prev_d[i];
+                    lo[i] = d - r;
+                    hi[i] = d + r;
+                    plan.single_px += 1;
+                } else {
+                    union_needed[i] = 1;
+                    any_union = true;
                 }
             }
         }
+        if !any_union {
+            return;
+        }
         // Case 2: splat the spheres that reach a pixel needing the union.
-        let sat = summed_area(&union_needed, w, h);
-        let any_in = |x0: i64, y0: i64, x1: i64, y1: i64| -> bool {
-            let (x0, y0) = (x0.max(0) as usize, y0.max(0) as usize);
-            let (x1, y1) = (x1.min(w as i64 - 1), y1.min(h as i64 - 1));
-            if x1 < x0 as i64 || y1 < y0 as i64 {
-                return false;
-            }
-            let (x1, y1) = (x1 as usize + 1, y1 as usize + 1);
-            sat[y1 * (w + 1) + x1] + sat[y0 * (w + 1) + x0] > sat[y0 * (w + 1) + x1] + sat[y1 * (w + 1) + x0]
-        };
-        let (lo, hi) = (&mut self.lo, &mut self.hi);
-        for y in 0..h {
-            for x in 0..w {
-                let Some(d) = prev.disparity.get(x, y) else { continue };
-                let d = d as f64;
-                let Some(rho) = radius(x, y, d) else { continue };
-                let rho = rho.max(min_half);
-                let reach = rho.ceil() as i64;
+        let sat = SummedArea::new(union_needed, w, region);
+        for y in region.ys() {
+            for x in region.xs() {
+                let r = rho[y * w + x];
+                if !r.is_finite() {
+                    continue;
+                }
+                let d = prev_d[y * w + x];
+                let reach = r.ceil() as i64;
                 let (xi, yi) = (x as i64, y as i64);
-                if !any_in(xi - 2 * reach, yi - reach, xi + 2 * reach, yi + reach) {
+                if !sat.any(xi - reach, yi - reach, xi + reach, yi + reach) {
                     continue;
                 }
                 // Row yy of the left circle: half-chord c; its left pixels xx map onto the
                 // right circle's chord, d_xx ∈ d + (xx − x) ± c.
-                for yy in (yi - reach).max(0)..=(yi + reach).min(h as i64 - 1) {
-                    let dy = (yy - yi) as f64;
-                    let c2 = rho * rho - dy * dy;
+                for yy in (yi - reach).max(region.y0 as i64)..=(yi + reach).min(region.y1 as i64 - 1) {
+                    let dy = (yy - yi) as f32;
+                    let c2 = r * r - dy * dy;
                     if c2 < 0.0 {
                         continue;
                     }
                     let c = c2.sqrt();
-                    for xx in ((xi as f64 - c).ceil() as i64).max(0)..=((xi as f64 + c).floor() as i64).min(w as i64 - 1) {
+                    for xx in ((xi as f32 - c).ceil() as i64).max(region.x0 as i64)..=((xi as f32 + c).floor() as i64).min(region.x1 as i64 - 1) {
                         let j = yy as usize * w + xx as usize;
                         if union_needed[j] == 0 {
                             continue;
                         }
-                        let base = d + (xx - xi) as f64;
-                        lo[j] = lo[j].min((base - c) as f32);
-                        hi[j] = hi[j].max((base + c) as f32);
+                        let base = d + (xx - xi) as f32;
+                        lo[j] = lo[j].min(base - c);
+                        hi[j] = hi[j].max(base + c);
                     }
                 }
             }
         }
-        for y in 0..h {
-            for x in 0..w {
-                let j = y * w + x;
-                if union_needed[j] != 0 && lo[j] <= hi[j] {
-                    if let Some(r) = interval(range, lo[j] as f64, hi[j] as f64) {
-                        iv.set(x, y, Some(r));
-                        plan.union_px += 1;
-                    }
-                }
-            }
-        }
+        plan.union_px = region.ys().flat_map(|y| region.xs().map(move |x| y * w + x)).filter(|&i| union_needed[i] != 0 && lo[i] <= hi[i]).count();
     }
 
-    fn plan_predicted(&mut self, gap: u64, lag: u64, mask: Option<&[u8]>, iv: &mut DisparityIntervals, plan: &mut Plan) {
-        let (w, h) = self.size;
+    /// The Kalman prediction of every previous point into `lo`/`hi`.
+    fn splat_predicted(&mut self, gap: u64, lag: u64, mask: Option<&[u8]>, plan: &mut Plan) {
+        let w = self.size.0;
         let prev = self.prev.as_ref().expect("planned with a previous frame");
         let Some((m, cov)) = self.filter.predict(gap, lag) else { return };
         let cam = self.cam;
-        let (k, s_px) = (self.params.predicted_k, self.params.predicted_sigma_px);
-        let min_half = self.params.min_half_width_px as f32;
-        let range = self.range;
-        let (lo, hi) = (&mut self.lo, &mut self.hi);
-        for y in 0..h {
-            for x in 0..w {
-                let Some(d) = prev.disparity.get(x, y) else { continue };
-                let Some(p) = cam.point(x as f64, y as f64, d as f64) else { continue };
-                let q = m * Point3::from(p);
-                let Some((px, py, pd)) = cam.project(&q.coords) else { continue };
-                // σ of the predicted depth: δZ = (δω × Q)_z + δv_z.
-                let j = Vector6::new(q.y, -q.x, 0.0, 0.0, 0.0, 1.0);
-                let var_z = (j.transpose() * cov * j)[(0, 0)].max(0.0);
-                let sd = cam.dd_dz(q.z).abs() * var_z.sqrt();
-                let half = ((k * (sd * sd + s_px * s_px).sqrt()) as f32).max(min_half);
-                let (a, b) = ((pd as f32) - half, (pd as f32) + half);
-                let (x0, y0) = (px.floor() as i64, py.floor() as i64);
-                for (xx, yy) in [(x0, y0), (x0 + 1, y0), (x0, y0 + 1), (x0 + 1, y0 + 1)] {
-                    if xx < 0 || yy < 0 || xx >= w as i64 || yy >= h as i64 {
-                        continue;
-                    }
-                    let i = yy as usize * w + xx as usize;
-                    lo[i] = lo[i].min(a);
-                    hi[i] = hi[i].max(b);
-                }
-            }
-        }
-        let fg = |i: usize| mask.is_none_or(|m| m[i] != 0);
-        const FILL: i64 = 2;
-        for y in 0..h {
-            for x in 0..w {
-                let i = y * w + x;
-                if !fg(i) {
+        let (k, s2) = (self.params.predicted_k, self.params.predicted_sigma_px.powi(2));
+        let min_half = self.params.min_half_width_px;
+        let rot = m.rotation.to_rotation_matrix().into_inner();
+        let t = m.translation.vector;
+        // Var(Z) of a moved point q under a twist perturbation: δZ = δω_x·q_y − δω_y·q_x + δv_z.
+        let (c00, c01, c11, c05, c15, c55) = (cov[(0, 0)], cov[(0, 1)], cov[(1, 1)], cov[(0, 5)], cov[(1, 5)], cov[(5, 5)]);
+        let prev_d = prev.disparity.values();
+        let (lo, hi, region) = (&mut self.lo, &mut self.hi, self.region);
+        for y in region.ys() {
+            for x in region.xs() {
+                let d = prev_d[y * w + x];
+                if !d.is_finite() {
                     continue;
                 }
-                if lo[i] <= hi[i] {
-                    if let Some(r) = interval(range, lo[i] as f64, hi[i] as f64) {
-                        iv.set(x, y, Some(r));
-                        plan.single_px += 1;
-                        continue;
-                    }
+                let z = -cam.tx / (d as f64 - cam.dcx);
+                if !(z > 0.0 && z.is_finite()) {
+                    continue;
                 }
-                // A hole of the forward warp: the hull of the predictions around it.
-                let (mut a, mut b) = (f32::INFINITY, f32::NEG_INFINITY);
-                for yy in (y as i64 - FILL).max(0)..=(y as i64 + FILL).min(h as i64 - 1) {
-                    for xx in (x as i64 - FILL).max(0)..=(x as i64 + FILL).min(w as i64 - 1) {
-                        let j = yy as usize * w + xx as usize;
-                        a = a.min(lo[j]);
-                        b = b.max(hi[j]);
-                    }
+                let p = Vector3::new((x as f64 - cam.cx) * z / cam.fx, (y as f64 - cam.cy) * z / cam.fy, z);
+                let q = rot * p + t;
+                if q.z <= 1e-9 {
+                    continue;
                 }
-                match (a <= b).then(|| interval(range, a as f64, b as f64)).flatten() {
-                    Some(r) => {
-                        iv.set(x, y, Some(r));
-                        plan.union_px += 1;
-                    }
-                    None => iv.set(x, y, None),
+                let (px, py, pd) = (cam.fx * q.x / q.z + cam.cx, cam.fy * q.y / q.z + cam.cy, cam.dcx - cam.tx / q.z);
+                let var_z = (q.y * q.y * c00 - 2.0 * q.x * q.y * c01 + q.x * q.x * c11 + 2.0 * q.y * c05 - 2.0 * q.x * c15 + c55).max(0.0);
+                let sd = cam.dd_dz(q.z) * cam.dd_dz(q.z) * var_z;
+                let half = (k * (sd + s2).sqrt()).max(min_half);
+                let (a, b) = ((pd - half) as f32, (pd + half) as f32);
+                let (x0, y0) = (px.floor() as i64, py.floor() as i64);
+                if x0 < region.x0 as i64 || y0 < region.y0 as i64 || x0 + 1 >= region.x1 as i64 || y0 + 1 >= region.y1 as i64 {
+                    continue;
+                }
+                let i = y0 as usize * w + x0 as usize;
+                for j in [i, i + 1, i + w, i + w + 1] {
+                    lo[j] = lo[j].min(a);
+                    hi[j] = hi[j].max(b);
                 }
             }
         }
+        plan.single_px = region.ys().flat_map(|y| region.xs().map(move |x| y * w + x)).filter(|&i| mask.is_none_or(|m| m[i] != 0) && lo[i] <= hi[i]).count();
     }
 
     /// Checks a matched frame. `None`: accepted (it becomes the previous frame). `Some(why)`:
@@ -535,28 +582,112 @@ impl Assistant {
         while self.recent_valid.len() > 5 {
             self.recent_valid.pop_front();
         }
-        self.prev = Some(PrevFrame { seq, disparity: disparity.clone(), mask: mask.map(<[u8]>::to_vec) });
+        self.prev = Some(PrevFrame { seq, disparity: disparity.clone(), mask: mask.map(<[u8]>::to_vec), region: Region::of_disparity(disparity) });
         None
     }
 }
 
 /// `[lo, hi]` rounded outwards and clipped to `range`; `None` when it misses the range.
-fn interval(range: (i32, i32), lo: f64, hi: f64) -> Option<(i32, i32)> {
-    let (a, b) = (lo.floor().max(range.0 as f64), hi.ceil().min(range.1 as f64));
-    (a <= b).then_some((a as i32, b as i32))
+#[inline]
+fn interval(range: (i32, i32), lo: f32, hi: f32) -> Option<(i32, i32)> {
+    // floor and ceil without a libm call (the baseline x86-64 target has no rounding
+    // instruction); the bounds are far inside i32.
+    let (tl, th) = (lo as i32, hi as i32);
+    let (a, b) = ((tl - (lo < tl as f32) as i32).max(range.0), (th + (hi > th as f32) as i32).min(range.1));
+    (a <= b).then_some((a, b))
 }
 
-/// Summed-area table of a 0/1 map, `(w + 1) × (h + 1)`.
-fn summed_area(m: &[u8], w: usize, h: usize) -> Vec<u32> {
-    let mut s = vec![0u32; (w + 1) * (h + 1)];
-    for y in 0..h {
-        let mut row = 0u32;
-        for x in 0..w {
-            row += m[y * w + x] as u32;
-            s[(y + 1) * (w + 1) + x + 1] = s[y * (w + 1) + x + 1] + row;
+/// Pixels nothing reached take the hull of the intervals within this many pixels.
+const FILL: usize = 6;
+
+/// A rectangle of the image, `x0..x1` × `y0..y1`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+struct Region {
+    x0: usize,
+    x1: usize,
+    y0: usize,
+    y1: usize,
+}
+
+impl Region {
+    /// The bounding box of the non-zero pixels of `mask` (the whole image without one).
+    fn of(mask: Option<&[u8]>, w: usize, h: usize) -> Option<Region> {
+        let Some(m) = mask else { return Some(Region { x0: 0, x1: w, y0: 0, y1: h }) };
+        let mut r: Option<Region> = None;
+        for (y, row) in m.chunks_exact(w).enumerate() {
+            let Some(first) = row.iter().position(|&v| v != 0) else { continue };
+            let last = w - row.iter().rev().position(|&v| v != 0).expect("one exists");
+            r = Some(match r {
+                None => Region { x0: first, x1: last, y0: y, y1: y + 1 },
+                Some(r) => Region { x0: r.x0.min(first), x1: r.x1.max(last), y0: r.y0, y1: y + 1 },
+            });
         }
+        r
     }
-    s
+
+    /// The bounding box of the finite values of a disparity map (empty region if none).
+    fn of_disparity(d: &DisparityMap) -> Region {
+        let mut r = Region::default();
+        for (y, row) in d.values().chunks_exact(d.width).enumerate() {
+            let Some(first) = row.iter().position(|v| v.is_finite()) else { continue };
+            let last = d.width - row.iter().rev().position(|v| v.is_finite()).expect("one exists");
+            r = if r.x1 == 0 { Region { x0: first, x1: last, y0: y, y1: y + 1 } } else { Region { x0: r.x0.min(first), x1: r.x1.max(last), y0: r.y0, y1: y + 1 } };
+        }
+        r
+    }
+
+    fn union(&self, o: &Region) -> Region {
+        if o.x1 == 0 {
+            return *self;
+        }
+        Region { x0: self.x0.min(o.x0), x1: self.x1.max(o.x1), y0: self.y0.min(o.y0), y1: self.y1.max(o.y1) }
+    }
+
+    fn grow(&self, by: usize, w: usize, h: usize) -> Region {
+        Region { x0: self.x0.saturating_sub(by), x1: (self.x1 + by).min(w), y0: self.y0.saturating_sub(by), y1: (self.y1 + by).min(h) }
+    }
+
+    fn xs(&self) -> std::ops::Range<usize> {
+        self.x0..self.x1
+    }
+
+    fn ys(&self) -> std::ops::Range<usize> {
+        self.y0..self.y1
+    }
+}
+
+/// Summed-area table of a 0/1 map over a region, to ask whether a rectangle holds a 1.
+struct SummedArea {
+    s: Vec<u32>,
+    region: Region,
+}
+
+impl SummedArea {
+    fn new(m: &[u8], w: usize, region: Region) -> SummedArea {
+        let rw = region.x1 - region.x0;
+        let mut s = vec![0u32; (rw + 1) * (region.y1 - region.y0 + 1)];
+        for (ry, y) in region.ys().enumerate() {
+            let mut row = 0u32;
+            for (rx, x) in region.xs().enumerate() {
+                row += m[y * w + x] as u32;
+                s[(ry + 1) * (rw + 1) + rx + 1] = s[ry * (rw + 1) + rx + 1] + row;
+            }
+        }
+        SummedArea { s, region }
+    }
+
+    /// Whether `x0..=x1` × `y0..=y1` (image coordinates, clipped to the region) holds a 1.
+    fn any(&self, x0: i64, y0: i64, x1: i64, y1: i64) -> bool {
+        let r = self.region;
+        let rw = r.x1 - r.x0;
+        let (x0, y0) = ((x0 - r.x0 as i64).max(0), (y0 - r.y0 as i64).max(0));
+        let (x1, y1) = ((x1 - r.x0 as i64).min(rw as i64 - 1), (y1 - r.y0 as i64).min((r.y1 - r.y0) as i64 - 1));
+        if x1 < x0 || y1 < y0 {
+            return false;
+        }
+        let (x0, y0, x1, y1) = (x0 as usize, y0 as usize, x1 as usize + 1, y1 as usize + 1);
+        self.s[y1 * (rw + 1) + x1] + self.s[y0 * (rw + 1) + x0] > self.s[y0 * (rw + 1) + x1] + self.s[y1 * (rw + 1) + x0]
+    }
 }
 
 #[cfg(test)]

@@ -1,6 +1,6 @@
 use super::*;
 use crate::register::posestore::ViewPose;
-use nalgebra::{Translation3, Vector3};
+use nalgebra::{Point3, Translation3, Vector3};
 
 /// A sphere turning about a vertical axis that does not pass through its centre, seen by an
 /// ideal 320×240 rig: true disparity per pixel for each frame.

@@ -74,6 +74,12 @@ impl DisparityIntervals {
         DisparityIntervals { width, height, lo: vec![min_d as i16; n], hi: vec![max_d as i16; n] }
     }
 
+    /// No pixel searches anything.
+    pub fn empty(width: usize, height: usize) -> Self {
+        let n = width * height;
+        DisparityIntervals { width, height, lo: vec![1; n], hi: vec![0; n] }
+    }
+
     /// Pixels where `mask` is non-zero search `min_d ..= max_d`, the others nothing.
     pub fn masked(width: usize, height: usize, mask: &[u8], min_d: i32, max_d: i32) -> Self {
         let mut iv = Self::full(width, height, min_d, max_d);
@@ -103,6 +109,14 @@ impl DisparityIntervals {
         };
         self.lo[i] = lo;
         self.hi[i] = hi;
+    }
+
+    /// Sets the interval of the pixel at row-major index `i` (`lo ≤ hi`, both within i16).
+    #[inline]
+    pub fn set_index(&mut self, i: usize, (lo, hi): (i32, i32)) {
+        debug_assert!(lo <= hi && i16::try_from(lo).is_ok() && i16::try_from(hi).is_ok());
+        self.lo[i] = lo as i16;
+        self.hi[i] = hi as i16;
     }
 
     /// The interval of one pixel, `None` if it is not searched.
@@ -164,6 +178,15 @@ pub struct MatchStats {
     pub matched: usize,
     /// (pixel, disparity) pairs evaluated.
     pub evaluated: u64,
+    /// Wall time of the prefilter (a fixed cost per pixel of the image), ns.
+    pub prefilter_ns: u64,
+    /// Time spent in the left–right check, summed over the worker threads, ns.
+    pub lr_check_ns: u64,
+    /// Pixels that reached the left–right check with a match, and those that passed it.
+    pub lr_candidates: usize,
+    pub lr_passed: usize,
+    /// Wall time of the speckle filter (a fixed cost per matched pixel), ns.
+    pub speckle_ns: u64,
 }
 
 impl MatchStats {
@@ -173,6 +196,15 @@ impl MatchStats {
             0.0
         } else {
             self.matched as f64 / self.searched as f64
+        }
+    }
+
+    /// Percent of the matches that passed the left–right check (100 when it is off).
+    pub fn lr_consistency(&self) -> f64 {
+        if self.lr_candidates == 0 {
+            100.0
+        } else {
+            100.0 * self.lr_passed as f64 / self.lr_candidates as f64
         }
     }
 
@@ -336,11 +368,72 @@ pub struct StereoMatcher {
     right_pf_rev: Vec<u8>,
     stripes: Vec<StripeScratch>,
     speckle: SpeckleFilter,
+    /// The cropped inputs and output (see [`Crop`]), reused.
+    crop_left: Vec<u8>,
+    crop_right: Vec<u8>,
+    crop_intervals: DisparityIntervals,
+    crop_out: DisparityMap,
+}
+
+/// The rectangle of a call that matters: the searched pixels' rows and columns, with the
+/// rows of their windows, and the columns of their windows and of every right pixel their
+/// intervals reach (plus one column for the prefilter's gradient), clipped to the image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Crop {
+    x0: usize,
+    y0: usize,
+    w: usize,
+    h: usize,
+}
+
+impl Crop {
+    fn of(iv: &DisparityIntervals, p: &ValidMatchParams) -> Option<Crop> {
+        let (w, h) = (iv.width, iv.height);
+        let (dmin, dmax) = (p.min_disparity, p.max_disparity());
+        let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0usize, usize::MAX, 0usize);
+        let (mut dlo, mut dhi) = (i32::MAX, i32::MIN);
+        for y in 0..h {
+            let (lo, hi) = (&iv.lo[y * w..][..w], &iv.hi[y * w..][..w]);
+            let Some(first) = lo.iter().zip(hi).position(|(a, b)| a <= b) else { continue };
+            let last = w - 1 - lo.iter().zip(hi).rev().position(|(a, b)| a <= b).expect("one exists");
+            (x0, x1, y0, y1) = (x0.min(first), x1.max(last), y0.min(y), y1.max(y));
+            for (a, b) in lo[first..=last].iter().zip(&hi[first..=last]) {
+                if a <= b {
+                    dlo = dlo.min(*a as i32);
+                    dhi = dhi.max(*b as i32);
+                }
+            }
+        }
+        if x0 > x1 {
+            return None;
+        }
+        let (dlo, dhi) = (dlo.clamp(dmin, dmax), dhi.clamp(dmin, dmax));
+        let m = p.radius() as i64 + 1;
+        let left = (x0 as i64 - m - dhi.max(0) as i64).max(0) as usize;
+        let right = ((x1 as i64 + m - dlo.min(0) as i64) as usize).min(w - 1);
+        let top = y0.saturating_sub(m as usize);
+        let bottom = (y1 + m as usize).min(h - 1);
+        // Too narrow a crop to hold a window: match the whole image.
+        if right - left + 1 < 2 {
+            return Some(Crop { x0: 0, y0: 0, w, h });
+        }
+        Some(Crop { x0: left, y0: top, w: right - left + 1, h: bottom - top + 1 })
+    }
 }
 
 impl StereoMatcher {
     pub fn new(params: ValidMatchParams) -> Self {
-        StereoMatcher { params, left_pf: Vec::new(), right_pf_rev: Vec::new(), stripes: Vec::new(), speckle: SpeckleFilter::default() }
+        StereoMatcher {
+            params,
+            left_pf: Vec::new(),
+            right_pf_rev: Vec::new(),
+            stripes: Vec::new(),
+            speckle: SpeckleFilter::default(),
+            crop_left: Vec::new(),
+            crop_right: Vec::new(),
+            crop_intervals: DisparityIntervals::empty(0, 0),
+            crop_out: DisparityMap::new(0, 0),
+        }
     }
 
     pub fn params(&self) -> &ValidMatchParams {
@@ -375,20 +468,69 @@ impl StereoMatcher {
         if w < 2 || h < 1 {
             return Err(MatchError::TooSmall(w, h, self.params.block));
         }
-        let geo = Geometry::new(&self.params, w, h);
         if out.width != w || out.height != h {
             *out = DisparityMap::new(w, h);
         }
+        // Only the rectangle the searched pixels' windows and right correspondences need is
+        // matched: the results are the same (every window and every right pixel searched lies
+        // inside it, and where it meets the image border, the border is the image's), and
+        // rows and columns of background cost nothing.
+        let Some(crop) = Crop::of(intervals, &self.params) else {
+            out.values_mut().fill(f32::NAN);
+            return Ok(MatchStats::default());
+        };
+        if crop.x0 == 0 && crop.y0 == 0 && crop.w == w && crop.h == h {
+            return Ok(self.compute_whole(left, right, intervals, out));
+        }
+        let cut = |img: GrayView, buf: &mut Vec<u8>| {
+            buf.clear();
+            for y in crop.y0..crop.y0 + crop.h {
+                buf.extend_from_slice(&img.data[y * w + crop.x0..][..crop.w]);
+            }
+        };
+        let (mut lbuf, mut rbuf) = (std::mem::take(&mut self.crop_left), std::mem::take(&mut self.crop_right));
+        cut(left, &mut lbuf);
+        cut(right, &mut rbuf);
+        let mut civ = std::mem::replace(&mut self.crop_intervals, DisparityIntervals::empty(0, 0));
+        civ.width = crop.w;
+        civ.height = crop.h;
+        civ.lo.clear();
+        civ.hi.clear();
+        for y in crop.y0..crop.y0 + crop.h {
+            civ.lo.extend_from_slice(&intervals.lo[y * w + crop.x0..][..crop.w]);
+            civ.hi.extend_from_slice(&intervals.hi[y * w + crop.x0..][..crop.w]);
+        }
+        let mut cout = std::mem::replace(&mut self.crop_out, DisparityMap::new(0, 0));
+        if (cout.width, cout.height) != (crop.w, crop.h) {
+            cout = DisparityMap::new(crop.w, crop.h);
+        }
+        let lv = GrayView { width: crop.w, height: crop.h, data: &lbuf };
+        let rv = GrayView { width: crop.w, height: crop.h, data: &rbuf };
+        let stats = self.compute_whole(lv, rv, &civ, &mut cout);
+        out.values_mut().fill(f32::NAN);
+        for (y, src) in cout.values().chunks(crop.w).enumerate() {
+            out.values_mut()[(crop.y0 + y) * w + crop.x0..][..crop.w].copy_from_slice(src);
+        }
+        (self.crop_left, self.crop_right, self.crop_intervals, self.crop_out) = (lbuf, rbuf, civ, cout);
+        Ok(stats)
+    }
 
+    /// [`StereoMatcher::compute`] over the whole of checked inputs.
+    fn compute_whole(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
+        let (w, h) = (left.width, left.height);
+        let geo = Geometry::new(&self.params, w, h);
+
+        let t0 = std::time::Instant::now();
         prefilter_xsobel(left, self.params.prefilter_cap, (geo.r, geo.r), false, &mut self.left_pf);
         prefilter_xsobel(right, self.params.prefilter_cap, (geo.rpad_left, geo.rpad_right), true, &mut self.right_pf_rev);
+        let prefilter_ns = t0.elapsed().as_nanos() as u64;
 
         let threads = self.params.thread_count().min(h).max(1);
         self.stripes.resize_with(threads, StripeScratch::default);
         let rows_per = h.div_ceil(threads);
         let params = &self.params;
         let input = StripeInput { p: params, g: geo, lpf: &self.left_pf, rrev: &self.right_pf_rev, intervals };
-        let mut totals = MatchStats::default();
+        let mut totals = MatchStats { prefilter_ns, ..MatchStats::default() };
         let out_chunks = out.values_mut().chunks_mut(rows_per * w);
         let stats: Vec<MatchStats> = std::thread::scope(|scope| {
             let mut handles = Vec::new();
@@ -413,12 +555,17 @@ impl StereoMatcher {
         for s in stats {
             totals.searched += s.searched;
             totals.evaluated += s.evaluated;
+            totals.lr_check_ns += s.lr_check_ns;
+            totals.lr_candidates += s.lr_candidates;
+            totals.lr_passed += s.lr_passed;
         }
         if params.speckle_window > 0 {
+            let t0 = std::time::Instant::now();
             self.speckle.apply(out, params.speckle_window as usize, params.speckle_range_px);
+            totals.speckle_ns = t0.elapsed().as_nanos() as u64;
         }
         totals.matched = out.valid_count();
-        Ok(totals)
+        totals
     }
 }
 
@@ -556,7 +703,11 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         }
         select_row::<AVX2, AVX512>(p, g, s);
         let out_row = &mut out[(y - y0) * w..][..w];
-        left_right_check(p, g, s, out_row);
+        let t0 = std::time::Instant::now();
+        let (candidates, passed) = left_right_check(p, g, s, out_row);
+        stats.lr_candidates += candidates;
+        stats.lr_passed += passed;
+        stats.lr_check_ns += t0.elapsed().as_nanos() as u64;
     }
     stats
 }
@@ -1027,15 +1178,17 @@ fn window_sums(g: Geometry, cs: &[u16], sad: &mut [u16], ilo: &[i32], ihi: &[i32
     }
 }
 
-/// Applies the left–right check and writes the row's disparities.
+/// Applies the left–right check and writes the row's disparities; returns the number of
+/// pixels with a match before the check and after it.
 ///
 /// A match `k` at `x` lands on right pixel `x − d`; the cheapest pair anywhere on that right
 /// pixel's diagonal is `right_min`. The match passes when a pair on the diagonal within
 /// `lr_max_diff` disparities of `k` — pixel `x + j` at index `k + j` — reaches that minimum,
 /// i.e. when the right pixel's own best disparity agrees with `k` to `lr_max_diff`.
 #[inline(always)]
-fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &mut [f32]) {
+fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &mut [f32]) -> (usize, usize) {
     let Geometry { w, n, dmin, .. } = g;
+    let (mut candidates, mut passed) = (0, 0);
     for x in 0..w {
         out[x] = match s.best[x] {
             None => f32::NAN,
@@ -1064,7 +1217,9 @@ fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &
                         ok
                     }
                 };
+                candidates += 1;
                 if ok {
+                    passed += 1;
                     (dmin + k as i32) as f32 + frac
                 } else {
                     f32::NAN
@@ -1072,6 +1227,7 @@ fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &
             }
         };
     }
+    (candidates, passed)
 }
 
 #[cfg(test)]
@@ -1226,6 +1382,40 @@ mod tests {
                 assert!(portable.iter().filter(|v| v.is_finite()).count() > w * h / 2, "n = {n}");
             }
         }
+    }
+
+    #[test]
+    fn matching_the_crop_gives_what_matching_the_whole_image_gives() {
+        let (w, h) = (200, 90);
+        let (l, r) = shifted_pair(w, h, |x, y| 20 + (x + 2 * y) / 30);
+        let (lv, rv) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap());
+        for (min_d, n) in [(0, 64), (-10, 48)] {
+            let mut m = StereoMatcher::new(MatchParams { min_disparity: min_d, num_disparities: n, threads: 2, ..Default::default() }.validate().unwrap());
+            // An object in the middle, with narrow intervals on part of it, and one pixel at the
+            // image's border.
+            let mut iv = DisparityIntervals::empty(w, h);
+            for y in 30..70 {
+                for x in 90..170 {
+                    let d = 20 + ((x + 2 * y) / 30) as i32;
+                    iv.set(x, y, Some(if x < 130 { (d - 3, d + 2) } else { (min_d, min_d + n as i32 - 1) }));
+                }
+            }
+            let crop = Crop::of(&iv, &m.params).unwrap();
+            assert!(crop.w < w && crop.h < h, "{crop:?}");
+            let mut cropped = DisparityMap::new(w, h);
+            let stats = m.compute(lv, rv, &iv, &mut cropped).unwrap();
+            let mut whole = DisparityMap::new(w, h);
+            let whole_stats = m.compute_whole(lv, rv, &iv, &mut whole);
+            assert_eq!((stats.searched, stats.evaluated, stats.matched), (whole_stats.searched, whole_stats.evaluated, whole_stats.matched));
+            assert!(cropped.values().iter().zip(whole.values()).all(|(a, b)| a == b || (a.is_nan() && b.is_nan())));
+            assert!(stats.matched > 2000, "{}", stats.matched);
+            iv.set(0, 0, Some((min_d, min_d + 5)));
+            assert_eq!(Crop::of(&iv, &m.params).unwrap().x0, 0);
+        }
+        let mut m = StereoMatcher::new(params(16));
+        let mut out = DisparityMap::new(w, h);
+        assert_eq!(m.compute(lv, rv, &DisparityIntervals::empty(w, h), &mut out).unwrap().searched, 0);
+        assert_eq!(out.valid_count(), 0);
     }
 
     #[test]

@@ -1,0 +1,483 @@
+//! `spinscan bench table1`: the paper's Table 1 (matching time per frame, without
+//! registration and with it at each weighting factor w), plus the predicted mode and what the
+//! paper only showed as pictures — accuracy, valid fraction, search width — and a Fig. 4-style
+//! image.
+//!
+//! Every row matches the same prepared frames (rectified, segmented once) with the same
+//! matcher parameters; a row differs only in the intervals. A row's time for a frame is
+//! interval construction + matching (left–right check included, and a full-range redo when
+//! self-correction rejects the assisted result), the median of `repeat` runs of that frame
+//! from the same state. The motion comes from spinscan's own registration of the row's own
+//! views (seeded by `table_deg`); ground truth is read only to score.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use nalgebra::{Isometry3, Point3};
+use serde_json::{json, Value};
+
+use crate::assist::{AssistMode, AssistParams, Assistant};
+use crate::io;
+use crate::pipeline::{Pipeline, PipelineError, PipelineOptions, Prepared};
+use crate::recording::{Recording, TurntableAxis};
+use crate::register::posestore::{PoseSnapshot, PoseStore};
+use crate::register::ring::{Registrar, RegistrationParams};
+use crate::register::surface::{quantile, Surface};
+use crate::stereo::DisparityMap;
+
+/// What to run.
+#[derive(Debug, Clone)]
+pub struct Table1Options {
+    pub pipeline: PipelineOptions,
+    /// The paper rows' weighting factors.
+    pub weights: Vec<f64>,
+    /// Also a row for the predicted mode.
+    pub predicted: bool,
+    /// Use at most this many frames.
+    pub max_frames: Option<usize>,
+    /// Runs per frame and row; the median is reported.
+    pub repeat: usize,
+    /// Hide the newest `lag` registered views from the matcher (as a matcher running ahead
+    /// of registration would see the store).
+    pub lag: u64,
+    /// Knobs of the assisted modes (the mode itself is set per row).
+    pub assist: AssistParams,
+    pub registration: RegistrationParams,
+    /// Frame (index) shown in the figure.
+    pub fig_frame: Option<usize>,
+}
+
+impl Default for Table1Options {
+    fn default() -> Self {
+        Table1Options {
+            pipeline: PipelineOptions::default(),
+            weights: vec![0.6, 0.8, 1.0, 2.0],
+            predicted: true,
+            max_frames: None,
+            repeat: 3,
+            lag: 0,
+            assist: AssistParams::default(),
+            registration: RegistrationParams::default(),
+            fig_frame: None,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    #[error("{0}")]
+    Recording(String),
+    #[error("frame seq {seq}: {source}")]
+    Pipeline { seq: u64, source: PipelineError },
+    #[error("{0}")]
+    Output(String),
+}
+
+/// One row of the table.
+#[derive(Debug, Clone)]
+pub struct Row {
+    pub mode: AssistMode,
+    pub frame_ms: Vec<f64>,
+    pub interval_ms: Vec<f64>,
+    pub match_ms: Vec<f64>,
+    pub lr_check_ms: Vec<f64>,
+    pub prefilter_ms: Vec<f64>,
+    /// Matching time less the fixed per-pixel stages (prefilter, speckle) per evaluated
+    /// (pixel, disparity) pair, ns; one per frame.
+    pub ns_per_pair: Vec<f64>,
+    pub bad2: Vec<f64>,
+    pub lr_consistency: Vec<f64>,
+    pub err_mm: Vec<f64>,
+    pub valid_fraction: Vec<f64>,
+    pub search_px: Vec<f64>,
+    /// Frames searched over the full range, with why (first frames, self-correction).
+    pub full_range: Vec<(u64, String)>,
+    /// Per frame: pixels given a single circle (or prediction), a union (or filled hole),
+    /// and the full range because nothing reached them.
+    pub single_px: Vec<usize>,
+    pub union_px: Vec<usize>,
+    pub filled_px: Vec<usize>,
+    pub uncovered_px: Vec<usize>,
+    /// The disparity map of the figure's frame.
+    pub fig: Option<DisparityMap>,
+}
+
+fn median(v: &[f64]) -> Option<f64> {
+    let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
+}
+
+fn mean(v: &[f64]) -> Option<f64> {
+    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+}
+
+impl Row {
+    pub fn median_ms(&self) -> f64 {
+        median(&self.frame_ms).unwrap_or(f64::NAN)
+    }
+
+    /// Percent of ground-truth pixels missing or off by more than 2 px, over all frames.
+    pub fn bad2(&self) -> Option<f64> {
+        mean(&self.bad2)
+    }
+
+    pub fn to_json(&self) -> Value {
+        json!({
+            "mode": self.mode.name(),
+            "w": self.mode.w(),
+            "frame_ms": self.frame_ms,
+            "median_ms": self.median_ms(),
+            "bad2": self.bad2(),
+            "lr_consistency": mean(&self.lr_consistency),
+            "median_err_mm": median(&self.err_mm),
+            "valid_fraction": mean(&self.valid_fraction),
+            "mean_search_px": mean(&self.search_px),
+            "interval_ms": self.interval_ms,
+            "match_ms": self.match_ms,
+            "lr_check_ms": self.lr_check_ms,
+            "prefilter_ms": self.prefilter_ms,
+            "median_interval_ms": median(&self.interval_ms),
+            "median_lr_check_ms": median(&self.lr_check_ms),
+            "median_prefilter_ms": median(&self.prefilter_ms),
+            "median_ns_per_pair": median(&self.ns_per_pair),
+            "single_px": self.single_px,
+            "union_px": self.union_px,
+            "filled_px": self.filled_px,
+            "uncovered_px": self.uncovered_px,
+            "frame_bad2": self.bad2,
+            "frame_err_mm": self.err_mm,
+            "full_range_frames": self.full_range.iter().map(|(s, why)| json!({"seq": s, "why": why})).collect::<Vec<_>>(),
+        })
+    }
+}
+
+/// The whole benchmark.
+pub struct Table1 {
+    pub recording: PathBuf,
+    pub frames: Vec<u64>,
+    pub rows: Vec<Row>,
+    pub size: (usize, usize),
+    pub range: (i32, i32),
+    pub threads: usize,
+    pub repeat: usize,
+    pub lag: u64,
+    pub fig_frame: usize,
+    pub fig_left: Vec<u8>,
+}
+
+struct Truth {
+    disparity: Vec<Option<DisparityMap>>,
+    /// obj_from_cam per frame, and the mesh in the object's frame.
+    poses: Option<Vec<Option<Isometry3<f64>>>>,
+    surface: Option<Surface>,
+}
+
+/// Runs the benchmark on a recording. `progress(row, frame)` after each frame.
+pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, usize, usize)) -> Result<Table1, BenchError> {
+    let rec = Recording::open(dir).map_err(|e| BenchError::Recording(e.to_string()))?;
+    let n = opts.max_frames.map_or(rec.frames.len(), |m| m.min(rec.frames.len()));
+    if n == 0 {
+        return Err(BenchError::Recording(format!("{}: no frames to run", dir.display())));
+    }
+    let mut pipe = Pipeline::new(&rec.calib, rec.image_size, opts.pipeline.clone()).map_err(|source| BenchError::Pipeline { seq: 0, source })?;
+    let size = (rec.image_size.0 as usize, rec.image_size.1 as usize);
+    let params = pipe.matcher().params().clone();
+    let range = (params.min_disparity, params.max_disparity());
+
+    // Prepare every frame once: every row matches the same images and masks.
+    let mut frames: Vec<(u64, Option<f64>, Prepared)> = Vec::with_capacity(n);
+    for i in 0..n {
+        let f = rec.load_frame(i).map_err(|e| BenchError::Recording(e.to_string()))?;
+        let bad = |what: String| BenchError::Recording(format!("frame seq {}: {what}", f.seq));
+        let (_, _, left) = f.left.to_rgb().map_err(|e| bad(format!("left image: {e}")))?;
+        let (_, _, right) = f.right.to_rgb().map_err(|e| bad(format!("right image: {e}")))?;
+        let p = pipe.prepare_rgb(&left, &right, true, None).map_err(|source| BenchError::Pipeline { seq: f.seq, source })?;
+        frames.push((f.seq, f.table_deg, p));
+        progress("prepare", i + 1, n);
+    }
+    let truth = read_truth(&rec, &frames, pipe.rect.disparity_sign)?;
+
+    let mut modes = vec![AssistMode::None];
+    modes.extend(opts.weights.iter().map(|&w| AssistMode::Paper { w }));
+    if opts.predicted {
+        modes.push(AssistMode::Predicted);
+    }
+    let fig_frame = opts.fig_frame.unwrap_or(4).min(n - 1);
+    let calibrated = TurntableAxis::read_calibrated(dir).map_err(|e| BenchError::Recording(format!("calibrated turntable axis: {e}")))?;
+    let mut rows = Vec::new();
+    for mode in modes {
+        let label = match mode.w() {
+            Some(w) => format!("w = {w}"),
+            None => mode.name().to_string(),
+        };
+        let mut assistant = Assistant::new(AssistParams { mode, ..opts.assist.clone() }, &pipe.rect, range);
+        let store = Arc::new(PoseStore::new());
+        let mut registrar = (mode != AssistMode::None).then(|| {
+            let mut p = opts.registration.clone();
+            if let Some(axis) = &calibrated {
+                p.calibrated_axis = Some((axis.axis_point_mm.into(), axis.axis_dir.into()));
+            }
+            Registrar::new(p, store.clone())
+        });
+        let mut row = Row {
+            mode,
+            frame_ms: vec![],
+            interval_ms: vec![],
+            match_ms: vec![],
+            lr_check_ms: vec![],
+            prefilter_ms: vec![],
+            ns_per_pair: vec![],
+            bad2: vec![],
+            lr_consistency: vec![],
+            err_mm: vec![],
+            valid_fraction: vec![],
+            search_px: vec![],
+            full_range: vec![],
+            single_px: vec![],
+            union_px: vec![],
+            filled_px: vec![],
+            uncovered_px: vec![],
+            fig: None,
+        };
+        for (i, (seq, table_deg, frame)) in frames.iter().enumerate() {
+            let poses = visible_poses(&store.snapshot(), *seq, opts.lag);
+            // Time the frame `repeat` times from the same state; keep the last run's result.
+            let mut times = Vec::new();
+            for _ in 1..opts.repeat.max(1) {
+                let mut probe = assistant.clone();
+                let m = pipe.match_assisted(*seq, frame, &mut probe, &poses).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
+                times.push(m.outcome.interval_ms + m.outcome.match_ms);
+            }
+            let m = pipe.match_assisted(*seq, frame, &mut assistant, &poses).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
+            times.push(m.outcome.interval_ms + m.outcome.match_ms);
+            let o = &m.outcome;
+            row.frame_ms.push(median(&times).expect("at least one run"));
+            row.single_px.push(o.single_px);
+            row.union_px.push(o.union_px);
+            row.filled_px.push(o.filled_px);
+            row.uncovered_px.push(o.uncovered_px);
+            row.interval_ms.push(o.interval_ms);
+            row.match_ms.push(o.match_ms);
+            let all = [Some(m.stats), o.rejected].into_iter().flatten();
+            let (mut evaluated, mut searched, mut fixed_ns, mut lr_ns) = (0u64, 0usize, 0u64, 0u64);
+            for s in all {
+                evaluated += s.evaluated;
+                searched += s.searched;
+                fixed_ns += s.prefilter_ns + s.speckle_ns;
+                lr_ns += s.lr_check_ns;
+            }
+            row.lr_check_ms.push(lr_ns as f64 / 1e6);
+            row.prefilter_ms.push(m.stats.prefilter_ns as f64 / 1e6);
+            row.ns_per_pair.push(((o.match_ms * 1e6 - fixed_ns as f64) / evaluated.max(1) as f64).max(0.0));
+            row.search_px.push(evaluated as f64 / searched.max(1) as f64);
+            row.valid_fraction.push(m.stats.valid_fraction());
+            row.lr_consistency.push(m.stats.lr_consistency());
+            if let Some(why) = o.fallback.clone().or_else(|| o.full_range.clone()) {
+                row.full_range.push((*seq, why));
+            }
+            if let Some(Some(gt)) = truth.disparity.get(i) {
+                row.bad2.push(bad2_percent(&m.disparity, gt));
+            }
+            let view = pipe.finish_view(frame.clone(), m);
+            if let (Some(poses), Some(surface)) = (&truth.poses, &truth.surface) {
+                if let Some(obj_from_cam) = poses[i] {
+                    let pts: Vec<[f32; 3]> = view.cloud.points.iter().map(|p| (obj_from_cam * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64)).coords.map(|v| v as f32).into()).collect();
+                    if let Some(m) = quantile(&surface.distances(&pts), 0.5) {
+                        row.err_mm.push(m);
+                    }
+                }
+            }
+            if i == fig_frame {
+                row.fig = Some(view.disparity.clone());
+            }
+            if let Some(reg) = registrar.as_mut() {
+                match reg.add_view(*seq, *table_deg, &view.cloud) {
+                    Ok(r) => {
+                        if let Some(icp) = &r.icp {
+                            assistant.observe_registration(*seq, icp.fitness);
+                        }
+                    }
+                    Err(e) => tracing::warn!("{label}: frame seq {seq}: not registered: {e}"),
+                }
+            }
+            progress(&label, i + 1, n);
+        }
+        rows.push(row);
+    }
+    Ok(Table1 {
+        recording: dir.to_path_buf(),
+        frames: frames.iter().map(|f| f.0).collect(),
+        rows,
+        size,
+        range,
+        threads: params.thread_count(),
+        repeat: opts.repeat.max(1),
+        lag: opts.lag,
+        fig_frame,
+        fig_left: frames[fig_frame].2.left_rgb.clone(),
+    })
+}
+
+/// The store as a matcher `lag` views ahead of registration would see it while matching
+/// frame `seq`.
+fn visible_poses(snap: &PoseSnapshot, seq: u64, lag: u64) -> PoseSnapshot {
+    if lag == 0 {
+        return snap.clone();
+    }
+    let keep = snap.views.len().saturating_sub(lag as usize);
+    PoseSnapshot { generation: snap.generation, views: snap.views[..keep].iter().filter(|v| v.seq < seq).cloned().collect() }
+}
+
+/// Percent of ground-truth pixels whose disparity is missing or off by more than 2 px (as
+/// `../shared/bench/peer_stereo.py` counts `bad2`).
+pub fn bad2_percent(disp: &DisparityMap, gt: &DisparityMap) -> f64 {
+    let (mut n, mut bad) = (0usize, 0usize);
+    for (d, t) in disp.values().iter().zip(gt.values()) {
+        if !t.is_finite() {
+            continue;
+        }
+        n += 1;
+        bad += (!d.is_finite() || (d.abs() - t.abs()).abs() > 2.0) as usize;
+    }
+    100.0 * bad as f64 / n.max(1) as f64
+}
+
+fn read_truth(rec: &Recording, frames: &[(u64, Option<f64>, Prepared)], sign: i32) -> Result<Truth, BenchError> {
+    let mut disparity = Vec::new();
+    for (seq, _, _) in frames {
+        disparity.push(match rec.gt_disparity_path(*seq) {
+            Some(p) => Some(io::read_disparity_png(&p, sign as f32).map_err(|e| BenchError::Recording(format!("ground truth {}: {e}", p.display())))?),
+            None => None,
+        });
+    }
+    let gt = crate::recording::read_gt_poses(&rec.dir).map_err(|e| BenchError::Recording(format!("ground truth: {e}")))?;
+    let mesh_path = rec.dir.join("gt/mesh.ply");
+    let (poses, surface) = match gt {
+        Some(list) if mesh_path.is_file() => {
+            let mut poses = vec![None; frames.len()];
+            for (seq, rows) in list {
+                if let Some(i) = frames.iter().position(|f| f.0 == seq) {
+                    let cam_from_obj = crate::register::from_rows(&rows, 1e-4).map_err(|e| BenchError::Recording(format!("gt/poses.jsonl: seq {seq}: {e}")))?;
+                    poses[i] = Some(cam_from_obj.inverse());
+                }
+            }
+            let mesh = io::ply::read_ply(&mesh_path).map_err(|e| BenchError::Recording(format!("ground truth: {e}")))?;
+            let surface = Surface::new(&mesh, &Isometry3::identity()).map_err(|e| BenchError::Recording(format!("ground truth {}: {e}", mesh_path.display())))?;
+            (Some(poses), Some(surface))
+        }
+        _ => (None, None),
+    };
+    Ok(Truth { disparity, poses, surface })
+}
+
+impl Table1 {
+    /// The JSON of `--json`.
+    pub fn to_json(&self) -> Value {
+        let none = self.rows.iter().find(|r| r.mode == AssistMode::None).map(Row::median_ms);
+        json!({
+            "recording": self.recording,
+            "frames": self.frames,
+            "image_size": [self.size.0, self.size.1],
+            "disparity_range": [self.range.0, self.range.1],
+            "threads": self.threads,
+            "repeat": self.repeat,
+            "lag": self.lag,
+            "fig_frame_seq": self.frames[self.fig_frame],
+            "fig_tiles": std::iter::once("left".to_string()).chain(self.rows.iter().map(row_label)).collect::<Vec<_>>(),
+            "rows": self.rows.iter().map(|r| {
+                let mut j = r.to_json();
+                j["ratio_to_none"] = json!(none.map(|n| r.median_ms() / n));
+                j
+            }).collect::<Vec<_>>(),
+        })
+    }
+
+    /// The paper's table (a column per frame, up to `max_cols` frames) and the accuracy table.
+    pub fn render(&self, max_cols: usize) -> String {
+        use std::fmt::Write;
+        let mut s = String::new();
+        let cols = self.frames.len().min(max_cols);
+        let _ = writeln!(s, "Table 1 — matching time per frame, ms ({}×{}, disparities {}…{}, {} thread(s), median of {} run(s) per frame{})", self.size.0, self.size.1, self.range.0, self.range.1, self.threads, self.repeat, if self.lag > 0 { format!(", registration {} view(s) behind", self.lag) } else { String::new() });
+        let _ = write!(s, "{:<16}", "frame");
+        for i in 0..cols {
+            let _ = write!(s, "{:>7}", i + 1);
+        }
+        if cols < self.frames.len() {
+            let _ = write!(s, "{:>5}", "…");
+        }
+        let _ = writeln!(s, "{:>9}", "median");
+        for r in &self.rows {
+            let _ = write!(s, "{:<16}", row_label(r));
+            for t in &r.frame_ms[..cols] {
+                let _ = write!(s, "{t:>7.2}");
+            }
+            if cols < self.frames.len() {
+                let _ = write!(s, "{:>5}", "");
+            }
+            let _ = writeln!(s, "{:>9.2}", r.median_ms());
+        }
+        let none = self.rows.iter().find(|r| r.mode == AssistMode::None).map(Row::median_ms);
+        let _ = writeln!(s);
+        let _ = writeln!(s, "{:<16}{:>8}{:>8}{:>8}{:>9}{:>9}{:>9}{:>10}{:>9}{:>9}{:>9}{:>7}", "mode", "median", "ratio", "bad2 %", "lr %", "err mm", "valid", "search px", "ivl ms", "lr ms", "ns/pair", "full");
+        let opt = |v: Option<f64>, p: usize| v.map_or("-".to_string(), |v| format!("{v:.p$}"));
+        for r in &self.rows {
+            let _ = writeln!(
+                s,
+                "{:<16}{:>8.2}{:>8}{:>8}{:>9}{:>9}{:>9}{:>10}{:>9}{:>9}{:>9}{:>7}",
+                row_label(r),
+                r.median_ms(),
+                opt(none.map(|n| r.median_ms() / n), 3),
+                opt(r.bad2(), 2),
+                opt(mean(&r.lr_consistency), 2),
+                opt(median(&r.err_mm), 3),
+                opt(mean(&r.valid_fraction), 3),
+                opt(mean(&r.search_px), 1),
+                opt(median(&r.interval_ms), 2),
+                opt(median(&r.lr_check_ms), 2),
+                opt(median(&r.ns_per_pair), 3),
+                r.full_range.len(),
+            );
+        }
+        s
+    }
+
+    /// Fig. 4: the left image of the figure's frame, then each row's disparity map (false
+    /// colour over the disparity range; black = no disparity), at half size, four per line.
+    pub fn write_figure(&self, path: &Path) -> Result<(), BenchError> {
+        let (w, h) = self.size;
+        let (tw, th) = (w / 2, h / 2);
+        let mut tiles: Vec<Vec<u8>> = vec![self.fig_left.clone()];
+        for r in &self.rows {
+            let d = r.fig.as_ref().ok_or_else(|| BenchError::Output("no disparity map for the figure".into()))?;
+            tiles.push(io::disparity_false_color(d, (self.range.0.max(0) as f32, self.range.1.unsigned_abs() as f32)));
+        }
+        let per_line = 4usize;
+        let lines = tiles.len().div_ceil(per_line);
+        let (cw, ch) = (per_line * tw + (per_line - 1) * 4, lines * th + (lines - 1) * 4);
+        let mut canvas = vec![255u8; cw * ch * 3];
+        for (t, tile) in tiles.iter().enumerate() {
+            let (ox, oy) = ((t % per_line) * (tw + 4), (t / per_line) * (th + 4));
+            for y in 0..th {
+                for x in 0..tw {
+                    let src = ((2 * y) * w + 2 * x) * 3;
+                    let dst = ((oy + y) * cw + ox + x) * 3;
+                    canvas[dst..dst + 3].copy_from_slice(&tile[src..src + 3]);
+                }
+            }
+        }
+        io::write_rgb_png(path, cw, ch, &canvas).map_err(|e| BenchError::Output(format!("cannot write {}: {e}", path.display())))
+    }
+}
+
+fn row_label(r: &Row) -> String {
+    match r.mode {
+        AssistMode::None => "without".into(),
+        AssistMode::Paper { w } => format!("w = {w}"),
+        AssistMode::Predicted => "predicted".into(),
+    }
+}
