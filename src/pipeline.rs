@@ -195,6 +195,8 @@ impl Pipeline {
             outcome.fallback = Some(why);
             outcome.match_ms += ms;
             (disparity, stats) = (d, s);
+        } else {
+            assistant.recycle(plan);
         }
         Ok(AssistedMatch { disparity, stats, outcome })
     }

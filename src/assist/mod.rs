@@ -246,6 +246,8 @@ pub struct Assistant {
     /// `paper`: projected sphere radius per previous pixel, and the pixels needing the union.
     rho: Vec<f32>,
     union_needed: Vec<u8>,
+    /// An interval buffer handed back, with the region it was written in.
+    spare: Option<(DisparityIntervals, Region)>,
 }
 
 impl Assistant {
@@ -268,6 +270,7 @@ impl Assistant {
             region: Region::default(),
             rho: Vec::new(),
             union_needed: Vec::new(),
+            spare: None,
         }
     }
 
@@ -337,8 +340,8 @@ impl Assistant {
         let (w, h) = self.size;
         // Work only where the object is: this frame's foreground and the previous frame's
         // disparities, with room for the largest sphere and the hole fill.
-        let reach = self.params.max_radius_px.ceil() as usize + FILL + 2;
-        let Some(region) = Region::of(mask, w, h).map(|r| r.union(&prev.region).grow(reach, w, h)) else {
+        // (Spheres and predictions that land outside it land outside the foreground.)
+        let Some(region) = Region::of(mask, w, h).map(|r| r.union(&prev.region).grow(FILL + 1, w, h)) else {
             plan.intervals = DisparityIntervals::empty(w, h);
             plan.build_ms = t0.elapsed().as_secs_f64() * 1e3;
             return plan;
@@ -363,11 +366,22 @@ impl Assistant {
     /// The intervals from the splatted bounds: foreground pixels with bounds search them;
     /// those without take the hull of the bounds within `FILL` pixels, widened by `MARGIN`
     /// (the disparity of a surface continues across a small gap); the rest the full range.
-    fn intervals(&self, mask: Option<&[u8]>, plan: &mut Plan) -> DisparityIntervals {
+    fn intervals(&mut self, mask: Option<&[u8]>, plan: &mut Plan) -> DisparityIntervals {
         const MARGIN: f32 = 2.0;
         let (w, h) = self.size;
         let (lo, hi, range, region) = (&self.lo, &self.hi, self.range, self.region);
-        let mut iv = DisparityIntervals::empty(w, h);
+        let mut iv = match self.spare.take() {
+            // A buffer handed back by `recycle`: only its old region holds intervals.
+            Some((mut iv, old)) if (iv.width(), iv.height()) == (w, h) => {
+                for y in old.ys() {
+                    for x in old.xs() {
+                        iv.set(x, y, None);
+                    }
+                }
+                iv
+            }
+            _ => DisparityIntervals::empty(w, h),
+        };
         for y in region.ys() {
             for x in region.xs() {
                 let i = y * w + x;
@@ -565,6 +579,14 @@ impl Assistant {
         plan.single_px = region.ys().flat_map(|y| region.xs().map(move |x| y * w + x)).filter(|&i| mask.is_none_or(|m| m[i] != 0) && lo[i] <= hi[i]).count();
     }
 
+    /// Hands a plan's interval buffer back for the next plan (saves allocating and clearing
+    /// a full-size map per frame).
+    pub fn recycle(&mut self, plan: Plan) {
+        if plan.assisted() {
+            self.spare = Some((plan.intervals, self.region));
+        }
+    }
+
     /// Checks a matched frame. `None`: accepted (it becomes the previous frame). `Some(why)`:
     /// the assisted result looks wrong; match the frame again over the full range and call
     /// this again with that result (a full-range result is always accepted).
@@ -582,7 +604,20 @@ impl Assistant {
         while self.recent_valid.len() > 5 {
             self.recent_valid.pop_front();
         }
-        self.prev = Some(PrevFrame { seq, disparity: disparity.clone(), mask: mask.map(<[u8]>::to_vec), region: Region::of_disparity(disparity) });
+        // Disparities exist only where something was searched: inside the plan's region.
+        let region = if plan.assisted() { self.region } else { Region::of_disparity(disparity) };
+        match &mut self.prev {
+            Some(p) if (p.disparity.width, p.disparity.height) == (disparity.width, disparity.height) => {
+                p.seq = seq;
+                p.disparity.values_mut().copy_from_slice(disparity.values());
+                match (&mut p.mask, mask) {
+                    (Some(old), Some(new)) if old.len() == new.len() => old.copy_from_slice(new),
+                    (slot, new) => *slot = new.map(<[u8]>::to_vec),
+                }
+                p.region = region;
+            }
+            slot => *slot = Some(PrevFrame { seq, disparity: disparity.clone(), mask: mask.map(<[u8]>::to_vec), region }),
+        }
         None
     }
 }
