@@ -687,26 +687,49 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
 
     let mut stats = MatchStats::default();
     let y0 = rows.start;
+    // Columns whose sums were brought down to the previous row (all others hold no band),
+    // and whether that previous row is the one just above.
+    let mut live: Range<usize> = 0..0;
+    let mut prev_row: Option<(usize, Range<usize>)> = None;
     for y in rows {
-        let first_row = y == y0;
         std::mem::swap(&mut s.ilo, &mut s.prev_ilo);
         std::mem::swap(&mut s.ihi, &mut s.prev_ihi);
-        row_intervals(g, intervals, y, &mut s.tlo, &mut s.thi, &mut s.ilo, &mut s.ihi, &mut stats);
-        // A row whose computed ranges repeat the previous row's (always so with the full
-        // range) keeps the previous row's column bands.
-        if first_row || s.ilo != s.prev_ilo || s.ihi != s.prev_ihi {
-            column_bands(g, &s.ilo, &s.ihi, &mut s.need_lo, &mut s.need_hi, &mut s.band_tmp);
+        let out_row = &mut out[(y - y0) * w..][..w];
+        // Only the row's searched span is worked on: rows and columns of background cost
+        // (almost) nothing.
+        let Some(span) = row_intervals(g, intervals, y, &mut s.tlo, &mut s.thi, &mut s.ilo, &mut s.ihi, &mut stats) else {
+            out_row.fill(f32::NAN);
+            continue;
+        };
+        let cols = span.start..span.end + 2 * g.r;
+        let first_row = prev_row.as_ref().is_none_or(|(py, _)| py + 1 != y);
+        // Columns leaving the live set (all of it after a gap) lose their band.
+        for xp in live.clone() {
+            if first_row || !cols.contains(&xp) {
+                s.band_lo[xp] = 1;
+                s.band_hi[xp] = 0;
+            }
         }
-        update_column_sums::<AVX2, AVX512>(g, lpf, rrev, y, first_row, s);
+        live = cols.clone();
+        // A row whose span and ranges repeat the previous row's (always so with the full
+        // range) keeps the previous row's column bands.
+        let same = !first_row && prev_row.as_ref().is_some_and(|(_, ps)| *ps == span) && s.ilo[span.clone()] == s.prev_ilo[span.clone()] && s.ihi[span.clone()] == s.prev_ihi[span.clone()];
+        if !same {
+            let sub = Geometry { w: span.len(), wp: span.len() + 2 * g.r, ..g };
+            column_bands(sub, &s.ilo[span.clone()], &s.ihi[span.clone()], &mut s.need_lo[cols.clone()], &mut s.need_hi[cols.clone()], &mut s.band_tmp);
+        }
+        update_column_sums::<AVX2, AVX512>(g, lpf, rrev, y, first_row, cols, s);
         if p.texture_threshold > 0 {
             update_texture(g, lpf, y, first_row, p.prefilter_cap, &mut s.tex_col);
         }
-        select_row::<AVX2, AVX512>(p, g, s);
-        let out_row = &mut out[(y - y0) * w..][..w];
+        select_row::<AVX2, AVX512>(p, g, s, span.clone());
         let t0 = std::time::Instant::now();
-        let (candidates, passed) = left_right_check(p, g, s, out_row);
+        out_row[..span.start].fill(f32::NAN);
+        out_row[span.end..].fill(f32::NAN);
+        let (candidates, passed) = left_right_check(p, g, s, out_row, span.clone());
         stats.lr_candidates += candidates;
         stats.lr_passed += passed;
+        prev_row = Some((y, span));
         stats.lr_check_ns += t0.elapsed().as_nanos() as u64;
     }
     stats
@@ -715,10 +738,12 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
 /// This row's intervals as disparity indices, clipped to the search range and to right
 /// pixels inside the image (`tlo..=thi`, what is searched), and the block-aligned ranges the
 /// sums are computed over (`ilo..=ihi`, see [`BLOCK`]); counts searched pixels and pairs.
+/// Returns the span from the first to the last searched pixel (None: nothing searched).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn row_intervals(g: Geometry, iv: &DisparityIntervals, y: usize, tlo: &mut [i32], thi: &mut [i32], ilo: &mut [i32], ihi: &mut [i32], stats: &mut MatchStats) {
+fn row_intervals(g: Geometry, iv: &DisparityIntervals, y: usize, tlo: &mut [i32], thi: &mut [i32], ilo: &mut [i32], ihi: &mut [i32], stats: &mut MatchStats) -> Option<Range<usize>> {
     let Geometry { w, n, dmin, .. } = g;
+    let (mut first, mut last) = (usize::MAX, 0);
     let (row_lo, row_hi) = (&iv.lo[y * w..][..w], &iv.hi[y * w..][..w]);
     let (mut searched, mut evaluated) = (0usize, 0u64);
     let block = BLOCK as i32;
@@ -737,6 +762,8 @@ fn row_intervals(g: Geometry, iv: &DisparityIntervals, y: usize, tlo: &mut [i32]
             (clo, chi) = (lo - lo.rem_euclid(block), (hi - hi.rem_euclid(block) + block - 1).min(n as i32 - 1));
             searched += 1;
             evaluated += (hi - lo + 1) as u64;
+            first = first.min(x);
+            last = x;
         }
         tlo[x] = lo;
         thi[x] = hi;
@@ -745,6 +772,7 @@ fn row_intervals(g: Geometry, iv: &DisparityIntervals, y: usize, tlo: &mut [i32]
     }
     stats.searched += searched;
     stats.evaluated += evaluated;
+    (first <= last).then(|| first..last + 1)
 }
 
 /// For each padded column, the union of the intervals of the pixels whose window covers it:
@@ -809,9 +837,9 @@ fn right_start(g: Geometry, xp: usize) -> isize {
     g.wr() as isize - 1 - (xp as isize - g.r as isize - g.dmin as isize + g.rpad_left as isize)
 }
 
-/// Slides the vertical window sums down to row `y` over each column's needed band.
+/// Slides the vertical window sums down to row `y` over each needed band of the columns `cols`.
 #[inline(always)]
-fn update_column_sums<const AVX2: bool, const AVX512: bool>(g: Geometry, lpf: &[u8], rrev: &[u8], y: usize, first_row: bool, s: &mut StripeScratch) {
+fn update_column_sums<const AVX2: bool, const AVX512: bool>(g: Geometry, lpf: &[u8], rrev: &[u8], y: usize, first_row: bool, cols: Range<usize>, s: &mut StripeScratch) {
     let Geometry { h, r, wp, n, .. } = g;
     let y_new = clamp_row(y as isize + r as isize, h);
     let y_old = clamp_row(y as isize - r as isize - 1, h);
@@ -820,7 +848,8 @@ fn update_column_sums<const AVX2: bool, const AVX512: bool>(g: Geometry, lpf: &[
     let wr = g.wr();
     let r_new = &rrev[y_new * wr..][..wr];
     let r_old = &rrev[y_old * wr..][..wr];
-    let mut xp = 0;
+    let mut xp = cols.start;
+    let wp = cols.end.min(wp);
     while xp < wp {
         let (a, b) = (s.need_lo[xp], s.need_hi[xp]);
         // The common case — the band is the one the column already holds — runs as one
@@ -948,21 +977,22 @@ fn update_texture(g: Geometry, lpf: &[u8], y: usize, first_row: bool, cap: u8, t
 /// Window sums, winner-take-all, texture and uniqueness tests, sub-pixel fit, and the
 /// right-image minima for the left–right check.
 #[inline(always)]
-fn select_row<const AVX2: bool, const AVX512: bool>(p: &ValidMatchParams, g: Geometry, s: &mut StripeScratch) {
+fn select_row<const AVX2: bool, const AVX512: bool>(p: &ValidMatchParams, g: Geometry, s: &mut StripeScratch, span: Range<usize>) {
     let Geometry { w, r, n, .. } = g;
     let b = 2 * r + 1;
-    s.right_min[..w + n].fill(u16::MAX);
+    // The right pixels this span's pairs land on: entries w − 1 − x + k.
+    s.right_min[w - span.end..w - span.start + n].fill(u16::MAX);
     if p.texture_threshold > 0 {
-        // Window texture of every pixel: the column sums slid along the row.
-        let mut tex: u32 = s.tex_col[..b].iter().sum();
-        s.tex_row[0] = tex;
-        for x in 1..w {
+        // Window texture of every pixel of the span: the column sums slid along the row.
+        let mut tex: u32 = s.tex_col[span.start..span.start + b].iter().sum();
+        s.tex_row[span.start] = tex;
+        for x in span.start + 1..span.end {
             tex = tex + s.tex_col[x + b - 1] - s.tex_col[x - 1];
             s.tex_row[x] = tex;
         }
     }
-    let mut x = 0;
-    while x < w {
+    let (mut x, xe) = (span.start, span.end);
+    while x < xe {
         let (lo, hi) = (s.ilo[x], s.ihi[x]);
         if lo > hi {
             s.best[x] = None;
@@ -977,7 +1007,7 @@ fn select_row<const AVX2: bool, const AVX512: bool>(p: &ValidMatchParams, g: Geo
         #[cfg(target_arch = "x86_64")]
         if AVX2 && pure_slide {
             let mut end = x + 1;
-            while end < w && s.ilo[end] == lo && s.ihi[end] == hi {
+            while end < xe && s.ilo[end] == lo && s.ihi[end] == hi {
                 end += 1;
             }
             // SAFETY: AVX2 is only true in the copy dispatched on CPUs that have it; the run
@@ -991,13 +1021,16 @@ fn select_row<const AVX2: bool, const AVX512: bool>(p: &ValidMatchParams, g: Geo
         let tex = if p.texture_threshold > 0 { s.tex_row[x] } else { 0 };
         #[cfg(target_arch = "x86_64")]
         if AVX2 && k1 - k0 <= kernels::LANES {
-            // A narrow interval, searched as one 16-lane load (the buffers have the slack).
-            let lanes = &s.sad[x * n + k0..x * n + k0 + kernels::LANES];
-            let right = &mut s.right_min[w - 1 - x + k0..][..kernels::LANES];
+            // A narrow interval, searched as one 16-lane load (the buffers have the slack),
+            // from where the window sums were stored when it fits there (see
+            // `select_run_avx2`).
+            let base = if k1 - (lo as usize) <= kernels::LANES { lo as usize } else { k0 };
+            let lanes = &s.sad[x * n + base..x * n + base + kernels::LANES];
+            let right = &mut s.right_min[w - 1 - x + base..][..kernels::LANES];
             // SAFETY: AVX2 is only true in the copy dispatched on CPUs that have it.
-            let (min, best, rival) = unsafe { kernels::avx2::block16(lanes, 0, k1 - k0, right) };
+            let (min, best, rival) = unsafe { kernels::avx2::block16(lanes, k0 - base, k1 - base, right) };
             let costs = &s.sad[x * n + k0..x * n + k1];
-            s.best[x] = decide_at(p, costs, min, best, rival, tex).map(|(best, frac)| ((k0 + best) as u16, frac));
+            s.best[x] = decide_at(p, costs, min, best - (k0 - base), rival, tex).map(|(best, frac)| ((k0 + best) as u16, frac));
             x += 1;
             continue;
         }
@@ -1056,14 +1089,17 @@ unsafe fn select_run_avx2<const AVX512: bool>(p: &ValidMatchParams, g: Geometry,
                 decide::<true>(p, row, min, tex)
             }
         } else if t1 - t0 <= kernels::LANES {
-            // At most 16 searched disparities: slide the computed range, then search the 16
-            // lanes from the interval's start in registers (lanes past its end are masked; the
-            // buffers have LANES entries of slack for them).
+            // At most 16 searched disparities: slide the computed range, then search 16 lanes
+            // in registers (lanes outside the interval are masked; the buffers have LANES
+            // entries of slack for them). The lanes are read back where a store of the slide
+            // put them when the interval fits there: a load that straddles two recent stores
+            // cannot be forwarded from them and stalls for the round trip to the cache.
             slide_row(row, prev, add, sub);
-            let lanes = std::slice::from_raw_parts(sad.add(x * n + t0), kernels::LANES);
-            let right = std::slice::from_raw_parts_mut(right_min.add(w - 1 - x + t0), kernels::LANES);
-            let (min, best, rival) = kernels::avx2::block16(lanes, 0, t1 - t0, right);
-            decide_at(p, &row[t0 - k0..t1 - k0], min, best, rival, tex)
+            let base = if t1 - k0 <= kernels::LANES { k0 } else { t0 };
+            let lanes = std::slice::from_raw_parts(sad.add(x * n + base), kernels::LANES);
+            let right = std::slice::from_raw_parts_mut(right_min.add(w - 1 - x + base), kernels::LANES);
+            let (min, best, rival) = kernels::avx2::block16(lanes, t0 - base, t1 - base, right);
+            decide_at(p, &row[t0 - k0..t1 - k0], min, best - (t0 - base), rival, tex)
         } else {
             slide_row(row, prev, add, sub);
             let min = kernels::avx2::min_into_and_min(right, &row[t0 - k0..t1 - k0]);
@@ -1178,18 +1214,18 @@ fn window_sums(g: Geometry, cs: &[u16], sad: &mut [u16], ilo: &[i32], ihi: &[i32
     }
 }
 
-/// Applies the left–right check and writes the row's disparities; returns the number of
-/// pixels with a match before the check and after it.
+/// Applies the left–right check and writes the disparities of the pixels in `span`; returns
+/// the number of pixels with a match before the check and after it.
 ///
 /// A match `k` at `x` lands on right pixel `x − d`; the cheapest pair anywhere on that right
 /// pixel's diagonal is `right_min`. The match passes when a pair on the diagonal within
 /// `lr_max_diff` disparities of `k` — pixel `x + j` at index `k + j` — reaches that minimum,
 /// i.e. when the right pixel's own best disparity agrees with `k` to `lr_max_diff`.
 #[inline(always)]
-fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &mut [f32]) -> (usize, usize) {
+fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &mut [f32], span: Range<usize>) -> (usize, usize) {
     let Geometry { w, n, dmin, .. } = g;
     let (mut candidates, mut passed) = (0, 0);
-    for x in 0..w {
+    for x in span {
         out[x] = match s.best[x] {
             None => f32::NAN,
             Some((k, frac)) => {
