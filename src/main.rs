@@ -124,6 +124,34 @@ struct AssistArgs {
     assist_min_fitness: f64,
 }
 
+/// How `replay` and `demo` choose each frame's search range.
+#[derive(Args, Clone)]
+struct AssistModeArgs {
+    /// Search range per frame: `predicted` (the Kalman-predicted disparity ± its
+    /// uncertainty; default), `paper` (the paper's registration constraint, weight
+    /// --assist-w), or `none` (the full range). Needs registration.
+    #[arg(long)]
+    assist: Option<String>,
+    /// The paper's weighting factor w (with --assist paper).
+    #[arg(long, default_value_t = 0.8)]
+    assist_w: f64,
+    #[command(flatten)]
+    knobs: AssistArgs,
+}
+
+impl AssistModeArgs {
+    /// The assistance to run (None: full range), given whether registration runs.
+    fn params(&self, registering: bool) -> Result<Option<AssistParams>, Failure> {
+        let mode = AssistMode::parse(self.assist.as_deref().unwrap_or("predicted"), self.assist_w).map_err(|e| input(format!("--assist: {e}")))?;
+        match (mode, registering) {
+            (AssistMode::None, _) => Ok(None),
+            (_, true) => Ok(Some(self.knobs.params(mode)?)),
+            (_, false) if self.assist.is_some() => Err(input(format!("--assist {} uses the registered motion, which --no-register turns off", mode.name()))),
+            (_, false) => Ok(None),
+        }
+    }
+}
+
 impl AssistArgs {
     fn params(&self, mode: AssistMode) -> Result<AssistParams, Failure> {
         let positive = |name: &str, v: f64| if v > 0.0 && v.is_finite() { Ok(v) } else { Err(input(format!("--{name} must be a positive number, got {v}"))) };
@@ -210,6 +238,8 @@ struct ReplayArgs {
     matching: MatchArgs,
     #[command(flatten)]
     reg: RegistrationArgs,
+    #[command(flatten)]
+    assist: AssistModeArgs,
 }
 
 #[derive(Args)]
@@ -511,6 +541,8 @@ struct DemoArgs {
     matching: MatchArgs,
     #[command(flatten)]
     reg: RegistrationArgs,
+    #[command(flatten)]
+    assist: AssistModeArgs,
 }
 
 /// A failure with the exit code it maps to.
@@ -798,6 +830,7 @@ fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
         max_frames: a.frames,
         segment: !a.no_segment,
         plate,
+        assist: a.assist.params(!a.reg.no_register)?,
         ..a.reg.options(PipelineOptions {
             alpha: a.alpha,
             min_disparity: a.matching.min_disparity,
@@ -847,7 +880,10 @@ fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
     eprintln!("demo: rendering {} stereo pairs of the `{}` turning on the simulated turntable…", a.frames, a.object);
     let rec = spinscan::sim::render_recording(&opts, &rec_dir, &mut |done, total| eprint!("\rdemo: rendered {done}/{total}")).map_err(input)?;
     eprintln!("\ndemo: replaying {} (segment the blue screen, rectify, match, triangulate)…", rec_dir.display());
-    let replay_opts = a.reg.options(PipelineOptions { min_disparity: a.matching.min_disparity, matching: a.matching.params_with_default(128), ..Default::default() })?;
+    let replay_opts = ReplayOptions {
+        assist: a.assist.params(!a.reg.no_register)?,
+        ..a.reg.options(PipelineOptions { min_disparity: a.matching.min_disparity, matching: a.matching.params_with_default(128), ..Default::default() })?
+    };
     let summary = replay::run_recording(rec, &results_dir, &replay_opts, &mut |done, seq, ms| {
         eprint!("\rdemo: replayed {done}/{} (seq {seq}, {ms:.0} ms)", a.frames)
     })

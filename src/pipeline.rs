@@ -96,6 +96,10 @@ pub struct AssistOutcome {
     pub lag: u64,
     /// Building the intervals and keeping the frame for the next one, ms.
     pub interval_ms: f64,
+    /// Of which checking the result and keeping the frame, ms.
+    pub accept_ms: f64,
+    /// The first (assisted) matcher call alone, ms.
+    pub first_match_ms: f64,
     /// Every matcher call of the frame, ms (left–right check included).
     pub match_ms: f64,
     /// The assisted attempt's statistics when it was rejected.
@@ -183,9 +187,11 @@ impl Pipeline {
         let mut outcome = AssistOutcome::of(&plan);
         let (mut disparity, mut stats, ms) = self.match_gray(&frame.left_gray, &frame.right_gray, &plan.intervals)?;
         outcome.match_ms = ms;
+        outcome.first_match_ms = ms;
         let t0 = Instant::now();
         let verdict = assistant.accept(seq, &plan, &disparity, frame.mask.as_deref(), &stats);
-        outcome.interval_ms += t0.elapsed().as_secs_f64() * 1e3;
+        outcome.accept_ms = t0.elapsed().as_secs_f64() * 1e3;
+        outcome.interval_ms += outcome.accept_ms;
         if let Some(why) = verdict {
             let full = Plan { intervals: self.matcher.full_intervals(self.size.0, self.size.1, frame.mask.as_deref()), full_range: Some(why.clone()), ..plan };
             let (d, s, ms) = self.match_gray(&frame.left_gray, &frame.right_gray, &full.intervals)?;

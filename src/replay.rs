@@ -19,6 +19,7 @@ use serde_json::{json, Value};
 
 use nalgebra::Isometry3;
 
+use crate::assist::{AssistParams, Assistant};
 use crate::capture::{CaptureError, StereoSource};
 use crate::io;
 use crate::pipeline::{Pipeline, PipelineError, PipelineOptions};
@@ -61,13 +62,24 @@ pub struct ReplayOptions {
     pub model_voxel_mm: f64,
     /// Isolated-point removal on the model (None: keep every voxel).
     pub denoise: Option<DenoiseParams>,
+    /// Registration-assisted matching (needs `registration`; None: every frame searches the
+    /// full range).
+    pub assist: Option<AssistParams>,
 }
 
 impl ReplayOptions {
     /// What `spinscan replay` does by default: segment, register, a 1 mm model cleaned with
     /// the default thresholds.
     pub fn with_registration(pipeline: PipelineOptions) -> ReplayOptions {
-        ReplayOptions { pipeline, segment: true, registration: Some(RegistrationParams::default()), model_voxel_mm: 1.0, denoise: Some(DenoiseParams::default()), ..Default::default() }
+        ReplayOptions {
+            pipeline,
+            segment: true,
+            registration: Some(RegistrationParams::default()),
+            model_voxel_mm: 1.0,
+            denoise: Some(DenoiseParams::default()),
+            assist: Some(AssistParams::default()),
+            ..Default::default()
+        }
     }
 }
 
@@ -188,6 +200,8 @@ impl ResultsWriter {
                 "mean_gt_coverage": mean("gt_coverage", &scored),
                 "mean_gt_bad2_of_matched": mean("gt_bad2_of_matched", &scored),
                 "mean_register_ms": mean("register_ms", &all),
+                "full_range_frames": self.frames.iter().filter(|f| f["fallback"] == json!(true)).count(),
+                "self_corrected_frames": self.frames.iter().filter(|f| f["assist"]["fallback_reason"].is_string()).count(),
             },
             "registration": self.registration,
         });
@@ -256,13 +270,23 @@ pub fn run(
     let (w, h, _) = first.left.to_rgb().map_err(|what| ReplayError::Frame { seq: first.seq, what })?;
     let mut pipe = Pipeline::new(&calib, (w as u32, h as u32), opts.pipeline.clone()).map_err(|source| ReplayError::Pipeline { seq: first.seq, source })?;
     let mut results = ResultsWriter::create(out, &source.describe(), pipe.rect.disparity_sign)?;
+    let store = std::sync::Arc::new(PoseStore::new());
     let mut registrar = opts.registration.clone().map(|mut p| {
         if let Some(axis) = &inputs.calibrated_axis {
             p.calibrated_axis = Some((nalgebra::Vector3::from(axis.axis_point_mm), nalgebra::Vector3::from(axis.axis_dir)));
         }
-        Registrar::new(p, std::sync::Arc::new(PoseStore::new()))
+        Registrar::new(p, store.clone())
     });
-    let outcome = process_all(source, first, &mut pipe, &mut results, opts, gt_for, registrar.as_mut(), progress).and_then(|mut summary| {
+    // Assistance needs the registered motion: without registration every frame is full range.
+    let mut assistant = match (&opts.assist, &registrar) {
+        (Some(a), Some(_)) => {
+            let params = pipe.matcher().params();
+            Some(Assistant::new(a.clone(), &pipe.rect, (params.min_disparity, params.max_disparity())))
+        }
+        _ => None,
+    };
+    let assisting = Assisting { assistant: assistant.as_mut(), store: &store };
+    let outcome = process_all(source, first, &mut pipe, &mut results, opts, gt_for, registrar.as_mut(), assisting, progress).and_then(|mut summary| {
         if let Some(reg) = registrar.as_mut() {
             summary.registration = Some(finish_registration(reg, &mut results, opts, inputs)?);
         }
@@ -273,6 +297,13 @@ pub fn run(
     outcome
 }
 
+/// The assistant of a run and the pose store it reads.
+struct Assisting<'a> {
+    assistant: Option<&'a mut Assistant>,
+    store: &'a PoseStore,
+}
+
+#[allow(clippy::too_many_arguments)]
 fn process_all(
     source: &mut dyn StereoSource,
     first: crate::capture::StereoFrame,
@@ -281,6 +312,7 @@ fn process_all(
     opts: &ReplayOptions,
     gt_for: &dyn Fn(u64) -> Option<PathBuf>,
     mut registrar: Option<&mut Registrar>,
+    mut assisting: Assisting,
     progress: &mut dyn FnMut(usize, u64, f64),
 ) -> Result<ReplaySummary, ReplayError> {
     let (mut match_ms, mut gt_sum, mut gt_frames) = (0.0, (0usize, 0.0, 0.0, 0.0), 0usize);
@@ -294,7 +326,14 @@ fn process_all(
         if (lw, lh) != size || (rw, rh) != size {
             return Err(bad(format!("images are {lw}×{lh} and {rw}×{rh}, expected {}×{}", size.0, size.1)));
         }
-        let view = pipe.process_rgb_with_plate(&left, &right, opts.segment, opts.plate.as_deref()).map_err(|source| ReplayError::Pipeline { seq, source })?;
+        let view = match assisting.assistant.as_deref_mut() {
+            Some(assistant) => {
+                let prepared = pipe.prepare_rgb(&left, &right, opts.segment, opts.plate.as_deref()).map_err(|source| ReplayError::Pipeline { seq, source })?;
+                let m = pipe.match_assisted(seq, &prepared, assistant, &assisting.store.snapshot()).map_err(|source| ReplayError::Pipeline { seq, source })?;
+                pipe.finish_view(prepared, m)
+            }
+            None => pipe.process_rgb_with_plate(&left, &right, opts.segment, opts.plate.as_deref()).map_err(|source| ReplayError::Pipeline { seq, source })?,
+        };
         let view_path = results.dir.join("views").join(format!("{seq:06}.ply"));
         io::ply::write_ply(&view_path, &view.cloud).map_err(|e| ReplayError::Output { path: view_path, what: e.to_string() })?;
         let disp_path = results.dir.join("disparity").join(format!("{seq:06}.png"));
@@ -305,14 +344,31 @@ fn process_all(
             "register_ms": null,
             "mean_search_px": view.stats.mean_search_px(),
             "valid_fraction": view.stats.valid_fraction(),
-            // Every frame here is matched with the full search range (registration-assisted
-            // matching is not in the replay yet).
-            "fallback": true,
+            // Whether this frame searched the full range (no assistance, the first frames,
+            // or self-correction); `assist` says why.
+            "fallback": view.assist.as_ref().is_none_or(|a| a.searched_full_range()),
             "points": view.cloud.len(),
             "table_deg": frame.table_deg,
             "t_left_ns": frame.t_left_ns,
             "skew_ns": frame.t_right_ns as i64 - frame.t_left_ns as i64,
         });
+        if let Some(a) = &view.assist {
+            entry["assist"] = json!({
+                "mode": opts.assist.as_ref().map(|p| p.mode.name()),
+                "w": opts.assist.as_ref().and_then(|p| p.mode.w()),
+                "full_range_reason": a.full_range,
+                "fallback_reason": a.fallback,
+                "interval_ms": a.interval_ms,
+                "lag": a.lag,
+                "single_px": a.single_px,
+                "union_px": a.union_px,
+                "filled_px": a.filled_px,
+                "uncovered_px": a.uncovered_px,
+            });
+            if let Some(why) = &a.fallback {
+                tracing::warn!("frame seq {seq}: assisted result rejected ({why}); matched again over the full range");
+            }
+        }
         if let Some(gt_path) = gt_for(seq) {
             let gt = io::read_disparity_png(&gt_path, pipe.rect.disparity_sign as f32).map_err(|e| bad(format!("ground truth: {e}")))?;
             if (gt.width, gt.height) != size {
@@ -328,6 +384,9 @@ fn process_all(
         if let Some(reg) = registrar.as_deref_mut() {
             match reg.add_view(seq, frame.table_deg, &view.cloud) {
                 Ok(r) => {
+                    if let (Some(a), Some(icp)) = (assisting.assistant.as_deref_mut(), &r.icp) {
+                        a.observe_registration(seq, icp.fitness);
+                    }
                     entry["register_ms"] = json!(r.register_ms);
                     entry["seed"] = json!(r.seed);
                     if let Some(icp) = &r.icp {

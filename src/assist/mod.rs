@@ -16,17 +16,20 @@
 //!   with a disparity in frame n−1 searches the single circle around its previous
 //!   correspondence: on the epipolar line, `d_prev ± ρ` with `ρ = f·w·r/Z` the sphere's
 //!   projected radius. Every other foreground pixel searches the union of the projected
-//!   circles whose left projections contain it, found by splatting each sphere into an
-//!   interval map (only spheres that reach such a pixel, found with a summed-area table).
+//!   circles whose left projections contain it, intersected with its epipolar line: an
+//!   interval map filled from the spheres within the largest projected radius of each such
+//!   pixel (the same union as splatting every sphere's disc, visiting only what can reach).
 //! - `predicted`: a constant-velocity Kalman filter over SE(3) ([`motion::MotionFilter`])
 //!   predicts the motion n−1 → n; every point of frame n−1 is moved by it, projected, and
 //!   its predicted disparity splatted (hull over the 2 × 2 pixels around it) with a
 //!   half-width of `k·σ`, `σ² = σ_motion² + σ_px²` (the twist covariance carried to
-//!   disparity, and the matcher's own noise); holes of the forward warp are filled from
-//!   neighbours within 2 px.
+//!   disparity, and the matcher's own noise).
 //!
-//! In both modes foreground pixels no interval reaches are searched over the full range,
-//! and a half-width never drops below `min_half_width_px`.
+//! In both modes a foreground pixel no interval reaches (a hole of the forward warp, a
+//! pixel without a previous disparity beyond every sphere) takes the hull of the intervals
+//! within 6 px widened by 2 px; only where there is none it searches the full range. A
+//! half-width never drops below `min_half_width_px`. All work is confined to the bounding
+//! box of this frame's foreground and the previous frame's disparities.
 //!
 //! # Lag
 //! A matcher may run ahead of registration: the previous frame's pose may not be published
@@ -444,6 +447,7 @@ impl Assistant {
         // ρ = fx·w·r/Z = fx·w·|A·(u, v, 1) + b/Z|, at least `min_half`; NaN where no point.
         self.rho.resize(w * h, f32::NAN);
         let rho = &mut self.rho;
+        let mut max_rho = 0f32;
         let (ifx, ify) = (1.0 / cam.fx, 1.0 / cam.fy);
         for y in region.ys() {
             let v = (y as f64 - cam.cy) * ify;
@@ -464,6 +468,7 @@ impl Assistant {
                 let u = (x as f64 - cam.cx) * ifx;
                 let r = (base + col0 * u + b_v * inv_z).norm();
                 rho[i] = ((scale * r) as f32).min(max_radius).max(min_half);
+                max_rho = max_rho.max(rho[i]);
             }
         }
         let prev_fg = |i: usize| prev.mask.as_ref().is_none_or(|m| m[i] != 0);
@@ -493,35 +498,35 @@ impl Assistant {
         if !any_union {
             return;
         }
-        // Case 2: splat the spheres that reach a pixel needing the union.
-        let sat = SummedArea::new(union_needed, w, region);
+        // Case 2: the union of the spheres whose left projections contain the pixel —
+        // gathered per pixel from the previous points within the largest projected radius
+        // (the same union as splatting every sphere, without visiting every sphere's disc).
+        let reach = max_rho.ceil() as i64;
         for y in region.ys() {
             for x in region.xs() {
-                let r = rho[y * w + x];
-                if !r.is_finite() {
+                let j = y * w + x;
+                if union_needed[j] == 0 {
                     continue;
                 }
-                let d = prev_d[y * w + x];
-                let reach = r.ceil() as i64;
                 let (xi, yi) = (x as i64, y as i64);
-                if !sat.any(xi - reach, yi - reach, xi + reach, yi + reach) {
-                    continue;
-                }
-                // Row yy of the left circle: half-chord c; its left pixels xx map onto the
-                // right circle's chord, d_xx ∈ d + (xx − x) ± c.
-                for yy in (yi - reach).max(region.y0 as i64)..=(yi + reach).min(region.y1 as i64 - 1) {
-                    let dy = (yy - yi) as f32;
-                    let c2 = r * r - dy * dy;
-                    if c2 < 0.0 {
-                        continue;
-                    }
-                    let c = c2.sqrt();
-                    for xx in ((xi as f32 - c).ceil() as i64).max(region.x0 as i64)..=((xi as f32 + c).floor() as i64).min(region.x1 as i64 - 1) {
-                        let j = yy as usize * w + xx as usize;
-                        if union_needed[j] == 0 {
+                for sy in (yi - reach).max(region.y0 as i64)..=(yi + reach).min(region.y1 as i64 - 1) {
+                    let dy = (yi - sy) as f32;
+                    let row = sy as usize * w;
+                    for sx in (xi - reach).max(region.x0 as i64)..=(xi + reach).min(region.x1 as i64 - 1) {
+                        let r = rho[row + sx as usize];
+                        // NaN (no point) fails the comparison.
+                        let c2 = r * r - dy * dy;
+                        if !(c2 >= 0.0) {
                             continue;
                         }
-                        let base = d + (xx - xi) as f32;
+                        let c = c2.sqrt();
+                        let dx = (xi - sx) as f32;
+                        if dx.abs() > c {
+                            continue;
+                        }
+                        // Left pixel x lies on the sphere's left chord of row y; the right
+                        // chord maps it to d_prev + (x − sx) ± c.
+                        let base = prev_d[row + sx as usize] + dx;
                         lo[j] = lo[j].min(base - c);
                         hi[j] = hi[j].max(base + c);
                     }
@@ -688,40 +693,6 @@ impl Region {
 
     fn ys(&self) -> std::ops::Range<usize> {
         self.y0..self.y1
-    }
-}
-
-/// Summed-area table of a 0/1 map over a region, to ask whether a rectangle holds a 1.
-struct SummedArea {
-    s: Vec<u32>,
-    region: Region,
-}
-
-impl SummedArea {
-    fn new(m: &[u8], w: usize, region: Region) -> SummedArea {
-        let rw = region.x1 - region.x0;
-        let mut s = vec![0u32; (rw + 1) * (region.y1 - region.y0 + 1)];
-        for (ry, y) in region.ys().enumerate() {
-            let mut row = 0u32;
-            for (rx, x) in region.xs().enumerate() {
-                row += m[y * w + x] as u32;
-                s[(ry + 1) * (rw + 1) + rx + 1] = s[ry * (rw + 1) + rx + 1] + row;
-            }
-        }
-        SummedArea { s, region }
-    }
-
-    /// Whether `x0..=x1` × `y0..=y1` (image coordinates, clipped to the region) holds a 1.
-    fn any(&self, x0: i64, y0: i64, x1: i64, y1: i64) -> bool {
-        let r = self.region;
-        let rw = r.x1 - r.x0;
-        let (x0, y0) = ((x0 - r.x0 as i64).max(0), (y0 - r.y0 as i64).max(0));
-        let (x1, y1) = ((x1 - r.x0 as i64).min(rw as i64 - 1), (y1 - r.y0 as i64).min((r.y1 - r.y0) as i64 - 1));
-        if x1 < x0 || y1 < y0 {
-            return false;
-        }
-        let (x0, y0, x1, y1) = (x0 as usize, y0 as usize, x1 as usize + 1, y1 as usize + 1);
-        self.s[y1 * (rw + 1) + x1] + self.s[y0 * (rw + 1) + x0] > self.s[y0 * (rw + 1) + x1] + self.s[y1 * (rw + 1) + x0]
     }
 }
 
