@@ -1,0 +1,140 @@
+//! Registration-assisted matching end to end: `spinscan bench table1`'s contract (table,
+//! JSON, figure), its accuracy on a small simulated turn, and the assisted replay's report.
+
+mod support;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use serde_json::Value;
+
+fn spinscan(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_spinscan")).args(args).output().expect("spinscan runs")
+}
+
+/// A small turn (320 × 240, 2° per frame) of the torus, which is not a surface of revolution
+/// about the table's axis, so every frame's disparities move.
+fn small_turn(dir: &Path, frames: usize, ideal: bool) -> PathBuf {
+    let rec = dir.join(if ideal { "ideal" } else { "realistic" });
+    let opts = spinscan::sim::RenderOptions {
+        object: spinscan::sim::SimObject::Builtin { name: "torus".into(), triangles: 30_000 },
+        frames,
+        deg_per_frame: 2.0,
+        image_size: (320, 240),
+        ideal,
+        ..Default::default()
+    };
+    spinscan::sim::render_recording(&opts, &rec, &mut |_, _| {}).unwrap();
+    rec
+}
+
+fn table1(rec: &Path, dir: &Path, extra: &[&str]) -> (Output, Value) {
+    let (json, fig) = (dir.join("t1.json"), dir.join("fig.png"));
+    let mut args = vec!["bench", "table1", rec.to_str().unwrap(), "--json", json.to_str().unwrap(), "--fig", fig.to_str().unwrap(), "--max-disparity", "64", "--repeat", "1"];
+    args.extend_from_slice(extra);
+    let o = spinscan(&args);
+    assert!(o.status.success(), "bench table1 failed: {}", String::from_utf8_lossy(&o.stderr));
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    (o, v)
+}
+
+#[test]
+fn table1_prints_the_table_and_writes_its_json_and_figure() {
+    let dir = support::temp_dir("assist-table1");
+    let rec = small_turn(&dir, 7, true);
+    let (o, t) = table1(&rec, &dir, &["--weights", "0.8,2"]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("Table 1") && stdout.contains("w = 0.8") && stdout.contains("predicted"), "{stdout}");
+
+    let rows = t["rows"].as_array().unwrap();
+    let modes: Vec<(&str, Option<f64>)> = rows.iter().map(|r| (r["mode"].as_str().unwrap(), r["w"].as_f64())).collect();
+    assert_eq!(modes, [("none", None), ("paper", Some(0.8)), ("paper", Some(2.0)), ("predicted", None)]);
+    for r in rows {
+        assert!(r["w"].is_null() == (r["mode"] != "paper"));
+        let times = r["frame_ms"].as_array().unwrap();
+        assert_eq!(times.len(), 7, "a time per frame, frames 1–2 included");
+        assert!(times.iter().all(|v| v.as_f64().unwrap() > 0.0));
+        assert!(r["median_ms"].as_f64().unwrap() > 0.0);
+        let bad2 = r["bad2"].as_f64().expect("an ideal recording has ground-truth disparity");
+        assert!((0.0..100.0).contains(&bad2));
+        let lr = r["lr_consistency"].as_f64().unwrap();
+        assert!((50.0..=100.0).contains(&lr), "{lr}");
+        assert!(r["median_err_mm"].as_f64().unwrap() < 3.0, "{r}");
+        assert!(r["valid_fraction"].as_f64().unwrap() > 0.5);
+        // Frames 1 and 2 have no registration yet: every assisted row searched them fully.
+        let full: Vec<u64> = r["full_range_frames"].as_array().unwrap().iter().map(|f| f["seq"].as_u64().unwrap()).collect();
+        assert!(full.starts_with(&[0, 1]), "{full:?}");
+    }
+    let search = |i: usize| rows[i]["mean_search_px"].as_f64().unwrap();
+    assert_eq!(search(0), 64.0, "no assistance searches the whole range");
+    assert!(search(1) < 0.6 * search(0) && search(3) < 0.6 * search(0), "{} {}", search(1), search(3));
+    assert!(search(2) > search(1), "w = 2 searches more than w = 0.8");
+    // The accuracy bar: assisted rows no worse than no assistance + 0.5 point.
+    let bad2 = |i: usize| rows[i]["bad2"].as_f64().unwrap();
+    for i in 1..4 {
+        assert!(bad2(i) <= bad2(0) + 0.5, "row {i}: bad2 {} vs {} without assistance", bad2(i), bad2(0));
+    }
+
+    // Fig. 4: left image and one map per row, at half size, four per line.
+    let fig = image::open(dir.join("fig.png")).unwrap();
+    assert_eq!((fig.width(), fig.height()), (4 * 160 + 3 * 4, 2 * 120 + 4));
+    assert_eq!(t["fig_tiles"].as_array().unwrap().len(), 5);
+}
+
+#[test]
+fn table1_without_ground_truth_disparity_reports_bad2_as_null() {
+    let dir = support::temp_dir("assist-table1-real");
+    let rec = small_turn(&dir, 4, false);
+    let (_, t) = table1(&rec, &dir, &["--weights", "0.8", "--no-predicted"]);
+    for r in t["rows"].as_array().unwrap() {
+        assert!(r["bad2"].is_null(), "{r}");
+        assert!(r["lr_consistency"].as_f64().is_some());
+        assert!(r["median_err_mm"].as_f64().is_some(), "gt/poses.jsonl and gt/mesh.ply give the point-to-surface error");
+    }
+}
+
+#[test]
+fn table1_rejects_bad_input_in_one_line() {
+    let dir = support::temp_dir("assist-table1-bad");
+    let (nothing, d) = (dir.join("nothing"), dir.to_str().unwrap());
+    for (args, needle) in [
+        (vec!["bench", "table1", nothing.to_str().unwrap(), "--weights", "0.8"], "frames.jsonl"),
+        (vec!["bench", "table1", d, "--weights", "0,1"], "--weights: 0"),
+        (vec!["bench", "table1", d, "--repeat", "0"], "--repeat"),
+        (vec!["bench", "table1", d, "--predict-k", "0"], "--predict-k"),
+    ] {
+        let o = spinscan(&args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(3), "{args:?}: {err}");
+        assert!(err.contains(needle), "{args:?}: {err}");
+    }
+}
+
+#[test]
+fn an_assisted_replay_says_per_frame_how_it_searched() {
+    let dir = support::temp_dir("assist-replay");
+    let rec = small_turn(&dir, 6, true);
+    let out = dir.join("out");
+    let o = spinscan(&["replay", rec.to_str().unwrap(), "-o", out.to_str().unwrap(), "--max-disparity", "64", "--assist", "paper", "--assist-w", "0.8"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: Value = serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let frames = report["frames"].as_array().unwrap();
+    assert_eq!(frames[0]["fallback"], true);
+    assert_eq!(frames[0]["assist"]["full_range_reason"], "no previous frame");
+    assert_eq!(frames[1]["assist"]["full_range_reason"], "no registered motion yet");
+    for f in &frames[2..] {
+        assert_eq!(f["assist"]["mode"], "paper");
+        assert_eq!(f["fallback"], false, "{f}");
+        assert!(f["mean_search_px"].as_f64().unwrap() < 20.0, "{f}");
+        assert!(f["gt_bad2_of_matched"].as_f64().unwrap() < 0.05, "{f}");
+    }
+    assert_eq!(report["summary"]["full_range_frames"], 2);
+
+    // Assistance needs registration.
+    let o = spinscan(&["replay", rec.to_str().unwrap(), "-o", dir.join("x").to_str().unwrap(), "--assist", "paper", "--no-register"]);
+    assert_eq!(o.status.code(), Some(3));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--no-register"));
+    let o = spinscan(&["replay", rec.to_str().unwrap(), "-o", dir.join("y").to_str().unwrap(), "--assist", "sideways"]);
+    assert_eq!(o.status.code(), Some(3));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("expected none, paper or predicted"));
+}
