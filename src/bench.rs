@@ -168,6 +168,8 @@ pub struct Table1 {
     pub lag: u64,
     pub fig_frame: usize,
     pub fig_left: Vec<u8>,
+    /// Per frame: the matcher with one disparity at every foreground pixel, ms.
+    pub floor_ms: Vec<f64>,
 }
 
 struct Truth {
@@ -202,6 +204,26 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
     }
     let truth = read_truth(&rec, &frames, pipe.rect.disparity_sign)?;
 
+    // The matcher's floor on these frames: one disparity at every foreground pixel — what
+    // any interval, however narrow, costs before its width counts.
+    let mut floor_ms = Vec::new();
+    for (seq, _, frame) in &frames {
+        let mut iv = crate::stereo::DisparityIntervals::empty(size.0, size.1);
+        let d = (range.0 + range.1) / 2;
+        for y in 0..size.1 {
+            for x in 0..size.0 {
+                if frame.mask.as_ref().is_none_or(|m| m[y * size.0 + x] != 0) {
+                    iv.set(x, y, Some((d, d)));
+                }
+            }
+        }
+        let mut times = Vec::new();
+        for _ in 0..opts.repeat.max(1) {
+            let (_, _, ms) = pipe.match_gray(&frame.left_gray, &frame.right_gray, &iv).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
+            times.push(ms);
+        }
+        floor_ms.push(median(&times).expect("at least one run"));
+    }
     let mut modes = vec![AssistMode::None];
     modes.extend(opts.weights.iter().map(|&w| AssistMode::Paper { w }));
     if opts.predicted {
@@ -307,7 +329,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
                 match reg.add_view(*seq, *table_deg, &view.cloud) {
                     Ok(r) => {
                         if let Some(icp) = &r.icp {
-                            assistant.observe_registration(*seq, icp.fitness);
+                            assistant.observe_registration(*seq, icp.fitness, icp.rmse);
                         }
                     }
                     Err(e) => tracing::warn!("{label}: frame seq {seq}: not registered: {e}"),
@@ -328,6 +350,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         lag: opts.lag,
         fig_frame,
         fig_left: frames[fig_frame].2.left_rgb.clone(),
+        floor_ms,
     })
 }
 
@@ -396,6 +419,8 @@ impl Table1 {
             "repeat": self.repeat,
             "lag": self.lag,
             "fig_frame_seq": self.frames[self.fig_frame],
+            "floor_ms": self.floor_ms,
+            "median_floor_ms": median(&self.floor_ms),
             "fig_tiles": std::iter::once("left".to_string()).chain(self.rows.iter().map(row_label)).collect::<Vec<_>>(),
             "rows": self.rows.iter().map(|r| {
                 let mut j = r.to_json();
@@ -430,6 +455,9 @@ impl Table1 {
             let _ = writeln!(s, "{:>9.2}", r.median_ms());
         }
         let none = self.rows.iter().find(|r| r.mode == AssistMode::None).map(Row::median_ms);
+        if let Some(f) = median(&self.floor_ms) {
+            let _ = writeln!(s, "{:<16}{:>width$.2}   (matcher alone, one disparity per foreground pixel: the floor of any interval)", "floor", f, width = 7 * cols + if cols < self.frames.len() { 5 } else { 0 } + 9);
+        }
         let _ = writeln!(s);
         let _ = writeln!(s, "{:<16}{:>8}{:>8}{:>8}{:>9}{:>9}{:>9}{:>10}{:>9}{:>9}{:>9}{:>7}", "mode", "median", "ratio", "bad2 %", "lr %", "err mm", "valid", "search px", "ivl ms", "lr ms", "ns/pair", "full");
         let opt = |v: Option<f64>, p: usize| v.map_or("-".to_string(), |v| format!("{v:.p$}"));
@@ -455,14 +483,20 @@ impl Table1 {
     }
 
     /// Fig. 4: the left image of the figure's frame, then each row's disparity map (false
-    /// colour over the disparity range; black = no disparity), at half size, four per line.
+    /// colour, blue far to red near over the object's disparities; black = no disparity), at
+    /// half size, four per line.
     pub fn write_figure(&self, path: &Path) -> Result<(), BenchError> {
         let (w, h) = self.size;
         let (tw, th) = (w / 2, h / 2);
         let mut tiles: Vec<Vec<u8>> = vec![self.fig_left.clone()];
+        // One colour scale for every map: the object's disparities (2nd to 98th percentile of
+        // the first row's), so that differences between rows show.
+        let mut all: Vec<f32> = self.rows.first().and_then(|r| r.fig.as_ref()).map(|d| d.values().iter().filter(|v| v.is_finite()).map(|v| v.abs()).collect()).unwrap_or_default();
+        all.sort_by(f32::total_cmp);
+        let scale = if all.len() > 10 { (all[all.len() / 50], all[all.len() * 49 / 50]) } else { (self.range.0.max(0) as f32, self.range.1.unsigned_abs() as f32) };
         for r in &self.rows {
             let d = r.fig.as_ref().ok_or_else(|| BenchError::Output("no disparity map for the figure".into()))?;
-            tiles.push(io::disparity_false_color(d, (self.range.0.max(0) as f32, self.range.1.unsigned_abs() as f32)));
+            tiles.push(io::disparity_false_color(d, scale));
         }
         let per_line = 4usize;
         let lines = tiles.len().div_ceil(per_line);

@@ -122,6 +122,9 @@ struct AssistArgs {
     /// Self-correction: do not let a registration with lower ICP fitness guide the next frame.
     #[arg(long, default_value_t = AssistParams::default().min_fitness)]
     assist_min_fitness: f64,
+    /// Self-correction: nor one whose ICP RMSE exceeds this many times the recent median.
+    #[arg(long, default_value_t = AssistParams::default().max_rmse_ratio)]
+    assist_max_rmse_ratio: f64,
 }
 
 /// How `replay` and `demo` choose each frame's search range.
@@ -163,6 +166,7 @@ impl AssistArgs {
             predicted_k: positive("predict-k", self.predict_k)?,
             fallback_valid_ratio: share("fallback-valid-ratio", self.fallback_valid_ratio)?,
             min_fitness: share("assist-min-fitness", self.assist_min_fitness)?,
+            max_rmse_ratio: positive("assist-max-rmse-ratio", self.assist_max_rmse_ratio)?,
             ..AssistParams::default()
         })
     }

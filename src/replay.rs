@@ -385,7 +385,7 @@ fn process_all(
             match reg.add_view(seq, frame.table_deg, &view.cloud) {
                 Ok(r) => {
                     if let (Some(a), Some(icp)) = (assisting.assistant.as_deref_mut(), &r.icp) {
-                        a.observe_registration(seq, icp.fitness);
+                        a.observe_registration(seq, icp.fitness, icp.rmse);
                     }
                     entry["register_ms"] = json!(r.register_ms);
                     entry["seed"] = json!(r.seed);

@@ -113,6 +113,9 @@ pub struct AssistParams {
     /// Self-correction: registrations with ICP fitness below this are not trusted to guide
     /// the next frame (it is matched over the full range).
     pub min_fitness: f64,
+    /// Self-correction: nor are those whose ICP RMSE exceeds this many times the median of
+    /// the last five.
+    pub max_rmse_ratio: f64,
 }
 
 impl Default for AssistParams {
@@ -126,6 +129,7 @@ impl Default for AssistParams {
             motion_noise: MotionNoise::default(),
             fallback_valid_ratio: 0.85,
             min_fitness: 0.3,
+            max_rmse_ratio: 3.0,
         }
     }
 }
@@ -166,11 +170,6 @@ impl RectCamera {
     /// Pixel and disparity of a rectified-left-frame point, if in front.
     pub fn project(&self, p: &Vector3<f64>) -> Option<(f64, f64, f64)> {
         (p.z > 1e-9).then(|| (self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy, self.dcx - self.tx / p.z))
-    }
-
-    /// `∂d/∂Z` at depth `z`.
-    fn dd_dz(&self, z: f64) -> f64 {
-        self.tx / (z * z)
     }
 
     /// A motion of LEFT raw camera points carried into the rectified left frame.
@@ -241,6 +240,9 @@ pub struct Assistant {
     ingested: Option<u64>,
     /// ICP fitness of the newest registration, when told.
     last_fitness: Option<(u64, f64)>,
+    /// ICP RMSE of the last registrations, and the newest when it jumped: (seq, rmse, median).
+    recent_rmse: VecDeque<f64>,
+    rmse_jump: Option<(u64, f64, f64)>,
     recent_valid: VecDeque<f64>,
     /// Splatted bounds per pixel, valid inside `region`.
     lo: Vec<f32>,
@@ -267,6 +269,8 @@ impl Assistant {
             steps: VecDeque::new(),
             ingested: None,
             last_fitness: None,
+            recent_rmse: VecDeque::new(),
+            rmse_jump: None,
             recent_valid: VecDeque::new(),
             lo: Vec::new(),
             hi: Vec::new(),
@@ -281,9 +285,22 @@ impl Assistant {
         &self.params
     }
 
-    /// Tells the assistant how well view `seq` registered (ICP fitness of its step).
-    pub fn observe_registration(&mut self, seq: u64, fitness: f64) {
+    /// Tells the assistant how well view `seq` registered: the ICP fitness and inlier RMSE
+    /// (mm) of its step.
+    pub fn observe_registration(&mut self, seq: u64, fitness: f64, rmse: f64) {
         self.last_fitness = Some((seq, fitness));
+        let median = {
+            let mut v: Vec<f64> = self.recent_rmse.iter().copied().collect();
+            v.sort_by(f64::total_cmp);
+            v.get(v.len() / 2).copied()
+        };
+        self.rmse_jump = median.filter(|m| rmse.is_finite() && rmse > self.params.max_rmse_ratio * m.max(1e-6)).map(|m| (seq, rmse, m));
+        if rmse.is_finite() {
+            self.recent_rmse.push_back(rmse);
+            while self.recent_rmse.len() > 5 {
+                self.recent_rmse.pop_front();
+            }
+        }
     }
 
     /// Takes in the steps of views registered since the last call.
@@ -325,8 +342,9 @@ impl Assistant {
             (_, None, _) => Some("no previous frame".to_string()),
             (_, _, None) => Some("no registered motion yet".to_string()),
             (_, Some(prev), _) if prev.seq >= seq => Some(format!("frame seq {seq} does not follow seq {}", prev.seq)),
-            _ => match self.last_fitness {
-                Some((s, f)) if f < self.params.min_fitness => Some(format!("registration of seq {s} has ICP fitness {f:.2}, below {:.2}", self.params.min_fitness)),
+            _ => match (self.last_fitness, self.rmse_jump) {
+                (Some((s, f)), _) if f < self.params.min_fitness => Some(format!("registration of seq {s} has ICP fitness {f:.2}, below {:.2}", self.params.min_fitness)),
+                (_, Some((s, r, m))) => Some(format!("registration of seq {s} has ICP RMSE {r:.2} mm, over {:.1} × the recent median {m:.2} mm", self.params.max_rmse_ratio)),
                 _ => None,
             },
         };
@@ -376,44 +394,48 @@ impl Assistant {
         let mut iv = match self.spare.take() {
             // A buffer handed back by `recycle`: only its old region holds intervals.
             Some((mut iv, old)) if (iv.width(), iv.height()) == (w, h) => {
-                for y in old.ys() {
-                    for x in old.xs() {
-                        iv.set(x, y, None);
-                    }
-                }
+                iv.clear_rect(old.xs(), old.ys());
                 iv
             }
             _ => DisparityIntervals::empty(w, h),
         };
+        let (r0, r1) = (range.0 as f32, range.1 as f32);
+        let mut holes = Vec::new();
         for y in region.ys() {
+            let (out_lo, out_hi) = iv.row_mut(y);
+            let row = y * w;
             for x in region.xs() {
-                let i = y * w + x;
+                let i = row + x;
                 if mask.is_some_and(|m| m[i] == 0) {
                     continue;
                 }
-                if lo[i] <= hi[i] {
-                    if let Some(r) = interval(range, lo[i], hi[i]) {
-                        iv.set_index(i, r);
-                    }
-                    continue;
+                // Rounded outwards and clipped; ±∞ (nothing reached) fails `a <= b`.
+                let (a, b) = (floor(lo[i]).max(r0), ceil(hi[i]).min(r1));
+                if a <= b {
+                    out_lo[x] = a as i16;
+                    out_hi[x] = b as i16;
+                } else {
+                    holes.push((x, y));
                 }
-                let (mut a, mut b) = (f32::INFINITY, f32::NEG_INFINITY);
-                for yy in y.saturating_sub(FILL).max(region.y0)..(y + FILL + 1).min(region.y1) {
-                    let row = yy * w;
-                    for xx in x.saturating_sub(FILL).max(region.x0)..(x + FILL + 1).min(region.x1) {
-                        a = a.min(lo[row + xx]);
-                        b = b.max(hi[row + xx]);
-                    }
+            }
+        }
+        for (x, y) in holes {
+            let (mut a, mut b) = (f32::INFINITY, f32::NEG_INFINITY);
+            for yy in y.saturating_sub(FILL).max(region.y0)..(y + FILL + 1).min(region.y1) {
+                let row = yy * w;
+                for xx in x.saturating_sub(FILL).max(region.x0)..(x + FILL + 1).min(region.x1) {
+                    a = a.min(lo[row + xx]);
+                    b = b.max(hi[row + xx]);
                 }
-                match (a <= b).then(|| interval(range, a - MARGIN, b + MARGIN)).flatten() {
-                    Some(r) => {
-                        iv.set(x, y, Some(r));
-                        plan.filled_px += 1;
-                    }
-                    None => {
-                        iv.set(x, y, Some(range));
-                        plan.uncovered_px += 1;
-                    }
+            }
+            match (a <= b).then(|| interval(range, a - MARGIN, b + MARGIN)).flatten() {
+                Some(r) => {
+                    iv.set(x, y, Some(r));
+                    plan.filled_px += 1;
+                }
+                None => {
+                    iv.set(x, y, Some(range));
+                    plan.uncovered_px += 1;
                 }
             }
         }
@@ -542,35 +564,44 @@ impl Assistant {
         let prev = self.prev.as_ref().expect("planned with a previous frame");
         let Some((m, cov)) = self.filter.predict(gap, lag) else { return };
         let cam = self.cam;
-        let (k, s2) = (self.params.predicted_k, self.params.predicted_sigma_px.powi(2));
-        let min_half = self.params.min_half_width_px;
-        let rot = m.rotation.to_rotation_matrix().into_inner();
-        let t = m.translation.vector;
+        let (k, s2) = (self.params.predicted_k as f32, self.params.predicted_sigma_px.powi(2) as f32);
+        let min_half = self.params.min_half_width_px as f32;
+        // In f32, per previous point with ray (u, v, 1) and 1/Z = (d − dcx)/(−tx):
+        // Q·(1/Z) = R·(u, v, 1) + t/Z, so one division gives the projection of the moved point.
+        let rot = m.rotation.to_rotation_matrix().into_inner().cast::<f32>();
+        let t = m.translation.vector.cast::<f32>();
         // Var(Z) of a moved point q under a twist perturbation: δZ = δω_x·q_y − δω_y·q_x + δv_z.
-        let (c00, c01, c11, c05, c15, c55) = (cov[(0, 0)], cov[(0, 1)], cov[(1, 1)], cov[(0, 5)], cov[(1, 5)], cov[(5, 5)]);
+        let c = |i: usize, j: usize| cov[(i, j)] as f32;
+        let (c00, c01, c11, c05, c15, c55) = (c(0, 0), c(0, 1), c(1, 1), c(0, 5), c(1, 5), c(5, 5));
+        let (fx, fy, cx, cy, dcx, tx) = (cam.fx as f32, cam.fy as f32, cam.cx as f32, cam.cy as f32, cam.dcx as f32, cam.tx as f32);
         let prev_d = prev.disparity.values();
         let (lo, hi, region) = (&mut self.lo, &mut self.hi, self.region);
         for y in region.ys() {
+            let v = (y as f32 - cy) / fy;
+            let base = rot.column(1) * v + rot.column(2);
+            let col0 = rot.column(0);
             for x in region.xs() {
                 let d = prev_d[y * w + x];
-                if !d.is_finite() {
+                let iz = (d - dcx) / -tx;
+                // NaN (no disparity) and points behind the camera fail here.
+                if !(iz > 0.0) {
                     continue;
                 }
-                let z = -cam.tx / (d as f64 - cam.dcx);
-                if !(z > 0.0 && z.is_finite()) {
+                let u = (x as f32 - cx) / fx;
+                let q = base + col0 * u + t * iz; // the moved point times 1/Z
+                if !(q.z > 0.0) {
                     continue;
                 }
-                let p = Vector3::new((x as f64 - cam.cx) * z / cam.fx, (y as f64 - cam.cy) * z / cam.fy, z);
-                let q = rot * p + t;
-                if q.z <= 1e-9 {
-                    continue;
-                }
-                let (px, py, pd) = (cam.fx * q.x / q.z + cam.cx, cam.fy * q.y / q.z + cam.cy, cam.dcx - cam.tx / q.z);
-                let var_z = (q.y * q.y * c00 - 2.0 * q.x * q.y * c01 + q.x * q.x * c11 + 2.0 * q.y * c05 - 2.0 * q.x * c15 + c55).max(0.0);
-                let sd = cam.dd_dz(q.z) * cam.dd_dz(q.z) * var_z;
-                let half = (k * (sd + s2).sqrt()).max(min_half);
-                let (a, b) = ((pd - half) as f32, (pd + half) as f32);
-                let (x0, y0) = (px.floor() as i64, py.floor() as i64);
+                let s = 1.0 / q.z;
+                let (px, py, pd) = (fx * q.x * s + cx, fy * q.y * s + cy, dcx - tx * iz * s);
+                // The moved point itself, mm, for its depth variance.
+                let z = 1.0 / iz;
+                let (qx, qy, qz) = (q.x * z, q.y * z, q.z * z);
+                let var_z = (qy * qy * c00 - 2.0 * qx * qy * c01 + qx * qx * c11 + 2.0 * qy * c05 - 2.0 * qx * c15 + c55).max(0.0);
+                let dd = tx / (qz * qz);
+                let half = (k * (dd * dd * var_z + s2).sqrt()).max(min_half);
+                let (a, b) = (pd - half, pd + half);
+                let (x0, y0) = (floor(px) as i64, floor(py) as i64);
                 if x0 < region.x0 as i64 || y0 < region.y0 as i64 || x0 + 1 >= region.x1 as i64 || y0 + 1 >= region.y1 as i64 {
                     continue;
                 }
@@ -625,6 +656,23 @@ impl Assistant {
         }
         None
     }
+}
+
+/// `x.floor()` without a libm call (the baseline x86-64 target has no rounding instruction);
+/// exact for |x| < 2²³, where every value here lies, and ±∞ stays ±∞.
+#[inline(always)]
+fn floor(x: f32) -> f32 {
+    if !(x.abs() < 8_388_608.0) {
+        return x;
+    }
+    let t = x as i32 as f32;
+    t - (t > x) as i32 as f32
+}
+
+/// `x.ceil()`, as [`floor`].
+#[inline(always)]
+fn ceil(x: f32) -> f32 {
+    -floor(-x)
 }
 
 /// `[lo, hi]` rounded outwards and clipped to `range`; `None` when it misses the range.

@@ -183,9 +183,17 @@ fn a_frame_that_looks_wrong_is_sent_back_and_a_bad_registration_is_not_trusted()
     // The full-range redo is accepted.
     let full = Plan { full_range: Some("fallback".into()), ..plan.clone() };
     assert!(a.accept(3, &full, &truth, Some(&mask), &stats(0.4)).is_none());
-    a.observe_registration(3, 0.1);
+    a.observe_registration(3, 0.1, 0.5);
     let next = a.plan(4, Some(&mask), &scene.poses(0..4));
     assert!(next.full_range.as_deref().is_some_and(|r| r.contains("fitness 0.10")), "{:?}", next.full_range);
+    // A residual jumping over 3 × the recent median is not trusted either.
+    for (s, r) in [(4, 0.5), (5, 0.6), (6, 0.5)] {
+        a.observe_registration(s, 0.9, r);
+    }
+    assert!(a.plan(4, Some(&mask), &scene.poses(0..4)).assisted());
+    a.observe_registration(7, 0.9, 2.0);
+    let next = a.plan(4, Some(&mask), &scene.poses(0..4));
+    assert!(next.full_range.as_deref().is_some_and(|r| r.contains("RMSE 2.00 mm")), "{:?}", next.full_range);
 }
 
 #[test]
@@ -201,4 +209,12 @@ fn rect_camera_inverts_its_projection_and_agrees_with_triangulation() {
     let q = scene.cam.point(100.0, 50.0, 40.0).unwrap();
     let t = cloud.points[0];
     assert!((Vector3::new(t[0] as f64, t[1] as f64, t[2] as f64) - q).norm() < 1e-3, "{t:?} vs {q}");
+}
+
+#[test]
+fn fast_rounding_matches_the_standard_library() {
+    for x in [-3.5f32, -3.0, -0.2, -0.0, 0.0, 0.2, 2.0, 2.7, 127.49, 1e6, f32::INFINITY, f32::NEG_INFINITY] {
+        assert_eq!(super::floor(x), x.floor(), "{x}");
+        assert_eq!(super::ceil(x), x.ceil(), "{x}");
+    }
 }

@@ -111,6 +111,21 @@ impl DisparityIntervals {
         self.hi[i] = hi;
     }
 
+    /// No pixel of the rectangle `xs × ys` searches anything.
+    pub fn clear_rect(&mut self, xs: Range<usize>, ys: Range<usize>) {
+        for y in ys {
+            self.lo[y * self.width + xs.start..y * self.width + xs.end].fill(1);
+            self.hi[y * self.width + xs.start..y * self.width + xs.end].fill(0);
+        }
+    }
+
+    /// The bounds of row `y`, to fill in place (`lo > hi`: not searched; values are
+    /// disparities).
+    pub fn row_mut(&mut self, y: usize) -> (&mut [i16], &mut [i16]) {
+        let w = self.width;
+        (&mut self.lo[y * w..(y + 1) * w], &mut self.hi[y * w..(y + 1) * w])
+    }
+
     /// Sets the interval of the pixel at row-major index `i` (`lo ≤ hi`, both within i16).
     #[inline]
     pub fn set_index(&mut self, i: usize, (lo, hi): (i32, i32)) {
