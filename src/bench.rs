@@ -117,6 +117,56 @@ fn mean(v: &[f64]) -> Option<f64> {
 }
 
 impl Row {
+    fn new(mode: AssistMode) -> Row {
+        Row {
+            mode,
+            frame_ms: vec![],
+            interval_ms: vec![],
+            match_ms: vec![],
+            lr_check_ms: vec![],
+            prefilter_ms: vec![],
+            ns_per_pair: vec![],
+            bad2: vec![],
+            lr_consistency: vec![],
+            err_mm: vec![],
+            valid_fraction: vec![],
+            search_px: vec![],
+            full_range: vec![],
+            single_px: vec![],
+            union_px: vec![],
+            filled_px: vec![],
+            uncovered_px: vec![],
+            fig: None,
+        }
+    }
+
+    /// The figures of one matched frame (all but its time, accuracy and figure).
+    fn record(&mut self, m: &crate::pipeline::AssistedMatch) {
+        let o = &m.outcome;
+        self.single_px.push(o.single_px);
+        self.union_px.push(o.union_px);
+        self.filled_px.push(o.filled_px);
+        self.uncovered_px.push(o.uncovered_px);
+        self.interval_ms.push(o.interval_ms);
+        self.match_ms.push(o.match_ms);
+        let (mut evaluated, mut searched, mut fixed_ns, mut lr_ns) = (0u64, 0usize, 0u64, 0u64);
+        for s in [Some(m.stats), o.rejected].into_iter().flatten() {
+            evaluated += s.evaluated;
+            searched += s.searched;
+            fixed_ns += s.prefilter_ns + s.speckle_ns;
+            lr_ns += s.lr_check_ns;
+        }
+        self.lr_check_ms.push(lr_ns as f64 / 1e6);
+        self.prefilter_ms.push(m.stats.prefilter_ns as f64 / 1e6);
+        self.ns_per_pair.push(((o.match_ms * 1e6 - fixed_ns as f64) / evaluated.max(1) as f64).max(0.0));
+        self.search_px.push(evaluated as f64 / searched.max(1) as f64);
+        self.valid_fraction.push(m.stats.valid_fraction());
+        self.lr_consistency.push(m.stats.lr_consistency());
+        if let Some(why) = o.fallback.clone().or_else(|| o.full_range.clone()) {
+            self.full_range.push((m.seq, why));
+        }
+    }
+
     pub fn median_ms(&self) -> f64 {
         median(&self.frame_ms).unwrap_or(f64::NAN)
     }
@@ -204,26 +254,6 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
     }
     let truth = read_truth(&rec, &frames, pipe.rect.disparity_sign)?;
 
-    // The matcher's floor on these frames: one disparity at every foreground pixel — what
-    // any interval, however narrow, costs before its width counts.
-    let mut floor_ms = Vec::new();
-    for (seq, _, frame) in &frames {
-        let mut iv = crate::stereo::DisparityIntervals::empty(size.0, size.1);
-        let d = (range.0 + range.1) / 2;
-        for y in 0..size.1 {
-            for x in 0..size.0 {
-                if frame.mask.as_ref().is_none_or(|m| m[y * size.0 + x] != 0) {
-                    iv.set(x, y, Some((d, d)));
-                }
-            }
-        }
-        let mut times = Vec::new();
-        for _ in 0..opts.repeat.max(1) {
-            let (_, _, ms) = pipe.match_gray(&frame.left_gray, &frame.right_gray, &iv).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
-            times.push(ms);
-        }
-        floor_ms.push(median(&times).expect("at least one run"));
-    }
     let mut modes = vec![AssistMode::None];
     modes.extend(opts.weights.iter().map(|&w| AssistMode::Paper { w }));
     if opts.predicted {
@@ -231,85 +261,74 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
     }
     let fig_frame = opts.fig_frame.unwrap_or(4).min(n - 1);
     let calibrated = TurntableAxis::read_calibrated(dir).map_err(|e| BenchError::Recording(format!("calibrated turntable axis: {e}")))?;
-    let mut rows = Vec::new();
-    for mode in modes {
-        let label = match mode.w() {
-            Some(w) => format!("w = {w}"),
-            None => mode.name().to_string(),
-        };
-        let mut assistant = Assistant::new(AssistParams { mode, ..opts.assist.clone() }, &pipe.rect, range);
-        let store = Arc::new(PoseStore::new());
-        let mut registrar = (mode != AssistMode::None).then(|| {
-            let mut p = opts.registration.clone();
-            if let Some(axis) = &calibrated {
-                p.calibrated_axis = Some((axis.axis_point_mm.into(), axis.axis_dir.into()));
+    // Every row keeps its own assistant, pose store and registrar; the rows take turns frame
+    // by frame (and run by run), so that a slow phase of a shared machine falls on all of
+    // them alike instead of on whichever row it happened to be running.
+    struct RowState {
+        row: Row,
+        assistant: Assistant,
+        store: Arc<PoseStore>,
+        registrar: Option<Registrar>,
+    }
+    let mut states: Vec<RowState> = modes
+        .into_iter()
+        .map(|mode| {
+            let store = Arc::new(PoseStore::new());
+            let registrar = (mode != AssistMode::None).then(|| {
+                let mut p = opts.registration.clone();
+                if let Some(axis) = &calibrated {
+                    p.calibrated_axis = Some((axis.axis_point_mm.into(), axis.axis_dir.into()));
+                }
+                Registrar::new(p, store.clone())
+            });
+            RowState { row: Row::new(mode), assistant: Assistant::new(AssistParams { mode, ..opts.assist.clone() }, &pipe.rect, range), store, registrar }
+        })
+        .collect();
+    let mut floor_ms = Vec::new();
+    for (i, (seq, table_deg, frame)) in frames.iter().enumerate() {
+        let poses: Vec<PoseSnapshot> = states.iter().map(|st| visible_poses(&st.store.snapshot(), *seq, opts.lag)).collect();
+        // Time the frame `repeat` times from the same state: planning is repeatable (it moves
+        // nothing on) and the matcher is pure, so the extra runs plan and match; the last run
+        // also checks and keeps the frame, and is the one kept. Every run is charged the check
+        // (and, when the result was rejected, the redo) of that last run.
+        // The matcher's floor on this frame, timed in turn with the rows: one disparity at
+        // every foreground pixel — what any interval, however narrow, costs before its width
+        // counts.
+        let mut floor_iv = crate::stereo::DisparityIntervals::empty(size.0, size.1);
+        let mid = (range.0 + range.1) / 2;
+        for y in 0..size.1 {
+            for x in 0..size.0 {
+                if frame.mask.as_ref().is_none_or(|m| m[y * size.0 + x] != 0) {
+                    floor_iv.set(x, y, Some((mid, mid)));
+                }
             }
-            Registrar::new(p, store.clone())
-        });
-        let mut row = Row {
-            mode,
-            frame_ms: vec![],
-            interval_ms: vec![],
-            match_ms: vec![],
-            lr_check_ms: vec![],
-            prefilter_ms: vec![],
-            ns_per_pair: vec![],
-            bad2: vec![],
-            lr_consistency: vec![],
-            err_mm: vec![],
-            valid_fraction: vec![],
-            search_px: vec![],
-            full_range: vec![],
-            single_px: vec![],
-            union_px: vec![],
-            filled_px: vec![],
-            uncovered_px: vec![],
-            fig: None,
-        };
-        for (i, (seq, table_deg, frame)) in frames.iter().enumerate() {
-            let poses = visible_poses(&store.snapshot(), *seq, opts.lag);
-            // Time the frame `repeat` times from the same state: planning is repeatable (it
-            // moves nothing on) and the matcher is pure, so the extra runs plan and match;
-            // the last run also checks and keeps the frame, and is the one kept. Every run
-            // is charged the check (and, when the result was rejected, the redo) of that last
-            // run.
-            let mut extra = Vec::new();
-            for _ in 1..opts.repeat.max(1) {
-                let plan = assistant.plan(*seq, frame.mask.as_deref(), &poses);
+        }
+        let mut floor_runs = Vec::new();
+        let mut extra = vec![Vec::new(); states.len()];
+        for run in 0..opts.repeat.max(1) {
+            let (_, _, ms) = pipe.match_gray(&frame.left_gray, &frame.right_gray, &floor_iv).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
+            floor_runs.push(ms);
+            if run == 0 {
+                continue;
+            }
+            for (k, st) in states.iter_mut().enumerate() {
+                let plan = st.assistant.plan(*seq, frame.mask.as_deref(), &poses[k]);
                 let (_, _, ms) = pipe.match_gray(&frame.left_gray, &frame.right_gray, &plan.intervals).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
-                extra.push(plan.build_ms + ms);
-                assistant.recycle(plan);
+                extra[k].push(plan.build_ms + ms);
+                st.assistant.recycle(plan);
             }
-            let m = pipe.match_assisted(*seq, frame, &mut assistant, &poses).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
-            let total = m.outcome.interval_ms + m.outcome.match_ms;
-            let first_try = total - m.outcome.accept_ms - m.outcome.rejected.map_or(0.0, |_| m.outcome.match_ms - m.outcome.first_match_ms);
-            let mut times: Vec<f64> = extra.iter().map(|t| t + (total - first_try)).collect();
-            times.push(total);
+        }
+        for (k, st) in states.iter_mut().enumerate() {
+            let label = row_label(&st.row);
+            let m = pipe.match_assisted(*seq, frame, &mut st.assistant, &poses[k]).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
             let o = &m.outcome;
+            let total = o.interval_ms + o.match_ms;
+            let first_try = total - o.accept_ms - o.rejected.map_or(0.0, |_| o.match_ms - o.first_match_ms);
+            let mut times: Vec<f64> = extra[k].iter().map(|t| t + (total - first_try)).collect();
+            times.push(total);
+            let row = &mut st.row;
             row.frame_ms.push(median(&times).expect("at least one run"));
-            row.single_px.push(o.single_px);
-            row.union_px.push(o.union_px);
-            row.filled_px.push(o.filled_px);
-            row.uncovered_px.push(o.uncovered_px);
-            row.interval_ms.push(o.interval_ms);
-            row.match_ms.push(o.match_ms);
-            let all = [Some(m.stats), o.rejected].into_iter().flatten();
-            let (mut evaluated, mut searched, mut fixed_ns, mut lr_ns) = (0u64, 0usize, 0u64, 0u64);
-            for s in all {
-                evaluated += s.evaluated;
-                searched += s.searched;
-                fixed_ns += s.prefilter_ns + s.speckle_ns;
-                lr_ns += s.lr_check_ns;
-            }
-            row.lr_check_ms.push(lr_ns as f64 / 1e6);
-            row.prefilter_ms.push(m.stats.prefilter_ns as f64 / 1e6);
-            row.ns_per_pair.push(((o.match_ms * 1e6 - fixed_ns as f64) / evaluated.max(1) as f64).max(0.0));
-            row.search_px.push(evaluated as f64 / searched.max(1) as f64);
-            row.valid_fraction.push(m.stats.valid_fraction());
-            row.lr_consistency.push(m.stats.lr_consistency());
-            if let Some(why) = o.fallback.clone().or_else(|| o.full_range.clone()) {
-                row.full_range.push((*seq, why));
-            }
+            row.record(&m);
             if let Some(Some(gt)) = truth.disparity.get(i) {
                 row.bad2.push(bad2_percent(&m.disparity, gt));
             }
@@ -325,20 +344,21 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
             if i == fig_frame {
                 row.fig = Some(view.disparity.clone());
             }
-            if let Some(reg) = registrar.as_mut() {
+            if let Some(reg) = st.registrar.as_mut() {
                 match reg.add_view(*seq, *table_deg, &view.cloud) {
                     Ok(r) => {
                         if let Some(icp) = &r.icp {
-                            assistant.observe_registration(*seq, icp.fitness, icp.rmse);
+                            st.assistant.observe_registration(*seq, icp.fitness, icp.rmse);
                         }
                     }
                     Err(e) => tracing::warn!("{label}: frame seq {seq}: not registered: {e}"),
                 }
             }
-            progress(&label, i + 1, n);
         }
-        rows.push(row);
+        floor_ms.push(median(&floor_runs).expect("at least one run"));
+        progress("frames", i + 1, n);
     }
+    let rows: Vec<Row> = states.into_iter().map(|st| st.row).collect();
     Ok(Table1 {
         recording: dir.to_path_buf(),
         frames: frames.iter().map(|f| f.0).collect(),

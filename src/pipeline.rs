@@ -77,6 +77,7 @@ pub struct Prepared {
 /// One frame matched with registration assistance.
 #[derive(Debug, Clone)]
 pub struct AssistedMatch {
+    pub seq: u64,
     pub disparity: DisparityMap,
     pub stats: MatchStats,
     pub outcome: AssistOutcome,
@@ -204,7 +205,7 @@ impl Pipeline {
         } else {
             assistant.recycle(plan);
         }
-        Ok(AssistedMatch { disparity, stats, outcome })
+        Ok(AssistedMatch { seq, disparity, stats, outcome })
     }
 
     /// Triangulates a matched frame into a [`View`].

@@ -404,16 +404,19 @@ impl Assistant {
         for y in region.ys() {
             let (out_lo, out_hi) = iv.row_mut(y);
             let row = y * w;
+            let mrow = mask.map(|m| &m[row..row + w]);
             for x in region.xs() {
                 let i = row + x;
-                if mask.is_some_and(|m| m[i] == 0) {
+                if mrow.is_some_and(|m| m[x] == 0) {
                     continue;
                 }
-                // Rounded outwards and clipped; ±∞ (nothing reached) fails `a <= b`.
-                let (a, b) = (floor(lo[i]).max(r0), ceil(hi[i]).min(r1));
+                // Clipped, then rounded outwards (the range's ends are whole, so the order does
+                // not matter); nothing reached (lo = +∞, hi = −∞) fails `a <= b`.
+                let (a, b) = (lo[i].max(r0), hi[i].min(r1));
                 if a <= b {
-                    out_lo[x] = a as i16;
-                    out_hi[x] = b as i16;
+                    let (ta, tb) = (a as i32, b as i32);
+                    out_lo[x] = (ta - (ta as f32 > a) as i32) as i16;
+                    out_hi[x] = (tb + ((tb as f32) < b) as i32) as i16;
                 } else {
                     holes.push((x, y));
                 }
@@ -470,26 +473,25 @@ impl Assistant {
         self.rho.resize(w * h, f32::NAN);
         let rho = &mut self.rho;
         let mut max_rho = 0f32;
-        let (ifx, ify) = (1.0 / cam.fx, 1.0 / cam.fy);
+        let (a_m, b_v, scale) = (a_m.cast::<f32>(), b_v.cast::<f32>(), scale as f32);
+        let (cx, cy, dcx) = (cam.cx as f32, cam.cy as f32, cam.dcx as f32);
+        let (ifx, ify, inv_mtx) = (1.0 / cam.fx as f32, 1.0 / cam.fy as f32, -1.0 / cam.tx as f32);
         for y in region.ys() {
-            let v = (y as f64 - cam.cy) * ify;
+            let v = (y as f32 - cy) * ify;
             // A·(u, v, 1) = A·(0, v, 1) + u·A[:, 0].
             let base = a_m * Vector3::new(0.0, v, 1.0);
             let col0 = a_m.column(0).into_owned();
             for x in region.xs() {
                 let i = y * w + x;
-                let d = prev_d[i];
-                rho[i] = f32::NAN;
-                if !d.is_finite() {
-                    continue;
-                }
-                let inv_z = (d as f64 - cam.dcx) / -cam.tx;
+                let inv_z = (prev_d[i] - dcx) * inv_mtx;
+                // NaN (no disparity) and points behind the camera fail here.
                 if !(inv_z > 0.0) {
+                    rho[i] = f32::NAN;
                     continue;
                 }
-                let u = (x as f64 - cam.cx) * ifx;
+                let u = (x as f32 - cx) * ifx;
                 let r = (base + col0 * u + b_v * inv_z).norm();
-                rho[i] = ((scale * r) as f32).min(max_radius).max(min_half);
+                rho[i] = (scale * r).min(max_radius).max(min_half);
                 max_rho = max_rho.max(rho[i]);
             }
         }
@@ -520,10 +522,53 @@ impl Assistant {
         if !any_union {
             return;
         }
-        // Case 2: the union of the spheres whose left projections contain the pixel —
-        // gathered per pixel from the previous points within the largest projected radius
-        // (the same union as splatting every sphere, without visiting every sphere's disc).
-        let reach = max_rho.ceil() as i64;
+        // Case 2: the union of the spheres whose left projections contain the pixel. Most
+        // spheres are small: each such pixel gathers from the points within `reach` (the
+        // 99th percentile of the radii); the few larger spheres are splatted onto the pixels
+        // their discs cover. (The hull of a union does not mind a sphere counted twice.)
+        let mut hist = [0u32; 66];
+        let mut count = 0u32;
+        for y in region.ys() {
+            for &r in &rho[y * w + region.x0..y * w + region.x1] {
+                if r.is_finite() {
+                    hist[((r * 2.0) as usize).min(65)] += 1;
+                    count += 1;
+                }
+            }
+        }
+        let (mut acc, mut bin) = (0u32, 0usize);
+        while bin < 65 && (acc + hist[bin]) * 100 < count * 99 {
+            acc += hist[bin];
+            bin += 1;
+        }
+        let reach_f = ((bin + 1) as f32 * 0.5).min(max_rho);
+        let reach = reach_f.ceil() as i64;
+        for y in region.ys() {
+            for x in region.xs() {
+                let r = rho[y * w + x];
+                if !(r > reach_f) {
+                    continue;
+                }
+                let d = prev_d[y * w + x];
+                let (xi, yi, rr) = (x as i64, y as i64, r.ceil() as i64);
+                for yy in (yi - rr).max(region.y0 as i64)..=(yi + rr).min(region.y1 as i64 - 1) {
+                    let dy = (yy - yi) as f32;
+                    let c2 = r * r - dy * dy;
+                    if c2 < 0.0 {
+                        continue;
+                    }
+                    let c = c2.sqrt();
+                    for xx in (ceil(xi as f32 - c) as i64).max(region.x0 as i64)..=(floor(xi as f32 + c) as i64).min(region.x1 as i64 - 1) {
+                        let j = yy as usize * w + xx as usize;
+                        if union_needed[j] != 0 {
+                            let base = d + (xx - xi) as f32;
+                            lo[j] = lo[j].min(base - c);
+                            hi[j] = hi[j].max(base + c);
+                        }
+                    }
+                }
+            }
+        }
         for y in region.ys() {
             for x in region.xs() {
                 let j = y * w + x;
@@ -576,30 +621,31 @@ impl Assistant {
         let (fx, fy, cx, cy, dcx, tx) = (cam.fx as f32, cam.fy as f32, cam.cx as f32, cam.cy as f32, cam.dcx as f32, cam.tx as f32);
         let prev_d = prev.disparity.values();
         let (lo, hi, region) = (&mut self.lo, &mut self.hi, self.region);
+        let (ifx, ify, inv_mtx) = (1.0 / fx, 1.0 / fy, -1.0 / tx);
         for y in region.ys() {
-            let v = (y as f32 - cy) / fy;
+            let v = (y as f32 - cy) * ify;
             let base = rot.column(1) * v + rot.column(2);
             let col0 = rot.column(0);
             for x in region.xs() {
                 let d = prev_d[y * w + x];
-                let iz = (d - dcx) / -tx;
+                let iz = (d - dcx) * inv_mtx;
                 // NaN (no disparity) and points behind the camera fail here.
                 if !(iz > 0.0) {
                     continue;
                 }
-                let u = (x as f32 - cx) / fx;
+                let u = (x as f32 - cx) * ifx;
                 let q = base + col0 * u + t * iz; // the moved point times 1/Z
                 if !(q.z > 0.0) {
                     continue;
                 }
                 let s = 1.0 / q.z;
                 let (px, py, pd) = (fx * q.x * s + cx, fy * q.y * s + cy, dcx - tx * iz * s);
-                // The moved point itself, mm, for its depth variance.
-                let z = 1.0 / iz;
-                let (qx, qy, qz) = (q.x * z, q.y * z, q.z * z);
-                let var_z = (qy * qy * c00 - 2.0 * qx * qy * c01 + qx * qx * c11 + 2.0 * qy * c05 - 2.0 * qx * c15 + c55).max(0.0);
-                let dd = tx / (qz * qz);
-                let half = (k * (dd * dd * var_z + s2).sqrt()).max(min_half);
+                // Var(d) = (∂d/∂Z)²·Var(Z) with the moved point Q = q/iz (mm) and
+                // ∂d/∂Z = tx/Q_z² = tx·iz²·s², written without dividing by iz:
+                // Var(d) = tx²·s⁴·[iz²·(q_y²c00 − 2q_xq_y c01 + q_x²c11) + 2·iz³·(q_y c05 − q_x c15) + iz⁴·c55].
+                let (iz2, s2q) = (iz * iz, s * s);
+                let var_d = (tx * tx * s2q * s2q * iz2 * ((q.y * q.y * c00 - 2.0 * q.x * q.y * c01 + q.x * q.x * c11) + 2.0 * iz * (q.y * c05 - q.x * c15) + iz2 * c55)).max(0.0);
+                let half = (k * (var_d + s2).sqrt()).max(min_half);
                 let (a, b) = (pd - half, pd + half);
                 let (x0, y0) = (floor(px) as i64, floor(py) as i64);
                 if x0 < region.x0 as i64 || y0 < region.y0 as i64 || x0 + 1 >= region.x1 as i64 || y0 + 1 >= region.y1 as i64 {
