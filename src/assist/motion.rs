@@ -65,8 +65,6 @@ impl Default for MotionNoise {
 pub struct MotionFilter {
     noise: MotionNoise,
     state: Option<(Vector6<f64>, Matrix6<f64>)>,
-    /// Frames since the last measurement, already added to the covariance.
-    measurements: usize,
 }
 
 fn diag(deg: f64, mm: f64) -> Matrix6<f64> {
@@ -76,12 +74,7 @@ fn diag(deg: f64, mm: f64) -> Matrix6<f64> {
 
 impl MotionFilter {
     pub fn new(noise: MotionNoise) -> MotionFilter {
-        MotionFilter { noise, state: None, measurements: 0 }
-    }
-
-    /// Number of steps folded in so far.
-    pub fn measurements(&self) -> usize {
-        self.measurements
+        MotionFilter { noise, state: None }
     }
 
     /// Folds in one registered step `next_from_prev` that spans `frames` frames (> 0).
@@ -101,7 +94,6 @@ impl MotionFilter {
                 (x, (p + p.transpose()) * 0.5)
             }
         });
-        self.measurements += 1;
     }
 
     /// The predicted motion over `frames` frames starting `lag` frames after the last

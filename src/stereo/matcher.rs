@@ -126,14 +126,6 @@ impl DisparityIntervals {
         (&mut self.lo[y * w..(y + 1) * w], &mut self.hi[y * w..(y + 1) * w])
     }
 
-    /// Sets the interval of the pixel at row-major index `i` (`lo ≤ hi`, both within i16).
-    #[inline]
-    pub fn set_index(&mut self, i: usize, (lo, hi): (i32, i32)) {
-        debug_assert!(lo <= hi && i16::try_from(lo).is_ok() && i16::try_from(hi).is_ok());
-        self.lo[i] = lo as i16;
-        self.hi[i] = hi as i16;
-    }
-
     /// The interval of one pixel, `None` if it is not searched.
     pub fn get(&self, x: usize, y: usize) -> Option<(i32, i32)> {
         let i = y * self.width + x;
