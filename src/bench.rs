@@ -294,15 +294,8 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         // The matcher's floor on this frame, timed in turn with the rows: one disparity at
         // every foreground pixel — what any interval, however narrow, costs before its width
         // counts.
-        let mut floor_iv = crate::stereo::DisparityIntervals::empty(size.0, size.1);
         let mid = (range.0 + range.1) / 2;
-        for y in 0..size.1 {
-            for x in 0..size.0 {
-                if frame.mask.as_ref().is_none_or(|m| m[y * size.0 + x] != 0) {
-                    floor_iv.set(x, y, Some((mid, mid)));
-                }
-            }
-        }
+        let floor_iv = crate::stereo::DisparityIntervals::within(size.0, size.1, frame.mask.as_deref(), mid, mid);
         let mut floor_runs = Vec::new();
         let mut extra = vec![Vec::new(); states.len()];
         for run in 0..opts.repeat.max(1) {

@@ -324,11 +324,7 @@ impl Assistant {
     }
 
     fn full(&self, mask: Option<&[u8]>) -> DisparityIntervals {
-        let (w, h) = self.size;
-        match mask {
-            Some(m) => DisparityIntervals::masked(w, h, m, self.range.0, self.range.1),
-            None => DisparityIntervals::full(w, h, self.range.0, self.range.1),
-        }
+        DisparityIntervals::within(self.size.0, self.size.1, mask, self.range.0, self.range.1)
     }
 
     /// The search intervals of frame `seq` (foreground `mask`, rectified left; None = every
@@ -746,26 +742,27 @@ struct Region {
 impl Region {
     /// The bounding box of the non-zero pixels of `mask` (the whole image without one).
     fn of(mask: Option<&[u8]>, w: usize, h: usize) -> Option<Region> {
-        let Some(m) = mask else { return Some(Region { x0: 0, x1: w, y0: 0, y1: h }) };
-        let mut r: Option<Region> = None;
-        for (y, row) in m.chunks_exact(w).enumerate() {
-            let Some(first) = row.iter().position(|&v| v != 0) else { continue };
-            let last = w - row.iter().rev().position(|&v| v != 0).expect("one exists");
-            r = Some(match r {
-                None => Region { x0: first, x1: last, y0: y, y1: y + 1 },
-                Some(r) => Region { x0: r.x0.min(first), x1: r.x1.max(last), y0: r.y0, y1: y + 1 },
-            });
+        match mask {
+            Some(m) => Region::bbox(m, w, |&v| v != 0),
+            None => Some(Region { x0: 0, x1: w, y0: 0, y1: h }),
         }
-        r
     }
 
     /// The bounding box of the finite values of a disparity map (empty region if none).
     fn of_disparity(d: &DisparityMap) -> Region {
-        let mut r = Region::default();
-        for (y, row) in d.values().chunks_exact(d.width).enumerate() {
-            let Some(first) = row.iter().position(|v| v.is_finite()) else { continue };
-            let last = d.width - row.iter().rev().position(|v| v.is_finite()).expect("one exists");
-            r = if r.x1 == 0 { Region { x0: first, x1: last, y0: y, y1: y + 1 } } else { Region { x0: r.x0.min(first), x1: r.x1.max(last), y0: r.y0, y1: y + 1 } };
+        Region::bbox(d.values(), d.width, |v| v.is_finite()).unwrap_or_default()
+    }
+
+    /// The bounding box of the values `keep` accepts in a row-major `w`-wide image.
+    fn bbox<T>(values: &[T], w: usize, keep: impl Fn(&T) -> bool) -> Option<Region> {
+        let mut r: Option<Region> = None;
+        for (y, row) in values.chunks_exact(w).enumerate() {
+            let Some(first) = row.iter().position(&keep) else { continue };
+            let last = w - row.iter().rev().position(&keep).expect("one exists");
+            r = Some(match r {
+                None => Region { x0: first, x1: last, y0: y, y1: y + 1 },
+                Some(r) => Region { x0: r.x0.min(first), x1: r.x1.max(last), y0: r.y0, y1: y + 1 },
+            });
         }
         r
     }

@@ -74,6 +74,14 @@ impl DisparityIntervals {
         DisparityIntervals { width, height, lo: vec![min_d as i16; n], hi: vec![max_d as i16; n] }
     }
 
+    /// Pixels where `mask` is non-zero (every pixel without a mask) search `min_d ..= max_d`.
+    pub fn within(width: usize, height: usize, mask: Option<&[u8]>, min_d: i32, max_d: i32) -> Self {
+        match mask {
+            Some(m) => Self::masked(width, height, m, min_d, max_d),
+            None => Self::full(width, height, min_d, max_d),
+        }
+    }
+
     /// No pixel searches anything.
     pub fn empty(width: usize, height: usize) -> Self {
         let n = width * height;
@@ -449,11 +457,7 @@ impl StereoMatcher {
 
     /// The full search range of these parameters for every pixel, or only where `mask` is set.
     pub fn full_intervals(&self, width: usize, height: usize, mask: Option<&[u8]>) -> DisparityIntervals {
-        let (lo, hi) = (self.params.min_disparity, self.params.max_disparity());
-        match mask {
-            Some(m) => DisparityIntervals::masked(width, height, m, lo, hi),
-            None => DisparityIntervals::full(width, height, lo, hi),
-        }
+        DisparityIntervals::within(width, height, mask, self.params.min_disparity, self.params.max_disparity())
     }
 
     /// Matches a rectified pair. Intervals are clipped to the parameters' disparity range and
