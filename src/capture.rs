@@ -50,6 +50,8 @@ pub enum CaptureError {
     NoFrame { camera: String, waited_ms: u64 },
     #[error("{camera} camera disconnected")]
     Disconnected { camera: String },
+    #[error("{camera} camera: {what}")]
+    Device { camera: String, what: String },
     #[error(transparent)]
     Recording(#[from] crate::recording::RecordingError),
 }
@@ -62,4 +64,13 @@ pub trait StereoSource: Send {
     fn calibration(&self) -> &StereoCalib;
     /// The next pair; `Ok(None)` when a finite source (a recording) has no more.
     fn next_frame(&mut self) -> Result<Option<StereoFrame>, CaptureError>;
+    /// The next pair captured after this call (step-and-shoot: not one that waited in a
+    /// buffer while the table moved). Sources that capture on demand deliver `next_frame`.
+    fn fresh_frame(&mut self) -> Result<Option<StereoFrame>, CaptureError> {
+        self.next_frame()
+    }
+    /// Pairing statistics of free-running cameras, when the source pairs frames itself.
+    fn pairing(&self) -> Option<crate::daemon::v4l2::PairStats> {
+        None
+    }
 }

@@ -29,6 +29,7 @@ pub mod bench;
 pub mod calib;
 pub mod capture;
 pub mod cloud;
+pub mod daemon;
 pub mod io;
 pub mod pipeline;
 pub mod recording;

@@ -138,6 +138,10 @@ pub struct ResultsWriter {
     disparity_sign: i32,
     started: Instant,
     registration: Option<Value>,
+    /// Extra keys of `manifest.json` (the daemon's scan settings and counters).
+    pub manifest_extra: serde_json::Map<String, Value>,
+    /// Captured pairs that produced no view (dropped before matching, or unmatchable), with why.
+    skipped: Vec<Value>,
 }
 
 impl ResultsWriter {
@@ -146,7 +150,7 @@ impl ResultsWriter {
             let d = dir.join(sub);
             std::fs::create_dir_all(&d).map_err(|e| ReplayError::Output { path: d, what: e.to_string() })?;
         }
-        let w = ResultsWriter { dir: dir.to_path_buf(), source: source.to_string(), frames: Vec::new(), disparity_sign, started: Instant::now(), registration: None };
+        let w = ResultsWriter { dir: dir.to_path_buf(), source: source.to_string(), frames: Vec::new(), disparity_sign, started: Instant::now(), registration: None, manifest_extra: serde_json::Map::new(), skipped: Vec::new() };
         w.write_manifest("running", None)?;
         Ok(w)
     }
@@ -167,7 +171,73 @@ impl ResultsWriter {
         io::write_atomic(&path, text.as_bytes()).map_err(|e| ReplayError::Output { path, what: e.to_string() })
     }
 
-    fn write_manifest(&self, status: &str, reason: Option<&str>) -> Result<(), ReplayError> {
+    /// Writes a view's cloud and disparity map and returns its `report.json` entry.
+    pub fn write_view(&self, frame: &crate::capture::StereoFrame, view: &crate::pipeline::View, assist: Option<&AssistParams>) -> Result<Value, ReplayError> {
+        let seq = frame.seq;
+        let view_path = self.dir.join("views").join(format!("{seq:06}.ply"));
+        io::ply::write_ply(&view_path, &view.cloud).map_err(|e| ReplayError::Output { path: view_path, what: e.to_string() })?;
+        let disp_path = self.dir.join("disparity").join(format!("{seq:06}.png"));
+        io::write_disparity_png(&disp_path, &view.disparity).map_err(|e| ReplayError::Output { path: disp_path, what: e.to_string() })?;
+        let mut entry = json!({
+            "seq": seq,
+            "match_ms": view.match_ms,
+            "register_ms": null,
+            "mean_search_px": view.stats.mean_search_px(),
+            "valid_fraction": view.stats.valid_fraction(),
+            // Whether this frame searched the full range (no assistance, the first frames,
+            // or self-correction); `assist` says why.
+            "fallback": view.assist.as_ref().is_none_or(|a| a.searched_full_range()),
+            "points": view.cloud.len(),
+            "table_deg": frame.table_deg,
+            "t_left_ns": frame.t_left_ns,
+            "skew_ns": frame.t_right_ns as i64 - frame.t_left_ns as i64,
+        });
+        if let Some(a) = &view.assist {
+            entry["assist"] = json!({
+                "mode": assist.map(|p| p.mode.name()),
+                "w": assist.and_then(|p| p.mode.w()),
+                "full_range_reason": a.full_range,
+                "fallback_reason": a.fallback,
+                "interval_ms": a.interval_ms,
+                "lag": a.lag,
+                "single_px": a.single_px,
+                "union_px": a.union_px,
+                "filled_px": a.filled_px,
+                "uncovered_px": a.uncovered_px,
+            });
+            if let Some(why) = &a.fallback {
+                tracing::warn!("frame seq {seq}: assisted result rejected ({why}); matched again over the full range");
+            }
+        }
+        Ok(entry)
+    }
+
+    /// Adds a frame's entry and rewrites the manifest (still `running`).
+    pub fn push_frame(&mut self, entry: Value) -> Result<(), ReplayError> {
+        self.frames.push(entry);
+        self.write_manifest("running", None)
+    }
+
+    /// A captured pair that produced no view: listed in `report.json` (`skipped`) and
+    /// counted in the manifest.
+    pub fn note_skipped(&mut self, seq: u64, why: &str) {
+        self.skipped.push(json!({"seq": seq, "why": why}));
+    }
+
+    pub fn disparity_sign(&self) -> i32 {
+        self.disparity_sign
+    }
+
+    pub fn frames(&self) -> &[Value] {
+        &self.frames
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// `manifest.json`, atomically (temp + rename).
+    pub fn write_manifest(&self, status: &str, reason: Option<&str>) -> Result<(), ReplayError> {
         let mut m = json!({
             "format": 1,
             "status": status,
@@ -176,8 +246,14 @@ impl ResultsWriter {
             "written_by": format!("spinscan {}", env!("CARGO_PKG_VERSION")),
             "elapsed_s": self.started.elapsed().as_secs_f64(),
         });
+        if !self.skipped.is_empty() {
+            m["skipped"] = json!(self.skipped.len());
+        }
         if let Some(r) = reason {
             m["reason"] = json!(r);
+        }
+        for (k, v) in &self.manifest_extra {
+            m[k] = v.clone();
         }
         self.write_json("manifest.json", &m)
     }
@@ -189,7 +265,7 @@ impl ResultsWriter {
             (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
         };
         let all: Vec<&Value> = self.frames.iter().collect();
-        let report = json!({
+        let mut report = json!({
             "disparity_sign": self.disparity_sign,
             "frames": self.frames,
             "summary": {
@@ -205,16 +281,24 @@ impl ResultsWriter {
             },
             "registration": self.registration,
         });
+        if !self.skipped.is_empty() {
+            report["skipped"] = json!(self.skipped);
+        }
         self.write_json("report.json", &report)
     }
 
     /// Ends the run: `complete`, or `failed` with the reason.
     pub fn finish(&self, failure: Option<&str>) -> Result<(), ReplayError> {
-        self.write_report()?;
         match failure {
-            None => self.write_manifest("complete", None),
-            Some(reason) => self.write_manifest("failed", Some(reason)),
+            None => self.finish_as("complete", None),
+            Some(reason) => self.finish_as("failed", Some(reason)),
         }
+    }
+
+    /// Ends the run with `status` (`complete`, `interrupted`, `failed`) and why.
+    pub fn finish_as(&self, status: &str, reason: Option<&str>) -> Result<(), ReplayError> {
+        self.write_report()?;
+        self.write_manifest(status, reason)
     }
 }
 
@@ -334,41 +418,7 @@ fn process_all(
             }
             None => pipe.process_rgb_with_plate(&left, &right, opts.segment, opts.plate.as_deref()).map_err(|source| ReplayError::Pipeline { seq, source })?,
         };
-        let view_path = results.dir.join("views").join(format!("{seq:06}.ply"));
-        io::ply::write_ply(&view_path, &view.cloud).map_err(|e| ReplayError::Output { path: view_path, what: e.to_string() })?;
-        let disp_path = results.dir.join("disparity").join(format!("{seq:06}.png"));
-        io::write_disparity_png(&disp_path, &view.disparity).map_err(|e| ReplayError::Output { path: disp_path, what: e.to_string() })?;
-        let mut entry = json!({
-            "seq": seq,
-            "match_ms": view.match_ms,
-            "register_ms": null,
-            "mean_search_px": view.stats.mean_search_px(),
-            "valid_fraction": view.stats.valid_fraction(),
-            // Whether this frame searched the full range (no assistance, the first frames,
-            // or self-correction); `assist` says why.
-            "fallback": view.assist.as_ref().is_none_or(|a| a.searched_full_range()),
-            "points": view.cloud.len(),
-            "table_deg": frame.table_deg,
-            "t_left_ns": frame.t_left_ns,
-            "skew_ns": frame.t_right_ns as i64 - frame.t_left_ns as i64,
-        });
-        if let Some(a) = &view.assist {
-            entry["assist"] = json!({
-                "mode": opts.assist.as_ref().map(|p| p.mode.name()),
-                "w": opts.assist.as_ref().and_then(|p| p.mode.w()),
-                "full_range_reason": a.full_range,
-                "fallback_reason": a.fallback,
-                "interval_ms": a.interval_ms,
-                "lag": a.lag,
-                "single_px": a.single_px,
-                "union_px": a.union_px,
-                "filled_px": a.filled_px,
-                "uncovered_px": a.uncovered_px,
-            });
-            if let Some(why) = &a.fallback {
-                tracing::warn!("frame seq {seq}: assisted result rejected ({why}); matched again over the full range");
-            }
-        }
+        let mut entry = results.write_view(&frame, &view, opts.assist.as_ref())?;
         if let Some(gt_path) = gt_for(seq) {
             let gt = io::read_disparity_png(&gt_path, pipe.rect.disparity_sign as f32).map_err(|e| bad(format!("ground truth: {e}")))?;
             if (gt.width, gt.height) != size {
@@ -382,40 +432,13 @@ fn process_all(
             gt_frames += 1;
         }
         if let Some(reg) = registrar.as_deref_mut() {
-            match reg.add_view(seq, frame.table_deg, &view.cloud) {
-                Ok(r) => {
-                    if let (Some(a), Some(icp)) = (assisting.assistant.as_deref_mut(), &r.icp) {
-                        a.observe_registration(seq, icp.fitness, icp.rmse);
-                    }
-                    entry["register_ms"] = json!(r.register_ms);
-                    entry["seed"] = json!(r.seed);
-                    if let Some(icp) = &r.icp {
-                        entry["icp_fitness"] = json!(icp.fitness);
-                        entry["icp_rmse_mm"] = json!(icp.rmse);
-                        entry["icp_iterations"] = json!(icp.iterations);
-                        entry["icp_conditioning"] = json!(icp.conditioning);
-                    }
-                    if let Some(b) = &r.block {
-                        entry["block_fitness"] = json!(b.fitness);
-                        entry["block_correction_deg"] = json!(b.transform.rotation.angle().to_degrees());
-                    }
-                    for w in &r.warnings {
-                        tracing::warn!("{w}");
-                    }
-                    if !r.warnings.is_empty() {
-                        entry["warnings"] = json!(r.warnings);
-                    }
-                }
-                Err(e) => {
-                    tracing::warn!("frame seq {seq}: not registered: {e}");
-                    entry["register_error"] = json!(e.to_string());
-                }
+            if let (Some((fitness, rmse)), Some(a)) = (register_view(reg, &frame, &view.cloud, &mut entry), assisting.assistant.as_deref_mut()) {
+                a.observe_registration(seq, fitness, rmse);
             }
             results.write_poses(reg.poses())?;
         }
         match_ms += view.match_ms;
-        results.frames.push(entry);
-        results.write_manifest("running", None)?;
+        results.push_frame(entry)?;
         progress(results.frames.len(), seq, view.match_ms);
         if opts.max_frames.is_some_and(|m| results.frames.len() >= m) {
             break;
@@ -430,9 +453,44 @@ fn process_all(
     Ok(ReplaySummary { frames: n, mean_match_ms: match_ms / n.max(1) as f64, gt, disparity_sign: results.disparity_sign, registration: None })
 }
 
+/// Registers one view and notes how into its `report.json` entry; the ICP fitness and RMSE
+/// when ICP ran (for the assistant's self-correction). A view that cannot be registered is
+/// noted and skipped, not fatal.
+pub fn register_view(reg: &mut Registrar, frame: &crate::capture::StereoFrame, cloud: &crate::cloud::PointCloud, entry: &mut Value) -> Option<(f64, f64)> {
+    let seq = frame.seq;
+    match reg.add_view(seq, frame.table_deg, cloud) {
+        Ok(r) => {
+            entry["register_ms"] = json!(r.register_ms);
+            entry["seed"] = json!(r.seed);
+            if let Some(icp) = &r.icp {
+                entry["icp_fitness"] = json!(icp.fitness);
+                entry["icp_rmse_mm"] = json!(icp.rmse);
+                entry["icp_iterations"] = json!(icp.iterations);
+                entry["icp_conditioning"] = json!(icp.conditioning);
+            }
+            if let Some(b) = &r.block {
+                entry["block_fitness"] = json!(b.fitness);
+                entry["block_correction_deg"] = json!(b.transform.rotation.angle().to_degrees());
+            }
+            for w in &r.warnings {
+                tracing::warn!("{w}");
+            }
+            if !r.warnings.is_empty() {
+                entry["warnings"] = json!(r.warnings);
+            }
+            r.icp.as_ref().map(|icp| (icp.fitness, icp.rmse))
+        }
+        Err(e) => {
+            tracing::warn!("frame seq {seq}: not registered: {e}");
+            entry["register_error"] = json!(e.to_string());
+            None
+        }
+    }
+}
+
 /// Closes the loop, writes the final poses, merges and cleans the model from `views/`,
 /// writes the estimated axis, and scores against ground truth where the recording has it.
-fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opts: &ReplayOptions, inputs: &RegistrationInputs) -> Result<Value, ReplayError> {
+pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opts: &ReplayOptions, inputs: &RegistrationInputs) -> Result<Value, ReplayError> {
     let closure = reg.finish().map_err(|e| ReplayError::Frame { seq: reg.poses().last().map_or(0, |p| p.seq), what: format!("loop closure: {e}") })?;
     let poses: Vec<ViewPose> = reg.poses().to_vec();
     results.write_poses(&poses)?;

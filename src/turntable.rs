@@ -29,6 +29,11 @@ pub trait Turntable: Send {
     fn move_to(&mut self, table_deg: f64) -> Result<(), TurntableError>;
     /// The current angle.
     fn angle(&mut self) -> Result<f64, TurntableError>;
+    /// Starts turning towards `table_deg` at `feed_deg_s` and returns at once (continuous
+    /// scans); [`Turntable::angle`] follows the motion.
+    fn start_move(&mut self, table_deg: f64, feed_deg_s: f64) -> Result<(), TurntableError>;
+    /// Stops any motion now and restores the step feed.
+    fn halt(&mut self) -> Result<(), TurntableError>;
     /// Where the device is (a port path), for messages.
     fn describe(&self) -> String;
 }
@@ -149,12 +154,17 @@ impl HorusTurntable {
             .map_err(|e| TurntableError::Open { port: path.to_string(), what: e.to_string() })?;
         let mut t = HorusTurntable { port, path: path.to_string(), config, pending: Vec::new() };
         t.reset()?;
-        t.command("M17")?;
-        let (feed, accel) = (t.config.feed_deg_s, t.config.accel_deg_s2);
-        t.command(&format!("$120={accel:.3}"))?;
-        t.command(&format!("G1 F{feed:.3}"))?;
+        t.setup()?;
         tracing::info!(port = path, "turntable ready");
         Ok(t)
+    }
+
+    /// Motor on, acceleration and the step feed (after open and after a reset).
+    fn setup(&mut self) -> Result<(), TurntableError> {
+        self.command("M17")?;
+        let (feed, accel) = (self.config.feed_deg_s, self.config.accel_deg_s2);
+        self.command(&format!("$120={accel:.3}"))?;
+        self.command(&format!("G1 F{feed:.3}"))
     }
 
     /// Ctrl-X, then waits for the greeting.
@@ -362,6 +372,16 @@ impl Turntable for HorusTurntable {
     fn angle(&mut self) -> Result<f64, TurntableError> {
         let (_, pos) = self.status()?;
         Ok(pos * self.config.direction as f64)
+    }
+
+    fn start_move(&mut self, table_deg: f64, feed_deg_s: f64) -> Result<(), TurntableError> {
+        let target_fw = (table_deg * self.config.direction as f64 * 1000.0).round() / 1000.0;
+        self.command(&format!("G1 X{target_fw:.3} F{feed_deg_s:.3}"))
+    }
+
+    fn halt(&mut self) -> Result<(), TurntableError> {
+        self.reset()?;
+        self.setup()
     }
 
     fn describe(&self) -> String {

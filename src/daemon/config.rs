@@ -1,0 +1,454 @@
+//! `spinscand`'s configuration: a TOML file whose every key has a built-in default
+//! (`config/spinscand.toml` lists them all, with units and meaning; a test keeps the two
+//! equal). Unknown keys are errors, so a typo never silently falls back to a default.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+
+use crate::assist::{AssistMode, AssistParams};
+use crate::turntable::DriverConfig;
+
+/// Why a configuration cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config {path}: {source}")]
+    Read { path: PathBuf, source: std::io::Error },
+    #[error("config {path}: {what}")]
+    Parse { path: PathBuf, what: String },
+    #[error("config {path}: `{key}` {what}")]
+    Invalid { path: PathBuf, key: &'static str, what: String },
+}
+
+/// Which devices the daemon drives (`[backend] kind`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BackendKind {
+    /// Two V4L2 cameras and the Horus turntable on a serial port (the lab).
+    V4l2,
+    /// hw-sim's cameras and its turntable firmware on a pseudo-terminal.
+    Sim,
+    /// A recording played back as if captured (`[backend] replay`); no turntable.
+    Replay,
+}
+
+impl BackendKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            BackendKind::V4l2 => "v4l2",
+            BackendKind::Sim => "sim",
+            BackendKind::Replay => "replay",
+        }
+    }
+}
+
+/// The whole file.
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Config {
+    pub daemon: DaemonSection,
+    pub backend: BackendSection,
+    pub cameras: CameraSection,
+    pub turntable: TurntableSection,
+    pub scan: ScanSection,
+    pub matching: MatchingSection,
+    pub sim: SimSection,
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DaemonSection {
+    /// The control socket.
+    pub socket: PathBuf,
+    /// Permission bits of the socket, octal.
+    pub socket_mode: String,
+    /// Group that owns the socket and may control the daemon ("" = the daemon's own group
+    /// only; root and the daemon's user may always).
+    pub group: String,
+    /// One folder per scan below this.
+    pub state_dir: PathBuf,
+    /// Longest request line accepted, bytes.
+    pub max_request_bytes: usize,
+    /// Most clients connected at once.
+    pub max_clients: usize,
+    /// A scan whose pipeline makes no progress for this long is unhealthy (the systemd
+    /// watchdog stops being fed), seconds.
+    pub stall_s: f64,
+}
+
+impl Default for DaemonSection {
+    fn default() -> Self {
+        DaemonSection {
+            socket: "/run/spinscan/control.sock".into(),
+            socket_mode: "0660".into(),
+            group: "spinscan".into(),
+            state_dir: "/var/lib/spinscan/scans".into(),
+            max_request_bytes: 65_536,
+            max_clients: 32,
+            stall_s: 10.0,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BackendSection {
+    pub kind: BackendKind,
+    /// The recording the `replay` backend plays.
+    pub replay: PathBuf,
+    /// Pace the replay at the cameras' frame rate (else as fast as the pipeline takes it).
+    pub replay_paced: bool,
+}
+
+impl Default for BackendSection {
+    fn default() -> Self {
+        BackendSection { kind: BackendKind::V4l2, replay: PathBuf::new(), replay_paced: true }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraSection {
+    pub left: PathBuf,
+    pub right: PathBuf,
+    /// The rig's calibration (recording spec `calib.yaml`, or OpenCV intrinsics.yml +
+    /// extrinsics.yml named by the intrinsics file).
+    pub calibration: PathBuf,
+    pub width: u32,
+    pub height: u32,
+    pub fps: u32,
+    /// "MJPG" (stored as delivered) or "YUYV" (stored as PNG).
+    pub pixel_format: String,
+    /// mmap buffers per camera.
+    pub buffers: u32,
+    /// Left and right frames further apart than this are not a pair, ms (0 = half a frame
+    /// period).
+    pub pair_tolerance_ms: f64,
+    /// A camera silent this long has stopped, ms.
+    pub frame_timeout_ms: u64,
+    /// Auto exposure on (true) or off (false); absent = leave the camera's setting.
+    pub auto_exposure: Option<bool>,
+    /// Exposure time in the V4L2 unit (100 µs); absent = leave.
+    pub exposure_100us: Option<i64>,
+    /// Analogue gain in the camera's unit; absent = leave.
+    pub gain: Option<i64>,
+}
+
+impl Default for CameraSection {
+    fn default() -> Self {
+        CameraSection {
+            left: "/dev/spinscan-left".into(),
+            right: "/dev/spinscan-right".into(),
+            calibration: "/etc/spinscan/calib.yaml".into(),
+            width: 640,
+            height: 480,
+            fps: 15,
+            pixel_format: "MJPG".into(),
+            buffers: 4,
+            pair_tolerance_ms: 0.0,
+            frame_timeout_ms: 1000,
+            auto_exposure: None,
+            exposure_100us: None,
+            gain: None,
+        }
+    }
+}
+
+impl CameraSection {
+    /// The pairing tolerance in ns (half a frame period unless set).
+    pub fn pair_tolerance_ns(&self) -> u64 {
+        if self.pair_tolerance_ms > 0.0 {
+            (self.pair_tolerance_ms * 1e6) as u64
+        } else {
+            (0.5e9 / self.fps.max(1) as f64) as u64
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TurntableSection {
+    pub port: String,
+    pub baud: u32,
+    pub reply_timeout_ms: u64,
+    pub tries: u32,
+    /// +1 when positive firmware X turns the table counterclockwise seen from above.
+    pub direction: i8,
+    /// Feed for step moves, degrees per second.
+    pub feed_deg_s: f64,
+    pub accel_deg_s2: f64,
+    pub stall_tolerance_deg: f64,
+    /// Wait after arrival before capturing, ms.
+    pub settle_ms: u64,
+    /// Rotation speed of a continuous scan, degrees per second (6 °/s at 15 fps = 0.4° per
+    /// pair).
+    pub continuous_deg_s: f64,
+}
+
+impl Default for TurntableSection {
+    fn default() -> Self {
+        let d = DriverConfig::default();
+        TurntableSection {
+            port: "/dev/spinscan-table".into(),
+            baud: d.baud,
+            reply_timeout_ms: d.reply_timeout.as_millis() as u64,
+            tries: d.tries,
+            direction: d.direction,
+            feed_deg_s: d.feed_deg_s,
+            accel_deg_s2: d.accel_deg_s2,
+            stall_tolerance_deg: d.stall_tolerance_deg,
+            settle_ms: d.settle.as_millis() as u64,
+            continuous_deg_s: 6.0,
+        }
+    }
+}
+
+impl TurntableSection {
+    pub fn driver(&self) -> DriverConfig {
+        DriverConfig {
+            baud: self.baud,
+            reply_timeout: Duration::from_millis(self.reply_timeout_ms),
+            tries: self.tries,
+            direction: self.direction,
+            feed_deg_s: self.feed_deg_s,
+            accel_deg_s2: self.accel_deg_s2,
+            stall_tolerance_deg: self.stall_tolerance_deg,
+            settle: Duration::from_millis(self.settle_ms),
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ScanSection {
+    /// Step between views of a step scan, degrees.
+    pub step_deg: f64,
+    /// How far a scan turns, degrees.
+    pub total_deg: f64,
+    /// Pairs waiting for the matcher pool (the bounded channel's capacity).
+    pub queue_depth: usize,
+    /// Matcher threads (0 = one per core).
+    pub matcher_threads: usize,
+    /// Register the views and build the model.
+    pub register: bool,
+    /// Registration keeps at most this many points of each view (subsampled), 0 = all.
+    pub register_max_points: usize,
+}
+
+impl Default for ScanSection {
+    fn default() -> Self {
+        ScanSection { step_deg: 2.0, total_deg: 360.0, queue_depth: 8, matcher_threads: 0, register: true, register_max_points: 20_000 }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MatchingSection {
+    pub num_disparities: u32,
+    pub block: u32,
+    /// "predicted", "paper" or "none".
+    pub assist: String,
+    /// The paper's weighting factor w (mode "paper").
+    pub assist_w: f64,
+    /// Segment the blue screen.
+    pub segment: bool,
+}
+
+impl Default for MatchingSection {
+    fn default() -> Self {
+        let m = crate::stereo::MatchParams::default();
+        MatchingSection { num_disparities: m.num_disparities, block: m.block, assist: "predicted".into(), assist_w: 0.8, segment: true }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimSection {
+    /// Built-in object: egg, torus, vase, sphere.
+    pub object: String,
+    pub width: usize,
+    pub height: usize,
+    /// The ideal rectified rig (else distortion and misalignment).
+    pub ideal: bool,
+    pub seed: u64,
+    /// Deliver frames at the cameras' rate (else as fast as they are asked for).
+    pub realtime: bool,
+    /// Simulated turntable seconds per real second (> 1 turns faster).
+    pub time_scale: f64,
+}
+
+impl Default for SimSection {
+    fn default() -> Self {
+        SimSection { object: "egg".into(), width: 640, height: 480, ideal: false, seed: 1, realtime: true, time_scale: 1.0 }
+    }
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Config {
+            daemon: DaemonSection::default(),
+            backend: BackendSection::default(),
+            cameras: CameraSection::default(),
+            turntable: TurntableSection::default(),
+            scan: ScanSection::default(),
+            matching: MatchingSection::default(),
+            sim: SimSection::default(),
+        }
+    }
+}
+
+impl Config {
+    /// What `spinscand --sim` runs: the defaults with the simulated lab, a socket and state
+    /// folder in the working directory, no group.
+    pub fn sim() -> Config {
+        let mut c = Config::default();
+        c.backend.kind = BackendKind::Sim;
+        c.daemon.socket = "spinscan.sock".into();
+        c.daemon.state_dir = "scans".into();
+        c.daemon.group = String::new();
+        c
+    }
+
+    /// Reads and checks a config file.
+    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.to_path_buf(), source })?;
+        Config::parse(path, &text)
+    }
+
+    pub fn parse(path: &Path, text: &str) -> Result<Config, ConfigError> {
+        let c: Config = toml::from_str(text).map_err(|e| ConfigError::Parse { path: path.to_path_buf(), what: e.to_string().trim_end().to_string() })?;
+        c.validate(path)?;
+        Ok(c)
+    }
+
+    /// Checks values a type cannot.
+    pub fn validate(&self, path: &Path) -> Result<(), ConfigError> {
+        let bad = |key: &'static str, what: String| Err(ConfigError::Invalid { path: path.to_path_buf(), key, what });
+        if self.socket_mode().is_none() {
+            return bad("daemon.socket_mode", format!("must be octal permission bits like \"0660\", got {:?}", self.daemon.socket_mode));
+        }
+        if self.daemon.max_request_bytes < 256 {
+            return bad("daemon.max_request_bytes", format!("must be at least 256, got {}", self.daemon.max_request_bytes));
+        }
+        if !(self.daemon.stall_s > 0.0) {
+            return bad("daemon.stall_s", format!("must be positive, got {}", self.daemon.stall_s));
+        }
+        if self.daemon.max_clients == 0 {
+            return bad("daemon.max_clients", "must be at least 1".into());
+        }
+        if self.backend.kind == BackendKind::Replay && self.backend.replay.as_os_str().is_empty() {
+            return bad("backend.replay", "must name a recording when backend.kind = \"replay\"".into());
+        }
+        let c = &self.cameras;
+        if c.width < 32 || c.height < 32 {
+            return bad("cameras.width", format!("cameras must be at least 32×32, got {}×{}", c.width, c.height));
+        }
+        if c.fps == 0 || c.fps > 240 {
+            return bad("cameras.fps", format!("must be 1 … 240, got {}", c.fps));
+        }
+        if !["MJPG", "YUYV"].contains(&c.pixel_format.as_str()) {
+            return bad("cameras.pixel_format", format!("must be \"MJPG\" or \"YUYV\", got {:?}", c.pixel_format));
+        }
+        if !(2..=32).contains(&c.buffers) {
+            return bad("cameras.buffers", format!("must be 2 … 32, got {}", c.buffers));
+        }
+        if !(c.pair_tolerance_ms >= 0.0) {
+            return bad("cameras.pair_tolerance_ms", format!("must be ≥ 0, got {}", c.pair_tolerance_ms));
+        }
+        let t = &self.turntable;
+        if t.direction != 1 && t.direction != -1 {
+            return bad("turntable.direction", format!("must be 1 or -1, got {}", t.direction));
+        }
+        if t.tries == 0 {
+            return bad("turntable.tries", "must be at least 1".into());
+        }
+        for (key, v) in [("turntable.feed_deg_s", t.feed_deg_s), ("turntable.accel_deg_s2", t.accel_deg_s2), ("turntable.continuous_deg_s", t.continuous_deg_s)] {
+            if !(v > 0.0 && v.is_finite()) {
+                return bad(key, format!("must be positive, got {v}"));
+            }
+        }
+        let s = &self.scan;
+        if !(s.step_deg > 0.0 && s.step_deg <= 360.0) {
+            return bad("scan.step_deg", format!("must be within (0, 360], got {}", s.step_deg));
+        }
+        if !(s.total_deg > 0.0 && s.total_deg <= 3600.0) {
+            return bad("scan.total_deg", format!("must be within (0, 3600], got {}", s.total_deg));
+        }
+        if s.queue_depth == 0 {
+            return bad("scan.queue_depth", "must be at least 1".into());
+        }
+        let m = &self.matching;
+        if m.num_disparities == 0 || m.num_disparities % 16 != 0 {
+            return bad("matching.num_disparities", format!("must be a positive multiple of 16, got {}", m.num_disparities));
+        }
+        if m.block < 5 || m.block % 2 == 0 || m.block > 255 {
+            return bad("matching.block", format!("must be odd and 5 … 255, got {}", m.block));
+        }
+        if let Err(e) = self.assist() {
+            return bad("matching.assist", e);
+        }
+        if hw_sim::Mesh::builtin(&self.sim.object, 100).is_err() {
+            return bad("sim.object", format!("must be one of {}, got {:?}", hw_sim::BUILTIN_OBJECTS.map(|o| o.0).join(", "), self.sim.object));
+        }
+        if self.sim.width < 32 || self.sim.height < 32 {
+            return bad("sim.width", format!("the simulated cameras must be at least 32×32, got {}×{}", self.sim.width, self.sim.height));
+        }
+        if !(self.sim.time_scale > 0.0) {
+            return bad("sim.time_scale", format!("must be positive, got {}", self.sim.time_scale));
+        }
+        Ok(())
+    }
+
+    /// The socket's permission bits.
+    pub fn socket_mode(&self) -> Option<u32> {
+        u32::from_str_radix(self.daemon.socket_mode.trim_start_matches("0o"), 8).ok().filter(|m| *m <= 0o777)
+    }
+
+    /// Registration-assisted matching settings (None: full range every frame).
+    pub fn assist(&self) -> Result<Option<AssistParams>, String> {
+        let mode = AssistMode::parse(&self.matching.assist, self.matching.assist_w)?;
+        Ok((!matches!(mode, AssistMode::None)).then(|| AssistParams { mode, ..AssistParams::default() }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn repo_file(name: &str) -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join(name)
+    }
+
+    #[test]
+    fn shipped_config_lists_the_built_in_defaults() {
+        let path = repo_file("config/spinscand.toml");
+        assert_eq!(Config::load(&path).unwrap(), Config::default(), "config/spinscand.toml and Config::default() disagree");
+        // Every key is written out (the optional camera controls commented): the file's
+        // keys are the defaults' keys.
+        let file: toml::Table = toml::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        let defaults: toml::Table = toml::from_str(&toml::to_string(&Config::default()).unwrap()).unwrap();
+        let keys = |t: &toml::Table| -> Vec<String> { t.iter().flat_map(|(s, v)| v.as_table().unwrap().keys().map(move |k| format!("{s}.{k}"))).collect() };
+        assert_eq!(keys(&file), keys(&defaults), "config/spinscand.toml must write out every key");
+    }
+
+    #[test]
+    fn sim_config_is_the_sim_defaults() {
+        assert_eq!(Config::load(&repo_file("config/sim.toml")).unwrap(), Config::sim());
+    }
+
+    #[test]
+    fn bad_values_are_named() {
+        let p = Path::new("x.toml");
+        let e = Config::parse(p, "[cameras]\npixel_format = \"RGB3\"\n").unwrap_err().to_string();
+        assert!(e.contains("cameras.pixel_format") && e.contains("MJPG"), "{e}");
+        let e = Config::parse(p, "[scan]\nstep_degs = 2\n").unwrap_err().to_string();
+        assert!(e.contains("step_degs"), "{e}");
+        let e = Config::parse(p, "[daemon]\nsocket_mode = \"rw\"\n").unwrap_err().to_string();
+        assert!(e.contains("socket_mode"), "{e}");
+        let e = Config::parse(p, "[backend]\nkind = \"replay\"\n").unwrap_err().to_string();
+        assert!(e.contains("backend.replay"), "{e}");
+        let e = Config::parse(p, "[matching]\nassist = \"sometimes\"\n").unwrap_err().to_string();
+        assert!(e.contains("matching.assist"), "{e}");
+    }
+}

@@ -1,0 +1,547 @@
+//! V4L2 cameras: pixel formats as delivered, pairing of two free-running cameras by the
+//! kernel's timestamps, the capture threads, and the device listing.
+//!
+//! ```text
+//!  left  /dev/videoN ─mmap stream─> capture thread ─(Left, t, seq, Picture)──┐
+//!  right /dev/videoM ─mmap stream─> capture thread ─(Right, t, seq, Picture)─┴─> Pairer ─> StereoFrame
+//! ```
+//!
+//! A buffer is sliced to `bytesused` (an MJPEG frame is shorter than its buffer) and copied
+//! out before it is queued again. After a dequeue timeout the stream is dropped and made
+//! again (its re-queue of the last buffer cannot be trusted then). Timestamps are the
+//! kernel's (CLOCK_MONOTONIC on UVC), so both cameras share one clock.
+
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use serde_json::{json, Value};
+
+use crate::calib::StereoCalib;
+use crate::capture::{CaptureError, Picture, StereoFrame, StereoSource};
+
+/// Which camera of the rig.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Side {
+    Left,
+    Right,
+}
+
+impl Side {
+    pub fn name(self) -> &'static str {
+        match self {
+            Side::Left => "left",
+            Side::Right => "right",
+        }
+    }
+}
+
+/// Why a buffer is not a frame.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum FormatError {
+    #[error("{fourcc} frame of {got} bytes is too short for {width}×{height} (expected {expected})")]
+    Short { fourcc: String, got: usize, expected: usize, width: usize, height: usize },
+    #[error("MJPG frame of {bytes} bytes does not start with a JPEG marker (FF D8)")]
+    NotJpeg { bytes: usize },
+    #[error("bytesused {used} exceeds the buffer's {len} bytes")]
+    Overrun { used: usize, len: usize },
+    #[error("pixel format {0} is not supported (expected MJPG, YUYV or GREY)")]
+    Unsupported(String),
+}
+
+/// The fourcc as text ("MJPG").
+pub fn fourcc_name(f: [u8; 4]) -> String {
+    f.iter().map(|&b| if b.is_ascii_graphic() || b == b' ' { b as char } else { '?' }).collect()
+}
+
+/// One delivered buffer as spinscan keeps it: `buffer[..bytesused]` of a `fourcc` frame of
+/// `width`×`height` → a [`Picture`] (MJPEG kept as JPEG bytes; YUYV converted to RGB; GREY
+/// kept).
+pub fn to_picture(fourcc: [u8; 4], buffer: &[u8], bytesused: usize, width: usize, height: usize) -> Result<Picture, FormatError> {
+    if bytesused > buffer.len() {
+        return Err(FormatError::Overrun { used: bytesused, len: buffer.len() });
+    }
+    // Some drivers report 0 for a full buffer.
+    let data = if bytesused == 0 { buffer } else { &buffer[..bytesused] };
+    let short = |expected: usize| FormatError::Short { fourcc: fourcc_name(fourcc), got: data.len(), expected, width, height };
+    match &fourcc {
+        b"MJPG" | b"JPEG" => {
+            if data.len() < 4 || data[0] != 0xFF || data[1] != 0xD8 {
+                return Err(FormatError::NotJpeg { bytes: data.len() });
+            }
+            Ok(Picture::Jpeg { bytes: data.to_vec() })
+        }
+        b"YUYV" => {
+            let expected = width * height * 2;
+            if data.len() < expected {
+                return Err(short(expected));
+            }
+            Ok(Picture::Raw { width, height, channels: 3, data: yuyv_to_rgb(&data[..expected], width, height) })
+        }
+        b"GREY" => {
+            let expected = width * height;
+            if data.len() < expected {
+                return Err(short(expected));
+            }
+            Ok(Picture::Raw { width, height, channels: 1, data: data[..expected].to_vec() })
+        }
+        _ => Err(FormatError::Unsupported(fourcc_name(fourcc))),
+    }
+}
+
+/// YUYV 4:2:2 (Y0 U Y1 V per two pixels, BT.601 limited range) → interleaved RGB.
+pub fn yuyv_to_rgb(yuyv: &[u8], width: usize, height: usize) -> Vec<u8> {
+    let mut out = vec![0u8; width * height * 3];
+    let px = |y: i32, u: i32, v: i32, o: &mut [u8]| {
+        let c = 298 * (y - 16);
+        let (d, e) = (u - 128, v - 128);
+        o[0] = ((c + 409 * e + 128) >> 8).clamp(0, 255) as u8;
+        o[1] = ((c - 100 * d - 208 * e + 128) >> 8).clamp(0, 255) as u8;
+        o[2] = ((c + 516 * d + 128) >> 8).clamp(0, 255) as u8;
+    };
+    for (quad, rgb) in yuyv.chunks_exact(4).zip(out.chunks_exact_mut(6)) {
+        let (y0, u, y1, v) = (quad[0] as i32, quad[1] as i32, quad[2] as i32, quad[3] as i32);
+        px(y0, u, v, &mut rgb[..3]);
+        px(y1, u, v, &mut rgb[3..]);
+    }
+    out
+}
+
+/// One camera's frame with the kernel's facts.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraFrame {
+    pub side: Side,
+    /// Kernel timestamp, ns (CLOCK_MONOTONIC).
+    pub t_ns: u64,
+    /// Kernel frame counter (gaps: frames the driver dropped).
+    pub sequence: u32,
+    pub picture: Picture,
+}
+
+/// Pairing statistics.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct PairStats {
+    pub pairs: u64,
+    pub unpaired_left: u64,
+    pub unpaired_right: u64,
+    /// |t_right − t_left| of the last pair and the largest so far, ns.
+    pub last_skew_ns: i64,
+    pub max_abs_skew_ns: u64,
+}
+
+use serde::Serialize;
+
+/// Pairs left and right frames whose timestamps are within `tolerance_ns`. A frame that
+/// cannot be paired (its partner never came, or came too far off) is counted, never
+/// silently lost; when one camera stops, the other's frames are counted as they age out.
+#[derive(Debug)]
+pub struct Pairer {
+    tolerance_ns: u64,
+    left: VecDeque<CameraFrame>,
+    right: VecDeque<CameraFrame>,
+    /// Most frames waiting on one side before the oldest counts as unpaired.
+    backlog: usize,
+    next_seq: u64,
+    last_left_sequence: Option<u32>,
+    pub stats: PairStats,
+}
+
+impl Pairer {
+    pub fn new(tolerance_ns: u64) -> Pairer {
+        Pairer { tolerance_ns, left: VecDeque::new(), right: VecDeque::new(), backlog: 8, next_seq: 0, last_left_sequence: None, stats: PairStats::default() }
+    }
+
+    /// Takes one frame; returns the pairs it completes, in order. `seq` follows the left
+    /// camera's kernel counter, so frames the driver dropped leave gaps.
+    pub fn push(&mut self, frame: CameraFrame, table_deg: Option<f64>) -> Vec<StereoFrame> {
+        match frame.side {
+            Side::Left => self.left.push_back(frame),
+            Side::Right => self.right.push_back(frame),
+        }
+        let mut out = Vec::new();
+        while let (Some(l), Some(r)) = (self.left.front(), self.right.front()) {
+            let skew = r.t_ns as i64 - l.t_ns as i64;
+            if skew.unsigned_abs() <= self.tolerance_ns {
+                // The other side's next frame may be closer still (a late frame): pair the
+                // closest.
+                let closer_right = self.right.get(1).is_some_and(|r2| (r2.t_ns as i64 - l.t_ns as i64).unsigned_abs() < skew.unsigned_abs());
+                let closer_left = self.left.get(1).is_some_and(|l2| (r.t_ns as i64 - l2.t_ns as i64).unsigned_abs() < skew.unsigned_abs());
+                if closer_right {
+                    self.right.pop_front();
+                    self.stats.unpaired_right += 1;
+                    continue;
+                }
+                if closer_left {
+                    self.left.pop_front();
+                    self.stats.unpaired_left += 1;
+                    continue;
+                }
+                let (l, r) = (self.left.pop_front().unwrap(), self.right.pop_front().unwrap());
+                let seq = match self.last_left_sequence {
+                    Some(prev) if l.sequence > prev => self.next_seq + (l.sequence - prev) as u64 - 1,
+                    _ => self.next_seq,
+                };
+                self.last_left_sequence = Some(l.sequence);
+                self.next_seq = seq + 1;
+                self.stats.pairs += 1;
+                self.stats.last_skew_ns = skew;
+                self.stats.max_abs_skew_ns = self.stats.max_abs_skew_ns.max(skew.unsigned_abs());
+                out.push(StereoFrame { seq, t_left_ns: l.t_ns, t_right_ns: r.t_ns, table_deg, left: l.picture, right: r.picture });
+            } else if skew > 0 {
+                // The left frame is older than any right frame can match.
+                self.left.pop_front();
+                self.stats.unpaired_left += 1;
+            } else {
+                self.right.pop_front();
+                self.stats.unpaired_right += 1;
+            }
+        }
+        while self.left.len() > self.backlog {
+            self.left.pop_front();
+            self.stats.unpaired_left += 1;
+        }
+        while self.right.len() > self.backlog {
+            self.right.pop_front();
+            self.stats.unpaired_right += 1;
+        }
+        out
+    }
+}
+
+/// Now on CLOCK_MONOTONIC, ns (the clock of UVC buffer timestamps).
+pub fn monotonic_ns() -> u64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: clock_gettime writes the timespec it is given.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
+}
+
+/// Settings of one capture stream.
+#[derive(Debug, Clone)]
+pub struct StreamConfig {
+    pub width: u32,
+    pub height: u32,
+    pub fps: u32,
+    pub fourcc: [u8; 4],
+    pub buffers: u32,
+    pub timeout: Duration,
+    pub auto_exposure: Option<bool>,
+    pub exposure_100us: Option<i64>,
+    pub gain: Option<i64>,
+}
+
+// Control ids of the V4L2 ABI (linux/v4l2-controls.h).
+const CID_EXPOSURE_AUTO: u32 = 0x009a_0901;
+const CID_EXPOSURE_ABSOLUTE: u32 = 0x009a_0902;
+const CID_GAIN: u32 = 0x0098_0913;
+const EXPOSURE_MANUAL: i64 = 1;
+const EXPOSURE_APERTURE_PRIORITY: i64 = 3;
+
+fn open_device(path: &Path, cfg: &StreamConfig) -> Result<(v4l::Device, usize, usize), String> {
+    use v4l::video::Capture;
+    let dev = v4l::Device::with_path(path).map_err(|e| format!("cannot open {}: {e}", path.display()))?;
+    let mut fmt = dev.format().map_err(|e| format!("{}: cannot read the format: {e}", path.display()))?;
+    fmt.width = cfg.width;
+    fmt.height = cfg.height;
+    fmt.fourcc = v4l::FourCC::new(&cfg.fourcc);
+    let got = dev.set_format(&fmt).map_err(|e| format!("{}: cannot set {}×{} {}: {e}", path.display(), cfg.width, cfg.height, fourcc_name(cfg.fourcc)))?;
+    if got.fourcc.repr != cfg.fourcc || got.width != cfg.width || got.height != cfg.height {
+        return Err(format!(
+            "{} offers {}×{} {} instead of the configured {}×{} {} (see `spinscan devices --local`)",
+            path.display(),
+            got.width,
+            got.height,
+            fourcc_name(got.fourcc.repr),
+            cfg.width,
+            cfg.height,
+            fourcc_name(cfg.fourcc)
+        ));
+    }
+    dev.set_params(&v4l::video::capture::Parameters::with_fps(cfg.fps)).map_err(|e| format!("{}: cannot set {} fps: {e}", path.display(), cfg.fps))?;
+    let mut controls = Vec::new();
+    if let Some(auto) = cfg.auto_exposure {
+        controls.push((CID_EXPOSURE_AUTO, if auto { EXPOSURE_APERTURE_PRIORITY } else { EXPOSURE_MANUAL }, "auto_exposure"));
+    }
+    if let Some(e) = cfg.exposure_100us {
+        controls.push((CID_EXPOSURE_ABSOLUTE, e, "exposure_100us"));
+    }
+    if let Some(g) = cfg.gain {
+        controls.push((CID_GAIN, g, "gain"));
+    }
+    for (id, value, key) in controls {
+        dev.set_control(v4l::Control { id, value: v4l::control::Value::Integer(value) }).map_err(|e| format!("{}: cannot set cameras.{key} = {value}: {e}", path.display()))?;
+    }
+    Ok((dev, got.width as usize, got.height as usize))
+}
+
+/// Captures from one camera until `stop` is set or the camera fails; frames go to `tx`.
+/// A timeout recreates the stream; `timeouts_to_fail` in a row end the thread with an error.
+fn capture_loop(side: Side, path: PathBuf, cfg: StreamConfig, tx: crossbeam_channel::Sender<Result<CameraFrame, CaptureError>>, stop: std::sync::Arc<std::sync::atomic::AtomicBool>) {
+    use std::sync::atomic::Ordering;
+    use v4l::io::traits::CaptureStream;
+    let fail = |e: CaptureError| {
+        let _ = tx.send(Err(e));
+    };
+    let (dev, w, h) = match open_device(&path, &cfg) {
+        Ok(d) => d,
+        Err(what) => return fail(CaptureError::Device { camera: side.name().into(), what }),
+    };
+    let mut timeouts = 0;
+    'streams: while !stop.load(Ordering::Relaxed) {
+        let mut stream = match v4l::io::mmap::Stream::with_buffers(&dev, v4l::buffer::Type::VideoCapture, cfg.buffers) {
+            Ok(s) => s,
+            Err(e) => return fail(CaptureError::Device { camera: side.name().into(), what: format!("{}: cannot start streaming: {e}", path.display()) }),
+        };
+        stream.set_timeout(cfg.timeout);
+        while !stop.load(Ordering::Relaxed) {
+            match stream.next() {
+                Ok((buf, meta)) => {
+                    timeouts = 0;
+                    let t_ns = meta.timestamp.sec as u64 * 1_000_000_000 + meta.timestamp.usec as u64 * 1000;
+                    let frame = to_picture(cfg.fourcc, buf, meta.bytesused as usize, w, h).map(|picture| CameraFrame { side, t_ns, sequence: meta.sequence, picture });
+                    match frame {
+                        Ok(f) => {
+                            if tx.send(Ok(f)).is_err() {
+                                return;
+                            }
+                        }
+                        // A corrupt buffer is one lost frame, not a lost camera.
+                        Err(e) => tracing::warn!(camera = side.name(), "dropping a frame: {e}"),
+                    }
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {
+                    timeouts += 1;
+                    tracing::warn!(camera = side.name(), "no frame within {} ms; restarting the stream", cfg.timeout.as_millis());
+                    if timeouts >= 3 {
+                        return fail(CaptureError::NoFrame { camera: side.name().into(), waited_ms: cfg.timeout.as_millis() as u64 * 3 });
+                    }
+                    continue 'streams;
+                }
+                Err(e) => return fail(CaptureError::Device { camera: side.name().into(), what: format!("{}: {e}", path.display()) }),
+            }
+        }
+    }
+}
+
+/// Two V4L2 cameras as a [`StereoSource`].
+pub struct V4l2Stereo {
+    calib: StereoCalib,
+    rx: crossbeam_channel::Receiver<Result<CameraFrame, CaptureError>>,
+    pairer: Pairer,
+    ready: VecDeque<StereoFrame>,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    threads: Vec<std::thread::JoinHandle<()>>,
+    timeout: Duration,
+    paths: (PathBuf, PathBuf),
+}
+
+impl V4l2Stereo {
+    /// Opens both cameras and starts streaming.
+    pub fn open(left: &Path, right: &Path, cfg: StreamConfig, pair_tolerance_ns: u64, calib: StereoCalib) -> Result<V4l2Stereo, CaptureError> {
+        // Open both once up front so a wrong path or format is reported before a scan.
+        for (side, p) in [(Side::Left, left), (Side::Right, right)] {
+            open_device(p, &cfg).map_err(|what| CaptureError::Device { camera: side.name().into(), what })?;
+        }
+        let (tx, rx) = crossbeam_channel::bounded(4 * cfg.buffers as usize);
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let mut threads = Vec::new();
+        for (side, p) in [(Side::Left, left), (Side::Right, right)] {
+            let (tx, stop, p, cfg) = (tx.clone(), stop.clone(), p.to_path_buf(), cfg.clone());
+            let t = std::thread::Builder::new()
+                .name(format!("capture-{}", side.name()))
+                .spawn(move || capture_loop(side, p, cfg, tx, stop))
+                .map_err(|e| CaptureError::Device { camera: side.name().into(), what: format!("cannot start its capture thread: {e}") })?;
+            threads.push(t);
+        }
+        Ok(V4l2Stereo { calib, rx, pairer: Pairer::new(pair_tolerance_ns), ready: VecDeque::new(), stop, threads, timeout: cfg.timeout * 2, paths: (left.into(), right.into()) })
+    }
+
+    pub fn pair_stats(&self) -> PairStats {
+        self.pairer.stats
+    }
+}
+
+impl Drop for V4l2Stereo {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        while self.rx.try_recv().is_ok() {}
+        for t in self.threads.drain(..) {
+            let _ = t.join();
+        }
+    }
+}
+
+impl StereoSource for V4l2Stereo {
+    fn describe(&self) -> String {
+        format!("V4L2 cameras {} and {}", self.paths.0.display(), self.paths.1.display())
+    }
+
+    fn calibration(&self) -> &StereoCalib {
+        &self.calib
+    }
+
+    fn next_frame(&mut self) -> Result<Option<StereoFrame>, CaptureError> {
+        loop {
+            if let Some(f) = self.ready.pop_front() {
+                return Ok(Some(f));
+            }
+            match self.rx.recv_timeout(self.timeout) {
+                Ok(Ok(frame)) => self.ready.extend(self.pairer.push(frame, None)),
+                Ok(Err(e)) => return Err(e),
+                Err(_) => return Err(CaptureError::NoFrame { camera: "left or right".into(), waited_ms: self.timeout.as_millis() as u64 }),
+            }
+        }
+    }
+
+    fn fresh_frame(&mut self) -> Result<Option<StereoFrame>, CaptureError> {
+        let now = monotonic_ns();
+        loop {
+            match self.next_frame()? {
+                Some(f) if f.t_left_ns.min(f.t_right_ns) < now => continue,
+                other => return Ok(other),
+            }
+        }
+    }
+
+    fn pairing(&self) -> Option<PairStats> {
+        Some(self.pairer.stats)
+    }
+}
+
+/// V4L2 devices with their formats and frame sizes, and serial ports: what a lab needs to
+/// fill in `[cameras]` and `[turntable]`.
+pub fn list_devices() -> Value {
+    use v4l::video::Capture;
+    let mut cameras = Vec::new();
+    let mut nodes = v4l::context::enum_devices();
+    nodes.sort_by_key(|n| n.index());
+    for node in nodes {
+        let path = node.path().to_path_buf();
+        let mut entry = json!({"path": path, "name": node.name()});
+        match v4l::Device::with_path(&path) {
+            Err(e) => entry["error"] = json!(format!("cannot open: {e}")),
+            Ok(dev) => {
+                if let Ok(caps) = dev.query_caps() {
+                    entry["driver"] = json!(caps.driver);
+                    entry["card"] = json!(caps.card);
+                    entry["bus"] = json!(caps.bus);
+                }
+                let formats: Vec<Value> = dev
+                    .enum_formats()
+                    .unwrap_or_default()
+                    .into_iter()
+                    .map(|f| {
+                        let sizes: Vec<String> = dev
+                            .enum_framesizes(f.fourcc)
+                            .unwrap_or_default()
+                            .into_iter()
+                            .flat_map(|s| s.size.to_discrete())
+                            .map(|d| format!("{}x{}", d.width, d.height))
+                            .collect();
+                        json!({"fourcc": fourcc_name(f.fourcc.repr), "description": f.description, "sizes": sizes})
+                    })
+                    .collect();
+                entry["formats"] = json!(formats);
+            }
+        }
+        cameras.push(entry);
+    }
+    let ports: Vec<Value> = match serialport::available_ports() {
+        Ok(list) => list.into_iter().map(|p| json!({"path": p.port_name, "kind": format!("{:?}", p.port_type)})).collect(),
+        Err(e) => vec![json!({"error": e.to_string()})],
+    };
+    json!({"cameras": cameras, "serial_ports": ports})
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frame(side: Side, t_ms: u64, sequence: u32) -> CameraFrame {
+        CameraFrame { side, t_ns: t_ms * 1_000_000, sequence, picture: Picture::Raw { width: 1, height: 1, channels: 1, data: vec![sequence as u8] } }
+    }
+
+    #[test]
+    fn yuyv_is_converted_with_bt601_limited_range() {
+        // Black, white, mid grey, and saturated red (Y=82, U=90, V=240).
+        let yuyv = [16, 128, 235, 128, 126, 128, 126, 128, 82, 90, 82, 240];
+        let rgb = yuyv_to_rgb(&yuyv, 6, 1);
+        assert_eq!(&rgb[..6], &[0, 0, 0, 255, 255, 255]);
+        assert_eq!(&rgb[6..9], &[128, 128, 128]);
+        assert!(rgb[12] > 250 && rgb[13] < 5 && rgb[14] < 5, "{:?}", &rgb[12..15]);
+        // The shared chroma of a pair applies to both pixels.
+        assert_eq!(&rgb[6..9], &rgb[9..12]);
+    }
+
+    #[test]
+    fn buffers_are_sliced_to_bytesused() {
+        // An MJPEG frame as a UVC driver hands it over: the JPEG, then stale bytes to the
+        // end of the buffer.
+        let img = image::RgbImage::from_fn(16, 8, |x, y| image::Rgb([x as u8 * 16, y as u8 * 32, 100]));
+        let mut jpeg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 90).encode_image(&img).unwrap();
+        let mut buffer = jpeg.clone();
+        buffer.resize(16 * 8 * 2, 0xAB);
+        let p = to_picture(*b"MJPG", &buffer, jpeg.len(), 16, 8).unwrap();
+        assert_eq!(p, Picture::Jpeg { bytes: jpeg.clone() });
+        let (w, h, rgb) = p.to_rgb().unwrap();
+        assert_eq!((w, h, rgb.len()), (16, 8, 16 * 8 * 3));
+        // Garbage, a short YUYV frame, an overrun and an unknown format are named.
+        assert_eq!(to_picture(*b"MJPG", &[0u8; 64], 64, 16, 8), Err(FormatError::NotJpeg { bytes: 64 }));
+        assert!(matches!(to_picture(*b"YUYV", &[0u8; 100], 100, 16, 8), Err(FormatError::Short { expected: 256, .. })));
+        assert!(matches!(to_picture(*b"YUYV", &[0u8; 100], 200, 16, 8), Err(FormatError::Overrun { .. })));
+        assert_eq!(to_picture(*b"RGB3", &[0u8; 400], 400, 16, 8).unwrap_err().to_string(), "pixel format RGB3 is not supported (expected MJPG, YUYV or GREY)");
+        // YUYV with bytesused 0 (the full buffer).
+        assert!(matches!(to_picture(*b"YUYV", &[128u8; 256], 0, 16, 8), Ok(Picture::Raw { channels: 3, .. })));
+    }
+
+    #[test]
+    fn pairs_follow_timestamps_and_count_the_unpaired() {
+        let mut p = Pairer::new(33_000_000);
+        // Interleaved arrival, right 3 ms after left.
+        let mut pairs = Vec::new();
+        for i in 0..3u32 {
+            pairs.extend(p.push(frame(Side::Left, 1000 + 67 * i as u64, i), None));
+            pairs.extend(p.push(frame(Side::Right, 1003 + 67 * i as u64, i + 10), None));
+        }
+        assert_eq!(pairs.iter().map(|f| f.seq).collect::<Vec<_>>(), vec![0, 1, 2]);
+        assert!(pairs.iter().all(|f| f.t_right_ns - f.t_left_ns == 3_000_000));
+        assert_eq!(p.stats.max_abs_skew_ns, 3_000_000);
+        // The driver dropped left frames 3 and 4: seq jumps with the kernel counter; the
+        // right frames of those periods find no partner and are counted.
+        for i in 3..5u32 {
+            assert!(p.push(frame(Side::Right, 1003 + 67 * i as u64, i + 10), None).is_empty());
+        }
+        let out = p.push(frame(Side::Left, 1000 + 67 * 5, 5), None);
+        assert!(out.is_empty());
+        let out = p.push(frame(Side::Right, 1003 + 67 * 5, 15), None);
+        assert_eq!(out.len(), 1);
+        assert_eq!(out[0].seq, 5);
+        assert_eq!(p.stats.unpaired_right, 2);
+        assert_eq!(p.stats.pairs, 4);
+    }
+
+    #[test]
+    fn a_late_frame_pairs_with_the_closest_and_a_stopped_camera_ages_out() {
+        let mut p = Pairer::new(33_000_000);
+        // Left at 1000 and 1066; right frames at 1030 (within tolerance of both) then 1064:
+        // the right 1030 goes with left 1000.
+        assert!(p.push(frame(Side::Left, 1000, 0), None).is_empty());
+        assert!(p.push(frame(Side::Left, 1066, 1), None).is_empty());
+        let out = p.push(frame(Side::Right, 1030, 0), None);
+        assert_eq!(out.len(), 1);
+        assert_eq!(out[0].t_left_ns, 1_000_000_000);
+        let out = p.push(frame(Side::Right, 1064, 1), None);
+        assert_eq!(out[0].t_left_ns, 1_066_000_000);
+        // The right camera stops: left frames pile up to the backlog, then count as unpaired.
+        for i in 0..20u32 {
+            assert!(p.push(frame(Side::Left, 2000 + 67 * i as u64, 2 + i), None).is_empty());
+        }
+        assert_eq!(p.stats.unpaired_left, 12);
+        // Two frames too far apart never pair.
+        let mut q = Pairer::new(10_000_000);
+        q.push(frame(Side::Left, 1000, 0), None);
+        assert!(q.push(frame(Side::Right, 1050, 0), None).is_empty());
+        assert_eq!(q.stats.unpaired_left, 1);
+    }
+}
