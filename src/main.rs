@@ -18,6 +18,8 @@ use spinscan::sim::{RenderOptions, SimObject};
 use spinscan::segment::ChromaKey;
 use spinscan::stereo::{DisparityMap, GrayView, MatchParams, StereoMatcher};
 
+mod daemon_cmds;
+
 /// Exit codes, so scripts and systemd can tell kinds of failure apart.
 mod exit {
     /// Bad input: unreadable or inconsistent files, impossible parameters.
@@ -56,6 +58,16 @@ enum Command {
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// The daemon's state and the running scan's progress.
+    Status(daemon_cmds::SocketArg),
+    /// Cameras (with formats), serial ports and the turntable, as the daemon sees them
+    /// (--local: this machine's V4L2 devices and serial ports, without the daemon).
+    Devices(daemon_cmds::DevicesArgs),
+    /// Starts, stops or shows a scan on the daemon.
+    #[command(subcommand)]
+    Scan(daemon_cmds::ScanCommand),
+    /// The daemon's scans with their status.
+    Scans(daemon_cmds::SocketArg),
 }
 
 #[derive(Subcommand)]
@@ -581,6 +593,10 @@ fn main() -> ExitCode {
         Command::Replay(a) => cmd_replay(a),
         Command::Register(a) => cmd_register(a),
         Command::Bench(BenchCommand::Table1(a)) => cmd_table1(a),
+        Command::Status(a) => daemon_cmds::status(a).map_err(from_daemon),
+        Command::Devices(a) => daemon_cmds::devices(a).map_err(from_daemon),
+        Command::Scan(c) => daemon_cmds::scan(c).map_err(from_daemon),
+        Command::Scans(a) => daemon_cmds::scans(a).map_err(from_daemon),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -589,6 +605,10 @@ fn main() -> ExitCode {
             ExitCode::from(f.code)
         }
     }
+}
+
+fn from_daemon(f: daemon_cmds::Failure) -> Failure {
+    Failure { code: f.code, message: f.message }
 }
 
 fn load_pair(left: &Path, right: &Path) -> Result<(LoadedImage, LoadedImage), Failure> {

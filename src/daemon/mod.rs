@@ -11,6 +11,7 @@
 //! (hw-sim cameras, firmware on a pty), `replay` (a recording); everything after
 //! [`scan::Devices`] is the same code for all three.
 
+pub mod client;
 pub mod config;
 pub mod rpc;
 pub mod scan;

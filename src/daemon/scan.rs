@@ -105,6 +105,8 @@ pub struct Counters {
     pub failed: AtomicU64,
     /// Time of the last capture or view, ms since the scan started (the watchdog's pulse).
     pub pulse_ms: AtomicU64,
+    /// Time of the last capture, µs since the scan started (capture rate = captured / it).
+    pub capture_us: AtomicU64,
     /// Table angle of the last captured pair, f64 bits.
     pub table_deg_bits: AtomicU64,
     /// Sum and max of registration lag (capture → registered), µs.
@@ -183,7 +185,11 @@ impl ScanShared {
             "max_skew_ms": get(&c.max_skew_us) as f64 / 1e3,
             "queued": get(&c.queued),
             "recorder_backlog": get(&c.recorder_backlog),
-            "fps": if elapsed > 0.0 { get(&c.captured) as f64 / elapsed } else { 0.0 },
+            // Capture rate over the capture so far (pairs after the first per second).
+            "fps": match (get(&c.captured), get(&c.capture_us)) {
+                (n, us) if n > 1 && us > 0 => (n - 1) as f64 / (us as f64 / 1e6),
+                _ => 0.0,
+            },
             "table_deg": f64::from_bits(get(&c.table_deg_bits)),
             "registration_lag_ms": {"mean": if registered > 0 { get(&c.lag_sum_us) as f64 / registered as f64 / 1e3 } else { 0.0 }, "max": get(&c.lag_max_us) as f64 / 1e3},
             "elapsed_s": elapsed,
@@ -360,6 +366,7 @@ fn capture(
     let t0 = Instant::now();
     let mut sent = 0usize;
     let mut last_seq: Option<u64> = None;
+    let mut first_at = Instant::now();
     let mut deliver = |mut frame: StereoFrame, pairing: Option<crate::daemon::v4l2::PairStats>| -> Result<(), String> {
         if last_seq.is_some_and(|p| frame.seq <= p) {
             // A source restarted its numbering: keep seq strictly increasing.
@@ -376,7 +383,10 @@ fn capture(
             let skew = (frame.t_right_ns as i64 - frame.t_left_ns as i64).unsigned_abs() / 1000;
             c.max_skew_us.fetch_max(skew, Ordering::Relaxed);
         }
-        c.captured.fetch_add(1, Ordering::Relaxed);
+        if c.captured.fetch_add(1, Ordering::Relaxed) == 0 {
+            first_at = Instant::now();
+        }
+        c.capture_us.store(first_at.elapsed().as_micros() as u64, Ordering::Relaxed);
         shared.pulse();
         if settings.record {
             c.recorder_backlog.fetch_add(1, Ordering::Relaxed);
