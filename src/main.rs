@@ -72,6 +72,9 @@ enum Command {
 
 #[derive(Subcommand)]
 enum BenchCommand {
+    /// Throughput of the live pipeline (the daemon's: bounded channel, matcher pool,
+    /// registration thread) fed a recording from memory at camera-like paces, and unpaced.
+    Live(LiveArgs),
     /// The paper's Table 1 on a recording: matcher time per frame without registration
     /// assistance, with it at each weighting factor w, and with the Kalman-predicted search;
     /// plus accuracy, valid fraction and search width per row, and a Fig. 4-style image.
@@ -116,6 +119,39 @@ struct Table1Args {
 }
 
 /// Knobs of registration-assisted matching (see docs/assisted-matching.md).
+#[derive(Args)]
+struct LiveArgs {
+    /// A recording (e.g. `spinscan sim render --frames 90 --deg-per-frame 2 -o REC`).
+    recording: PathBuf,
+    /// Paced runs, pairs per second.
+    #[arg(long, default_value = "15,30", value_delimiter = ',')]
+    pace: Vec<f64>,
+    /// Pairs fed per run (the recording is cycled when shorter).
+    #[arg(long, default_value_t = 90)]
+    pairs: usize,
+    /// Skip the unpaced run.
+    #[arg(long)]
+    no_unpaced: bool,
+    /// Matcher threads (default: one per core).
+    #[arg(long, default_value_t = 0)]
+    matcher_threads: usize,
+    /// Pairs waiting for the matchers.
+    #[arg(long, default_value_t = 8)]
+    queue_depth: usize,
+    /// Disparities searched.
+    #[arg(long, default_value_t = 128)]
+    num_disparities: u32,
+    /// Registration keeps at most this many points of a view (0 = all).
+    #[arg(long, default_value_t = 20_000)]
+    register_max_points: usize,
+    /// Assistance: predicted, paper or none.
+    #[arg(long, default_value = "predicted")]
+    assist: String,
+    /// Write the runs as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
 #[derive(Args, Clone)]
 struct AssistArgs {
     /// Smallest half-width of an assisted interval, pixels.
@@ -593,6 +629,7 @@ fn main() -> ExitCode {
         Command::Replay(a) => cmd_replay(a),
         Command::Register(a) => cmd_register(a),
         Command::Bench(BenchCommand::Table1(a)) => cmd_table1(a),
+        Command::Bench(BenchCommand::Live(a)) => cmd_bench_live(a),
         Command::Status(a) => daemon_cmds::status(a).map_err(from_daemon),
         Command::Devices(a) => daemon_cmds::devices(a).map_err(from_daemon),
         Command::Scan(c) => daemon_cmds::scan(c).map_err(from_daemon),
@@ -1034,6 +1071,33 @@ fn cmd_register_ring(a: RegisterArgs) -> Result<(), Failure> {
     };
     io::write_atomic(conf_out, conf.to_text().as_bytes()).map_err(|e| output(format!("{}: {e}", conf_out.display())))?;
     println!("{}", json!({"conf_out": conf_out, "scans": names.len(), "loop_error_deg": ring.loop_error_deg, "loop_error_translation": ring.loop_error_translation, "register_ms": t0.elapsed().as_secs_f64() * 1e3}));
+    Ok(())
+}
+
+fn cmd_bench_live(a: LiveArgs) -> Result<(), Failure> {
+    use spinscan::daemon::config::Config;
+    let mut config = Config::default();
+    config.scan.matcher_threads = a.matcher_threads;
+    config.scan.queue_depth = a.queue_depth;
+    config.scan.register_max_points = a.register_max_points;
+    config.matching.num_disparities = a.num_disparities;
+    config.matching.assist = a.assist.clone();
+    config.validate(Path::new("bench live flags")).map_err(input)?;
+    if a.pairs == 0 || a.pace.iter().any(|p| !(*p > 0.0)) {
+        return Err(input("--pairs must be at least 1 and every --pace positive"));
+    }
+    let opts = spinscan::daemon::throughput::LiveOptions { settings: spinscan::daemon::pipeline_settings(&config), pairs: a.pairs, paces: a.pace.clone(), unpaced: !a.no_unpaced };
+    let work = std::env::temp_dir().join(format!("spinscan-bench-live-{}", std::process::id()));
+    let runs = spinscan::daemon::throughput::live(&a.recording, &opts, &work, &mut |what| eprintln!("bench live: {what}")).map_err(input);
+    let _ = std::fs::remove_dir_all(&work);
+    let runs = runs?;
+    let threads = if a.matcher_threads == 0 { std::thread::available_parallelism().map_or(2, |n| n.get()) } else { a.matcher_threads };
+    println!("live pipeline: {} matcher threads, queue {}, {} disparities, assist {}, registration ≤ {} points/view", threads, a.queue_depth, a.num_disparities, a.assist, a.register_max_points);
+    print!("{}", spinscan::daemon::throughput::render(&runs));
+    if let Some(path) = &a.json {
+        let v = json!({"matcher_threads": threads, "queue_depth": a.queue_depth, "num_disparities": a.num_disparities, "assist": a.assist, "runs": runs.iter().map(|r| r.to_json()).collect::<Vec<_>>()});
+        io::write_atomic(path, serde_json::to_string_pretty(&v).unwrap().as_bytes()).map_err(|e| output(format!("cannot write {}: {e}", path.display())))?;
+    }
     Ok(())
 }
 

@@ -257,8 +257,9 @@ pub struct MatchingSection {
 
 impl Default for MatchingSection {
     fn default() -> Self {
-        let m = crate::stereo::MatchParams::default();
-        MatchingSection { num_disparities: m.num_disparities, block: m.block, assist: "predicted".into(), assist_w: 0.8, segment: true }
+        // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
+        // about 330 mm on.
+        MatchingSection { num_disparities: 128, block: crate::stereo::MatchParams::default().block, assist: "predicted".into(), assist_w: 0.8, segment: true }
     }
 }
 

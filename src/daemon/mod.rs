@@ -16,6 +16,7 @@ pub mod config;
 pub mod rpc;
 pub mod scan;
 pub mod server;
+pub mod throughput;
 pub mod v4l2;
 
 use std::path::{Path, PathBuf};
@@ -218,7 +219,9 @@ pub fn pipeline_settings(config: &Config) -> PipelineSettings {
     let registration = config.scan.register.then(|| {
         let mut p = crate::register::ring::RegistrationParams::default();
         if config.scan.register_max_points > 0 {
+            // Both ends of ICP: the view moved (source) and the view it lands on (target).
             p.max_target_points = config.scan.register_max_points;
+            p.icp.max_source_points = config.scan.register_max_points;
         }
         p
     });

@@ -101,12 +101,18 @@ pub struct Counters {
     pub registered: AtomicU64,
     /// Pairs the matcher pool never saw (continuous mode, pool behind).
     pub dropped: AtomicU64,
+    /// Views kept without registration (continuous scans when registration is behind).
+    pub register_skipped: AtomicU64,
     /// Pairs whose matching failed (bad frame); recorded all the same.
     pub failed: AtomicU64,
     /// Time of the last capture or view, ms since the scan started (the watchdog's pulse).
     pub pulse_ms: AtomicU64,
     /// Time of the last capture, µs since the scan started (capture rate = captured / it).
     pub capture_us: AtomicU64,
+    /// The newest registered view: its seq + 1 (0: none yet) and its turn from the first
+    /// view, degrees (f64 bits).
+    pub pose_seq: AtomicU64,
+    pub pose_deg_bits: AtomicU64,
     /// Table angle of the last captured pair, f64 bits.
     pub table_deg_bits: AtomicU64,
     /// Sum and max of registration lag (capture → registered), µs.
@@ -177,6 +183,7 @@ impl ScanShared {
             "mode": self.spec.mode.name(),
             "views": get(&c.matched),
             "registered": registered,
+            "register_skipped": get(&c.register_skipped),
             "captured": get(&c.captured),
             "recorded": get(&c.recorded),
             "drops": get(&c.dropped),
@@ -191,6 +198,12 @@ impl ScanShared {
                 _ => 0.0,
             },
             "table_deg": f64::from_bits(get(&c.table_deg_bits)),
+            // The newest registered pose: how far the object has turned since the first view,
+            // by registration (not the table's word).
+            "pose": match get(&c.pose_seq) {
+                0 => Value::Null,
+                n => json!({"seq": n - 1, "turned_deg": f64::from_bits(get(&c.pose_deg_bits))}),
+            },
             "registration_lag_ms": {"mean": if registered > 0 { get(&c.lag_sum_us) as f64 / registered as f64 / 1e3 } else { 0.0 }, "max": get(&c.lag_max_us) as f64 / 1e3},
             "elapsed_s": elapsed,
         })
@@ -286,7 +299,11 @@ pub fn run(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineSe
     // Matcher pool and registration.
     let threads = if settings.matcher_threads == 0 { std::thread::available_parallelism().map_or(2, |n| n.get()) } else { settings.matcher_threads };
     let (job_tx, job_rx) = crossbeam_channel::bounded::<Job>(settings.queue_depth);
+    // Announcements and drops come from the capture task, which must not wait: unbounded
+    // (small). Views come from the matchers: bounded, so a registration thread that falls
+    // behind holds the matchers back instead of piling views up in memory.
     let (note_tx, note_rx) = crossbeam_channel::unbounded::<Note>();
+    let (view_tx, view_rx) = crossbeam_channel::bounded::<Note>(settings.queue_depth.max(2));
     let store = Arc::new(PoseStore::new());
     let mut observe_txs = Vec::new();
     let mut matchers = Vec::new();
@@ -297,17 +314,17 @@ pub fn run(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineSe
         };
         let (obs_tx, obs_rx) = crossbeam_channel::unbounded::<(u64, f64, f64)>();
         observe_txs.push(obs_tx);
-        let (jobs, notes, store, sh, s) = (job_rx.clone(), note_tx.clone(), store.clone(), shared.clone(), settings.clone());
+        let (jobs, notes, store, sh, s) = (job_rx.clone(), view_tx.clone(), store.clone(), shared.clone(), settings.clone());
         matchers.push(std::thread::Builder::new().name(format!("matcher-{i}")).spawn(move || matcher_loop(pipe, jobs, notes, obs_rx, store, sh, s)).expect("spawn a matcher"));
     }
     let registrar = {
         let (sh, s, store) = (shared.clone(), settings.clone(), store.clone());
-        std::thread::Builder::new().name("register".into()).spawn(move || register_loop(results, note_rx, observe_txs, store, sh, s, sign)).expect("spawn the registration thread")
+        std::thread::Builder::new().name("register".into()).spawn(move || register_loop(results, note_rx, view_rx, observe_txs, store, sh, s, sign)).expect("spawn the registration thread")
     };
 
     // Capture, on this thread.
     let captured = capture(devices, &shared, first, &job_tx, &job_rx, &note_tx, &rec_tx, settings);
-    drop((job_tx, job_rx, note_tx, rec_tx));
+    drop((job_tx, job_rx, note_tx, view_tx, rec_tx));
     for m in matchers {
         let _ = m.join();
     }
@@ -551,22 +568,26 @@ fn matcher_loop(mut pipe: Pipeline, jobs: Receiver<Job>, notes: Sender<Note>, ob
     }
 }
 
+#[allow(clippy::too_many_arguments)]
 fn register_loop(
     mut results: ResultsWriter,
     notes: Receiver<Note>,
+    views: Receiver<Note>,
     observers: Vec<Sender<(u64, f64, f64)>>,
     store: Arc<PoseStore>,
     shared: Arc<ScanShared>,
     settings: PipelineSettings,
     disparity_sign: i32,
 ) -> (ResultsWriter, Result<(), String>) {
-    let outcome = register_all(&mut results, notes, observers, store, &shared, &settings, disparity_sign);
+    let outcome = register_all(&mut results, notes, views, observers, store, &shared, &settings, disparity_sign);
     (results, outcome)
 }
 
+#[allow(clippy::too_many_arguments)]
 fn register_all(
     results: &mut ResultsWriter,
     notes: Receiver<Note>,
+    views: Receiver<Note>,
     observers: Vec<Sender<(u64, f64, f64)>>,
     store: Arc<PoseStore>,
     shared: &ScanShared,
@@ -579,23 +600,36 @@ fn register_all(
     let mut done: BTreeMap<u64, Note> = BTreeMap::new();
     let c = &shared.counters;
     let mut last_progress = Instant::now() - Duration::from_secs(1);
-    let mut process = |note: Note, results: &mut ResultsWriter| -> Result<(), String> {
+    let continuous = shared.spec.mode == ScanMode::Continuous;
+    let mut process = |note: Note, results: &mut ResultsWriter, behind: bool| -> Result<(), String> {
         match note {
             Note::View { frame_meta, view, captured } => {
                 let mut entry = results.write_view(&frame_meta, &view, settings.assist.as_ref()).map_err(|e| e.to_string())?;
-                if let Some(reg) = registrar.as_mut() {
+                if registrar.is_some() && continuous && behind {
+                    // A continuous scan sees the object at 15 fps: when newer views wait,
+                    // this one is kept (views/, disparity/) but only the newest is registered.
+                    entry["registered"] = json!(false);
+                    entry["register_skipped"] = json!("newer views were waiting (continuous scans register the newest view when registration is behind)");
+                    c.register_skipped.fetch_add(1, Ordering::Relaxed);
+                } else if let Some(reg) = registrar.as_mut() {
                     if let Some((fitness, rmse)) = crate::replay::register_view(reg, &frame_meta, &view.cloud, &mut entry) {
                         for o in &observers {
                             let _ = o.send((frame_meta.seq, fitness, rmse));
                         }
                     }
                     results.write_poses(reg.poses()).map_err(|e| e.to_string())?;
+                    if let Some(p) = reg.poses().last() {
+                        c.pose_deg_bits.store(crate::register::angle_deg(&p.first_from_view).to_bits(), Ordering::Relaxed);
+                        c.pose_seq.store(p.seq + 1, Ordering::Relaxed);
+                    }
                 }
-                let lag = captured.elapsed().as_micros() as u64;
-                entry["registration_lag_ms"] = json!(lag as f64 / 1e3);
-                c.lag_sum_us.fetch_add(lag, Ordering::Relaxed);
-                c.lag_max_us.fetch_max(lag, Ordering::Relaxed);
-                c.registered.fetch_add(1, Ordering::Relaxed);
+                if entry.get("registered").is_none() {
+                    let lag = captured.elapsed().as_micros() as u64;
+                    entry["registration_lag_ms"] = json!(lag as f64 / 1e3);
+                    c.lag_sum_us.fetch_add(lag, Ordering::Relaxed);
+                    c.lag_max_us.fetch_max(lag, Ordering::Relaxed);
+                    c.registered.fetch_add(1, Ordering::Relaxed);
+                }
                 results.push_frame(entry).map_err(|e| e.to_string())?;
             }
             Note::Skipped { seq, why } => results.note_skipped(seq, &why),
@@ -608,7 +642,18 @@ fn register_all(
         }
         Ok(())
     };
-    for note in notes.iter() {
+    let (mut notes_open, mut views_open) = (true, true);
+    while notes_open || views_open {
+        let note = crossbeam_channel::select! {
+            recv(if notes_open { Some(&notes) } else { None }.unwrap_or(&crossbeam_channel::never())) -> n => match n {
+                Ok(n) => n,
+                Err(_) => { notes_open = false; continue; }
+            },
+            recv(if views_open { Some(&views) } else { None }.unwrap_or(&crossbeam_channel::never())) -> n => match n {
+                Ok(n) => n,
+                Err(_) => { views_open = false; continue; }
+            },
+        };
         let seq = match &note {
             Note::Announce(seq) => {
                 expected.push_back(*seq);
@@ -621,13 +666,15 @@ fn register_all(
         while let Some(next) = expected.front() {
             let Some(note) = done.remove(next) else { break };
             expected.pop_front();
-            process(note, results)?;
+            // Behind: a newer view is finished already, or waits in the channel.
+            let behind = done.values().any(|n| matches!(n, Note::View { .. })) || !views.is_empty();
+            process(note, results, behind)?;
         }
     }
     // Whatever is left (announced pairs whose matcher never reported: a panic) is skipped.
     for seq in expected {
         match done.remove(&seq) {
-            Some(note) => process(note, results)?,
+            Some(note) => process(note, results, false)?,
             None => results.note_skipped(seq, "never matched"),
         }
     }

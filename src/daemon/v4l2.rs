@@ -481,7 +481,7 @@ mod tests {
         let mut jpeg = Vec::new();
         image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 90).encode_image(&img).unwrap();
         let mut buffer = jpeg.clone();
-        buffer.resize(16 * 8 * 2, 0xAB);
+        buffer.resize(jpeg.len() + 512, 0xAB);
         let p = to_picture(*b"MJPG", &buffer, jpeg.len(), 16, 8).unwrap();
         assert_eq!(p, Picture::Jpeg { bytes: jpeg.clone() });
         let (w, h, rgb) = p.to_rgb().unwrap();
