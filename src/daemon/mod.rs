@@ -221,7 +221,7 @@ pub fn pipeline_settings(config: &Config) -> PipelineSettings {
         if config.scan.register_max_points > 0 {
             // Both ends of ICP: the view moved (source) and the view it lands on (target).
             p.max_target_points = config.scan.register_max_points;
-            p.icp.max_source_points = config.scan.register_max_points;
+            p.icp.max_source_points = p.icp.max_source_points.min(config.scan.register_max_points);
         }
         p
     });
