@@ -136,7 +136,7 @@ struct LiveArgs {
     #[arg(long, default_value_t = 0)]
     matcher_threads: usize,
     /// Pairs waiting for the matchers.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = 16)]
     queue_depth: usize,
     /// Disparities searched.
     #[arg(long, default_value_t = 128)]

@@ -238,7 +238,7 @@ pub struct ScanSection {
 
 impl Default for ScanSection {
     fn default() -> Self {
-        ScanSection { step_deg: 2.0, total_deg: 360.0, queue_depth: 8, matcher_threads: 0, register: true, register_max_points: 20_000 }
+        ScanSection { step_deg: 2.0, total_deg: 360.0, queue_depth: 16, matcher_threads: 0, register: true, register_max_points: 20_000 }
     }
 }
 

@@ -234,6 +234,7 @@ pub fn pipeline_settings(config: &Config) -> PipelineSettings {
         queue_depth: config.scan.queue_depth,
         record: true,
         pace_hz: (config.backend.kind == BackendKind::Replay && config.backend.replay_paced).then_some(config.cameras.fps as f64),
+        register_newest_when_behind: false,
     }
 }
 

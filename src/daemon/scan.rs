@@ -90,6 +90,9 @@ pub struct PipelineSettings {
     pub record: bool,
     /// Feed pairs no faster than this many per second (replays and the benchmark).
     pub pace_hz: Option<f64>,
+    /// When registration is behind, register only the newest view (always so in continuous
+    /// scans; step scans register every view unless this is set).
+    pub register_newest_when_behind: bool,
 }
 
 /// Live counters of a scan, read by `status` and `scan.progress`.
@@ -107,6 +110,8 @@ pub struct Counters {
     pub failed: AtomicU64,
     /// Time of the last capture or view, ms since the scan started (the watchdog's pulse).
     pub pulse_ms: AtomicU64,
+    /// Time the last view was matched, µs since the scan started.
+    pub matched_us: AtomicU64,
     /// Time of the last capture, µs since the scan started (capture rate = captured / it).
     pub capture_us: AtomicU64,
     /// The newest registered view: its seq + 1 (0: none yet) and its turn from the first
@@ -198,14 +203,15 @@ impl ScanShared {
                 _ => 0.0,
             },
             "table_deg": f64::from_bits(get(&c.table_deg_bits)),
-            // The newest registered pose: how far the object has turned since the first view,
-            // by registration (not the table's word).
+            // The newest registered view and how far the object has turned since the first
+            // (by the table's angles where the pairs have them, else the registered steps).
             "pose": match get(&c.pose_seq) {
                 0 => Value::Null,
                 n => json!({"seq": n - 1, "turned_deg": f64::from_bits(get(&c.pose_deg_bits))}),
             },
             "registration_lag_ms": {"mean": if registered > 0 { get(&c.lag_sum_us) as f64 / registered as f64 / 1e3 } else { 0.0 }, "max": get(&c.lag_max_us) as f64 / 1e3},
             "elapsed_s": elapsed,
+            "matched_at_s": get(&c.matched_us) as f64 / 1e6,
         })
     }
 }
@@ -303,7 +309,7 @@ pub fn run(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineSe
     // (small). Views come from the matchers: bounded, so a registration thread that falls
     // behind holds the matchers back instead of piling views up in memory.
     let (note_tx, note_rx) = crossbeam_channel::unbounded::<Note>();
-    let (view_tx, view_rx) = crossbeam_channel::bounded::<Note>(settings.queue_depth.max(2));
+    let (view_tx, view_rx) = crossbeam_channel::bounded::<Note>(VIEW_BACKLOG);
     let store = Arc::new(PoseStore::new());
     let mut observe_txs = Vec::new();
     let mut matchers = Vec::new();
@@ -553,6 +559,7 @@ fn matcher_loop(mut pipe: Pipeline, jobs: Receiver<Job>, notes: Sender<Note>, ob
         let note = match view {
             Ok(view) => {
                 c.matched.fetch_add(1, Ordering::Relaxed);
+                c.matched_us.fetch_max(shared.started.elapsed().as_micros() as u64, Ordering::Relaxed);
                 Note::View { frame_meta: meta, view: Box::new(view), captured: job.captured }
             }
             Err(why) => {
@@ -579,7 +586,15 @@ fn register_loop(
     settings: PipelineSettings,
     disparity_sign: i32,
 ) -> (ResultsWriter, Result<(), String>) {
-    let outcome = register_all(&mut results, notes, views, observers, store, &shared, &settings, disparity_sign);
+    // Registration yields the cores to the matchers: its thread and its own worker pool run
+    // at a lower priority (nice +REGISTER_NICE), so a busy registration delays poses, not
+    // views.
+    lower_priority();
+    let pool = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("register-{i}")).start_handler(|_| lower_priority()).build();
+    let outcome = match pool {
+        Ok(pool) => pool.install(|| register_all(&mut results, notes, views, observers, store, &shared, &settings, disparity_sign)),
+        Err(_) => register_all(&mut results, notes, views, observers, store, &shared, &settings, disparity_sign),
+    };
     (results, outcome)
 }
 
@@ -600,16 +615,16 @@ fn register_all(
     let mut done: BTreeMap<u64, Note> = BTreeMap::new();
     let c = &shared.counters;
     let mut last_progress = Instant::now() - Duration::from_secs(1);
-    let continuous = shared.spec.mode == ScanMode::Continuous;
+    let newest_only = shared.spec.mode == ScanMode::Continuous || settings.register_newest_when_behind;
     let mut process = |note: Note, results: &mut ResultsWriter, behind: bool| -> Result<(), String> {
         match note {
             Note::View { frame_meta, view, captured } => {
                 let mut entry = results.write_view(&frame_meta, &view, settings.assist.as_ref()).map_err(|e| e.to_string())?;
-                if registrar.is_some() && continuous && behind {
+                if registrar.is_some() && newest_only && behind {
                     // A continuous scan sees the object at 15 fps: when newer views wait,
                     // this one is kept (views/, disparity/) but only the newest is registered.
                     entry["registered"] = json!(false);
-                    entry["register_skipped"] = json!("newer views were waiting (continuous scans register the newest view when registration is behind)");
+                    entry["register_skipped"] = json!("newer views were waiting (registration is behind; the newest view is registered)");
                     c.register_skipped.fetch_add(1, Ordering::Relaxed);
                 } else if let Some(reg) = registrar.as_mut() {
                     if let Some((fitness, rmse)) = crate::replay::register_view(reg, &frame_meta, &view.cloud, &mut entry) {
@@ -619,7 +634,7 @@ fn register_all(
                     }
                     results.write_poses(reg.poses()).map_err(|e| e.to_string())?;
                     if let Some(p) = reg.poses().last() {
-                        c.pose_deg_bits.store(crate::register::angle_deg(&p.first_from_view).to_bits(), Ordering::Relaxed);
+                        c.pose_deg_bits.store(reg.turned_deg().to_bits(), Ordering::Relaxed);
                         c.pose_seq.store(p.seq + 1, Ordering::Relaxed);
                     }
                 }
@@ -686,6 +701,23 @@ fn register_all(
         }
     }
     Ok(())
+}
+
+/// Finished views waiting for the registration thread before the matchers wait (a view is
+/// about 4 MB at 640×480).
+const VIEW_BACKLOG: usize = 4;
+
+/// Nice value of the registration threads (matchers and capture stay at the process's).
+const REGISTER_NICE: i32 = 5;
+
+/// Lowers the calling thread's priority (Linux: nice applies per thread).
+fn lower_priority() {
+    // SAFETY: gettid and setpriority have no memory preconditions.
+    unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        let now = libc::getpriority(libc::PRIO_PROCESS, tid);
+        libc::setpriority(libc::PRIO_PROCESS, tid, (now + REGISTER_NICE).min(19));
+    }
 }
 
 /// The folder of scan `name` in `state_dir`.
