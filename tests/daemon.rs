@@ -308,20 +308,25 @@ fn bad_requests_get_json_rpc_errors_and_the_connection_survives() {
     assert!(d.state.is_dir() && std::fs::read_dir(&d.state).unwrap().next().is_none(), "no folder for refused scans");
 }
 
+/// Starts a 2° step scan (180 views) and returns once `views` of them are matched.
+fn start_and_wait_views(d: &Daemon, name: &str, views: u64) {
+    let (mut c, _) = Client::connect(&d.socket);
+    c.ok("events.subscribe", json!({}));
+    c.ok("scan.start", json!({"name": name, "step_deg": 2}));
+    loop {
+        let v = c.line();
+        if v["method"] == "scan.progress" && v["params"]["views"].as_u64().unwrap() >= views {
+            return;
+        }
+    }
+}
+
 #[test]
 fn sigterm_ends_a_scan_interrupted_and_a_killed_daemons_scan_is_recovered() {
     let dir = support::temp_dir("daemon-signals");
     let mut d = Daemon::start(&dir, "");
-    let (mut c, _) = Client::connect(&d.socket);
-    c.ok("events.subscribe", json!({}));
-    c.ok("scan.start", json!({"name": "long", "step_deg": 2}));
-    // Wait for a few views, then SIGTERM.
-    loop {
-        let v = c.line();
-        if v["method"] == "scan.progress" && v["params"]["views"].as_u64().unwrap() >= 3 {
-            break;
-        }
-    }
+    // A few views into a long scan, SIGTERM.
+    start_and_wait_views(&d, "long", 3);
     d.signal(libc::SIGTERM);
     assert_eq!(d.wait(Duration::from_secs(60)), Some(0), "graceful exit");
     assert!(!d.socket.exists(), "socket removed");
@@ -335,15 +340,7 @@ fn sigterm_ends_a_scan_interrupted_and_a_killed_daemons_scan_is_recovered() {
 
     // SIGKILL mid-scan: the next daemon marks the scan interrupted; its recording replays.
     let mut d = Daemon::start(&dir, "");
-    let (mut c, _) = Client::connect(&d.socket);
-    c.ok("events.subscribe", json!({}));
-    c.ok("scan.start", json!({"name": "killed", "step_deg": 2}));
-    loop {
-        let v = c.line();
-        if v["method"] == "scan.progress" && v["params"]["views"].as_u64().unwrap() >= 2 {
-            break;
-        }
-    }
+    start_and_wait_views(&d, "killed", 2);
     d.signal(libc::SIGKILL);
     d.wait(Duration::from_secs(10));
     assert_eq!(manifest(&d.state.join("killed"))["status"], "running");

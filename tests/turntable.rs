@@ -136,6 +136,29 @@ fn driver_moves_waits_and_reports_the_angle() {
 }
 
 #[test]
+fn driver_turns_continuously_and_halts_where_it_is() {
+    let (emu, angle) = emulator(vec![]);
+    let mut t = HorusTurntable::open(emu.port_path(), quick_driver()).unwrap();
+    // A slow move returns at once and the angle follows it.
+    let t0 = Instant::now();
+    t.start_move(90.0, 45.0).unwrap();
+    assert!(t0.elapsed() < Duration::from_millis(300), "start_move waits for the queue only");
+    std::thread::sleep(Duration::from_millis(400));
+    let mid = t.angle().unwrap();
+    assert!(mid > 1.0 && mid < 60.0, "on its way: {mid}");
+    assert!((angle.get() - mid).abs() < 5.0, "the cameras see the table turning: {} vs {mid}", angle.get());
+    // Halt: no motion after, and the step feed is back (a step move runs at 200°/s again).
+    t.halt().unwrap();
+    let stopped = t.angle().unwrap();
+    std::thread::sleep(Duration::from_millis(200));
+    assert_eq!(t.angle().unwrap(), stopped);
+    assert!(stopped < 90.0);
+    let t1 = Instant::now();
+    t.move_to(stopped + 40.0).unwrap();
+    assert!(t1.elapsed() < Duration::from_millis(800), "step feed restored: {:?}", t1.elapsed());
+}
+
+#[test]
 fn driver_direction_maps_firmware_degrees_to_table_degrees() {
     // A board wired the other way round: positive X turns the table clockwise.
     let angle = TableAngle::new(0.0);

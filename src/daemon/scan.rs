@@ -478,10 +478,20 @@ fn capture(
             let start = table.angle().map_err(|e| e.to_string())?;
             let end = start + spec.total_deg;
             table.start_move(end, spec.speed_deg_s).map_err(|e| e.to_string())?;
+            // A table that stops short (stalled, unplugged mid-move) must not keep a scan
+            // capturing forever.
+            let allowed = Duration::from_secs_f64(spec.total_deg / spec.speed_deg_s * 1.5 + 10.0);
+            let deadline = Instant::now() + allowed;
+            let (mut last_t_ns, mut frame_period_s) = (None::<u64>, 1.0 / 15.0);
             let outcome = (|| -> Result<(), String> {
                 let mut n = 1;
                 while n < limit && !shared.stop_requested() {
                     let Some(mut frame) = devices.source.next_frame().map_err(|e| e.to_string())? else { break };
+                    if let Some(prev) = last_t_ns.replace(frame.t_left_ns) {
+                        if frame.t_left_ns > prev {
+                            frame_period_s = (frame.t_left_ns - prev) as f64 / 1e9;
+                        }
+                    }
                     let table = devices.turntable.as_mut().unwrap();
                     let deg = match frame.table_deg {
                         Some(d) => d,
@@ -491,8 +501,14 @@ fn capture(
                             d
                         }
                     };
+                    if Instant::now() > deadline {
+                        return Err(format!("turntable did not turn {}° within {:.0} s at {} °/s: it is at {deg:.2}°, started at {start:.2}°", spec.total_deg, allowed.as_secs_f64(), spec.speed_deg_s));
+                    }
                     // A full turn's last pair would repeat the first view.
-                    let done = deg >= end - 1e-6 || (spec.total_deg >= 360.0 && deg >= end - spec.speed_deg_s * 0.5 / 15.0);
+                    // Within half a pair's turn of the end (the cameras' rate from the pairs'
+                    // timestamps; 15 fps until two are known).
+                    let half_step = 0.5 * spec.speed_deg_s * frame_period_s;
+                    let done = deg >= end - 1e-6 || (spec.total_deg >= 360.0 && deg >= end - half_step);
                     if done && spec.total_deg >= 360.0 {
                         break;
                     }
