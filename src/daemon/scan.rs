@@ -245,8 +245,27 @@ enum Note {
 }
 
 /// Runs one scan to its end on the calling thread (a blocking task): spawns the recorder,
-/// the matcher pool and the registration thread, captures, and waits for them.
+/// the matcher pool and the registration thread, captures, and waits for them. The scan's
+/// folder always ends with a `manifest.json` that says how it ended, even when the scan
+/// failed before its first view.
 pub fn run(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineSettings) -> ScanEnd {
+    let end = run_scan(devices, shared.clone(), settings);
+    let path = shared.dir.join("manifest.json");
+    if !path.exists() {
+        let spec = &shared.spec;
+        let m = json!({
+            "format": 1, "status": end.status, "reason": end.reason, "frames": 0,
+            "name": spec.name, "mode": spec.mode.name(), "total_deg": spec.total_deg,
+            "source": devices.source.describe(), "written_by": format!("spinscan {}", env!("CARGO_PKG_VERSION")),
+        });
+        if let Err(e) = crate::io::write_atomic(&path, serde_json::to_string_pretty(&m).unwrap().as_bytes()) {
+            tracing::error!("cannot write {}: {e}", path.display());
+        }
+    }
+    end
+}
+
+fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineSettings) -> ScanEnd {
     let calib = devices.source.calibration().clone();
     let spec = shared.spec.clone();
     let dir = shared.dir.clone();
@@ -739,4 +758,55 @@ fn lower_priority() {
 /// The folder of scan `name` in `state_dir`.
 pub fn scan_dir(state_dir: &Path, name: &str) -> PathBuf {
     state_dir.join(name)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::calib::StereoCalib;
+    use crate::capture::CaptureError;
+
+    /// A camera that never delivers.
+    struct Dead(StereoCalib);
+
+    impl StereoSource for Dead {
+        fn describe(&self) -> String {
+            "dead camera".into()
+        }
+        fn calibration(&self) -> &StereoCalib {
+            &self.0
+        }
+        fn next_frame(&mut self) -> Result<Option<StereoFrame>, CaptureError> {
+            Err(CaptureError::NoFrame { camera: "left".into(), waited_ms: 1000 })
+        }
+    }
+
+    #[test]
+    fn a_scan_that_fails_before_its_first_view_still_leaves_a_manifest() {
+        let dir = std::env::temp_dir().join(format!("spinscan-scan-dead-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let calib = crate::sim::calib_of(&hw_sim::Rig::ideal(64, 48, 70.0, 60.0));
+        let mut devices = Devices { source: Box::new(Dead(calib)), turntable: None };
+        let spec = ScanSpec { name: "dead".into(), mode: ScanMode::Continuous, step_deg: 1.0, total_deg: 360.0, speed_deg_s: 6.0, max_views: None };
+        let shared = Arc::new(ScanShared::new(spec, dir.clone(), Box::new(|_, _| {})));
+        let config = crate::daemon::config::Config::sim();
+        let end = run(&mut devices, shared, &crate::daemon::pipeline_settings(&config));
+        assert_eq!(end.status, "failed");
+        assert!(end.reason.as_deref().unwrap().contains("left camera delivered no frame"), "{end:?}");
+        let m: Value = serde_json::from_str(&std::fs::read_to_string(dir.join("manifest.json")).unwrap()).unwrap();
+        assert_eq!((m["status"].as_str(), m["frames"].as_u64(), m["name"].as_str()), (Some("failed"), Some(0), Some("dead")));
+        assert!(m["reason"].as_str().unwrap().contains("left camera"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn step_views_cover_a_turn_once_and_an_arc_with_both_ends() {
+        let spec = |step: f64, total: f64| ScanSpec { name: "x".into(), mode: ScanMode::Step, step_deg: step, total_deg: total, speed_deg_s: 6.0, max_views: None };
+        assert_eq!(spec(2.0, 360.0).step_views(), 180);
+        assert_eq!(spec(45.0, 360.0).step_views(), 8);
+        assert_eq!(spec(30.0, 90.0).step_views(), 4);
+        assert_eq!(spec(7.0, 360.0).step_views(), 51);
+        assert_eq!(ScanSpec { max_views: Some(5), ..spec(2.0, 360.0) }.step_views(), 5);
+    }
 }
