@@ -84,6 +84,43 @@ impl StereoSource for SimCameras {
     }
 }
 
+/// A built-in object's name is known (`egg`, `torus`, …), else what the choices are.
+pub fn check_object(name: &str) -> Result<(), String> {
+    if hw_sim::BUILTIN_OBJECTS.iter().any(|o| o.0 == name) {
+        Ok(())
+    } else {
+        Err(format!("must be one of {}, got {name:?}", hw_sim::BUILTIN_OBJECTS.map(|o| o.0).join(", ")))
+    }
+}
+
+/// The whole simulated lab for the daemon's `sim` backend: rendered cameras and the
+/// turntable firmware on a pseudo-terminal, both seeing one table angle, with spinscan's
+/// serial driver connected to the firmware.
+pub struct SimLab {
+    pub cameras: SimCameras,
+    pub turntable: crate::turntable::HorusTurntable,
+    /// Keeps the pseudo-terminal alive; drop it after the driver.
+    pub emulator: hw_sim::Emulator,
+}
+
+impl SimLab {
+    pub fn open(s: &crate::daemon::config::SimSection, fps: f64, driver: crate::turntable::DriverConfig) -> Result<SimLab, String> {
+        let mesh = hw_sim::Mesh::builtin(&s.object, 30_000).map_err(|e| format!("sim.object: {e}"))?;
+        let mut scene = if s.ideal { hw_sim::SceneConfig::ideal(mesh) } else { hw_sim::SceneConfig::realistic(mesh) };
+        let focal = 700.0 * s.width as f64 / 640.0;
+        scene.rig = if s.ideal { hw_sim::Rig::ideal(s.width, s.height, focal, 60.0) } else { hw_sim::Rig::realistic(s.width, s.height, focal, 60.0) };
+        scene.seed = s.seed;
+        let angle = hw_sim::TableAngle::new(0.0);
+        let fw = hw_sim::FirmwareConfig { time_scale: s.time_scale, ..Default::default() };
+        let emulator = hw_sim::Emulator::spawn(fw, angle.clone()).map_err(|e| format!("cannot start the turntable emulator: {e}"))?;
+        let renderer = hw_sim::Renderer::new(scene).map_err(|e| e.to_string())?;
+        let timing = hw_sim::Timing { fps, ..Default::default() };
+        let camera = hw_sim::SimStereoCamera::new(renderer, timing, angle).realtime(s.realtime);
+        let turntable = crate::turntable::HorusTurntable::open(emulator.port_path(), driver).map_err(|e| e.to_string())?;
+        Ok(SimLab { cameras: SimCameras::new(camera), turntable, emulator })
+    }
+}
+
 /// What `spinscan sim render` puts on the turntable.
 #[derive(Debug, Clone)]
 pub enum SimObject {

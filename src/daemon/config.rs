@@ -389,8 +389,8 @@ impl Config {
         if let Err(e) = self.assist() {
             return bad("matching.assist", e);
         }
-        if hw_sim::Mesh::builtin(&self.sim.object, 100).is_err() {
-            return bad("sim.object", format!("must be one of {}, got {:?}", hw_sim::BUILTIN_OBJECTS.map(|o| o.0).join(", "), self.sim.object));
+        if let Err(e) = crate::sim::check_object(&self.sim.object) {
+            return bad("sim.object", e);
         }
         if self.sim.width < 32 || self.sim.height < 32 {
             return bad("sim.width", format!("the simulated cameras must be at least 32×32, got {}×{}", self.sim.width, self.sim.height));

@@ -167,20 +167,8 @@ struct Opened {
 fn open_backend(config: &Config) -> Result<Opened, String> {
     match config.backend.kind {
         BackendKind::Sim => {
-            let s = &config.sim;
-            let mesh = hw_sim::Mesh::builtin(&s.object, 30_000).map_err(|e| format!("sim.object: {e}"))?;
-            let mut scene = if s.ideal { hw_sim::SceneConfig::ideal(mesh) } else { hw_sim::SceneConfig::realistic(mesh) };
-            let focal = 700.0 * s.width as f64 / 640.0;
-            scene.rig = if s.ideal { hw_sim::Rig::ideal(s.width, s.height, focal, 60.0) } else { hw_sim::Rig::realistic(s.width, s.height, focal, 60.0) };
-            scene.seed = s.seed;
-            let angle = hw_sim::TableAngle::new(0.0);
-            let fw = hw_sim::FirmwareConfig { time_scale: s.time_scale, ..Default::default() };
-            let emulator = hw_sim::Emulator::spawn(fw, angle.clone()).map_err(|e| format!("cannot start the turntable emulator: {e}"))?;
-            let renderer = hw_sim::Renderer::new(scene).map_err(|e| e.to_string())?;
-            let timing = hw_sim::Timing { fps: config.cameras.fps as f64, ..Default::default() };
-            let camera = hw_sim::SimStereoCamera::new(renderer, timing, angle).realtime(s.realtime);
-            let table = crate::turntable::HorusTurntable::open(emulator.port_path(), config.turntable.driver()).map_err(|e| e.to_string())?;
-            Ok(Opened { devices: Devices { source: Box::new(crate::sim::SimCameras::new(camera)), turntable: Some(Box::new(table)) }, emulator: Some(emulator) })
+            let lab = crate::sim::SimLab::open(&config.sim, config.cameras.fps as f64, config.turntable.driver())?;
+            Ok(Opened { devices: Devices { source: Box::new(lab.cameras), turntable: Some(Box::new(lab.turntable)) }, emulator: Some(lab.emulator) })
         }
         BackendKind::Replay => {
             let rec = crate::recording::Recording::open(&config.backend.replay).map_err(|e| format!("backend.replay: {e}"))?;
