@@ -224,18 +224,6 @@ impl ResultsWriter {
         self.skipped.push(json!({"seq": seq, "why": why}));
     }
 
-    pub fn disparity_sign(&self) -> i32 {
-        self.disparity_sign
-    }
-
-    pub fn frames(&self) -> &[Value] {
-        &self.frames
-    }
-
-    pub fn dir(&self) -> &Path {
-        &self.dir
-    }
-
     /// `manifest.json`, atomically (temp + rename).
     pub fn write_manifest(&self, status: &str, reason: Option<&str>) -> Result<(), ReplayError> {
         let mut m = json!({

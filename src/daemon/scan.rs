@@ -344,7 +344,7 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
     }
     let registrar = {
         let (sh, s, store) = (shared.clone(), settings.clone(), store.clone());
-        std::thread::Builder::new().name("register".into()).spawn(move || register_loop(results, note_rx, view_rx, observe_txs, store, sh, s, sign)).expect("spawn the registration thread")
+        std::thread::Builder::new().name("register".into()).spawn(move || register_loop(results, note_rx, view_rx, observe_txs, store, sh, s)).expect("spawn the registration thread")
     };
 
     // Capture, on this thread.
@@ -619,7 +619,6 @@ fn register_loop(
     store: Arc<PoseStore>,
     shared: Arc<ScanShared>,
     settings: PipelineSettings,
-    disparity_sign: i32,
 ) -> (ResultsWriter, Result<(), String>) {
     // Registration yields the cores to the matchers: its thread and its own worker pool run
     // at a lower priority (nice +REGISTER_NICE), so a busy registration delays poses, not
@@ -627,8 +626,8 @@ fn register_loop(
     lower_priority();
     let pool = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("register-{i}")).start_handler(|_| lower_priority()).build();
     let outcome = match pool {
-        Ok(pool) => pool.install(|| register_all(&mut results, notes, views, observers, store, &shared, &settings, disparity_sign)),
-        Err(_) => register_all(&mut results, notes, views, observers, store, &shared, &settings, disparity_sign),
+        Ok(pool) => pool.install(|| register_all(&mut results, notes, views, observers, store, &shared, &settings)),
+        Err(_) => register_all(&mut results, notes, views, observers, store, &shared, &settings),
     };
     (results, outcome)
 }
@@ -642,9 +641,7 @@ fn register_all(
     store: Arc<PoseStore>,
     shared: &ScanShared,
     settings: &PipelineSettings,
-    disparity_sign: i32,
 ) -> Result<(), String> {
-    debug_assert_eq!(results.disparity_sign(), disparity_sign);
     let mut registrar = settings.registration.clone().map(|p| Registrar::new(p, store));
     let mut expected = std::collections::VecDeque::new();
     let mut done: BTreeMap<u64, Note> = BTreeMap::new();
