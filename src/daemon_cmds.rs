@@ -14,7 +14,7 @@ pub const EXIT_DAEMON: u8 = 5;
 #[derive(Args, Clone)]
 pub struct SocketArg {
     /// spinscand's control socket.
-    #[arg(long, value_name = "PATH", default_value = "/run/spinscan/control.sock")]
+    #[arg(long, value_name = "PATH", env = "SPINSCAN_SOCKET", default_value = "/run/spinscan/control.sock")]
     pub socket: PathBuf,
     /// Print the daemon's JSON answer instead of text.
     #[arg(long)]
