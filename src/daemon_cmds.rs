@@ -112,7 +112,7 @@ pub fn status(s: SocketArg) -> Result<(), Failure> {
 
 pub fn devices(a: DevicesArgs) -> Result<(), Failure> {
     let v = if a.local {
-        spinscan::daemon::v4l2::list_devices()
+        spinscan::hw::v4l2::list_devices()
     } else {
         let mut c = connect(&a.socket)?;
         c.call("devices", json!({})).map_err(daemon_err)?

@@ -16,26 +16,23 @@
 //! ```
 //! use spinscan::pipeline::{Pipeline, PipelineOptions};
 //! use spinscan::stereo::MatchParams;
-//! let scene = spinscan::sim::small_scene("egg", 160, 120, 175.0);
-//! let calib = spinscan::sim::calib_of(&scene.rig);
-//! let pair = hw_sim::Renderer::new(scene).unwrap().render(30.0, 0);
+//! let scene = spinscan::hw::sim::small_scene("egg", 160, 120, 175.0);
+//! let calib = spinscan::hw::sim::calib_of(&scene.rig);
+//! let (left, right) = spinscan::hw::sim::render_pair(&scene, 30.0).unwrap();
 //! let mut pipe = Pipeline::new(&calib, (160, 120), PipelineOptions { matching: MatchParams { num_disparities: 48, ..Default::default() }, ..Default::default() }).unwrap();
-//! let view = pipe.process_rgb(&pair.left_rgb, &pair.right_rgb, true).unwrap();
+//! let view = pipe.process_rgb(&left, &right, true).unwrap();
 //! assert!(view.cloud.len() > 1000);
 //! ```
 
 pub mod assist;
 pub mod bench;
 pub mod calib;
-pub mod capture;
 pub mod cloud;
 pub mod daemon;
+pub mod hw;
 pub mod io;
 pub mod pipeline;
 pub mod recording;
 pub mod register;
-pub mod replay;
 pub mod segment;
-pub mod sim;
 pub mod stereo;
-pub mod turntable;

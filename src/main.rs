@@ -13,8 +13,8 @@ use spinscan::io::{self, LoadedImage};
 use spinscan::pipeline::{Pipeline, PipelineOptions};
 use spinscan::recording::Recording;
 use spinscan::register::{self, IcpParams};
-use spinscan::replay::{self, ReplayOptions};
-use spinscan::sim::{RenderOptions, SimObject};
+use spinscan::pipeline::replay::{self, ReplayOptions};
+use spinscan::hw::sim::{RenderOptions, SimObject};
 use spinscan::segment::ChromaKey;
 use spinscan::stereo::{DisparityMap, GrayView, MatchParams, StereoMatcher};
 
@@ -377,9 +377,9 @@ impl RegistrationArgs {
         if !(self.icp_max_distance > 0.0 && self.icp_max_distance.is_finite()) {
             return Err(input(format!("--icp-max-distance must be a positive number of mm, got {}", self.icp_max_distance)));
         }
-        opts.model_voxel_mm = self.voxel;
+        opts.model.voxel_mm = self.voxel;
         if self.no_denoise {
-            opts.denoise = None;
+            opts.model.denoise = None;
         }
         if self.no_register {
             opts.registration = None;
@@ -838,7 +838,7 @@ fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
             if !(a.mesh_scale.is_finite() && a.mesh_scale > 0.0) {
                 return Err(input(format!("--mesh-scale must be a positive number, got {}", a.mesh_scale)));
             }
-            SimObject::Mesh(hw_sim::Mesh { vertices: mesh.cloud.points, triangles: mesh.triangles }.scaled(a.mesh_scale))
+            SimObject::Mesh(mesh, a.mesh_scale)
         }
         (name, None) => SimObject::Builtin { name: name.clone().unwrap_or_else(|| "egg".into()), triangles: a.triangles },
     };
@@ -855,8 +855,8 @@ fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
         image_size: (640, 480),
     };
     let t0 = Instant::now();
-    let rec = spinscan::sim::render_recording(&opts, &a.out, &mut |done, total| eprint!("\rsim render: {done}/{total} pairs")).map_err(|e| match e {
-        spinscan::sim::SimError::Recording(
+    let rec = spinscan::hw::sim::render_recording(&opts, &a.out, &mut |done, total| eprint!("\rsim render: {done}/{total} pairs")).map_err(|e| match e {
+        spinscan::hw::sim::SimError::Recording(
             spinscan::recording::RecordingError::Io { .. } | spinscan::recording::RecordingError::Write { .. } | spinscan::recording::RecordingError::Exists(_),
         ) => output(e),
         other => input(other),
@@ -904,9 +904,13 @@ fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
         eprint!("\rreplay: {done}/{total} frames (seq {seq}, matched in {ms:.0} ms)")
     });
     eprintln!();
-    let summary = summary.map_err(|e| match e {
-        replay::ReplayError::Output { .. } => output(format!("{e} (results so far are in {}, manifest status `failed`)", a.out.display())),
-        other => input(format!("{other} (results so far are in {}, manifest status `failed`)", a.out.display())),
+    let summary = summary.map_err(|e| {
+        let why = format!("{e} (results so far are in {}, manifest status `failed`)", a.out.display());
+        if e.is_output() {
+            output(why)
+        } else {
+            input(why)
+        }
     })?;
     println!("{}", summary_json(&summary, &a.out));
     Ok(())
@@ -939,7 +943,7 @@ fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
         ..RenderOptions::default()
     };
     eprintln!("demo: rendering {} stereo pairs of the `{}` turning on the simulated turntable…", a.frames, a.object);
-    let rec = spinscan::sim::render_recording(&opts, &rec_dir, &mut |done, total| eprint!("\rdemo: rendered {done}/{total}")).map_err(input)?;
+    let rec = spinscan::hw::sim::render_recording(&opts, &rec_dir, &mut |done, total| eprint!("\rdemo: rendered {done}/{total}")).map_err(input)?;
     eprintln!("\ndemo: replaying {} (segment the blue screen, rectify, match, triangulate)…", rec_dir.display());
     let replay_opts = ReplayOptions {
         assist: a.assist.params(!a.reg.no_register)?,
@@ -985,7 +989,7 @@ fn cmd_register(a: RegisterArgs) -> Result<(), Failure> {
     let source = read_scan(source_path)?;
     let target = read_scan(target_path)?;
     let init = match &a.init {
-        Some(p) => register::files::read_transform_json(p).map_err(input)?,
+        Some(p) => io::poses::read_transform_json(p).map_err(input)?,
         None => nalgebra::Isometry3::identity(),
     };
     let max_distance = match a.max_distance {
@@ -1013,7 +1017,7 @@ fn cmd_register(a: RegisterArgs) -> Result<(), Failure> {
     if !r.converged {
         eprintln!("register: warning: ICP did not converge within {} iterations", params.max_iterations);
     }
-    let mut j = register::files::transform_json(&r.transform);
+    let mut j = io::poses::transform_json(&r.transform);
     j["fitness"] = json!(r.fitness);
     j["rmse"] = json!(r.rmse);
     j["iterations"] = json!(r.iterations);
@@ -1039,7 +1043,7 @@ fn cmd_register_ring(a: RegisterArgs) -> Result<(), Failure> {
     }
     let names: Vec<String> = a.files.iter().map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()).collect();
     let init_conf = match &a.init_conf {
-        Some(p) => Some(register::files::Conf::read(p).map_err(input)?),
+        Some(p) => Some(io::poses::Conf::read(p).map_err(input)?),
         None => None,
     };
     let init_world: Vec<nalgebra::Isometry3<f64>> = match &init_conf {
@@ -1065,9 +1069,9 @@ fn cmd_register_ring(a: RegisterArgs) -> Result<(), Failure> {
         }
     }
     eprintln!("register: loop closed: {:.4}° and {:.6} apart before spreading", ring.loop_error_deg, ring.loop_error_translation);
-    let conf = register::files::Conf {
+    let conf = io::poses::Conf {
         camera: init_conf.and_then(|c| c.camera),
-        poses: names.iter().zip(&ring.world_from_scan).map(|(n, w)| register::files::ConfPose { name: n.clone(), world_from_scan: *w }).collect(),
+        poses: names.iter().zip(&ring.world_from_scan).map(|(n, w)| io::poses::ConfPose { name: n.clone(), world_from_scan: *w }).collect(),
     };
     io::write_atomic(conf_out, conf.to_text().as_bytes()).map_err(|e| output(format!("{}: {e}", conf_out.display())))?;
     println!("{}", json!({"conf_out": conf_out, "scans": names.len(), "loop_error_deg": ring.loop_error_deg, "loop_error_translation": ring.loop_error_translation, "register_ms": t0.elapsed().as_secs_f64() * 1e3}));

@@ -1,6 +1,6 @@
 //! Recordings on disk (`shared/spec/recording-format.md`, version 1): writing one while
 //! scanning, reading one back (strictly, with messages that name the file, line and key),
-//! and replaying it as a [`StereoSource`].
+//! and replaying it as a [`crate::hw::StereoSource`] ([`crate::hw::replay`]).
 //!
 //! ```text
 //!  DIR/calib.yaml  frames.jsonl  left/NNNNNN.png  right/NNNNNN.png  [turntable.yaml]  [gt/…]
@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 use serde_json::{json, Value};
 
 use crate::calib::{CalibError, StereoCalib};
-use crate::capture::{CaptureError, Picture, StereoFrame, StereoSource};
+use crate::hw::frame::{Picture, StereoFrame};
 
 /// Why a recording cannot be read or written.
 #[derive(Debug, thiserror::Error)]
@@ -320,41 +320,6 @@ pub fn read_gt_poses(dir: &Path) -> Result<Option<Vec<(u64, [[f64; 4]; 4])>>, Re
         out.push((p.seq, p.cam_from_obj));
     }
     Ok(Some(out))
-}
-
-/// Replays a recording through the camera seam, frame by frame.
-pub struct ReplaySource {
-    recording: Recording,
-    next: usize,
-}
-
-impl ReplaySource {
-    pub fn new(recording: Recording) -> ReplaySource {
-        ReplaySource { recording, next: 0 }
-    }
-
-    pub fn recording(&self) -> &Recording {
-        &self.recording
-    }
-}
-
-impl StereoSource for ReplaySource {
-    fn describe(&self) -> String {
-        format!("recording {}", self.recording.dir.display())
-    }
-
-    fn calibration(&self) -> &StereoCalib {
-        &self.recording.calib
-    }
-
-    fn next_frame(&mut self) -> Result<Option<StereoFrame>, CaptureError> {
-        if self.next >= self.recording.frames.len() {
-            return Ok(None);
-        }
-        let frame = self.recording.load_frame(self.next)?;
-        self.next += 1;
-        Ok(Some(frame))
-    }
 }
 
 /// Writes a recording as frames arrive.

@@ -16,15 +16,15 @@ fn spinscan(args: &[&str]) -> Output {
 /// about the table's axis, so every frame's disparities move.
 fn small_turn(dir: &Path, frames: usize, ideal: bool) -> PathBuf {
     let rec = dir.join(if ideal { "ideal" } else { "realistic" });
-    let opts = spinscan::sim::RenderOptions {
-        object: spinscan::sim::SimObject::Builtin { name: "torus".into(), triangles: 30_000 },
+    let opts = spinscan::hw::sim::RenderOptions {
+        object: spinscan::hw::sim::SimObject::Builtin { name: "torus".into(), triangles: 30_000 },
         frames,
         deg_per_frame: 2.0,
         image_size: (320, 240),
         ideal,
         ..Default::default()
     };
-    spinscan::sim::render_recording(&opts, &rec, &mut |_, _| {}).unwrap();
+    spinscan::hw::sim::render_recording(&opts, &rec, &mut |_, _| {}).unwrap();
     rec
 }
 

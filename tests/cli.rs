@@ -16,12 +16,12 @@ fn stderr(o: &Output) -> String {
 
 /// A small simulated pair written as PNG files, with its calibration.
 fn sim_pair(dir: &Path) -> (PathBuf, PathBuf) {
-    let scene = spinscan::sim::small_scene("sphere", 200, 150, 220.0);
+    let scene = spinscan::hw::sim::small_scene("sphere", 200, 150, 220.0);
     let pair = hw_sim::Renderer::new(scene.clone()).unwrap().render(0.0, 0);
     let (l, r) = (dir.join("left.png"), dir.join("right.png"));
     spinscan::io::write_rgb_png(&l, pair.width, pair.height, &pair.left_rgb).unwrap();
     spinscan::io::write_rgb_png(&r, pair.width, pair.height, &pair.right_rgb).unwrap();
-    std::fs::write(dir.join("calib.yaml"), spinscan::sim::calib_of(&scene.rig).to_yaml()).unwrap();
+    std::fs::write(dir.join("calib.yaml"), spinscan::hw::sim::calib_of(&scene.rig).to_yaml()).unwrap();
     (l, r)
 }
 
@@ -166,7 +166,7 @@ fn help_defaults_match_the_library_defaults() {
 fn points_with_auto_mask_and_plate_on_the_simulated_lab() {
     let dir = support::temp_dir("cli-plate");
     let (l, r) = sim_pair(&dir);
-    let scene = spinscan::sim::small_scene("sphere", 200, 150, 220.0);
+    let scene = spinscan::hw::sim::small_scene("sphere", 200, 150, 220.0);
     // A plate of the empty scene: the same view without the object.
     let empty = hw_sim::Renderer::new(scene).unwrap().render_plate(0.0, 0);
     let plate = dir.join("plate.png");
@@ -193,7 +193,7 @@ fn points_with_auto_mask_and_plate_on_the_simulated_lab() {
 fn points_with_a_mask_file_match_only_inside_it() {
     let dir = support::temp_dir("cli-maskfile");
     let (l, r) = sim_pair(&dir);
-    let scene = spinscan::sim::small_scene("sphere", 200, 150, 220.0);
+    let scene = spinscan::hw::sim::small_scene("sphere", 200, 150, 220.0);
     let pair = hw_sim::Renderer::new(scene).unwrap().render(0.0, 0);
     let gt_disparity = pair.gt_disparity.clone().unwrap();
     // The left half of the object only.

@@ -6,11 +6,11 @@ mod support;
 
 use std::path::{Path, PathBuf};
 
-use spinscan::capture::{CaptureError, StereoSource};
+use spinscan::hw::{CaptureError, StereoSource};
 use spinscan::io;
 use spinscan::recording::Recording;
-use spinscan::replay::{self, ReplayOptions};
-use spinscan::sim::{RenderOptions, SimObject};
+use spinscan::pipeline::replay::{self, ReplayOptions};
+use spinscan::hw::sim::{RenderOptions, SimObject};
 use spinscan::stereo::MatchParams;
 
 /// A small ideal recording (320×240, f = 350 px: disparities up to ~64).
@@ -23,7 +23,7 @@ fn small_recording(dir: &Path, frames: usize, drop_probability: f64) -> Recordin
         drop_probability,
         ..RenderOptions::default()
     };
-    spinscan::sim::render_recording(&opts, dir, &mut |_, _| {}).unwrap()
+    spinscan::hw::sim::render_recording(&opts, dir, &mut |_, _| {}).unwrap()
 }
 
 fn replay_opts() -> ReplayOptions {
@@ -246,10 +246,10 @@ fn malformed_recordings_are_rejected_naming_file_and_line() {
 
 #[test]
 fn simulated_camera_faults_reach_the_camera_seam() {
-    let scene = spinscan::sim::small_scene("sphere", 64, 48, 70.0);
+    let scene = spinscan::hw::sim::small_scene("sphere", 64, 48, 70.0);
     let make = |fault| {
         let cam = hw_sim::SimStereoCamera::new(hw_sim::Renderer::new(scene.clone()).unwrap(), hw_sim::Timing::default(), hw_sim::TableAngle::new(0.0)).with_faults(vec![fault]);
-        spinscan::sim::SimCameras::new(cam)
+        spinscan::hw::sim::SimCameras::new(cam)
     };
     let mut stop = make(hw_sim::CameraFault::Stop { camera: hw_sim::Side::Right, after_frames: 2 });
     assert!(stop.next_frame().unwrap().is_some() && stop.next_frame().unwrap().is_some());

@@ -9,7 +9,7 @@ use std::process::{Command, Output};
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use spinscan::cloud::PointCloud;
-use spinscan::register::files::{read_transform_json, Conf};
+use spinscan::io::poses::{read_transform_json, Conf};
 use spinscan::register::{from_rows, rotation_about_axis, Rows4};
 
 fn spinscan(args: &[&str]) -> Output {
@@ -54,7 +54,7 @@ fn register_pair_writes_the_json_contract() {
     // An initial guess 2° and 2 mm off the truth.
     let init = Isometry3::from_parts(Translation3::new(1.0, 1.0, -1.0), UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 2f64.to_radians(), 0.0))) * truth;
     let init_path = dir.join("init.json");
-    std::fs::write(&init_path, spinscan::register::files::transform_json(&init).to_string()).unwrap();
+    std::fs::write(&init_path, spinscan::io::poses::transform_json(&init).to_string()).unwrap();
     for method in ["point-to-plane", "point-to-point"] {
         let out = dir.join(format!("{method}.json"));
         let o = spinscan(&["register", s.to_str().unwrap(), t.to_str().unwrap(), "--init", init_path.to_str().unwrap(), "--method", method, "--max-distance", "5", "--repeat", "3", "-o", out.to_str().unwrap()]);
@@ -122,7 +122,7 @@ fn bunny_pair_from_an_8_degree_guess_lands_on_the_conf() {
     let off = Isometry3::from_parts(Translation3::from(axis * 0.01), UnitQuaternion::from_scaled_axis(axis * 8f64.to_radians()));
     let dir = support::temp_dir("register-bunny");
     let init = dir.join("init.json");
-    std::fs::write(&init, spinscan::register::files::transform_json(&(off * truth)).to_string()).unwrap();
+    std::fs::write(&init, spinscan::io::poses::transform_json(&(off * truth)).to_string()).unwrap();
     let out = dir.join("out.json");
     let o = spinscan(&["register", data.join("bun045.ply").to_str().unwrap(), data.join("bun000.ply").to_str().unwrap(), "--init", init.to_str().unwrap(), "--max-distance", "0.005", "-o", out.to_str().unwrap()]);
     assert!(o.status.success(), "{}", stderr(&o));
@@ -162,21 +162,21 @@ fn bunny_ring_writes_conf_poses_near_the_published_ones() {
 fn replay_turn(tag: &str, object: &str) -> (std::path::PathBuf, std::path::PathBuf, serde_json::Value) {
     let dir = support::temp_dir(tag);
     let rec_dir = dir.join("rec");
-    let opts = spinscan::sim::RenderOptions {
-        object: spinscan::sim::SimObject::Builtin { name: object.into(), triangles: 40_000 },
+    let opts = spinscan::hw::sim::RenderOptions {
+        object: spinscan::hw::sim::SimObject::Builtin { name: object.into(), triangles: 40_000 },
         frames: 45,
         deg_per_frame: 8.0,
         image_size: (320, 240),
         ..Default::default()
     };
-    let rec = spinscan::sim::render_recording(&opts, &rec_dir, &mut |_, _| {}).unwrap();
+    let rec = spinscan::hw::sim::render_recording(&opts, &rec_dir, &mut |_, _| {}).unwrap();
     let out = dir.join("out");
-    let mut ropts = spinscan::replay::ReplayOptions::with_registration(spinscan::pipeline::PipelineOptions {
+    let mut ropts = spinscan::pipeline::replay::ReplayOptions::with_registration(spinscan::pipeline::PipelineOptions {
         matching: spinscan::stereo::MatchParams { num_disparities: 64, ..Default::default() },
         ..Default::default()
     });
     ropts.registration.as_mut().unwrap().icp.max_distance = 12.0;
-    let summary = spinscan::replay::run_recording(rec, &out, &ropts, &mut |_, _, _| {}).unwrap();
+    let summary = spinscan::pipeline::replay::run_recording(rec, &out, &ropts, &mut |_, _, _| {}).unwrap();
     (rec_dir, out, summary.registration.expect("registration ran"))
 }
 
@@ -241,8 +241,8 @@ fn a_simulated_turn_replays_into_poses_model_and_axis() {
 fn a_bad_turntable_yaml_is_named_before_any_work() {
     let dir = support::temp_dir("register-bad-axis");
     let rec_dir = dir.join("rec");
-    let opts = spinscan::sim::RenderOptions { frames: 2, image_size: (160, 120), ..Default::default() };
-    spinscan::sim::render_recording(&opts, &rec_dir, &mut |_, _| {}).unwrap();
+    let opts = spinscan::hw::sim::RenderOptions { frames: 2, image_size: (160, 120), ..Default::default() };
+    spinscan::hw::sim::render_recording(&opts, &rec_dir, &mut |_, _| {}).unwrap();
     std::fs::write(rec_dir.join("turntable.yaml"), "axis_point_mm: [0, 0, 450]\naxis_dir: [0, zero, 0]\n").unwrap();
     let out = dir.join("out");
     let o = spinscan(&["replay", rec_dir.to_str().unwrap(), "-o", out.to_str().unwrap(), "--max-disparity", "32"]);

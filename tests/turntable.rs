@@ -6,7 +6,7 @@ use std::io::{Read, Write};
 use std::time::{Duration, Instant};
 
 use hw_sim::{Emulator, FirmwareConfig, TableAngle, TurntableFault};
-use spinscan::turntable::{DriverConfig, HorusTurntable, Turntable, TurntableError};
+use spinscan::hw::{DriverConfig, HorusTurntable, Turntable, TurntableError};
 
 /// A bare client that speaks the spec: bytes out, lines in.
 struct RawClient {

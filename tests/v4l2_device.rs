@@ -10,8 +10,8 @@
 
 use std::time::Duration;
 
-use spinscan::capture::StereoSource;
-use spinscan::daemon::v4l2::{StreamConfig, V4l2Stereo};
+use spinscan::hw::StereoSource;
+use spinscan::hw::v4l2::{StreamConfig, V4l2Stereo};
 
 fn var(name: &str) -> String {
     std::env::var(name).unwrap_or_else(|_| panic!("--features device-tests needs {name} naming a V4L2 device (see the top of tests/v4l2_device.rs)"))
@@ -26,7 +26,7 @@ fn two_cameras_deliver_paired_frames_on_one_clock() {
     let mut fourcc = [b' '; 4];
     fourcc.copy_from_slice(&format.as_bytes()[..4]);
     let cfg = StreamConfig { width: w, height: h, fps: 15, fourcc, buffers: 4, timeout: Duration::from_secs(2), auto_exposure: None, exposure_100us: None, gain: None };
-    let calib = spinscan::sim::calib_of(&hw_sim::Rig::ideal(w as usize, h as usize, 700.0, 60.0));
+    let calib = spinscan::hw::sim::calib_of(&hw_sim::Rig::ideal(w as usize, h as usize, 700.0, 60.0));
     let tolerance_ns = 33_333_333;
     let mut cams = V4l2Stereo::open(left.as_ref(), right.as_ref(), cfg, tolerance_ns, calib).expect("open both cameras");
     let mut last_seq = None;

@@ -80,15 +80,24 @@ impl AssistMode {
     }
 
     /// Parses `none`, `paper` (with `w`) or `predicted`.
-    pub fn parse(name: &str, w: f64) -> Result<AssistMode, String> {
+    pub fn parse(name: &str, w: f64) -> Result<AssistMode, AssistModeError> {
         match name {
             "none" => Ok(AssistMode::None),
             "paper" if w > 0.0 && w.is_finite() => Ok(AssistMode::Paper { w }),
-            "paper" => Err(format!("weighting factor w = {w}: expected a positive number (the paper used 0.6, 0.8, 1 and 2)")),
+            "paper" => Err(AssistModeError::Weight(w)),
             "predicted" => Ok(AssistMode::Predicted),
-            other => Err(format!("assist mode `{other}`: expected none, paper or predicted")),
+            other => Err(AssistModeError::Mode(other.to_string())),
         }
     }
+}
+
+/// An assist mode that does not exist, or a weight the paper's rule cannot use.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum AssistModeError {
+    #[error("weighting factor w = {0}: expected a positive number (the paper used 0.6, 0.8, 1 and 2)")]
+    Weight(f64),
+    #[error("assist mode `{0}`: expected none, paper or predicted")]
+    Mode(String),
 }
 
 /// Knobs of the assisted matcher; see `docs/assisted-matching.md`.

@@ -13,8 +13,7 @@ struct Scene {
 
 impl Scene {
     fn new() -> Scene {
-        let rig = hw_sim::Rig::ideal(320, 240, 300.0, 60.0);
-        let rect = Rectification::compute(&crate::sim::calib_of(&rig), (320, 240), 0.0).unwrap();
+        let rect = Rectification::compute(&crate::hw::sim::ideal_calib(320, 240, 300.0, 60.0), (320, 240), 0.0).unwrap();
         let cam = RectCamera::new(&rect);
         Scene { rect, cam, axis_point: Vector3::new(0.0, 0.0, 420.0), step_deg: 2.0 }
     }

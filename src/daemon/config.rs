@@ -8,7 +8,8 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 
 use crate::assist::{AssistMode, AssistParams};
-use crate::turntable::DriverConfig;
+use crate::hw::sim::SimSection;
+use crate::hw::DriverConfig;
 
 /// Why a configuration cannot be used.
 #[derive(Debug, thiserror::Error)]
@@ -263,28 +264,6 @@ impl Default for MatchingSection {
     }
 }
 
-#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct SimSection {
-    /// Built-in object: egg, torus, vase, sphere.
-    pub object: String,
-    pub width: usize,
-    pub height: usize,
-    /// The ideal rectified rig (else distortion and misalignment).
-    pub ideal: bool,
-    pub seed: u64,
-    /// Deliver frames at the cameras' rate (else as fast as they are asked for).
-    pub realtime: bool,
-    /// Simulated turntable seconds per real second (> 1 turns faster).
-    pub time_scale: f64,
-}
-
-impl Default for SimSection {
-    fn default() -> Self {
-        SimSection { object: "egg".into(), width: 640, height: 480, ideal: false, seed: 1, realtime: true, time_scale: 1.0 }
-    }
-}
-
 impl Default for Config {
     fn default() -> Self {
         Config {
@@ -389,8 +368,8 @@ impl Config {
         if let Err(e) = self.assist() {
             return bad("matching.assist", e);
         }
-        if let Err(e) = crate::sim::check_object(&self.sim.object) {
-            return bad("sim.object", e);
+        if let Err(e) = crate::hw::sim::check_object(&self.sim.object) {
+            return bad("sim.object", e.to_string());
         }
         if self.sim.width < 32 || self.sim.height < 32 {
             return bad("sim.width", format!("the simulated cameras must be at least 32×32, got {}×{}", self.sim.width, self.sim.height));

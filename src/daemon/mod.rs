@@ -14,10 +14,8 @@
 pub mod client;
 pub mod config;
 pub mod rpc;
-pub mod scan;
 pub mod server;
 pub mod throughput;
-pub mod v4l2;
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -27,7 +25,7 @@ use serde_json::{json, Value};
 
 use config::{BackendKind, Config};
 use rpc::{code, Params, Request, RpcError};
-use scan::{Devices, PipelineSettings, ScanEnd, ScanMode, ScanShared, ScanSpec};
+use crate::pipeline::live::{self as scan, Devices, PipelineSettings, ScanEnd, ScanMode, ScanShared, ScanSpec};
 
 /// Exit codes of `spinscand` (sysexits.h), named in the unit's `RestartPreventExitStatus=`.
 pub mod exit {
@@ -156,30 +154,23 @@ impl Auth {
     }
 }
 
-/// The open devices of a backend, and what keeps a simulated lab alive.
-struct Opened {
-    devices: Devices,
-    /// The turntable firmware emulator (sim backend): its pty lives as long as it does.
-    emulator: Option<hw_sim::Emulator>,
-}
-
 /// Opens the configured backend's devices.
-fn open_backend(config: &Config) -> Result<Opened, String> {
+fn open_backend(config: &Config) -> Result<Devices, String> {
     match config.backend.kind {
         BackendKind::Sim => {
-            let lab = crate::sim::SimLab::open(&config.sim, config.cameras.fps as f64, config.turntable.driver())?;
-            Ok(Opened { devices: Devices { source: Box::new(lab.cameras), turntable: Some(Box::new(lab.turntable)) }, emulator: Some(lab.emulator) })
+            let lab = crate::hw::sim::SimLab::open(&config.sim, config.cameras.fps as f64, config.turntable.driver()).map_err(|e| e.to_string())?;
+            Ok(Devices { source: Box::new(lab.cameras), turntable: Some(Box::new(lab.turntable)) })
         }
         BackendKind::Replay => {
             let rec = crate::recording::Recording::open(&config.backend.replay).map_err(|e| format!("backend.replay: {e}"))?;
-            Ok(Opened { devices: Devices { source: Box::new(crate::recording::ReplaySource::new(rec)), turntable: None }, emulator: None })
+            Ok(Devices { source: Box::new(crate::hw::replay::ReplaySource::new(rec)), turntable: None })
         }
         BackendKind::V4l2 => {
             let c = &config.cameras;
             let calib = crate::calib::StereoCalib::load(&c.calibration).map_err(|e| format!("cameras.calibration: {e}"))?;
             let mut fourcc = [b' '; 4];
             fourcc.copy_from_slice(&c.pixel_format.as_bytes()[..4]);
-            let stream = v4l2::StreamConfig {
+            let stream = crate::hw::v4l2::StreamConfig {
                 width: c.width,
                 height: c.height,
                 fps: c.fps,
@@ -190,9 +181,9 @@ fn open_backend(config: &Config) -> Result<Opened, String> {
                 exposure_100us: c.exposure_100us,
                 gain: c.gain,
             };
-            let cams = v4l2::V4l2Stereo::open(&c.left, &c.right, stream, c.pair_tolerance_ns(), calib).map_err(|e| e.to_string())?;
-            let table = crate::turntable::HorusTurntable::open(&config.turntable.port, config.turntable.driver()).map_err(|e| e.to_string())?;
-            Ok(Opened { devices: Devices { source: Box::new(cams), turntable: Some(Box::new(table)) }, emulator: None })
+            let cams = crate::hw::v4l2::V4l2Stereo::open(&c.left, &c.right, stream, c.pair_tolerance_ns(), calib).map_err(|e| e.to_string())?;
+            let table = crate::hw::HorusTurntable::open(&config.turntable.port, config.turntable.driver()).map_err(|e| e.to_string())?;
+            Ok(Devices { source: Box::new(cams), turntable: Some(Box::new(table)) })
         }
     }
 }
@@ -229,7 +220,6 @@ pub fn pipeline_settings(config: &Config) -> PipelineSettings {
 struct Inner {
     /// None while a scan holds them or after they failed.
     devices: Option<Devices>,
-    emulator: Option<hw_sim::Emulator>,
     device_error: Option<String>,
     scan: Option<Arc<ScanShared>>,
     last: Option<(String, ScanEnd)>,
@@ -252,13 +242,13 @@ impl Daemon {
     pub fn start(config: Config, auth: Auth) -> Result<Arc<Daemon>, String> {
         std::fs::create_dir_all(&config.daemon.state_dir).map_err(|e| format!("cannot create the state folder {}: {e}", config.daemon.state_dir.display()))?;
         recover_interrupted(&config.daemon.state_dir);
-        let opened = open_backend(&config)?;
+        let devices = open_backend(&config)?;
         let (events, _) = tokio::sync::broadcast::channel(256);
         Ok(Arc::new(Daemon {
             config,
             auth,
             events,
-            inner: Mutex::new(Inner { devices: Some(opened.devices), emulator: opened.emulator, device_error: None, scan: None, last: None }),
+            inner: Mutex::new(Inner { devices: Some(devices), device_error: None, scan: None, last: None }),
             started: Instant::now(),
             scan_ended: tokio::sync::Notify::new(),
         }))
@@ -340,7 +330,7 @@ impl Daemon {
             "turntable": table,
         });
         match c.backend.kind {
-            BackendKind::V4l2 => out["present"] = v4l2::list_devices(),
+            BackendKind::V4l2 => out["present"] = crate::hw::v4l2::list_devices(),
             BackendKind::Sim => out["sim"] = json!({"object": c.sim.object, "width": c.sim.width, "height": c.sim.height, "ideal": c.sim.ideal}),
             BackendKind::Replay => out["replay"] = json!(c.backend.replay),
         }
@@ -387,11 +377,8 @@ impl Daemon {
         if inner.devices.is_none() || self.config.backend.kind == BackendKind::Replay {
             inner.devices = None;
             match open_backend(&self.config) {
-                Ok(o) => {
-                    inner.devices = Some(o.devices);
-                    if o.emulator.is_some() {
-                        inner.emulator = o.emulator;
-                    }
+                Ok(devices) => {
+                    inner.devices = Some(devices);
                     inner.device_error = None;
                 }
                 Err(e) => {
@@ -501,11 +488,10 @@ impl Daemon {
         Ok(m)
     }
 
-    /// Drops the devices (the emulator last) at shutdown.
+    /// Drops the devices (a simulated turntable's emulator with its driver) at shutdown.
     pub fn close(&self) {
         let mut inner = self.inner.lock().unwrap();
         inner.devices = None;
-        inner.emulator = None;
     }
 }
 

@@ -15,9 +15,9 @@ use std::time::Instant;
 
 use serde_json::{json, Value};
 
-use super::scan::{self, Devices, PipelineSettings, ScanMode, ScanShared, ScanSpec};
+use crate::pipeline::live::{self as scan, Devices, PipelineSettings, ScanMode, ScanShared, ScanSpec};
 use crate::calib::StereoCalib;
-use crate::capture::{CaptureError, Picture, StereoFrame, StereoSource};
+use crate::hw::{CaptureError, Picture, StereoFrame, StereoSource};
 
 /// Pairs held in memory, delivered in order, `repeat` times over with growing `seq`.
 struct MemorySource {
@@ -90,25 +90,39 @@ pub struct LiveOptions {
     pub unpaced: bool,
 }
 
+/// Why `bench live` could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum LiveError {
+    #[error(transparent)]
+    Recording(#[from] crate::recording::RecordingError),
+    #[error("frame seq {seq}: {source}")]
+    Decode { seq: u64, source: crate::hw::DecodeError },
+    #[error("{0} holds no frame")]
+    Empty(std::path::PathBuf),
+    #[error("cannot create {path}: {source}")]
+    Create { path: std::path::PathBuf, source: std::io::Error },
+}
+
 /// Runs the recording at each pace and unpaced; results of each run go to a temporary
 /// folder under `work` (removed after).
-pub fn live(recording: &Path, opts: &LiveOptions, work: &Path, progress: &mut dyn FnMut(&str)) -> Result<Vec<LiveRun>, String> {
-    let rec = crate::recording::Recording::open(recording).map_err(|e| e.to_string())?;
+pub fn live(recording: &Path, opts: &LiveOptions, work: &Path, progress: &mut dyn FnMut(&str)) -> Result<Vec<LiveRun>, LiveError> {
+    let rec = crate::recording::Recording::open(recording)?;
     progress(&format!("decoding {} pairs", rec.frames.len()));
     let mut frames = Vec::new();
     for i in 0..rec.frames.len() {
-        let mut f = rec.load_frame(i).map_err(|e| e.to_string())?;
+        let mut f = rec.load_frame(i)?;
+        let seq = f.seq;
         // Decode once: the pipeline then sees raw frames, like YUYV cameras.
         for p in [&mut f.left, &mut f.right] {
             if let Picture::Jpeg { .. } = p {
-                let (w, h, rgb) = p.to_rgb()?;
+                let (w, h, rgb) = p.to_rgb().map_err(|source| LiveError::Decode { seq, source })?;
                 *p = Picture::Raw { width: w, height: h, channels: 3, data: rgb };
             }
         }
         frames.push(f);
     }
     if frames.is_empty() {
-        return Err(format!("{} holds no frame", recording.display()));
+        return Err(LiveError::Empty(recording.to_path_buf()));
     }
     let mut runs = Vec::new();
     let mut plan: Vec<(String, Option<f64>, bool)> = opts.paces.iter().map(|p| (format!("paced {p} pairs/s"), Some(*p), true)).collect();
@@ -120,7 +134,7 @@ pub fn live(recording: &Path, opts: &LiveOptions, work: &Path, progress: &mut dy
         progress(&label);
         let dir = work.join(format!("run-{i}"));
         let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+        std::fs::create_dir_all(&dir).map_err(|source| LiveError::Create { path: dir.clone(), source })?;
         let mut devices = Devices { source: Box::new(MemorySource { calib: rec.calib.clone(), frames: frames.clone(), next: 0, limit: opts.pairs }), turntable: None };
         let spec = ScanSpec { name: format!("bench-{i}"), mode: if pace.is_some() { ScanMode::Continuous } else { ScanMode::Step }, step_deg: 1.0, total_deg: 360.0, speed_deg_s: 1.0, max_views: None };
         let shared = Arc::new(ScanShared::new(spec, dir.clone(), Box::new(|_, _| {})));

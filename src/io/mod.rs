@@ -1,6 +1,8 @@
-//! Files: images in, disparity maps (16-bit PNG, PFM, false colour), masks and PLY out.
+//! Files: images in, disparity maps (16-bit PNG, PFM, false colour), masks, PLY, and the pose
+//! files of `spinscan register` (transform JSON, Stanford `.conf`).
 
 pub mod ply;
+pub mod poses;
 
 use std::path::{Path, PathBuf};
 

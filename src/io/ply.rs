@@ -18,6 +18,21 @@ pub enum PlyError {
     Body { path: PathBuf, element: String, index: usize, what: String },
 }
 
+/// What is wrong with one record of the body.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+enum BodyError {
+    #[error("file ends early")]
+    EndsEarly,
+    #[error("line is not text")]
+    NotText,
+    #[error("line has too few values")]
+    FewValues,
+    #[error("`{0}` is not a number")]
+    NotNumber(String),
+    #[error("{0}")]
+    Invalid(String),
+}
+
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Scalar {
     I8,
@@ -179,7 +194,7 @@ pub fn read_ply(path: &Path) -> Result<Mesh, PlyError> {
     let mut list: Vec<f64> = Vec::new();
     for el in &elements {
         for index in 0..el.count {
-            let body_err = |what: String| PlyError::Body { path: path.to_path_buf(), element: el.name.clone(), index, what };
+            let body_err = |e: BodyError| PlyError::Body { path: path.to_path_buf(), element: el.name.clone(), index, what: e.to_string() };
             values.clear();
             list.clear();
             src.start_record().map_err(body_err)?;
@@ -189,7 +204,7 @@ pub fn read_ply(path: &Path) -> Result<Mesh, PlyError> {
                     Some(ct) => {
                         let n = src.scalar(ct).map_err(body_err)?;
                         if !(0.0..=1e6).contains(&n) {
-                            return Err(body_err(format!("list `{}` has an impossible length {n}", p.name)));
+                            return Err(body_err(BodyError::Invalid(format!("list `{}` has an impossible length {n}", p.name))));
                         }
                         values.push(f64::NAN);
                         for _ in 0..n as usize {
@@ -220,7 +235,7 @@ pub fn read_ply(path: &Path) -> Result<Mesh, PlyError> {
             } else if el.name == "face" && list.len() >= 3 {
                 let nv = mesh.cloud.points.len() as f64;
                 if list.iter().any(|&i| i < 0.0 || i >= nv) {
-                    return Err(body_err(format!("face refers to a vertex outside 0…{}", nv as usize - 1)));
+                    return Err(body_err(BodyError::Invalid(format!("face refers to a vertex outside 0…{}", nv as usize - 1))));
                 }
                 for k in 1..list.len() - 1 {
                     mesh.triangles.push([list[0] as u32, list[k] as u32, list[k + 1] as u32]);
@@ -246,17 +261,17 @@ impl<'a> Source<'a> {
         Source { body, pos: 0, format, words: Vec::new(), word: 0 }
     }
 
-    fn start_record(&mut self) -> Result<(), String> {
+    fn start_record(&mut self) -> Result<(), BodyError> {
         if self.format != Format::Ascii {
             return Ok(());
         }
         // One element per line; blank lines are skipped.
         loop {
             if self.pos >= self.body.len() {
-                return Err("file ends early".into());
+                return Err(BodyError::EndsEarly);
             }
             let end = self.body[self.pos..].iter().position(|&c| c == b'\n').map_or(self.body.len(), |e| self.pos + e);
-            let line = std::str::from_utf8(&self.body[self.pos..end]).map_err(|_| "line is not text".to_string())?;
+            let line = std::str::from_utf8(&self.body[self.pos..end]).map_err(|_| BodyError::NotText)?;
             self.pos = end + 1;
             self.words = line.split_whitespace().collect();
             self.word = 0;
@@ -266,17 +281,17 @@ impl<'a> Source<'a> {
         }
     }
 
-    fn scalar(&mut self, ty: Scalar) -> Result<f64, String> {
+    fn scalar(&mut self, ty: Scalar) -> Result<f64, BodyError> {
         match self.format {
             Format::Ascii => {
-                let w = self.words.get(self.word).ok_or("line has too few values")?;
+                let w = self.words.get(self.word).ok_or(BodyError::FewValues)?;
                 self.word += 1;
-                w.parse::<f64>().map_err(|_| format!("`{w}` is not a number"))
+                w.parse::<f64>().map_err(|_| BodyError::NotNumber(w.to_string()))
             }
             Format::Binary { big } => {
                 let n = ty.size();
                 if self.pos + n > self.body.len() {
-                    return Err("file ends early".into());
+                    return Err(BodyError::EndsEarly);
                 }
                 let v = ty.decode(&self.body[self.pos..], big);
                 self.pos += n;

@@ -38,13 +38,18 @@ pub enum IcpMethod {
     PointToPlane,
 }
 
+/// An ICP method name that is not one.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("unknown ICP method `{0}`; expected point-to-plane or point-to-point")]
+pub struct UnknownMethod(pub String);
+
 impl std::str::FromStr for IcpMethod {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
+    type Err = UnknownMethod;
+    fn from_str(s: &str) -> Result<Self, UnknownMethod> {
         match s {
             "point-to-point" => Ok(IcpMethod::PointToPoint),
             "point-to-plane" => Ok(IcpMethod::PointToPlane),
-            other => Err(format!("unknown ICP method `{other}`; expected point-to-plane or point-to-point")),
+            other => Err(UnknownMethod(other.to_string())),
         }
     }
 }

@@ -73,11 +73,18 @@ mod tests {
 
     #[test]
     fn nearest_matches_brute_force() {
-        let mut rng = hw_sim::math::Rng::new(7);
-        let pts: Vec<[f32; 3]> = (0..2000).map(|_| [rng.unit() as f32, rng.unit() as f32, rng.unit() as f32]).collect();
+        // A small xorshift: uniform points in the unit cube, the same every run.
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        let mut unit = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let pts: Vec<[f32; 3]> = (0..2000).map(|_| [unit() as f32, unit() as f32, unit() as f32]).collect();
         let tree = KdTree::build(pts.clone(), "cloud").unwrap();
         for _ in 0..200 {
-            let q = [rng.unit() as f32, rng.unit() as f32, rng.unit() as f32];
+            let q = [unit() as f32, unit() as f32, unit() as f32];
             let d2 = |p: &[f32; 3]| (0..3).map(|i| (p[i] - q[i]).powi(2)).sum::<f32>();
             let best = pts.iter().map(d2).fold(f32::INFINITY, f32::min);
             let (i, d) = tree.nearest(&q);

@@ -2,8 +2,9 @@
 //! point removal, the voxel-merged model, the shared pose store, turntable axis estimation
 //! and loop closure.
 //!
-//! Everything here is pure computation on point sets; [`crate::replay`] wires it to
-//! recordings and results folders, and `spinscan register` to PLY files.
+//! Everything here is pure computation on point sets; [`crate::pipeline`] wires it to
+//! recordings and results folders, and `spinscan register` to PLY files ([`crate::io::poses`]
+//! reads and writes its pose files).
 //!
 //! Conventions: a pose `b_from_a` is an [`Isometry3`] mapping points of frame `a` into frame
 //! `b`; `first_from_view` maps a view's points (its LEFT raw camera frame) into the first
@@ -11,7 +12,6 @@
 
 pub mod axis;
 pub mod denoise;
-pub mod files;
 pub mod icp;
 pub mod kdtree;
 pub mod normals;
@@ -49,21 +49,32 @@ pub fn to_rows(t: &Isometry3<f64>) -> Rows4 {
     std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))
 }
 
+/// Why a 4×4 matrix is not a rigid transform.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum TransformError {
+    #[error("a matrix entry is not a finite number")]
+    NotFinite,
+    #[error("last row is {0:?}, expected [0, 0, 0, 1]")]
+    LastRow([f64; 4]),
+    #[error("the upper-left 3×3 block is not a rotation (RᵀR differs from I by {err:.2e}, det {det:.4})")]
+    NotRotation { err: f64, det: f64 },
+}
+
 /// Reads a rigid transform from rows, checking that it is one (orthonormal rotation with
 /// determinant +1 to `tol`, last row 0 0 0 1). The rotation is re-orthonormalised.
-pub fn from_rows(rows: &Rows4, tol: f64) -> Result<Isometry3<f64>, String> {
+pub fn from_rows(rows: &Rows4, tol: f64) -> Result<Isometry3<f64>, TransformError> {
     if rows.iter().flatten().any(|v| !v.is_finite()) {
-        return Err("a matrix entry is not a finite number".into());
+        return Err(TransformError::NotFinite);
     }
     let m = Matrix4::from_fn(|r, c| rows[r][c]);
     let last = [m[(3, 0)], m[(3, 1)], m[(3, 2)], m[(3, 3)]];
     if last[0].abs() > tol || last[1].abs() > tol || last[2].abs() > tol || (last[3] - 1.0).abs() > tol {
-        return Err(format!("last row is {last:?}, expected [0, 0, 0, 1]"));
+        return Err(TransformError::LastRow(last));
     }
     let r: Matrix3<f64> = m.fixed_view::<3, 3>(0, 0).into_owned();
     let err = (r.transpose() * r - Matrix3::identity()).abs().max();
     if err > tol || r.determinant() < 0.0 {
-        return Err(format!("the upper-left 3×3 block is not a rotation (RᵀR differs from I by {err:.2e}, det {:.4})", r.determinant()));
+        return Err(TransformError::NotRotation { err, det: r.determinant() });
     }
     let rot = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&r));
     Ok(Isometry3::from_parts(Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]), rot))

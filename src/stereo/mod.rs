@@ -1,6 +1,7 @@
 //! The stereo core: rectification, correlation matching and triangulation. Pure
 //! computation on in-memory images — this module does no IO.
 
+pub mod disparity;
 mod kernels;
 pub mod matcher;
 pub mod params;
@@ -8,6 +9,7 @@ pub mod rectify;
 pub mod speckle;
 pub mod triangulate;
 
-pub use matcher::{DisparityIntervals, DisparityMap, GrayView, MatchError, MatchStats, StereoMatcher};
+pub use disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
+pub use matcher::{MatchError, StereoMatcher};
 pub use params::{MatchParams, ParamError, ValidMatchParams};
 pub use rectify::{Rectification, RectifyError, RemapTable};

@@ -6,7 +6,7 @@
 //! pixels are within the range. Each pixel is compared twice (left, above) and written once,
 //! instead of the four neighbour visits and stack traffic of a flood fill.
 
-use super::matcher::DisparityMap;
+use super::disparity::DisparityMap;
 
 /// Reusable buffers of the speckle filter.
 #[derive(Default)]

@@ -2,7 +2,7 @@
 
 use nalgebra::{Vector3, Vector4};
 
-use super::matcher::DisparityMap;
+use super::disparity::DisparityMap;
 use super::rectify::Rectification;
 use crate::cloud::PointCloud;
 

@@ -1,11 +1,31 @@
-//! One view through the stereo core: rectify → segment → match → triangulate.
+//! The data path of one view, and the drivers that run it over many.
+//!
+//! ```text
+//!  StereoFrame ─decode, size check─> raw RGB ─rectify, segment─> Prepared
+//!      ─assisted (Assistant + PoseSnapshot, self-correction) or full-range match─> disparity
+//!      ─triangulate─> View ──> results::ResultsWriter (views/, disparity/, poses, model, report)
+//! ```
+//!
+//! [`Pipeline::process_frame`] is that path in one function; `spinscan replay`
+//! ([`replay`]), the daemon's live scans ([`live`]) and `bench table1` (which prepares each
+//! frame once and matches it per row) all go through the same [`Pipeline::prepare_frame`],
+//! [`Pipeline::match_frame`] and [`Pipeline::finish_view`].
 
+pub mod live;
+pub mod replay;
+pub mod results;
+
+use std::sync::Arc;
 use std::time::Instant;
 
-use crate::assist::{Assistant, Plan};
+use crate::assist::{AssistParams, Assistant, Plan};
 use crate::calib::StereoCalib;
 use crate::cloud::PointCloud;
+use crate::hw::{DecodeError, StereoFrame};
 use crate::io::rgb_to_gray;
+use crate::recording::TurntableAxis;
+use crate::register::posestore::{PoseSnapshot, PoseStore};
+use crate::register::ring::{Registrar, RegistrationParams};
 use crate::segment::{ChromaKey, SegmentError};
 use crate::stereo::{
     triangulate::triangulate, DisparityIntervals, DisparityMap, GrayView, MatchError, MatchParams, MatchStats, ParamError,
@@ -48,6 +68,32 @@ pub enum PipelineError {
     ImageSize(usize, usize, u32, u32),
 }
 
+/// Why one frame produced no view.
+#[derive(Debug, thiserror::Error)]
+pub enum FrameError {
+    #[error("{side} image: {source}")]
+    Decode { side: &'static str, source: DecodeError },
+    #[error("images are {0}×{1} and {2}×{3}, expected {4}×{5}")]
+    Size(usize, usize, usize, usize, usize, usize),
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+}
+
+/// Registration assistance for one frame: the matcher's own assistant and the poses
+/// registration has published so far.
+pub struct Assist<'a> {
+    pub assistant: &'a mut Assistant,
+    pub poses: &'a PoseSnapshot,
+}
+
+/// A registrar seeded with the recording's calibrated turntable axis, where it has one.
+pub fn registrar(mut params: RegistrationParams, calibrated_axis: Option<&TurntableAxis>, store: Arc<PoseStore>) -> Registrar {
+    if let Some(axis) = calibrated_axis {
+        params.calibrated_axis = Some((nalgebra::Vector3::from(axis.axis_point_mm), nalgebra::Vector3::from(axis.axis_dir)));
+    }
+    Registrar::new(params, store)
+}
+
 /// Everything one view produced.
 #[derive(Debug, Clone)]
 pub struct View {
@@ -81,6 +127,8 @@ pub struct AssistedMatch {
     pub disparity: DisparityMap,
     pub stats: MatchStats,
     pub outcome: AssistOutcome,
+    /// Whether an assistant planned the frame (else: full range, no assistance).
+    pub assisted: bool,
 }
 
 /// What the assistant did for one frame.
@@ -156,6 +204,51 @@ impl Pipeline {
         &self.matcher
     }
 
+    /// An assistant for this rig's rectification and this matcher's search range.
+    pub fn assistant(&self, params: AssistParams) -> Assistant {
+        let p = self.matcher.params();
+        Assistant::new(params, &self.rect, (p.min_disparity, p.max_disparity()))
+    }
+
+    /// Decodes a frame and checks it has the size the pipeline was built for: the raw RGB
+    /// pair.
+    pub fn decode(&self, frame: &StereoFrame) -> Result<(Vec<u8>, Vec<u8>), FrameError> {
+        let (lw, lh, left) = frame.left.to_rgb().map_err(|source| FrameError::Decode { side: "left", source })?;
+        let (rw, rh, right) = frame.right.to_rgb().map_err(|source| FrameError::Decode { side: "right", source })?;
+        if (lw, lh) != self.size || (rw, rh) != self.size {
+            return Err(FrameError::Size(lw, lh, rw, rh, self.size.0, self.size.1));
+        }
+        Ok((left, right))
+    }
+
+    /// Decodes, rectifies and (with `segment`) segments a frame for matching.
+    pub fn prepare_frame(&self, frame: &StereoFrame, segment: bool, plate: Option<&[u8]>) -> Result<Prepared, FrameError> {
+        let (left, right) = self.decode(frame)?;
+        Ok(self.prepare_rgb(&left, &right, segment, plate)?)
+    }
+
+    /// Matches a prepared frame: over the intervals the assistant plans, with
+    /// self-correction, or over the full range without one.
+    pub fn match_frame(&mut self, seq: u64, frame: &Prepared, assist: Option<Assist>) -> Result<AssistedMatch, PipelineError> {
+        match assist {
+            Some(a) => self.match_assisted(seq, frame, a.assistant, a.poses),
+            None => {
+                let (w, h) = self.size;
+                let intervals = self.matcher.full_intervals(w, h, frame.mask.as_deref());
+                let (disparity, stats, match_ms) = self.match_gray(&frame.left_gray, &frame.right_gray, &intervals)?;
+                Ok(AssistedMatch { seq, disparity, stats, outcome: AssistOutcome { match_ms, first_match_ms: match_ms, ..Default::default() }, assisted: false })
+            }
+        }
+    }
+
+    /// One frame's whole path: decode and size check → rectify and segment → assisted or
+    /// full-range match → triangulate.
+    pub fn process_frame(&mut self, frame: &StereoFrame, segment: bool, plate: Option<&[u8]>, assist: Option<Assist>) -> Result<View, FrameError> {
+        let prepared = self.prepare_frame(frame, segment, plate)?;
+        let m = self.match_frame(frame.seq, &prepared, assist)?;
+        Ok(self.finish_view(prepared, m))
+    }
+
     /// Rectifies a raw RGB pair.
     pub fn rectify_rgb(&self, left: &[u8], right: &[u8]) -> (Vec<u8>, Vec<u8>) {
         let (w, h) = (self.size.0 as u32, self.size.1 as u32);
@@ -205,13 +298,14 @@ impl Pipeline {
         } else {
             assistant.recycle(plan);
         }
-        Ok(AssistedMatch { seq, disparity, stats, outcome })
+        Ok(AssistedMatch { seq, disparity, stats, outcome, assisted: true })
     }
 
     /// Triangulates a matched frame into a [`View`].
     pub fn finish_view(&self, frame: Prepared, m: AssistedMatch) -> View {
         let cloud = triangulate(&m.disparity, &self.rect, &frame.left_rgb);
-        View { disparity: m.disparity, left_rgb: frame.left_rgb, mask: frame.mask, cloud, stats: m.stats, match_ms: m.outcome.match_ms, assist: Some(m.outcome) }
+        let match_ms = m.outcome.match_ms;
+        View { disparity: m.disparity, left_rgb: frame.left_rgb, mask: frame.mask, cloud, stats: m.stats, match_ms, assist: m.assisted.then_some(m.outcome) }
     }
 
     /// Processes a raw RGB pair. `segment`: match only the chroma-keyed foreground.
@@ -233,11 +327,8 @@ impl Pipeline {
 
     /// Matches a prepared pair over the full range and triangulates it.
     pub fn process_prepared(&mut self, frame: Prepared) -> Result<View, PipelineError> {
-        let (w, h) = self.size;
-        let intervals = self.matcher.full_intervals(w, h, frame.mask.as_deref());
-        let (disparity, stats, match_ms) = self.match_gray(&frame.left_gray, &frame.right_gray, &intervals)?;
-        let cloud = triangulate(&disparity, &self.rect, &frame.left_rgb);
-        Ok(View { disparity, left_rgb: frame.left_rgb, mask: frame.mask, cloud, stats, match_ms, assist: None })
+        let m = self.match_frame(0, &frame, None)?;
+        Ok(self.finish_view(frame, m))
     }
 
     /// Runs the matcher alone on rectified grey images and times it.

@@ -1,10 +1,17 @@
-//! Adapters from the simulated lab (`hw-sim`) to spinscan's seams: the rig's calibration
-//! as spinscan reads it, and the simulated cameras as a [`StereoSource`].
+//! The simulated lab (`hw-sim`) behind spinscan's seams: the rig's calibration as spinscan
+//! reads it, the simulated cameras as a [`StereoSource`], the turntable firmware emulator on
+//! a pty with spinscan's own serial driver talking to it (owned together, as one
+//! [`Turntable`]), the daemon's `[sim]` config section, and `spinscan sim render`. This is
+//! the only file of `src/` that names `hw_sim`.
 
 use nalgebra::{Matrix3, Vector3};
 
 use crate::calib::{Camera, Distortion, StereoCalib};
-use crate::capture::{CaptureError, Picture, StereoFrame, StereoSource};
+use serde::{Deserialize, Serialize};
+
+use super::horus::{DriverConfig, HorusTurntable};
+use super::{CaptureError, Picture, StereoFrame, StereoSource, Turntable, TurntableError};
+use crate::cloud::Mesh;
 
 /// The calibration of a simulated rig, exactly (OpenCV's model, 5 coefficients; none for
 /// a distortion-free camera).
@@ -84,12 +91,72 @@ impl StereoSource for SimCameras {
     }
 }
 
+/// The names of the built-in objects (`egg`, `torus`, …).
+pub fn builtin_objects() -> Vec<&'static str> {
+    hw_sim::BUILTIN_OBJECTS.iter().map(|o| o.0).collect()
+}
+
 /// A built-in object's name is known (`egg`, `torus`, …), else what the choices are.
-pub fn check_object(name: &str) -> Result<(), String> {
+pub fn check_object(name: &str) -> Result<(), SimError> {
     if hw_sim::BUILTIN_OBJECTS.iter().any(|o| o.0 == name) {
         Ok(())
     } else {
-        Err(format!("must be one of {}, got {name:?}", hw_sim::BUILTIN_OBJECTS.map(|o| o.0).join(", ")))
+        Err(SimError::UnknownObject { got: name.to_string(), known: builtin_objects().join(", ") })
+    }
+}
+
+/// The calibration of an ideal (distortion-free, rectified) rig of `width`×`height` pixels,
+/// focal length `focal_px` and baseline `baseline_mm`: what unit tests match on.
+pub fn ideal_calib(width: usize, height: usize, focal_px: f64, baseline_mm: f64) -> StereoCalib {
+    calib_of(&hw_sim::Rig::ideal(width, height, focal_px, baseline_mm))
+}
+
+/// The `[sim]` section of the daemon's config: the simulated lab of the `sim` backend.
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimSection {
+    /// Built-in object: egg, torus, vase, sphere.
+    pub object: String,
+    pub width: usize,
+    pub height: usize,
+    /// The ideal rectified rig (else distortion and misalignment).
+    pub ideal: bool,
+    pub seed: u64,
+    /// Deliver frames at the cameras' rate (else as fast as they are asked for).
+    pub realtime: bool,
+    /// Simulated turntable seconds per real second (> 1 turns faster).
+    pub time_scale: f64,
+}
+
+impl Default for SimSection {
+    fn default() -> Self {
+        SimSection { object: "egg".into(), width: 640, height: 480, ideal: false, seed: 1, realtime: true, time_scale: 1.0 }
+    }
+}
+
+/// The firmware emulator on its pty with spinscan's driver connected to it: the sim
+/// backend's [`Turntable`]. The emulator lives exactly as long as the driver that talks to it.
+pub struct SimTurntable {
+    // Field order is drop order: the driver lets go of the pty before the emulator closes it.
+    driver: HorusTurntable,
+    _emulator: hw_sim::Emulator,
+}
+
+impl Turntable for SimTurntable {
+    fn move_to(&mut self, table_deg: f64) -> Result<(), TurntableError> {
+        self.driver.move_to(table_deg)
+    }
+    fn angle(&mut self) -> Result<f64, TurntableError> {
+        self.driver.angle()
+    }
+    fn start_move(&mut self, table_deg: f64, feed_deg_s: f64) -> Result<(), TurntableError> {
+        self.driver.start_move(table_deg, feed_deg_s)
+    }
+    fn halt(&mut self) -> Result<(), TurntableError> {
+        self.driver.halt()
+    }
+    fn describe(&self) -> String {
+        format!("{} (simulated Horus firmware)", self.driver.describe())
     }
 }
 
@@ -98,27 +165,31 @@ pub fn check_object(name: &str) -> Result<(), String> {
 /// serial driver connected to the firmware.
 pub struct SimLab {
     pub cameras: SimCameras,
-    pub turntable: crate::turntable::HorusTurntable,
-    /// Keeps the pseudo-terminal alive; drop it after the driver.
-    pub emulator: hw_sim::Emulator,
+    pub turntable: SimTurntable,
 }
 
 impl SimLab {
-    pub fn open(s: &crate::daemon::config::SimSection, fps: f64, driver: crate::turntable::DriverConfig) -> Result<SimLab, String> {
-        let mesh = hw_sim::Mesh::builtin(&s.object, 30_000).map_err(|e| format!("sim.object: {e}"))?;
+    pub fn open(s: &SimSection, fps: f64, driver: DriverConfig) -> Result<SimLab, SimError> {
+        let mesh = hw_sim::Mesh::builtin(&s.object, 30_000)?;
         let mut scene = if s.ideal { hw_sim::SceneConfig::ideal(mesh) } else { hw_sim::SceneConfig::realistic(mesh) };
         let focal = 700.0 * s.width as f64 / 640.0;
         scene.rig = if s.ideal { hw_sim::Rig::ideal(s.width, s.height, focal, 60.0) } else { hw_sim::Rig::realistic(s.width, s.height, focal, 60.0) };
         scene.seed = s.seed;
         let angle = hw_sim::TableAngle::new(0.0);
         let fw = hw_sim::FirmwareConfig { time_scale: s.time_scale, ..Default::default() };
-        let emulator = hw_sim::Emulator::spawn(fw, angle.clone()).map_err(|e| format!("cannot start the turntable emulator: {e}"))?;
-        let renderer = hw_sim::Renderer::new(scene).map_err(|e| e.to_string())?;
+        let emulator = hw_sim::Emulator::spawn(fw, angle.clone()).map_err(|e| SimError::Emulator(e.to_string()))?;
+        let renderer = hw_sim::Renderer::new(scene)?;
         let timing = hw_sim::Timing { fps, ..Default::default() };
         let camera = hw_sim::SimStereoCamera::new(renderer, timing, angle).realtime(s.realtime);
-        let turntable = crate::turntable::HorusTurntable::open(emulator.port_path(), driver).map_err(|e| e.to_string())?;
-        Ok(SimLab { cameras: SimCameras::new(camera), turntable, emulator })
+        let driver = HorusTurntable::open(emulator.port_path(), driver)?;
+        Ok(SimLab { cameras: SimCameras::new(camera), turntable: SimTurntable { driver, _emulator: emulator } })
     }
+}
+
+/// A rendered pair of a scene at `table_deg`: raw left and right RGB images.
+pub fn render_pair(scene: &hw_sim::SceneConfig, table_deg: f64) -> Result<(Vec<u8>, Vec<u8>), SimError> {
+    let pair = hw_sim::Renderer::new(scene.clone())?.render(table_deg, 0);
+    Ok((pair.left_rgb, pair.right_rgb))
 }
 
 /// What `spinscan sim render` puts on the turntable.
@@ -126,8 +197,8 @@ impl SimLab {
 pub enum SimObject {
     /// A built-in shape (see [`hw_sim::BUILTIN_OBJECTS`]) with about this many triangles.
     Builtin { name: String, triangles: usize },
-    /// A triangle mesh in mm, `+y` up.
-    Mesh(hw_sim::Mesh),
+    /// A triangle mesh in mm, `+y` up, scaled by the factor.
+    Mesh(Mesh, f64),
 }
 
 /// Settings of a simulated recording.
@@ -178,6 +249,12 @@ pub enum SimError {
     Capture(#[from] CaptureError),
     #[error("{what} must be {expected}, got {got}")]
     Option { what: &'static str, expected: &'static str, got: String },
+    #[error("must be one of {known}, got {got:?}")]
+    UnknownObject { got: String, known: String },
+    #[error("cannot start the turntable emulator: {0}")]
+    Emulator(String),
+    #[error(transparent)]
+    Turntable(#[from] TurntableError),
 }
 
 /// Renders a recording with ground truth into `out`. `progress(done, total)` after each pair.
@@ -193,7 +270,7 @@ pub fn render_recording(opts: &RenderOptions, out: &std::path::Path, progress: &
     }
     let mesh = match &opts.object {
         SimObject::Builtin { name, triangles } => hw_sim::Mesh::builtin(name, *triangles)?,
-        SimObject::Mesh(m) => m.clone(),
+        SimObject::Mesh(m, scale) => hw_sim::Mesh { vertices: m.cloud.points.clone(), triangles: m.triangles.clone() }.scaled(*scale),
     };
     let mut scene = if opts.ideal { hw_sim::SceneConfig::ideal(mesh.clone()) } else { hw_sim::SceneConfig::realistic(mesh.clone()) };
     let (w, h) = opts.image_size;

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
-use super::{from_rows, to_rows, Rows4};
+use crate::register::{from_rows, to_rows, Rows4};
 
 /// Why a transform or conf file could not be used.
 #[derive(Debug, thiserror::Error)]

@@ -1,5 +1,5 @@
-//! V4L2 cameras: pixel formats as delivered, pairing of two free-running cameras by the
-//! kernel's timestamps, the capture threads, and the device listing.
+//! V4L2 cameras: pixel formats as delivered, the capture threads, and the device listing;
+//! the two free-running cameras are paired by [`super::pairing`].
 //!
 //! ```text
 //!  left  /dev/videoN ─mmap stream─> capture thread ─(Left, t, seq, Picture)──┐
@@ -18,23 +18,9 @@ use std::time::Duration;
 use serde_json::{json, Value};
 
 use crate::calib::StereoCalib;
-use crate::capture::{CaptureError, Picture, StereoFrame, StereoSource};
+use super::pairing::{CameraFrame, PairStats, Pairer, Side};
+use super::{CaptureError, Picture, StereoFrame, StereoSource};
 
-/// Which camera of the rig.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Side {
-    Left,
-    Right,
-}
-
-impl Side {
-    pub fn name(self) -> &'static str {
-        match self {
-            Side::Left => "left",
-            Side::Right => "right",
-        }
-    }
-}
 
 /// Why a buffer is not a frame.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -107,107 +93,6 @@ pub fn yuyv_to_rgb(yuyv: &[u8], width: usize, height: usize) -> Vec<u8> {
     out
 }
 
-/// One camera's frame with the kernel's facts.
-#[derive(Debug, Clone, PartialEq)]
-pub struct CameraFrame {
-    pub side: Side,
-    /// Kernel timestamp, ns (CLOCK_MONOTONIC).
-    pub t_ns: u64,
-    /// Kernel frame counter (gaps: frames the driver dropped).
-    pub sequence: u32,
-    pub picture: Picture,
-}
-
-/// Pairing statistics.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
-pub struct PairStats {
-    pub pairs: u64,
-    pub unpaired_left: u64,
-    pub unpaired_right: u64,
-    /// |t_right − t_left| of the last pair and the largest so far, ns.
-    pub last_skew_ns: i64,
-    pub max_abs_skew_ns: u64,
-}
-
-use serde::Serialize;
-
-/// Pairs left and right frames whose timestamps are within `tolerance_ns`. A frame that
-/// cannot be paired (its partner never came, or came too far off) is counted, never
-/// silently lost; when one camera stops, the other's frames are counted as they age out.
-#[derive(Debug)]
-pub struct Pairer {
-    tolerance_ns: u64,
-    left: VecDeque<CameraFrame>,
-    right: VecDeque<CameraFrame>,
-    /// Most frames waiting on one side before the oldest counts as unpaired.
-    backlog: usize,
-    next_seq: u64,
-    last_left_sequence: Option<u32>,
-    pub stats: PairStats,
-}
-
-impl Pairer {
-    pub fn new(tolerance_ns: u64) -> Pairer {
-        Pairer { tolerance_ns, left: VecDeque::new(), right: VecDeque::new(), backlog: 8, next_seq: 0, last_left_sequence: None, stats: PairStats::default() }
-    }
-
-    /// Takes one frame; returns the pairs it completes, in order. `seq` follows the left
-    /// camera's kernel counter, so frames the driver dropped leave gaps.
-    pub fn push(&mut self, frame: CameraFrame, table_deg: Option<f64>) -> Vec<StereoFrame> {
-        match frame.side {
-            Side::Left => self.left.push_back(frame),
-            Side::Right => self.right.push_back(frame),
-        }
-        let mut out = Vec::new();
-        while let (Some(l), Some(r)) = (self.left.front(), self.right.front()) {
-            let skew = r.t_ns as i64 - l.t_ns as i64;
-            if skew.unsigned_abs() <= self.tolerance_ns {
-                // The other side's next frame may be closer still (a late frame): pair the
-                // closest.
-                let closer_right = self.right.get(1).is_some_and(|r2| (r2.t_ns as i64 - l.t_ns as i64).unsigned_abs() < skew.unsigned_abs());
-                let closer_left = self.left.get(1).is_some_and(|l2| (r.t_ns as i64 - l2.t_ns as i64).unsigned_abs() < skew.unsigned_abs());
-                if closer_right {
-                    self.right.pop_front();
-                    self.stats.unpaired_right += 1;
-                    continue;
-                }
-                if closer_left {
-                    self.left.pop_front();
-                    self.stats.unpaired_left += 1;
-                    continue;
-                }
-                let (l, r) = (self.left.pop_front().unwrap(), self.right.pop_front().unwrap());
-                let seq = match self.last_left_sequence {
-                    Some(prev) if l.sequence > prev => self.next_seq + (l.sequence - prev) as u64 - 1,
-                    _ => self.next_seq,
-                };
-                self.last_left_sequence = Some(l.sequence);
-                self.next_seq = seq + 1;
-                self.stats.pairs += 1;
-                self.stats.last_skew_ns = skew;
-                self.stats.max_abs_skew_ns = self.stats.max_abs_skew_ns.max(skew.unsigned_abs());
-                out.push(StereoFrame { seq, t_left_ns: l.t_ns, t_right_ns: r.t_ns, table_deg, left: l.picture, right: r.picture });
-            } else if skew > 0 {
-                // The left frame is older than any right frame can match.
-                self.left.pop_front();
-                self.stats.unpaired_left += 1;
-            } else {
-                self.right.pop_front();
-                self.stats.unpaired_right += 1;
-            }
-        }
-        while self.left.len() > self.backlog {
-            self.left.pop_front();
-            self.stats.unpaired_left += 1;
-        }
-        while self.right.len() > self.backlog {
-            self.right.pop_front();
-            self.stats.unpaired_right += 1;
-        }
-        out
-    }
-}
-
 /// Now on CLOCK_MONOTONIC, ns (the clock of UVC buffer timestamps).
 pub fn monotonic_ns() -> u64 {
     let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
@@ -237,27 +122,31 @@ const CID_GAIN: u32 = 0x0098_0913;
 const EXPOSURE_MANUAL: i64 = 1;
 const EXPOSURE_APERTURE_PRIORITY: i64 = 3;
 
-fn open_device(path: &Path, cfg: &StreamConfig) -> Result<(v4l::Device, usize, usize), String> {
+/// Why a camera could not be set up as configured.
+#[derive(Debug, thiserror::Error)]
+enum SetupError {
+    #[error("cannot open {path}: {source}")]
+    Open { path: PathBuf, source: std::io::Error },
+    #[error("{path}: cannot {what}: {source}")]
+    Ioctl { path: PathBuf, what: String, source: std::io::Error },
+    #[error("{path} offers {got} instead of the configured {wanted} (see `spinscan devices --local`)")]
+    Offers { path: PathBuf, got: String, wanted: String },
+}
+
+fn open_device(path: &Path, cfg: &StreamConfig) -> Result<(v4l::Device, usize, usize), SetupError> {
     use v4l::video::Capture;
-    let dev = v4l::Device::with_path(path).map_err(|e| format!("cannot open {}: {e}", path.display()))?;
-    let mut fmt = dev.format().map_err(|e| format!("{}: cannot read the format: {e}", path.display()))?;
+    let ioctl = |what: String| move |source: std::io::Error| SetupError::Ioctl { path: path.to_path_buf(), what, source };
+    let dev = v4l::Device::with_path(path).map_err(|source| SetupError::Open { path: path.to_path_buf(), source })?;
+    let mut fmt = dev.format().map_err(ioctl("read the format".into()))?;
     fmt.width = cfg.width;
     fmt.height = cfg.height;
     fmt.fourcc = v4l::FourCC::new(&cfg.fourcc);
-    let got = dev.set_format(&fmt).map_err(|e| format!("{}: cannot set {}×{} {}: {e}", path.display(), cfg.width, cfg.height, fourcc_name(cfg.fourcc)))?;
+    let wanted = format!("{}×{} {}", cfg.width, cfg.height, fourcc_name(cfg.fourcc));
+    let got = dev.set_format(&fmt).map_err(ioctl(format!("set {wanted}")))?;
     if got.fourcc.repr != cfg.fourcc || got.width != cfg.width || got.height != cfg.height {
-        return Err(format!(
-            "{} offers {}×{} {} instead of the configured {}×{} {} (see `spinscan devices --local`)",
-            path.display(),
-            got.width,
-            got.height,
-            fourcc_name(got.fourcc.repr),
-            cfg.width,
-            cfg.height,
-            fourcc_name(cfg.fourcc)
-        ));
+        return Err(SetupError::Offers { path: path.to_path_buf(), got: format!("{}×{} {}", got.width, got.height, fourcc_name(got.fourcc.repr)), wanted });
     }
-    dev.set_params(&v4l::video::capture::Parameters::with_fps(cfg.fps)).map_err(|e| format!("{}: cannot set {} fps: {e}", path.display(), cfg.fps))?;
+    dev.set_params(&v4l::video::capture::Parameters::with_fps(cfg.fps)).map_err(ioctl(format!("set {} fps", cfg.fps)))?;
     let mut controls = Vec::new();
     if let Some(auto) = cfg.auto_exposure {
         controls.push((CID_EXPOSURE_AUTO, if auto { EXPOSURE_APERTURE_PRIORITY } else { EXPOSURE_MANUAL }, "auto_exposure"));
@@ -269,7 +158,7 @@ fn open_device(path: &Path, cfg: &StreamConfig) -> Result<(v4l::Device, usize, u
         controls.push((CID_GAIN, g, "gain"));
     }
     for (id, value, key) in controls {
-        dev.set_control(v4l::Control { id, value: v4l::control::Value::Integer(value) }).map_err(|e| format!("{}: cannot set cameras.{key} = {value}: {e}", path.display()))?;
+        dev.set_control(v4l::Control { id, value: v4l::control::Value::Integer(value) }).map_err(ioctl(format!("set cameras.{key} = {value}")))?;
     }
     Ok((dev, got.width as usize, got.height as usize))
 }
@@ -284,7 +173,7 @@ fn capture_loop(side: Side, path: PathBuf, cfg: StreamConfig, tx: crossbeam_chan
     };
     let (dev, w, h) = match open_device(&path, &cfg) {
         Ok(d) => d,
-        Err(what) => return fail(CaptureError::Device { camera: side.name().into(), what }),
+        Err(e) => return fail(CaptureError::Device { camera: side.name().into(), what: e.to_string() }),
     };
     let mut timeouts = 0;
     'streams: while !stop.load(Ordering::Relaxed) {
@@ -340,7 +229,7 @@ impl V4l2Stereo {
     pub fn open(left: &Path, right: &Path, cfg: StreamConfig, pair_tolerance_ns: u64, calib: StereoCalib) -> Result<V4l2Stereo, CaptureError> {
         // Open both once up front so a wrong path or format is reported before a scan.
         for (side, p) in [(Side::Left, left), (Side::Right, right)] {
-            open_device(p, &cfg).map_err(|what| CaptureError::Device { camera: side.name().into(), what })?;
+            open_device(p, &cfg).map_err(|e| CaptureError::Device { camera: side.name().into(), what: e.to_string() })?;
         }
         let (tx, rx) = crossbeam_channel::bounded(4 * cfg.buffers as usize);
         let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
@@ -457,10 +346,6 @@ pub fn list_devices() -> Value {
 mod tests {
     use super::*;
 
-    fn frame(side: Side, t_ms: u64, sequence: u32) -> CameraFrame {
-        CameraFrame { side, t_ns: t_ms * 1_000_000, sequence, picture: Picture::Raw { width: 1, height: 1, channels: 1, data: vec![sequence as u8] } }
-    }
-
     #[test]
     fn yuyv_is_converted_with_bt601_limited_range() {
         // Black, white, mid grey, and saturated red (Y=82, U=90, V=240).
@@ -493,55 +378,5 @@ mod tests {
         assert_eq!(to_picture(*b"RGB3", &[0u8; 400], 400, 16, 8).unwrap_err().to_string(), "pixel format RGB3 is not supported (expected MJPG, YUYV or GREY)");
         // YUYV with bytesused 0 (the full buffer).
         assert!(matches!(to_picture(*b"YUYV", &[128u8; 256], 0, 16, 8), Ok(Picture::Raw { channels: 3, .. })));
-    }
-
-    #[test]
-    fn pairs_follow_timestamps_and_count_the_unpaired() {
-        let mut p = Pairer::new(33_000_000);
-        // Interleaved arrival, right 3 ms after left.
-        let mut pairs = Vec::new();
-        for i in 0..3u32 {
-            pairs.extend(p.push(frame(Side::Left, 1000 + 67 * i as u64, i), None));
-            pairs.extend(p.push(frame(Side::Right, 1003 + 67 * i as u64, i + 10), None));
-        }
-        assert_eq!(pairs.iter().map(|f| f.seq).collect::<Vec<_>>(), vec![0, 1, 2]);
-        assert!(pairs.iter().all(|f| f.t_right_ns - f.t_left_ns == 3_000_000));
-        assert_eq!(p.stats.max_abs_skew_ns, 3_000_000);
-        // The driver dropped left frames 3 and 4: seq jumps with the kernel counter; the
-        // right frames of those periods find no partner and are counted.
-        for i in 3..5u32 {
-            assert!(p.push(frame(Side::Right, 1003 + 67 * i as u64, i + 10), None).is_empty());
-        }
-        let out = p.push(frame(Side::Left, 1000 + 67 * 5, 5), None);
-        assert!(out.is_empty());
-        let out = p.push(frame(Side::Right, 1003 + 67 * 5, 15), None);
-        assert_eq!(out.len(), 1);
-        assert_eq!(out[0].seq, 5);
-        assert_eq!(p.stats.unpaired_right, 2);
-        assert_eq!(p.stats.pairs, 4);
-    }
-
-    #[test]
-    fn a_late_frame_pairs_with_the_closest_and_a_stopped_camera_ages_out() {
-        let mut p = Pairer::new(33_000_000);
-        // Left at 1000 and 1066; right frames at 1030 (within tolerance of both) then 1064:
-        // the right 1030 goes with left 1000.
-        assert!(p.push(frame(Side::Left, 1000, 0), None).is_empty());
-        assert!(p.push(frame(Side::Left, 1066, 1), None).is_empty());
-        let out = p.push(frame(Side::Right, 1030, 0), None);
-        assert_eq!(out.len(), 1);
-        assert_eq!(out[0].t_left_ns, 1_000_000_000);
-        let out = p.push(frame(Side::Right, 1064, 1), None);
-        assert_eq!(out[0].t_left_ns, 1_066_000_000);
-        // The right camera stops: left frames pile up to the backlog, then count as unpaired.
-        for i in 0..20u32 {
-            assert!(p.push(frame(Side::Left, 2000 + 67 * i as u64, 2 + i), None).is_empty());
-        }
-        assert_eq!(p.stats.unpaired_left, 12);
-        // Two frames too far apart never pair.
-        let mut q = Pairer::new(10_000_000);
-        q.push(frame(Side::Left, 1000, 0), None);
-        assert!(q.push(frame(Side::Right, 1050, 0), None).is_empty());
-        assert_eq!(q.stats.unpaired_left, 1);
     }
 }

@@ -1,4 +1,4 @@
-//! The turntable seam and its serial driver for the Horus firmware
+//! The Horus turntable over serial: spinscan's driver for the Horus firmware
 //! (`shared/spec/turntable-protocol.md`).
 //!
 //! ```text
@@ -19,45 +19,10 @@ use std::time::{Duration, Instant};
 
 use serialport::SerialPort;
 
+use super::{Turntable, TurntableError};
+
 /// The firmware line spinscan supports (the greeting's first words).
 pub const SUPPORTED_FIRMWARE: &str = "Horus 0.2";
-
-/// Something that turns the object. Angles are spinscan's `table_deg`: counterclockwise
-/// seen from above.
-pub trait Turntable: Send {
-    /// Moves to `table_deg` and returns once the table has arrived (and settled).
-    fn move_to(&mut self, table_deg: f64) -> Result<(), TurntableError>;
-    /// The current angle.
-    fn angle(&mut self) -> Result<f64, TurntableError>;
-    /// Starts turning towards `table_deg` at `feed_deg_s` and returns at once (continuous
-    /// scans); [`Turntable::angle`] follows the motion.
-    fn start_move(&mut self, table_deg: f64, feed_deg_s: f64) -> Result<(), TurntableError>;
-    /// Stops any motion now and restores the step feed.
-    fn halt(&mut self) -> Result<(), TurntableError>;
-    /// Where the device is (a port path), for messages.
-    fn describe(&self) -> String;
-}
-
-/// Why the turntable did not do what it was asked.
-#[derive(Debug, thiserror::Error)]
-pub enum TurntableError {
-    #[error("cannot open turntable port {port}: {what}")]
-    Open { port: String, what: String },
-    #[error("turntable on {port} sent no greeting within {waited_ms} ms of a reset (Ctrl-X); is it a Horus board and powered?")]
-    NoGreeting { port: String, waited_ms: u64 },
-    #[error("turntable on {port} greets with `{greeting}`: unsupported firmware (spinscan speaks `{SUPPORTED_FIRMWARE}`)")]
-    UnsupportedFirmware { port: String, greeting: String },
-    #[error("turntable on {port} did not answer `{command}` within {timeout_ms} ms ({tries} tries)")]
-    Unresponsive { port: String, command: String, timeout_ms: u64, tries: u32 },
-    #[error("turntable on {port} refused `{command}`: {reply}")]
-    Rejected { port: String, command: String, reply: String },
-    #[error("turntable on {port} stalled at {at_deg:.3}° on its way to {target_deg:.3}° (firmware degrees; `{command}` never finished)")]
-    Stalled { port: String, command: String, target_deg: f64, at_deg: f64 },
-    #[error("turntable on {port} vanished during `{command}`: {what}")]
-    Vanished { port: String, command: String, what: String },
-    #[error("turntable on {port} sent a status report spinscan cannot read: `{reply}` (expected <State,MPos:x,y,z>)")]
-    BadStatus { port: String, reply: String },
-}
 
 /// Driver settings (the `[turntable]` section of the daemon's config).
 #[derive(Debug, Clone, PartialEq)]
@@ -106,9 +71,13 @@ enum Reply {
     Noise(String),
 }
 
+/// A line that starts like a status report (`<`) but is not one: the line as received.
+#[derive(Debug, Clone, PartialEq)]
+struct UnreadableStatus(String);
+
 /// Classifies one reply line (without its line end). Written from the protocol spec, apart
 /// from hw-sim's emulator.
-fn classify(line: &str) -> Result<Reply, String> {
+fn classify(line: &str) -> Result<Reply, UnreadableStatus> {
     let line = line.trim();
     if line.eq_ignore_ascii_case("ok") {
         return Ok(Reply::Ok);
@@ -120,11 +89,12 @@ fn classify(line: &str) -> Result<Reply, String> {
         return Ok(Reply::Greeting(line.to_string()));
     }
     if let Some(body) = line.strip_prefix('<') {
-        let body = body.strip_suffix('>').ok_or_else(|| line.to_string())?;
-        let (state, rest) = body.split_once(',').ok_or_else(|| line.to_string())?;
-        let mpos = rest.strip_prefix("MPos:").ok_or_else(|| line.to_string())?;
+        let bad = || UnreadableStatus(line.to_string());
+        let body = body.strip_suffix('>').ok_or_else(bad)?;
+        let (state, rest) = body.split_once(',').ok_or_else(bad)?;
+        let mpos = rest.strip_prefix("MPos:").ok_or_else(bad)?;
         let first = mpos.split(',').next().unwrap_or_default();
-        let position_deg: f64 = first.parse().map_err(|_| line.to_string())?;
+        let position_deg: f64 = first.parse().map_err(|_| bad())?;
         return Ok(Reply::Status { running: !state.eq_ignore_ascii_case("Idle"), position_deg });
     }
     Ok(Reply::Noise(line.to_string()))
@@ -180,7 +150,7 @@ impl HorusTurntable {
                     Ok(Reply::Greeting(g)) => {
                         let words: Vec<&str> = g.split_whitespace().take(2).collect();
                         if words.join(" ") != SUPPORTED_FIRMWARE {
-                            return Err(TurntableError::UnsupportedFirmware { port: self.path.clone(), greeting: g });
+                            return Err(TurntableError::UnsupportedFirmware { port: self.path.clone(), greeting: g, expected: SUPPORTED_FIRMWARE });
                         }
                         return Ok(());
                     }
@@ -248,7 +218,7 @@ impl HorusTurntable {
                             tracing::warn!(port = %self.path, greeting = g, "the board reset during a command");
                         }
                         Ok(other) => tracing::debug!(port = %self.path, ?other, "ignoring"),
-                        Err(noise) => tracing::warn!(port = %self.path, line = noise, "ignoring a malformed status line"),
+                        Err(UnreadableStatus(noise)) => tracing::warn!(port = %self.path, line = noise, "ignoring a malformed status line"),
                     },
                 }
             }
@@ -272,7 +242,7 @@ impl HorusTurntable {
                     ReadOutcome::TimedOut => break,
                     ReadOutcome::Line(line) => match classify(&line) {
                         Ok(Reply::Status { running, position_deg }) => return Ok((running, position_deg)),
-                        Err(reply) => return Err(TurntableError::BadStatus { port: self.path.clone(), reply }),
+                        Err(UnreadableStatus(reply)) => return Err(TurntableError::BadStatus { port: self.path.clone(), reply }),
                         Ok(_) => {} // an `ok` of an earlier line, or noise
                     },
                 }

@@ -1,0 +1,237 @@
+//! One scan through the live pipeline: capture (with the turntable) → recorder and the
+//! bounded matcher channel → matcher pool → registration thread → the scan's folder.
+//!
+//! ```text
+//!  capture task ──every pair──> recorder thread ─> DIR/frames.jsonl, left/, right/
+//!   (blocking,      │
+//!    turntable)     └─bounded channel (queue_depth)─> matcher-0..N ─views─> register ─> DIR/views/,
+//!                     full: step mode waits,              ▲ reads           │   disparity/, poses.jsonl,
+//!                     continuous drops the oldest         └── PoseStore <───┘   report.json, model.ply
+//! ```
+//!
+//! Every captured pair is recorded, whatever the matchers manage, so a scan always replays.
+//! The registration thread takes views in `seq` order (a reorder buffer; the capture task
+//! announces every `seq`, and a dropped or failed pair is skipped explicitly), so poses and
+//! the report are the same whatever order the pool finishes in. Each matcher keeps its own
+//! [`crate::assist::Assistant`], fed by the frames it matched and the shared [`PoseStore`]; with N
+//! matchers it plans from views up to N frames back (the lag the assistant is built for).
+
+mod capture;
+mod pool;
+mod register;
+mod state;
+
+pub use state::{check_step_deg, check_total_deg, validate_name, Counters, Devices, PipelineSettings, ScanEnd, ScanError, ScanMode, ScanShared, ScanSpec, SpecError};
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+
+use serde_json::json;
+
+use super::results::ResultsWriter;
+use super::Pipeline;
+use crate::hw::StereoFrame;
+use crate::recording::RecordingWriter;
+use crate::register::posestore::PoseStore;
+use register::VIEW_BACKLOG;
+use state::{Job, Note};
+
+/// Runs one scan to its end on the calling thread (a blocking task): spawns the recorder,
+/// the matcher pool and the registration thread, captures, and waits for them. The scan's
+/// folder always ends with a `manifest.json` that says how it ended, even when the scan
+/// failed before its first view.
+pub fn run(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineSettings) -> ScanEnd {
+    let end = run_scan(devices, shared.clone(), settings);
+    let path = shared.dir.join("manifest.json");
+    if !path.exists() {
+        let spec = &shared.spec;
+        let m = json!({
+            "format": 1, "status": end.status, "reason": end.reason, "frames": 0,
+            "name": spec.name, "mode": spec.mode.name(), "total_deg": spec.total_deg,
+            "source": devices.source.describe(), "written_by": format!("spinscan {}", env!("CARGO_PKG_VERSION")),
+        });
+        if let Err(e) = crate::io::write_atomic(&path, serde_json::to_string_pretty(&m).unwrap().as_bytes()) {
+            tracing::error!("cannot write {}: {e}", path.display());
+        }
+    }
+    end
+}
+
+fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineSettings) -> ScanEnd {
+    let calib = devices.source.calibration().clone();
+    let spec = shared.spec.clone();
+    let dir = shared.dir.clone();
+    // The first pair fixes the image size the pipeline is built for.
+    let first = match capture::capture_first(devices, &shared) {
+        Ok(Some(f)) => f,
+        Ok(None) => return ScanEnd { status: "failed", reason: Some("the source delivered no frame".into()) },
+        Err(e) => return ScanEnd::failed(e),
+    };
+    let size = match first.left.to_rgb() {
+        Ok((w, h, _)) => (w as u32, h as u32),
+        Err(source) => return ScanEnd::failed(ScanError::FirstFrame(crate::pipeline::FrameError::Decode { side: "left", source })),
+    };
+
+    // Recorder.
+    let (rec_tx, rec_rx) = crossbeam_channel::unbounded::<StereoFrame>();
+    let recorder = if settings.record {
+        let mut writer = match RecordingWriter::create(&dir, &calib) {
+            Ok(w) => w,
+            Err(e) => return ScanEnd::failed(ScanError::RecordingStart(e)),
+        };
+        let sh = shared.clone();
+        Some(
+            std::thread::Builder::new()
+                .name("recorder".into())
+                .spawn(move || -> Result<(), ScanError> {
+                    for frame in rec_rx {
+                        sh.counters.recorder_backlog.fetch_sub(1, Ordering::Relaxed);
+                        writer.append(&frame).map_err(|source| ScanError::Recording { seq: frame.seq, source })?;
+                        sh.counters.recorded.fetch_add(1, Ordering::Relaxed);
+                    }
+                    Ok(())
+                })
+                .expect("spawn the recorder"),
+        )
+    } else {
+        drop(rec_rx);
+        None
+    };
+
+    let sign = match Pipeline::new(&calib, size, settings.pipeline.clone()) {
+        Ok(p) => p.rect.disparity_sign,
+        Err(e) => return ScanEnd::failed(ScanError::Pipeline(e)),
+    };
+    let results = match ResultsWriter::create(&dir, &devices.source.describe(), sign) {
+        Ok(mut r) => {
+            r.manifest_extra.insert("name".into(), json!(spec.name));
+            r.manifest_extra.insert("mode".into(), json!(spec.mode.name()));
+            r.manifest_extra.insert("step_deg".into(), json!((spec.mode == ScanMode::Step).then_some(spec.step_deg)));
+            r.manifest_extra.insert("total_deg".into(), json!(spec.total_deg));
+            r
+        }
+        Err(e) => return ScanEnd::failed(ScanError::Results(e)),
+    };
+
+    // Matcher pool and registration.
+    let threads = if settings.matcher_threads == 0 { std::thread::available_parallelism().map_or(2, |n| n.get()) } else { settings.matcher_threads };
+    let (job_tx, job_rx) = crossbeam_channel::bounded::<Job>(settings.queue_depth);
+    // Announcements and drops come from the capture task, which must not wait: unbounded
+    // (small). Views come from the matchers: bounded, so a registration thread that falls
+    // behind holds the matchers back instead of piling views up in memory.
+    let (note_tx, note_rx) = crossbeam_channel::unbounded::<Note>();
+    let (view_tx, view_rx) = crossbeam_channel::bounded::<Note>(VIEW_BACKLOG);
+    let store = Arc::new(PoseStore::new());
+    let mut observe_txs = Vec::new();
+    let mut matchers = Vec::new();
+    for i in 0..threads {
+        let pipe = match Pipeline::new(&calib, size, settings.pipeline.clone()) {
+            Ok(p) => p,
+            Err(e) => return ScanEnd::failed(ScanError::Pipeline(e)),
+        };
+        let (obs_tx, obs_rx) = crossbeam_channel::unbounded::<(u64, f64, f64)>();
+        observe_txs.push(obs_tx);
+        let (jobs, notes, store, sh, s) = (job_rx.clone(), view_tx.clone(), store.clone(), shared.clone(), settings.clone());
+        matchers.push(std::thread::Builder::new().name(format!("matcher-{i}")).spawn(move || pool::matcher_loop(pipe, jobs, notes, obs_rx, store, sh, s)).expect("spawn a matcher"));
+    }
+    let registrar = {
+        let (sh, s, store) = (shared.clone(), settings.clone(), store.clone());
+        std::thread::Builder::new().name("register".into()).spawn(move || register::register_loop(results, note_rx, view_rx, observe_txs, store, sh, s)).expect("spawn the registration thread")
+    };
+
+    // Capture, on this thread.
+    let captured = capture::capture(devices, &shared, first, &job_tx, &job_rx, &note_tx, &rec_tx, settings);
+    drop((job_tx, job_rx, note_tx, view_tx, rec_tx));
+    for m in matchers {
+        let _ = m.join();
+    }
+    let (results, reg_result) = match registrar.join() {
+        Ok((r, outcome)) => (Some(r), outcome),
+        Err(_) => (None, Err(ScanError::Panicked("registration thread"))),
+    };
+    let rec_result = recorder.map(|r| r.join().unwrap_or_else(|_| Err(ScanError::Panicked("recorder")))).unwrap_or(Ok(()));
+    let (status, reason) = match (captured, rec_result, reg_result) {
+        (Err(e), _, _) | (_, Err(e), _) | (_, _, Err(e)) => ("failed", Some(e.to_string())),
+        (Ok(()), Ok(()), Ok(())) => match shared.stop_reason() {
+            Some(why) => ("interrupted", Some(why)),
+            None => ("complete", None),
+        },
+    };
+    let written = match results {
+        Some(r) => r.finish_as(status, reason.as_deref()),
+        // Nothing of the results survived: the manifest still tells.
+        None => ResultsWriter::create(&dir, &devices.source.describe(), sign).and_then(|r| r.finish_as(status, reason.as_deref())),
+    };
+    match written {
+        Ok(()) => ScanEnd { status, reason },
+        Err(e) => ScanEnd { status: "failed", reason: Some(format!("{}{e}", reason.map(|r| format!("{r}; then ")).unwrap_or_default())) },
+    }
+}
+
+/// The folder of scan `name` in `state_dir`.
+pub fn scan_dir(state_dir: &Path, name: &str) -> PathBuf {
+    state_dir.join(name)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::calib::StereoCalib;
+    use crate::hw::{CaptureError, StereoSource};
+    use serde_json::Value;
+
+    /// A camera that never delivers.
+    struct Dead(StereoCalib);
+
+    impl StereoSource for Dead {
+        fn describe(&self) -> String {
+            "dead camera".into()
+        }
+        fn calibration(&self) -> &StereoCalib {
+            &self.0
+        }
+        fn next_frame(&mut self) -> Result<Option<StereoFrame>, CaptureError> {
+            Err(CaptureError::NoFrame { camera: "left".into(), waited_ms: 1000 })
+        }
+    }
+
+    #[test]
+    fn a_scan_that_fails_before_its_first_view_still_leaves_a_manifest() {
+        let dir = std::env::temp_dir().join(format!("spinscan-scan-dead-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let calib = crate::hw::sim::ideal_calib(64, 48, 70.0, 60.0);
+        let mut devices = Devices { source: Box::new(Dead(calib)), turntable: None };
+        let spec = ScanSpec { name: "dead".into(), mode: ScanMode::Continuous, step_deg: 1.0, total_deg: 360.0, speed_deg_s: 6.0, max_views: None };
+        let shared = Arc::new(ScanShared::new(spec, dir.clone(), Box::new(|_, _| {})));
+        let settings = PipelineSettings {
+            pipeline: crate::pipeline::PipelineOptions::default(),
+            segment: true,
+            registration: Some(Default::default()),
+            assist: None,
+            matcher_threads: 1,
+            queue_depth: 4,
+            record: true,
+            pace_hz: None,
+            register_newest_when_behind: false,
+        };
+        let end = run(&mut devices, shared, &settings);
+        assert_eq!(end.status, "failed");
+        assert!(end.reason.as_deref().unwrap().contains("left camera delivered no frame"), "{end:?}");
+        let m: Value = serde_json::from_str(&std::fs::read_to_string(dir.join("manifest.json")).unwrap()).unwrap();
+        assert_eq!((m["status"].as_str(), m["frames"].as_u64(), m["name"].as_str()), (Some("failed"), Some(0), Some("dead")));
+        assert!(m["reason"].as_str().unwrap().contains("left camera"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn step_views_cover_a_turn_once_and_an_arc_with_both_ends() {
+        let spec = |step: f64, total: f64| ScanSpec { name: "x".into(), mode: ScanMode::Step, step_deg: step, total_deg: total, speed_deg_s: 6.0, max_views: None };
+        assert_eq!(spec(2.0, 360.0).step_views(), 180);
+        assert_eq!(spec(45.0, 360.0).step_views(), 8);
+        assert_eq!(spec(30.0, 90.0).step_views(), 4);
+        assert_eq!(spec(7.0, 360.0).step_views(), 51);
+        assert_eq!(ScanSpec { max_views: Some(5), ..spec(2.0, 360.0) }.step_views(), 5);
+    }
+}

@@ -1,0 +1,49 @@
+//! A matcher of the pool: takes pairs from the bounded channel, plans each with its own
+//! [`crate::assist::Assistant`] from the shared [`PoseStore`], runs
+//! [`Pipeline::process_frame`], and hands the view to registration.
+
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+
+use crossbeam_channel::{Receiver, Sender};
+
+use super::state::{Job, Note, PipelineSettings, ScanShared};
+use crate::pipeline::{Assist, Pipeline};
+use crate::register::posestore::PoseStore;
+
+pub(super) fn matcher_loop(mut pipe: Pipeline, jobs: Receiver<Job>, notes: Sender<Note>, observed: Receiver<(u64, f64, f64)>, store: Arc<PoseStore>, shared: Arc<ScanShared>, settings: PipelineSettings) {
+    let mut assistant = match (&settings.assist, &settings.registration) {
+        (Some(a), Some(_)) => Some(pipe.assistant(a.clone())),
+        _ => None,
+    };
+    let c = &shared.counters;
+    for job in jobs {
+        c.queued.fetch_sub(1, Ordering::Relaxed);
+        let seq = job.frame.seq;
+        if let Some(a) = assistant.as_mut() {
+            for (s, fitness, rmse) in observed.try_iter() {
+                a.observe_registration(s, fitness, rmse);
+            }
+        }
+        let poses = store.snapshot();
+        let assist = assistant.as_mut().map(|assistant| Assist { assistant, poses: &poses });
+        let view = pipe.process_frame(&job.frame, settings.segment, None, assist);
+        let meta = job.frame.meta();
+        let note = match view {
+            Ok(view) => {
+                c.matched.fetch_add(1, Ordering::Relaxed);
+                c.matched_us.fetch_max(shared.started.elapsed().as_micros() as u64, Ordering::Relaxed);
+                Note::View { frame_meta: meta, view: Box::new(view), captured: job.captured }
+            }
+            Err(e) => {
+                c.failed.fetch_add(1, Ordering::Relaxed);
+                tracing::warn!("frame seq {seq}: not matched: {e} (the pair is recorded)");
+                Note::Skipped { seq, why: e.to_string() }
+            }
+        };
+        shared.pulse();
+        if notes.send(note).is_err() {
+            return;
+        }
+    }
+}

@@ -1,0 +1,157 @@
+//! The registration thread: takes finished views in `seq` order (a reorder buffer fed by the
+//! capture task's announcements), writes each to the results folder, registers it (or only
+//! the newest when behind), publishes poses to the shared [`PoseStore`], and at the end
+//! closes the loop and merges the model. It runs at a lower priority than the matchers.
+
+use std::collections::BTreeMap;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use crossbeam_channel::{Receiver, Sender};
+use serde_json::json;
+
+use super::state::{Note, PipelineSettings, ScanError, ScanMode, ScanShared};
+use crate::pipeline::results::{finish_registration, register_view, ModelOptions, ResultsWriter};
+use crate::register::posestore::PoseStore;
+
+#[allow(clippy::too_many_arguments)]
+pub(super) fn register_loop(
+    mut results: ResultsWriter,
+    notes: Receiver<Note>,
+    views: Receiver<Note>,
+    observers: Vec<Sender<(u64, f64, f64)>>,
+    store: Arc<PoseStore>,
+    shared: Arc<ScanShared>,
+    settings: PipelineSettings,
+) -> (ResultsWriter, Result<(), ScanError>) {
+    // Registration yields the cores to the matchers: its thread and its own worker pool run
+    // at a lower priority (nice +REGISTER_NICE), so a busy registration delays poses, not
+    // views.
+    lower_priority();
+    let pool = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("register-{i}")).start_handler(|_| lower_priority()).build();
+    let outcome = match pool {
+        Ok(pool) => pool.install(|| register_all(&mut results, notes, views, observers, store, &shared, &settings)),
+        Err(_) => register_all(&mut results, notes, views, observers, store, &shared, &settings),
+    };
+    (results, outcome)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn register_all(
+    results: &mut ResultsWriter,
+    notes: Receiver<Note>,
+    views: Receiver<Note>,
+    observers: Vec<Sender<(u64, f64, f64)>>,
+    store: Arc<PoseStore>,
+    shared: &ScanShared,
+    settings: &PipelineSettings,
+) -> Result<(), ScanError> {
+    let mut registrar = settings.registration.clone().map(|p| crate::pipeline::registrar(p, None, store));
+    let mut expected = std::collections::VecDeque::new();
+    let mut done: BTreeMap<u64, Note> = BTreeMap::new();
+    let c = &shared.counters;
+    let mut last_progress = Instant::now() - Duration::from_secs(1);
+    let newest_only = shared.spec.mode == ScanMode::Continuous || settings.register_newest_when_behind;
+    let mut process = |note: Note, results: &mut ResultsWriter, behind: bool| -> Result<(), ScanError> {
+        match note {
+            Note::View { frame_meta, view, captured } => {
+                let mut entry = results.write_view(&frame_meta, &view, settings.assist.as_ref())?;
+                if registrar.is_some() && newest_only && behind {
+                    // A continuous scan sees the object at 15 fps: when newer views wait,
+                    // this one is kept (views/, disparity/) but only the newest is registered.
+                    entry["registered"] = json!(false);
+                    entry["register_skipped"] = json!("newer views were waiting (registration is behind; the newest view is registered)");
+                    c.register_skipped.fetch_add(1, Ordering::Relaxed);
+                } else if let Some(reg) = registrar.as_mut() {
+                    if let Some((fitness, rmse)) = register_view(reg, &frame_meta, &view.cloud, &mut entry) {
+                        for o in &observers {
+                            let _ = o.send((frame_meta.seq, fitness, rmse));
+                        }
+                    }
+                    results.write_poses(reg.poses())?;
+                    if let Some(p) = reg.poses().last() {
+                        c.pose_deg_bits.store(reg.turned_deg().to_bits(), Ordering::Relaxed);
+                        c.pose_seq.store(p.seq + 1, Ordering::Relaxed);
+                    }
+                }
+                if entry.get("registered").is_none() {
+                    let lag = captured.elapsed().as_micros() as u64;
+                    entry["registration_lag_ms"] = json!(lag as f64 / 1e3);
+                    c.lag_sum_us.fetch_add(lag, Ordering::Relaxed);
+                    c.lag_max_us.fetch_max(lag, Ordering::Relaxed);
+                    c.registered.fetch_add(1, Ordering::Relaxed);
+                }
+                results.push_frame(entry)?;
+            }
+            Note::Skipped { seq, why } => results.note_skipped(seq, &why),
+            Note::Announce(_) => unreachable!("announcements are not queued"),
+        }
+        shared.pulse();
+        if last_progress.elapsed() >= Duration::from_millis(200) {
+            last_progress = Instant::now();
+            shared.emit("scan.progress", shared.progress());
+        }
+        Ok(())
+    };
+    let (mut notes_open, mut views_open) = (true, true);
+    while notes_open || views_open {
+        let note = crossbeam_channel::select! {
+            recv(if notes_open { Some(&notes) } else { None }.unwrap_or(&crossbeam_channel::never())) -> n => match n {
+                Ok(n) => n,
+                Err(_) => { notes_open = false; continue; }
+            },
+            recv(if views_open { Some(&views) } else { None }.unwrap_or(&crossbeam_channel::never())) -> n => match n {
+                Ok(n) => n,
+                Err(_) => { views_open = false; continue; }
+            },
+        };
+        let seq = match &note {
+            Note::Announce(seq) => {
+                expected.push_back(*seq);
+                continue;
+            }
+            Note::View { frame_meta, .. } => frame_meta.seq,
+            Note::Skipped { seq, .. } => *seq,
+        };
+        done.insert(seq, note);
+        while let Some(next) = expected.front() {
+            let Some(note) = done.remove(next) else { break };
+            expected.pop_front();
+            // Behind: a newer view is finished already, or waits in the channel.
+            let behind = done.values().any(|n| matches!(n, Note::View { .. })) || !views.is_empty();
+            process(note, results, behind)?;
+        }
+    }
+    // Whatever is left (announced pairs whose matcher never reported: a panic) is skipped.
+    for seq in expected {
+        match done.remove(&seq) {
+            Some(note) => process(note, results, false)?,
+            None => results.note_skipped(seq, "never matched"),
+        }
+    }
+    shared.emit("scan.progress", shared.progress());
+    if let Some(reg) = registrar.as_mut() {
+        if reg.poses().len() >= 2 {
+            finish_registration(reg, results, &ModelOptions::default(), &Default::default()).map_err(ScanError::Model)?;
+        }
+    }
+    Ok(())
+}
+
+/// Finished views waiting for the registration thread before the matchers wait (a view is
+/// about 4 MB at 640×480).
+pub(super) const VIEW_BACKLOG: usize = 4;
+
+/// Nice value of the registration threads (matchers and capture stay at the process's).
+const REGISTER_NICE: i32 = 5;
+
+/// Lowers the calling thread's priority (Linux: nice applies per thread).
+fn lower_priority() {
+    // SAFETY: gettid and setpriority have no memory preconditions.
+    unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        let now = libc::getpriority(libc::PRIO_PROCESS, tid);
+        libc::setpriority(libc::PRIO_PROCESS, tid, (now + REGISTER_NICE).min(19));
+    }
+}

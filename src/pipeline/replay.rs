@@ -1,0 +1,211 @@
+//! Runs the pipeline over any [`StereoSource`] and writes the results folder of the
+//! recording spec: `manifest.json`, `views/`, `disparity/`, `report.json`.
+//!
+//! The manifest says `running` from the first frame on and is rewritten after every frame,
+//! so an interrupted run leaves its finished views and an honest status behind; it ends
+//! `complete`, or `failed` with the reason.
+//!
+//! With registration on, every view is registered as it comes ([`crate::register::ring`]) and
+//! `poses.jsonl` is rewritten after each frame; at the end the loop is closed (when the views
+//! complete a turn), the model is merged from `views/` with the final poses into 1 mm voxels,
+//! cleaned of isolated points, and written as `model.ply`, and the axis estimated from the
+//! poses as `turntable_estimated.yaml`. Where the recording has `gt/poses.jsonl` (and
+//! `gt/mesh.ply`), the poses (and the model) are scored against them in `report.json`.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use serde_json::{json, Value};
+
+use super::results::{finish_registration, register_view, score_against_gt, GtScore, ModelOptions, RegistrationInputs, ResultsError, ResultsWriter};
+use super::{Assist, FrameError, Pipeline, PipelineError, PipelineOptions};
+use crate::assist::{AssistParams, Assistant};
+use crate::hw::{CaptureError, StereoFrame, StereoSource};
+use crate::io;
+use crate::recording::TurntableAxis;
+use crate::register::posestore::PoseStore;
+use crate::register::ring::{Registrar, RegistrationParams};
+
+/// Why a run stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    #[error(transparent)]
+    Capture(#[from] CaptureError),
+    #[error("frame seq {seq}: {source}")]
+    Pipeline { seq: u64, source: PipelineError },
+    #[error("frame seq {seq}: {source}")]
+    Frame { seq: u64, source: FrameError },
+    #[error("frame seq {seq}: {what}")]
+    GroundTruth { seq: u64, what: String },
+    #[error(transparent)]
+    Results(#[from] ResultsError),
+    /// A file beside the frames (calibrated axis, ground truth) is unusable.
+    #[error("{0}")]
+    SideFile(String),
+}
+
+impl ReplayError {
+    /// Whether the run stopped because its results could not be written (not because of
+    /// its input).
+    pub fn is_output(&self) -> bool {
+        matches!(self, ReplayError::Results(ResultsError::Output { .. }))
+    }
+}
+
+/// What to do besides matching.
+#[derive(Debug, Clone, Default)]
+pub struct ReplayOptions {
+    pub pipeline: PipelineOptions,
+    /// Stop after this many frames.
+    pub max_frames: Option<usize>,
+    /// Segment the blue screen (else every pixel is matched).
+    pub segment: bool,
+    /// An image of the empty scene (raw left camera, RGB) that segmentation also keys against.
+    pub plate: Option<Vec<u8>>,
+    /// Register the views and build the model (None: views only).
+    pub registration: Option<RegistrationParams>,
+    /// How `model.ply` is merged and cleaned.
+    pub model: ModelOptions,
+    /// Registration-assisted matching (needs `registration`; None: every frame searches the
+    /// full range).
+    pub assist: Option<AssistParams>,
+}
+
+impl ReplayOptions {
+    /// What `spinscan replay` does by default: segment, register, a 1 mm model cleaned with
+    /// the default thresholds.
+    pub fn with_registration(pipeline: PipelineOptions) -> ReplayOptions {
+        ReplayOptions { pipeline, segment: true, registration: Some(RegistrationParams::default()), model: ModelOptions::default(), assist: Some(AssistParams::default()), ..Default::default() }
+    }
+}
+
+/// Summary of a finished run.
+#[derive(Debug, Clone)]
+pub struct ReplaySummary {
+    pub frames: usize,
+    pub mean_match_ms: f64,
+    pub gt: Option<GtScore>,
+    pub disparity_sign: i32,
+    /// The `registration` section of `report.json`, when registration ran.
+    pub registration: Option<Value>,
+}
+
+/// Replays a recording into `out`, scoring each frame against its `gt/disparity` file where
+/// the recording has one.
+pub fn run_recording(recording: crate::recording::Recording, out: &Path, opts: &ReplayOptions, progress: &mut dyn FnMut(usize, u64, f64)) -> Result<ReplaySummary, ReplayError> {
+    let dir = recording.dir.clone();
+    let mut inputs = RegistrationInputs { calibrated_axis: TurntableAxis::read_calibrated(&dir).map_err(|e| ReplayError::SideFile(format!("calibrated turntable axis: {e}")))?, ..Default::default() };
+    if opts.registration.is_some() {
+        let gt = crate::recording::read_gt_poses(&dir).map_err(|e| ReplayError::SideFile(format!("ground truth: {e}")))?;
+        inputs.gt_poses = match gt {
+            Some(list) => Some(
+                list.into_iter()
+                    .map(|(seq, rows)| crate::register::from_rows(&rows, 1e-4).map(|t| (seq, t)).map_err(|e| ReplayError::SideFile(format!("{}: seq {seq}: cam_from_obj: {e}", dir.join("gt/poses.jsonl").display()))))
+                    .collect::<Result<_, _>>()?,
+            ),
+            None => None,
+        };
+        inputs.gt_mesh = Some(dir.join("gt/mesh.ply")).filter(|p| p.is_file());
+    }
+    let gt_for = move |seq: u64| crate::recording::gt_disparity_path(&dir, seq);
+    run(&mut crate::hw::replay::ReplaySource::new(recording), out, opts, &gt_for, &inputs, progress)
+}
+
+/// Processes every frame of `source` into `out`. `gt_for(seq)` gives a ground-truth
+/// disparity file where one exists. `progress(done, seq)` is called after each frame.
+pub fn run(
+    source: &mut dyn StereoSource,
+    out: &Path,
+    opts: &ReplayOptions,
+    gt_for: &dyn Fn(u64) -> Option<PathBuf>,
+    inputs: &RegistrationInputs,
+    progress: &mut dyn FnMut(usize, u64, f64),
+) -> Result<ReplaySummary, ReplayError> {
+    let calib = source.calibration().clone();
+    let first = source.next_frame()?;
+    let Some(first) = first else {
+        let w = ResultsWriter::create(out, &source.describe(), 1)?;
+        w.finish(None)?;
+        return Ok(ReplaySummary { frames: 0, mean_match_ms: 0.0, gt: None, disparity_sign: 1, registration: None });
+    };
+    let (w, h, _) = first.left.to_rgb().map_err(|source| ReplayError::Frame { seq: first.seq, source: FrameError::Decode { side: "left", source } })?;
+    let mut pipe = Pipeline::new(&calib, (w as u32, h as u32), opts.pipeline.clone()).map_err(|source| ReplayError::Pipeline { seq: first.seq, source })?;
+    let mut results = ResultsWriter::create(out, &source.describe(), pipe.rect.disparity_sign)?;
+    let store = Arc::new(PoseStore::new());
+    let mut registrar = opts.registration.clone().map(|p| super::registrar(p, inputs.calibrated_axis.as_ref(), store.clone()));
+    // Assistance needs the registered motion: without registration every frame is full range.
+    let mut assistant = match (&opts.assist, &registrar) {
+        (Some(a), Some(_)) => Some(pipe.assistant(a.clone())),
+        _ => None,
+    };
+    let run = Run { pipe: &mut pipe, results: &mut results, opts, gt_for, registrar: registrar.as_mut(), assistant: assistant.as_mut(), store: &store, progress };
+    let outcome = run.all(source, first).and_then(|mut summary| {
+        if let Some(reg) = registrar.as_mut() {
+            summary.registration = Some(finish_registration(reg, &mut results, &opts.model, inputs)?);
+        }
+        Ok(summary)
+    });
+    let failure = outcome.as_ref().err().map(|e| e.to_string());
+    results.finish(failure.as_deref())?;
+    outcome
+}
+
+/// One run's pipeline, results, registration and assistance.
+struct Run<'a> {
+    pipe: &'a mut Pipeline,
+    results: &'a mut ResultsWriter,
+    opts: &'a ReplayOptions,
+    gt_for: &'a dyn Fn(u64) -> Option<PathBuf>,
+    registrar: Option<&'a mut Registrar>,
+    assistant: Option<&'a mut Assistant>,
+    store: &'a PoseStore,
+    progress: &'a mut dyn FnMut(usize, u64, f64),
+}
+
+impl Run<'_> {
+    fn all(mut self, source: &mut dyn StereoSource, first: StereoFrame) -> Result<ReplaySummary, ReplayError> {
+        let (mut match_ms, mut gt_sum, mut gt_frames) = (0.0, (0usize, 0.0, 0.0, 0.0), 0usize);
+        let mut next = Some(first);
+        let size = (self.pipe.rect.size.0 as usize, self.pipe.rect.size.1 as usize);
+        while let Some(frame) = next.take() {
+            let seq = frame.seq;
+            let poses = self.store.snapshot();
+            let assist = self.assistant.as_deref_mut().map(|assistant| Assist { assistant, poses: &poses });
+            let view = self.pipe.process_frame(&frame, self.opts.segment, self.opts.plate.as_deref(), assist).map_err(|source| ReplayError::Frame { seq, source })?;
+            let mut entry = self.results.write_view(&frame, &view, self.opts.assist.as_ref())?;
+            if let Some(gt_path) = (self.gt_for)(seq) {
+                let bad = |what: String| ReplayError::GroundTruth { seq, what };
+                let gt = io::read_disparity_png(&gt_path, self.pipe.rect.disparity_sign as f32).map_err(|e| bad(format!("ground truth: {e}")))?;
+                if (gt.width, gt.height) != size {
+                    return Err(bad(format!("ground truth {} is {}×{}, expected {}×{}", gt_path.display(), gt.width, gt.height, size.0, size.1)));
+                }
+                let s = score_against_gt(&view.disparity, &gt);
+                entry["gt_coverage"] = json!(s.coverage);
+                entry["gt_bad2_of_matched"] = json!(s.bad2_of_matched);
+                entry["gt_mean_abs_err_px"] = json!(s.mean_abs_err_px);
+                gt_sum = (gt_sum.0 + s.gt_pixels, gt_sum.1 + s.coverage, gt_sum.2 + s.bad2_of_matched, gt_sum.3 + s.mean_abs_err_px);
+                gt_frames += 1;
+            }
+            if let Some(reg) = self.registrar.as_deref_mut() {
+                if let (Some((fitness, rmse)), Some(a)) = (register_view(reg, &frame, &view.cloud, &mut entry), self.assistant.as_deref_mut()) {
+                    a.observe_registration(seq, fitness, rmse);
+                }
+                self.results.write_poses(reg.poses())?;
+            }
+            match_ms += view.match_ms;
+            self.results.push_frame(entry)?;
+            let done = self.results.frame_count();
+            (self.progress)(done, seq, view.match_ms);
+            if self.opts.max_frames.is_some_and(|m| done >= m) {
+                break;
+            }
+            next = source.next_frame()?;
+        }
+        let n = self.results.frame_count();
+        let gt = (gt_frames > 0).then(|| {
+            let k = gt_frames as f64;
+            GtScore { gt_pixels: gt_sum.0, coverage: gt_sum.1 / k, bad2_of_matched: gt_sum.2 / k, mean_abs_err_px: gt_sum.3 / k }
+        });
+        Ok(ReplaySummary { frames: n, mean_match_ms: match_ms / n.max(1) as f64, gt, disparity_sign: self.results.disparity_sign(), registration: None })
+    }
+}

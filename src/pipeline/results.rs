@@ -1,0 +1,386 @@
+//! The results folder of a run or a scan (`shared/spec/recording-format.md`): `manifest.json`
+//! rewritten after every frame, `views/`, `disparity/`, `poses.jsonl`, `model.ply`,
+//! `turntable_estimated.yaml` and `report.json`, with the registration of each view noted in
+//! its entry and the scores against ground truth where the recording has it. One writer for
+//! `spinscan replay` and the daemon's live scans alike.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use nalgebra::Isometry3;
+use serde_json::{json, Value};
+
+use super::View;
+use crate::assist::AssistParams;
+use crate::cloud::PointCloud;
+use crate::hw::StereoFrame;
+use crate::io;
+use crate::recording::TurntableAxis;
+use crate::register::denoise::{keep_mask, DenoiseParams};
+use crate::register::posestore::ViewPose;
+use crate::register::ring::{LoopClosure, Registrar};
+use crate::register::voxel::VoxelModel;
+use crate::stereo::DisparityMap;
+
+/// Why the results folder could not be written (or scored).
+#[derive(Debug, thiserror::Error)]
+pub enum ResultsError {
+    #[error("cannot write {path}: {what}")]
+    Output { path: PathBuf, what: String },
+    /// A file beside the frames (ground truth) is unusable.
+    #[error("{0}")]
+    SideFile(String),
+    #[error("frame seq {seq}: loop closure: {what}")]
+    LoopClosure { seq: u64, what: String },
+}
+
+/// How the final model is merged from the registered views.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelOptions {
+    /// Voxel side of `model.ply`, mm (0 is taken as the default, 1 mm).
+    pub voxel_mm: f64,
+    /// Isolated-point removal on the model (None: keep every voxel).
+    pub denoise: Option<DenoiseParams>,
+}
+
+impl Default for ModelOptions {
+    /// A 1 mm model cleaned with the default thresholds.
+    fn default() -> Self {
+        ModelOptions { voxel_mm: 1.0, denoise: Some(DenoiseParams::default()) }
+    }
+}
+
+/// What a run can compare its registration with, and seed it from.
+#[derive(Debug, Clone, Default)]
+pub struct RegistrationInputs {
+    /// The recording's calibrated axis (`turntable.yaml`).
+    pub calibrated_axis: Option<TurntableAxis>,
+    /// `gt/poses.jsonl`: cam_from_obj per seq.
+    pub gt_poses: Option<Vec<(u64, Isometry3<f64>)>>,
+    /// `gt/mesh.ply`, the object in its own frame.
+    pub gt_mesh: Option<PathBuf>,
+}
+
+/// Ground-truth comparison of one disparity map (recordings of ideal rigs carry it).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GtScore {
+    /// Ground-truth pixels.
+    pub gt_pixels: usize,
+    /// Fraction of them that got a disparity.
+    pub coverage: f64,
+    /// Fraction of the covered ones off by more than 2 px.
+    pub bad2_of_matched: f64,
+    /// Mean |error| over covered pixels, px.
+    pub mean_abs_err_px: f64,
+}
+
+/// Scores `disp` against `gt` (non-finite = no truth) by magnitude.
+pub fn score_against_gt(disp: &DisparityMap, gt: &DisparityMap) -> GtScore {
+    let (mut n, mut covered, mut bad, mut err) = (0usize, 0usize, 0usize, 0f64);
+    for y in 0..gt.height {
+        for x in 0..gt.width {
+            let Some(t) = gt.get(x, y) else { continue };
+            n += 1;
+            if let Some(d) = disp.get(x, y) {
+                covered += 1;
+                let e = (d.abs() - t.abs()).abs();
+                err += e as f64;
+                bad += (e > 2.0) as usize;
+            }
+        }
+    }
+    GtScore {
+        gt_pixels: n,
+        coverage: covered as f64 / n.max(1) as f64,
+        bad2_of_matched: bad as f64 / covered.max(1) as f64,
+        mean_abs_err_px: err / covered.max(1) as f64,
+    }
+}
+
+/// The results folder, kept consistent on disk after every frame.
+pub struct ResultsWriter {
+    dir: PathBuf,
+    source: String,
+    frames: Vec<Value>,
+    disparity_sign: i32,
+    started: Instant,
+    registration: Option<Value>,
+    /// Extra keys of `manifest.json` (the daemon's scan settings and counters).
+    pub manifest_extra: serde_json::Map<String, Value>,
+    /// Captured pairs that produced no view (dropped before matching, or unmatchable), with why.
+    skipped: Vec<Value>,
+}
+
+impl ResultsWriter {
+    pub fn create(dir: &Path, source: &str, disparity_sign: i32) -> Result<ResultsWriter, ResultsError> {
+        for sub in ["views", "disparity"] {
+            let d = dir.join(sub);
+            std::fs::create_dir_all(&d).map_err(|e| ResultsError::Output { path: d, what: e.to_string() })?;
+        }
+        let w = ResultsWriter { dir: dir.to_path_buf(), source: source.to_string(), frames: Vec::new(), disparity_sign, started: Instant::now(), registration: None, manifest_extra: serde_json::Map::new(), skipped: Vec::new() };
+        w.write_manifest("running", None)?;
+        Ok(w)
+    }
+
+    fn write_json(&self, name: &str, value: &Value) -> Result<(), ResultsError> {
+        let path = self.dir.join(name);
+        io::write_atomic(&path, serde_json::to_string_pretty(value).unwrap().as_bytes()).map_err(|e| ResultsError::Output { path, what: e.to_string() })
+    }
+
+    /// `poses.jsonl`: `{"seq", "first_from_view": [[4x4]]}` per registered view.
+    pub fn write_poses(&self, poses: &[ViewPose]) -> Result<(), ResultsError> {
+        let mut text = String::new();
+        for p in poses {
+            text.push_str(&json!({"seq": p.seq, "first_from_view": crate::register::to_rows(&p.first_from_view)}).to_string());
+            text.push('\n');
+        }
+        let path = self.dir.join("poses.jsonl");
+        io::write_atomic(&path, text.as_bytes()).map_err(|e| ResultsError::Output { path, what: e.to_string() })
+    }
+
+    /// Writes a view's cloud and disparity map and returns its `report.json` entry.
+    pub fn write_view(&self, frame: &StereoFrame, view: &View, assist: Option<&AssistParams>) -> Result<Value, ResultsError> {
+        let seq = frame.seq;
+        let view_path = self.dir.join("views").join(format!("{seq:06}.ply"));
+        io::ply::write_ply(&view_path, &view.cloud).map_err(|e| ResultsError::Output { path: view_path, what: e.to_string() })?;
+        let disp_path = self.dir.join("disparity").join(format!("{seq:06}.png"));
+        io::write_disparity_png(&disp_path, &view.disparity).map_err(|e| ResultsError::Output { path: disp_path, what: e.to_string() })?;
+        let mut entry = json!({
+            "seq": seq,
+            "match_ms": view.match_ms,
+            "register_ms": null,
+            "mean_search_px": view.stats.mean_search_px(),
+            "valid_fraction": view.stats.valid_fraction(),
+            // Whether this frame searched the full range (no assistance, the first frames,
+            // or self-correction); `assist` says why.
+            "fallback": view.assist.as_ref().is_none_or(|a| a.searched_full_range()),
+            "points": view.cloud.len(),
+            "table_deg": frame.table_deg,
+            "t_left_ns": frame.t_left_ns,
+            "skew_ns": frame.t_right_ns as i64 - frame.t_left_ns as i64,
+        });
+        if let Some(a) = &view.assist {
+            entry["assist"] = json!({
+                "mode": assist.map(|p| p.mode.name()),
+                "w": assist.and_then(|p| p.mode.w()),
+                "full_range_reason": a.full_range,
+                "fallback_reason": a.fallback,
+                "interval_ms": a.interval_ms,
+                "lag": a.lag,
+                "single_px": a.single_px,
+                "union_px": a.union_px,
+                "filled_px": a.filled_px,
+                "uncovered_px": a.uncovered_px,
+            });
+            if let Some(why) = &a.fallback {
+                tracing::warn!("frame seq {seq}: assisted result rejected ({why}); matched again over the full range");
+            }
+        }
+        Ok(entry)
+    }
+
+    /// Frames written so far.
+    pub fn frame_count(&self) -> usize {
+        self.frames.len()
+    }
+
+    /// The rig's disparity sign (what `disparity/` PNGs store the magnitude of).
+    pub fn disparity_sign(&self) -> i32 {
+        self.disparity_sign
+    }
+
+    /// Adds a frame's entry and rewrites the manifest (still `running`).
+    pub fn push_frame(&mut self, entry: Value) -> Result<(), ResultsError> {
+        self.frames.push(entry);
+        self.write_manifest("running", None)
+    }
+
+    /// A captured pair that produced no view: listed in `report.json` (`skipped`) and
+    /// counted in the manifest.
+    pub fn note_skipped(&mut self, seq: u64, why: &str) {
+        self.skipped.push(json!({"seq": seq, "why": why}));
+    }
+
+    /// `manifest.json`, atomically (temp + rename).
+    pub fn write_manifest(&self, status: &str, reason: Option<&str>) -> Result<(), ResultsError> {
+        let mut m = json!({
+            "format": 1,
+            "status": status,
+            "frames": self.frames.len(),
+            "source": self.source,
+            "written_by": format!("spinscan {}", env!("CARGO_PKG_VERSION")),
+            "elapsed_s": self.started.elapsed().as_secs_f64(),
+        });
+        if !self.skipped.is_empty() {
+            m["skipped"] = json!(self.skipped.len());
+        }
+        if let Some(r) = reason {
+            m["reason"] = json!(r);
+        }
+        for (k, v) in &self.manifest_extra {
+            m[k] = v.clone();
+        }
+        self.write_json("manifest.json", &m)
+    }
+
+    fn write_report(&self) -> Result<(), ResultsError> {
+        let scored: Vec<&Value> = self.frames.iter().filter(|f| f.get("gt_coverage").is_some()).collect();
+        let mean = |key: &str, list: &[&Value]| -> Option<f64> {
+            let v: Vec<f64> = list.iter().filter_map(|f| f[key].as_f64()).collect();
+            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+        };
+        let all: Vec<&Value> = self.frames.iter().collect();
+        let mut report = json!({
+            "disparity_sign": self.disparity_sign,
+            "frames": self.frames,
+            "summary": {
+                "frames": self.frames.len(),
+                "mean_match_ms": mean("match_ms", &all),
+                "mean_valid_fraction": mean("valid_fraction", &all),
+                "gt_frames": scored.len(),
+                "mean_gt_coverage": mean("gt_coverage", &scored),
+                "mean_gt_bad2_of_matched": mean("gt_bad2_of_matched", &scored),
+                "mean_register_ms": mean("register_ms", &all),
+                "full_range_frames": self.frames.iter().filter(|f| f["fallback"] == json!(true)).count(),
+                "self_corrected_frames": self.frames.iter().filter(|f| f["assist"]["fallback_reason"].is_string()).count(),
+            },
+            "registration": self.registration,
+        });
+        if !self.skipped.is_empty() {
+            report["skipped"] = json!(self.skipped);
+        }
+        self.write_json("report.json", &report)
+    }
+
+    /// Ends the run: `complete`, or `failed` with the reason.
+    pub fn finish(&self, failure: Option<&str>) -> Result<(), ResultsError> {
+        match failure {
+            None => self.finish_as("complete", None),
+            Some(reason) => self.finish_as("failed", Some(reason)),
+        }
+    }
+
+    /// Ends the run with `status` (`complete`, `interrupted`, `failed`) and why.
+    pub fn finish_as(&self, status: &str, reason: Option<&str>) -> Result<(), ResultsError> {
+        self.write_report()?;
+        self.write_manifest(status, reason)
+    }
+}
+
+/// Registers one view and notes how into its `report.json` entry; the ICP fitness and RMSE
+/// when ICP ran (for the assistant's self-correction). A view that cannot be registered is
+/// noted and skipped, not fatal.
+pub fn register_view(reg: &mut Registrar, frame: &StereoFrame, cloud: &PointCloud, entry: &mut Value) -> Option<(f64, f64)> {
+    let seq = frame.seq;
+    match reg.add_view(seq, frame.table_deg, cloud) {
+        Ok(r) => {
+            entry["register_ms"] = json!(r.register_ms);
+            entry["seed"] = json!(r.seed);
+            if let Some(icp) = &r.icp {
+                entry["icp_fitness"] = json!(icp.fitness);
+                entry["icp_rmse_mm"] = json!(icp.rmse);
+                entry["icp_iterations"] = json!(icp.iterations);
+                entry["icp_conditioning"] = json!(icp.conditioning);
+            }
+            if let Some(b) = &r.block {
+                entry["block_fitness"] = json!(b.fitness);
+                entry["block_correction_deg"] = json!(b.transform.rotation.angle().to_degrees());
+            }
+            for w in &r.warnings {
+                tracing::warn!("{w}");
+            }
+            if !r.warnings.is_empty() {
+                entry["warnings"] = json!(r.warnings);
+            }
+            r.icp.as_ref().map(|icp| (icp.fitness, icp.rmse))
+        }
+        Err(e) => {
+            tracing::warn!("frame seq {seq}: not registered: {e}");
+            entry["register_error"] = json!(e.to_string());
+            None
+        }
+    }
+}
+
+/// Closes the loop, writes the final poses, merges and cleans the model from `views/`,
+/// writes the estimated axis, and scores against ground truth where the recording has it.
+pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opts: &ModelOptions, inputs: &RegistrationInputs) -> Result<Value, ResultsError> {
+    let closure = reg.finish().map_err(|e| ResultsError::LoopClosure { seq: reg.poses().last().map_or(0, |p| p.seq), what: e.to_string() })?;
+    let poses: Vec<ViewPose> = reg.poses().to_vec();
+    results.write_poses(&poses)?;
+
+    let voxel = if opts.voxel_mm > 0.0 { opts.voxel_mm } else { 1.0 };
+    let mut model = VoxelModel::new(voxel);
+    for p in &poses {
+        let path = results.dir.join("views").join(format!("{:06}.ply", p.seq));
+        let view = io::ply::read_ply(&path).map_err(|e| ResultsError::Output { path: path.clone(), what: format!("cannot read the view back: {e}") })?;
+        model.add(&view.cloud, &p.first_from_view);
+    }
+    let (mut cloud, _) = model.to_cloud();
+    let voxels = cloud.len();
+    if let Some(d) = &opts.denoise {
+        let keep = keep_mask(&cloud.points, d);
+        let mut k = keep.iter();
+        cloud.points.retain(|_| *k.next().unwrap());
+        let mut k = keep.iter();
+        cloud.colors.retain(|_| *k.next().unwrap());
+    }
+    let model_path = results.dir.join("model.ply");
+    io::ply::write_ply(&model_path, &cloud).map_err(|e| ResultsError::Output { path: model_path, what: e.to_string() })?;
+
+    let mut section = json!({
+        "views": poses.len(),
+        "model_points": cloud.len(),
+        "model_voxels_before_denoise": voxels,
+        "model_voxel_mm": voxel,
+        "turned_deg": reg.turned_deg(),
+        "loop_closure": closure.as_ref().map(loop_json),
+        "turntable_fit": reg.turntable_fit().map(|f| json!({"steps": f.steps, "rms_deviation_deg": f.rms_deviation_deg, "max_deviation_deg": f.max_deviation_deg, "worst_seq": f.worst_seq, "applied": f.applied, "axis_source": f.axis_source})),
+        "pose_source": if reg.turntable_fit().is_some_and(|f| f.applied) { "turntable" } else { "registration" },
+    });
+    if let Some(axis) = reg.estimated_axis() {
+        let est = TurntableAxis { axis_point_mm: axis.point.into(), axis_dir: axis.dir.into(), source: "estimated".into() };
+        let path = results.dir.join("turntable_estimated.yaml");
+        io::write_atomic(&path, est.to_yaml().as_bytes()).map_err(|e| ResultsError::Output { path, what: e.to_string() })?;
+        section["axis"] = json!({"point_mm": est.axis_point_mm, "dir": est.axis_dir, "rms_axis_deg": axis.rms_axis_deg, "rms_offset_mm": axis.rms_offset, "views": axis.views});
+    }
+    if let Some(gt) = &inputs.gt_poses {
+        score_registration(&mut section, results, &poses, gt, inputs.gt_mesh.as_deref(), &cloud.points)?;
+    }
+    results.registration = Some(section.clone());
+    Ok(section)
+}
+
+fn loop_json(c: &LoopClosure) -> Value {
+    json!({"views": c.views, "error_deg": c.error_deg, "error_mm": c.error_translation, "fitness": c.icp.fitness, "rmse_mm": c.icp.rmse})
+}
+
+/// Pose error of every view against `gt/poses.jsonl`, and the model's distance to the placed
+/// `gt/mesh.ply`, into the report.
+fn score_registration(section: &mut Value, results: &mut ResultsWriter, poses: &[ViewPose], gt: &[(u64, Isometry3<f64>)], gt_mesh: Option<&Path>, model: &[[f32; 3]]) -> Result<(), ResultsError> {
+    let truth = |seq: u64| gt.iter().find(|g| g.0 == seq).map(|g| g.1);
+    let Some(first) = poses.first().and_then(|p| truth(p.seq)) else { return Ok(()) };
+    let mut last = None;
+    for p in poses {
+        let Some(cam_from_obj) = truth(p.seq) else { continue };
+        let true_pose = first * cam_from_obj.inverse();
+        let err = p.first_from_view.inverse() * true_pose;
+        let (deg, mm) = (err.rotation.angle().to_degrees(), (p.first_from_view.translation.vector - true_pose.translation.vector).norm());
+        if let Some(f) = results.frames.iter_mut().find(|f| f["seq"] == json!(p.seq)) {
+            f["gt_pose_err_deg"] = json!(deg);
+            f["gt_pose_err_mm"] = json!(mm);
+        }
+        last = Some((p.seq, deg, mm));
+    }
+    if let Some((seq, deg, mm)) = last {
+        section["gt_last_view"] = json!({"seq": seq, "pose_err_deg": deg, "pose_err_mm": mm});
+    }
+    if let Some(mesh_path) = gt_mesh {
+        let mesh = io::ply::read_ply(mesh_path).map_err(|e| ResultsError::SideFile(format!("ground truth: {e}")))?;
+        let surface = crate::register::surface::Surface::new(&mesh, &first).map_err(|e| ResultsError::SideFile(format!("ground truth {}: {e}", mesh_path.display())))?;
+        let d = surface.distances(model);
+        use crate::register::surface::quantile;
+        section["gt_model_distance_mm"] = json!({"median": quantile(&d, 0.5), "p95": quantile(&d, 0.95), "points": d.len()});
+    }
+    Ok(())
+}

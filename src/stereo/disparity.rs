@@ -1,0 +1,197 @@
+//! The matcher's plain data: the grey images it reads, the per-pixel disparity intervals it
+//! searches, the disparity map it writes, and what one call did. Shared by the matcher, the
+//! speckle filter, triangulation, the assistant and IO.
+
+use std::ops::Range;
+
+/// A borrowed 8-bit grey image, row-major, no padding.
+#[derive(Debug, Clone, Copy)]
+pub struct GrayView<'a> {
+    pub width: usize,
+    pub height: usize,
+    pub data: &'a [u8],
+}
+
+impl<'a> GrayView<'a> {
+    /// Wraps a buffer; `None` if it does not hold `width × height` bytes.
+    pub fn new(width: usize, height: usize, data: &'a [u8]) -> Option<Self> {
+        (data.len() == width * height).then_some(GrayView { width, height, data })
+    }
+}
+
+/// The disparity interval to search at each left pixel, in disparity units
+/// (`d = x_left − x_right`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DisparityIntervals {
+    pub(in crate::stereo) width: usize,
+    pub(in crate::stereo) height: usize,
+    // Invariant: a pixel with lo > hi searches nothing.
+    pub(in crate::stereo) lo: Vec<i16>,
+    pub(in crate::stereo) hi: Vec<i16>,
+}
+
+impl DisparityIntervals {
+    /// Every pixel searches `min_d ..= max_d`.
+    pub fn full(width: usize, height: usize, min_d: i32, max_d: i32) -> Self {
+        let n = width * height;
+        DisparityIntervals { width, height, lo: vec![min_d as i16; n], hi: vec![max_d as i16; n] }
+    }
+
+    /// Pixels where `mask` is non-zero (every pixel without a mask) search `min_d ..= max_d`.
+    pub fn within(width: usize, height: usize, mask: Option<&[u8]>, min_d: i32, max_d: i32) -> Self {
+        match mask {
+            Some(m) => Self::masked(width, height, m, min_d, max_d),
+            None => Self::full(width, height, min_d, max_d),
+        }
+    }
+
+    /// No pixel searches anything.
+    pub fn empty(width: usize, height: usize) -> Self {
+        let n = width * height;
+        DisparityIntervals { width, height, lo: vec![1; n], hi: vec![0; n] }
+    }
+
+    /// Pixels where `mask` is non-zero search `min_d ..= max_d`, the others nothing.
+    pub fn masked(width: usize, height: usize, mask: &[u8], min_d: i32, max_d: i32) -> Self {
+        let mut iv = Self::full(width, height, min_d, max_d);
+        for (i, &m) in mask.iter().enumerate().take(width * height) {
+            if m == 0 {
+                iv.lo[i] = 1;
+                iv.hi[i] = 0;
+            }
+        }
+        iv
+    }
+
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Sets the interval of one pixel (`None`: do not match it).
+    pub fn set(&mut self, x: usize, y: usize, interval: Option<(i32, i32)>) {
+        let i = y * self.width + x;
+        let (lo, hi) = match interval {
+            Some((lo, hi)) if lo <= hi => (lo.clamp(-32768, 32767) as i16, hi.clamp(-32768, 32767) as i16),
+            _ => (1, 0),
+        };
+        self.lo[i] = lo;
+        self.hi[i] = hi;
+    }
+
+    /// No pixel of the rectangle `xs × ys` searches anything.
+    pub fn clear_rect(&mut self, xs: Range<usize>, ys: Range<usize>) {
+        for y in ys {
+            self.lo[y * self.width + xs.start..y * self.width + xs.end].fill(1);
+            self.hi[y * self.width + xs.start..y * self.width + xs.end].fill(0);
+        }
+    }
+
+    /// The bounds of row `y`, to fill in place (`lo > hi`: not searched; values are
+    /// disparities).
+    pub fn row_mut(&mut self, y: usize) -> (&mut [i16], &mut [i16]) {
+        let w = self.width;
+        (&mut self.lo[y * w..(y + 1) * w], &mut self.hi[y * w..(y + 1) * w])
+    }
+
+    /// The interval of one pixel, `None` if it is not searched.
+    pub fn get(&self, x: usize, y: usize) -> Option<(i32, i32)> {
+        let i = y * self.width + x;
+        (self.lo[i] <= self.hi[i]).then(|| (self.lo[i] as i32, self.hi[i] as i32))
+    }
+}
+
+/// A disparity map: `d = x_left − x_right` in rectified pixels, sub-pixel.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DisparityMap {
+    pub width: usize,
+    pub height: usize,
+    // Invariant: NaN where no disparity was found (the PFM convention); read with `get`.
+    pub(in crate::stereo) data: Vec<f32>,
+}
+
+impl DisparityMap {
+    pub fn new(width: usize, height: usize) -> Self {
+        DisparityMap { width, height, data: vec![f32::NAN; width * height] }
+    }
+
+    /// Builds a map from values where non-finite means "no disparity".
+    pub fn from_values(width: usize, height: usize, data: Vec<f32>) -> Self {
+        assert_eq!(data.len(), width * height, "disparity map size");
+        DisparityMap { width, height, data }
+    }
+
+    pub fn get(&self, x: usize, y: usize) -> Option<f32> {
+        let v = self.data[y * self.width + x];
+        v.is_finite().then_some(v)
+    }
+
+    pub fn set(&mut self, x: usize, y: usize, d: Option<f32>) {
+        self.data[y * self.width + x] = d.unwrap_or(f32::NAN);
+    }
+
+    /// Row-major values, NaN where there is no disparity.
+    pub fn values(&self) -> &[f32] {
+        &self.data
+    }
+
+    pub(crate) fn values_mut(&mut self) -> &mut [f32] {
+        &mut self.data
+    }
+
+    pub fn valid_count(&self) -> usize {
+        self.data.iter().filter(|v| v.is_finite()).count()
+    }
+}
+
+/// What one matching call did.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct MatchStats {
+    /// Pixels with a non-empty search interval.
+    pub searched: usize,
+    /// Pixels that got a disparity.
+    pub matched: usize,
+    /// (pixel, disparity) pairs evaluated.
+    pub evaluated: u64,
+    /// Wall time of the prefilter (a fixed cost per pixel of the image), ns.
+    pub prefilter_ns: u64,
+    /// Time spent in the left–right check, summed over the worker threads, ns.
+    pub lr_check_ns: u64,
+    /// Pixels that reached the left–right check with a match, and those that passed it.
+    pub lr_candidates: usize,
+    pub lr_passed: usize,
+    /// Wall time of the speckle filter (a fixed cost per matched pixel), ns.
+    pub speckle_ns: u64,
+}
+
+impl MatchStats {
+    /// `matched / searched` (0 when nothing was searched).
+    pub fn valid_fraction(&self) -> f64 {
+        if self.searched == 0 {
+            0.0
+        } else {
+            self.matched as f64 / self.searched as f64
+        }
+    }
+
+    /// Percent of the matches that passed the left–right check (100 when it is off).
+    pub fn lr_consistency(&self) -> f64 {
+        if self.lr_candidates == 0 {
+            100.0
+        } else {
+            100.0 * self.lr_passed as f64 / self.lr_candidates as f64
+        }
+    }
+
+    /// Mean interval width actually searched, in pixels.
+    pub fn mean_search_px(&self) -> f64 {
+        if self.searched == 0 {
+            0.0
+        } else {
+            self.evaluated as f64 / self.searched as f64
+        }
+    }
+}

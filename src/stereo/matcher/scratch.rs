@@ -1,0 +1,141 @@
+//! The sizes and per-thread buffers every stripe of one matcher call shares.
+
+use crate::stereo::disparity::DisparityIntervals;
+use crate::stereo::params::ValidMatchParams;
+
+/// Below this many disparities a from-scratch window sum runs per entry (scalar) instead of
+/// per window line (vectorised).
+pub(super) const NARROW: usize = 8;
+
+/// Window sums are computed over whole blocks of this many disparities (clipped to the valid
+/// range) around each searched interval: one AVX2 register of costs. Neighbouring pixels
+/// whose narrow intervals differ slightly then share a range and slide, instead of
+/// recomputing window sums from scratch at every shift.
+pub(super) const BLOCK: usize = 16;
+
+/// Sizes shared by every stripe of one call.
+#[derive(Clone, Copy)]
+pub(super) struct Geometry {
+    pub(super) w: usize,
+    pub(super) h: usize,
+    pub(super) r: usize,
+    /// Padded width of the prefiltered left rows (`w + 2r`).
+    pub(super) wp: usize,
+    pub(super) n: usize,
+    pub(super) dmin: i32,
+    /// Replicated padding of the prefiltered right rows on the left and right: wide enough
+    /// for every disparity at every column, so that window sums may be computed over whole
+    /// blocks even where the right pixel falls outside the image (those pairs are never
+    /// searched).
+    pub(super) rpad_left: usize,
+    pub(super) rpad_right: usize,
+}
+
+impl Geometry {
+    /// The sizes of matching a `w × h` pair with these parameters.
+    pub(super) fn new(p: &ValidMatchParams, w: usize, h: usize) -> Geometry {
+        let r = p.radius();
+        let (dmin, dmax) = (p.min_disparity, p.max_disparity());
+        Geometry {
+            w,
+            h,
+            r,
+            wp: w + 2 * r,
+            n: p.num_disparities as usize,
+            dmin,
+            rpad_left: r + dmax.max(0) as usize,
+            rpad_right: r + (-dmin).max(0) as usize,
+        }
+    }
+
+    /// Width of a padded right row.
+    pub(super) fn wr(&self) -> usize {
+        self.w + self.rpad_left + self.rpad_right
+    }
+}
+
+/// A `u16` buffer whose contents start on a 64-byte boundary, so that the column and window
+/// sums (rows of 16-lane multiples) are read with aligned vector loads: a load that splits
+/// a cache line costs extra, and a plain `Vec` gives no alignment guarantee beyond 16 bytes.
+#[derive(Default)]
+pub(super) struct AlignedBuf {
+    pub(super) buf: Vec<u16>,
+    pub(super) start: usize,
+    pub(super) len: usize,
+}
+
+impl AlignedBuf {
+    pub(super) const ALIGN: usize = 64;
+
+    /// Makes the buffer `len` long. Contents are not kept: callers overwrite before reading.
+    pub(super) fn resize(&mut self, len: usize, value: u16) {
+        let slack = Self::ALIGN / std::mem::size_of::<u16>();
+        if self.buf.len() < len + slack {
+            self.buf = vec![value; len + slack];
+        }
+        let misalign = self.buf.as_ptr() as usize % Self::ALIGN;
+        self.start = if misalign == 0 { 0 } else { (Self::ALIGN - misalign) / std::mem::size_of::<u16>() };
+        self.len = len;
+    }
+}
+
+impl std::ops::Deref for AlignedBuf {
+    type Target = [u16];
+    fn deref(&self) -> &[u16] {
+        &self.buf[self.start..self.start + self.len]
+    }
+}
+
+impl std::ops::DerefMut for AlignedBuf {
+    fn deref_mut(&mut self) -> &mut [u16] {
+        &mut self.buf[self.start..self.start + self.len]
+    }
+}
+
+/// What every stripe of one call reads: parameters, sizes, the prefiltered rows (left
+/// padded, right padded and reversed) and the search intervals.
+#[derive(Clone, Copy)]
+pub(super) struct StripeInput<'a> {
+    pub(super) p: &'a ValidMatchParams,
+    pub(super) g: Geometry,
+    pub(super) lpf: &'a [u8],
+    pub(super) rrev: &'a [u8],
+    pub(super) intervals: &'a DisparityIntervals,
+}
+
+/// Per-thread buffers, grown to fit and reused across frames.
+#[derive(Default)]
+pub(super) struct StripeScratch {
+    /// Vertical window sums, `wp × n`, column-major in disparity.
+    pub(super) cs: AlignedBuf,
+    /// Band of valid entries per column (empty when lo > hi).
+    pub(super) band_lo: Vec<i32>,
+    pub(super) band_hi: Vec<i32>,
+    pub(super) need_lo: Vec<i32>,
+    pub(super) need_hi: Vec<i32>,
+    /// This row's searched intervals, in disparity index `k = d − dmin`.
+    pub(super) tlo: Vec<i32>,
+    pub(super) thi: Vec<i32>,
+    /// The block-aligned ranges the window sums are computed over (⊇ the searched ones).
+    pub(super) ilo: Vec<i32>,
+    pub(super) ihi: Vec<i32>,
+    /// Window sums of the current row, `w × n`.
+    pub(super) sad: AlignedBuf,
+    /// Cheapest evaluated cost of each right pixel, stored reversed: entry `w − 1 − x + k`
+    /// is right pixel `x − dmin − k`, so a left pixel's run of disparities is contiguous.
+    pub(super) right_min: Vec<u16>,
+    pub(super) best: Vec<Option<(u16, f32)>>,
+    pub(super) tex_col: Vec<u32>,
+    /// Window texture of each pixel of the row.
+    pub(super) tex_row: Vec<u32>,
+    pub(super) band_tmp: Vec<i32>,
+    pub(super) prev_ilo: Vec<i32>,
+    pub(super) prev_ihi: Vec<i32>,
+}
+
+
+/// The row of the window that sits `dy` rows from `y`, clamped to the image.
+#[inline(always)]
+pub(super) fn clamp_row(y: isize, h: usize) -> usize {
+    y.clamp(0, h as isize - 1) as usize
+}

@@ -1,0 +1,197 @@
+use super::*;
+use crate::stereo::MatchParams;
+
+/// A random-texture pair where the right image is the left shifted by `shift(x, y)`.
+fn shifted_pair(w: usize, h: usize, shift: impl Fn(usize, usize) -> usize) -> (Vec<u8>, Vec<u8>) {
+    let mut state = 12345u32;
+    let mut left = vec![0u8; w * h];
+    for v in left.iter_mut() {
+        state = state.wrapping_mul(1664525).wrapping_add(1013904223);
+        *v = (state >> 24) as u8;
+    }
+    let mut right = vec![0u8; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            // right(x) = left(x + d): a left pixel x appears at x − d on the right.
+            let d = shift(x, y);
+            right[y * w + x] = left[y * w + (x + d).min(w - 1)];
+        }
+    }
+    (left, right)
+}
+
+fn params(n: u32) -> ValidMatchParams {
+    MatchParams { num_disparities: n, threads: 2, ..Default::default() }.validate().unwrap()
+}
+
+#[test]
+fn recovers_a_constant_shift() {
+    let (w, h) = (96, 40);
+    let (l, r) = shifted_pair(w, h, |_, _| 7);
+    let mut m = StereoMatcher::new(params(16));
+    let mut out = DisparityMap::new(w, h);
+    let iv = m.full_intervals(w, h, None);
+    let stats = m.compute(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut out).unwrap();
+    let mut good = 0;
+    for y in 0..h {
+        for x in 20..w - 20 {
+            if out.get(x, y).is_some_and(|d| (d - 7.0).abs() < 0.5) {
+                good += 1;
+            }
+        }
+    }
+    assert!(good as f64 > 0.95 * (h * (w - 40)) as f64, "{good}");
+    assert_eq!(stats.searched, w * h);
+}
+
+#[test]
+fn narrow_intervals_match_the_full_search_and_do_less_work() {
+    let (w, h) = (120, 48);
+    let (l, r) = shifted_pair(w, h, |x, _| 10 + x / 40);
+    let (lv, rv) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap());
+    let mut m = StereoMatcher::new(params(32));
+    let mut full = DisparityMap::new(w, h);
+    let iv = m.full_intervals(w, h, None);
+    let full_stats = m.compute(lv, rv, &iv, &mut full).unwrap();
+    let mut narrow_iv = DisparityIntervals::full(w, h, 0, 31);
+    for y in 0..h {
+        for x in 0..w {
+            let d = 10 + (x / 40) as i32;
+            narrow_iv.set(x, y, Some((d - 2, d + 2)));
+        }
+    }
+    let mut narrow = DisparityMap::new(w, h);
+    let narrow_stats = m.compute(lv, rv, &narrow_iv, &mut narrow).unwrap();
+    assert!(narrow_stats.evaluated * 5 < full_stats.evaluated);
+    let mut agree = 0;
+    let mut both = 0;
+    for y in 0..h {
+        for x in 16..w - 16 {
+            if let (Some(a), Some(b)) = (full.get(x, y), narrow.get(x, y)) {
+                both += 1;
+                agree += ((a - b).abs() < 0.01) as usize;
+            }
+        }
+    }
+    assert!(both > (h * (w - 32)) * 8 / 10, "{both}");
+    assert!(agree * 100 >= both * 99, "{agree} of {both}");
+}
+
+#[test]
+fn masked_pixels_are_not_matched() {
+    let (w, h) = (64, 24);
+    let (l, r) = shifted_pair(w, h, |_, _| 3);
+    let mask: Vec<u8> = (0..w * h).map(|i| if i % w < 32 { 0 } else { 255 }).collect();
+    let mut m = StereoMatcher::new(params(8));
+    let iv = m.full_intervals(w, h, Some(&mask));
+    let mut out = DisparityMap::new(w, h);
+    let stats = m.compute(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut out).unwrap();
+    assert_eq!(stats.searched, 32 * h);
+    assert!((0..h).all(|y| (0..32).all(|x| out.get(x, y).is_none())));
+}
+
+#[test]
+fn negative_disparities() {
+    let (w, h) = (80, 32);
+    // The right image is the left shifted the other way: d = −6.
+    let (l, r) = shifted_pair(w, h, |_, _| 6);
+    let mut m = StereoMatcher::new(MatchParams { min_disparity: -12, num_disparities: 12, threads: 1, ..Default::default() }.validate().unwrap());
+    let iv = m.full_intervals(w, h, None);
+    let mut out = DisparityMap::new(w, h);
+    // Swap roles: matching right→left sees the shift as negative.
+    m.compute(GrayView::new(w, h, &r).unwrap(), GrayView::new(w, h, &l).unwrap(), &iv, &mut out).unwrap();
+    let good = (0..h).flat_map(|y| (16..w - 16).map(move |x| (x, y))).filter(|&(x, y)| out.get(x, y).is_some_and(|d| (d + 6.0).abs() < 0.5)).count();
+    assert!(good * 10 > h * (w - 32) * 9, "{good}");
+}
+
+/// Runs one stripe through the chosen code path, as `compute` does for a single thread.
+fn run_path<const AVX2: bool, const AVX512: bool>(m: &mut StereoMatcher, l: GrayView, r: GrayView, iv: &DisparityIntervals) -> Vec<f32> {
+    let mut out = DisparityMap::new(l.width, l.height);
+    m.compute(l, r, iv, &mut out).unwrap(); // fills the prefiltered rows
+    let p = m.params.clone();
+    let geo = Geometry::new(&p, l.width, l.height);
+    let mut scratch = StripeScratch::default();
+    let mut vals = vec![0f32; l.width * l.height];
+    let input = StripeInput { p: &p, g: geo, lpf: &m.left_pf, rrev: &m.right_pf_rev, intervals: iv };
+    match_stripe_impl::<AVX2, AVX512>(input, 0..l.height, &mut vals, &mut scratch);
+    vals
+}
+
+#[test]
+fn portable_and_simd_paths_agree() {
+    // Full range and narrow, shifting intervals; 16, 40 and 128 disparities.
+    for n in [16u32, 40, 128] {
+        let (w, h) = (160, 40);
+        let (l, r) = shifted_pair(w, h, |x, y| 3 + (x + y) / 20);
+        let (lv, rv) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap());
+        let mut m = StereoMatcher::new(MatchParams { num_disparities: n, threads: 1, speckle_window: 0, ..Default::default() }.validate().unwrap());
+        let full = m.full_intervals(w, h, None);
+        let mut narrow = DisparityIntervals::full(w, h, 0, n as i32 - 1);
+        for y in 0..h {
+            for x in 0..w {
+                let d = 3 + ((x + y) / 20) as i32;
+                narrow.set(x, y, (x % 7 != 0).then_some((d - 2 + (x % 3) as i32, d + 2)));
+            }
+        }
+        for iv in [&full, &narrow] {
+            let portable = run_path::<false, false>(&mut m, lv, rv, iv);
+            #[cfg(target_arch = "x86_64")]
+            {
+                let same = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| x == y || (x.is_nan() && y.is_nan()));
+                if std::is_x86_feature_detected!("avx2") {
+                    assert!(same(&portable, &run_path::<true, false>(&mut m, lv, rv, iv)), "AVX2 differs, n = {n}");
+                }
+                if std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512bw") {
+                    assert!(same(&portable, &run_path::<true, true>(&mut m, lv, rv, iv)), "AVX-512 differs, n = {n}");
+                }
+            }
+            assert!(portable.iter().filter(|v| v.is_finite()).count() > w * h / 2, "n = {n}");
+        }
+    }
+}
+
+#[test]
+fn matching_the_crop_gives_what_matching_the_whole_image_gives() {
+    let (w, h) = (200, 90);
+    let (l, r) = shifted_pair(w, h, |x, y| 20 + (x + 2 * y) / 30);
+    let (lv, rv) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap());
+    for (min_d, n) in [(0, 64), (-10, 48)] {
+        let mut m = StereoMatcher::new(MatchParams { min_disparity: min_d, num_disparities: n, threads: 2, ..Default::default() }.validate().unwrap());
+        // An object in the middle, with narrow intervals on part of it, and one pixel at the
+        // image's border.
+        let mut iv = DisparityIntervals::empty(w, h);
+        for y in 30..70 {
+            for x in 90..170 {
+                let d = 20 + ((x + 2 * y) / 30) as i32;
+                iv.set(x, y, Some(if x < 130 { (d - 3, d + 2) } else { (min_d, min_d + n as i32 - 1) }));
+            }
+        }
+        let crop = Crop::of(&iv, &m.params).unwrap();
+        assert!(crop.w < w && crop.h < h, "{crop:?}");
+        let mut cropped = DisparityMap::new(w, h);
+        let stats = m.compute(lv, rv, &iv, &mut cropped).unwrap();
+        let mut whole = DisparityMap::new(w, h);
+        let whole_stats = m.compute_whole(lv, rv, &iv, &mut whole);
+        assert_eq!((stats.searched, stats.evaluated, stats.matched), (whole_stats.searched, whole_stats.evaluated, whole_stats.matched));
+        assert!(cropped.values().iter().zip(whole.values()).all(|(a, b)| a == b || (a.is_nan() && b.is_nan())));
+        assert!(stats.matched > 2000, "{}", stats.matched);
+        iv.set(0, 0, Some((min_d, min_d + 5)));
+        assert_eq!(Crop::of(&iv, &m.params).unwrap().x0, 0);
+    }
+    let mut m = StereoMatcher::new(params(16));
+    let mut out = DisparityMap::new(w, h);
+    assert_eq!(m.compute(lv, rv, &DisparityIntervals::empty(w, h), &mut out).unwrap().searched, 0);
+    assert_eq!(out.valid_count(), 0);
+}
+
+#[test]
+fn size_mismatch_is_an_error() {
+    let a = vec![0u8; 20 * 10];
+    let b = vec![0u8; 20 * 11];
+    let mut m = StereoMatcher::new(params(8));
+    let iv = m.full_intervals(20, 10, None);
+    let err = m
+        .compute(GrayView::new(20, 10, &a).unwrap(), GrayView::new(20, 11, &b).unwrap(), &iv, &mut DisparityMap::new(20, 10))
+        .unwrap_err();
+    assert_eq!(err, MatchError::SizeMismatch(20, 10, 20, 11));
+}
