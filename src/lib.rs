@@ -28,6 +28,7 @@ pub mod assist;
 pub mod bench;
 pub mod calib;
 pub mod cloud;
+pub mod control;
 pub mod daemon;
 pub mod hw;
 pub mod io;

@@ -374,6 +374,15 @@ fn readiness_is_notified_and_config_errors_exit_78() {
     assert_eq!(out.status.code(), Some(78));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("scan.step_deg") && err.contains("bad.toml"), "{err}");
+    // Matcher parameters are checked by the matcher's own rules when the config is read,
+    // not when the first scan starts (a config that passed --check-config once failed then).
+    for (key, line) in [("matching.block", "block = 33"), ("matching.block", "block = 4"), ("matching.num_disparities", "num_disparities = 0"), ("matching.num_disparities", "num_disparities = 2000")] {
+        std::fs::write(&bad, format!("[matching]\n{line}\n")).unwrap();
+        let out = Command::new(env!("CARGO_BIN_EXE_spinscand")).arg("--config").arg(&bad).arg("--check-config").output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(78), "{line}: {err}");
+        assert!(err.contains(key) && (err.contains("3…31") || err.contains("1…1024")), "{line}: {err}");
+    }
     let out = Command::new(env!("CARGO_BIN_EXE_spinscand")).args(["--sim", "--check-config", "--socket", "/tmp/x.sock"]).output().unwrap();
     assert!(out.status.success());
     let text = String::from_utf8_lossy(&out.stdout);

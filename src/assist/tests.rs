@@ -213,7 +213,7 @@ fn rect_camera_inverts_its_projection_and_agrees_with_triangulation() {
 #[test]
 fn fast_rounding_matches_the_standard_library() {
     for x in [-3.5f32, -3.0, -0.2, -0.0, 0.0, 0.2, 2.0, 2.7, 127.49, 1e6, f32::INFINITY, f32::NEG_INFINITY] {
-        assert_eq!(super::floor(x), x.floor(), "{x}");
-        assert_eq!(super::ceil(x), x.ceil(), "{x}");
+        assert_eq!(super::region::floor(x), x.floor(), "{x}");
+        assert_eq!(super::region::ceil(x), x.ceil(), "{x}");
     }
 }

@@ -7,8 +7,9 @@ use std::time::Duration;
 
 use clap::Parser;
 
-use spinscan::daemon::config::{BackendKind, Config};
-use spinscan::daemon::{exit, server, Auth, Daemon};
+use spinscan::daemon::config::{BackendKind, Config, ConfigError};
+use spinscan::control::{server, Auth};
+use spinscan::daemon::{exit, Daemon, DaemonError};
 
 #[derive(Parser)]
 #[command(name = "spinscand", version, about = "spinscan's daemon: drives the cameras and the turntable, scans on command from a Unix socket")]
@@ -34,11 +35,11 @@ struct Args {
 
 const SYSTEM_CONFIG: &str = "/etc/spinscan/spinscand.toml";
 
-fn load_config(args: &Args) -> Result<Config, String> {
+fn load_config(args: &Args) -> Result<Config, ConfigError> {
     let mut config = match (&args.config, args.sim) {
-        (Some(p), _) => Config::load(p).map_err(|e| e.to_string())?,
+        (Some(p), _) => Config::load(p)?,
         (None, true) => Config::sim(),
-        (None, false) if std::path::Path::new(SYSTEM_CONFIG).is_file() => Config::load(std::path::Path::new(SYSTEM_CONFIG)).map_err(|e| e.to_string())?,
+        (None, false) if std::path::Path::new(SYSTEM_CONFIG).is_file() => Config::load(std::path::Path::new(SYSTEM_CONFIG))?,
         (None, false) => Config::default(),
     };
     if args.sim {
@@ -51,7 +52,7 @@ fn load_config(args: &Args) -> Result<Config, String> {
         config.daemon.state_dir = d.clone();
     }
     let source = spinscan::daemon::config_source(args.config.as_ref(), args.sim);
-    config.validate(std::path::Path::new(&source)).map_err(|e| e.to_string())?;
+    config.validate(std::path::Path::new(&source))?;
     Ok(config)
 }
 
@@ -107,12 +108,13 @@ async fn run(config: Config, auth: Auth) -> u8 {
     let mode = config.socket_mode().expect("validated");
     let gid = auth.group.as_ref().map(|g| g.1);
     tracing::info!(backend = config.backend.kind.name(), socket = %socket.display(), state_dir = %config.daemon.state_dir.display(), "spinscand {} starting", env!("CARGO_PKG_VERSION"));
-    let daemon = match tokio::task::spawn_blocking(move || Daemon::start(config, auth)).await {
+    let auth = Arc::new(auth);
+    let daemon = match tokio::task::spawn_blocking(move || Daemon::start(config)).await {
         Ok(Ok(d)) => d,
         Ok(Err(e)) => {
             tracing::error!("cannot start: {e}");
             eprintln!("spinscand: {e}");
-            return if e.contains("state folder") { exit::CANT_CREATE } else { exit::UNAVAILABLE };
+            return if matches!(e, DaemonError::StateDir { .. }) { exit::CANT_CREATE } else { exit::UNAVAILABLE };
         }
         Err(_) => return exit::SOFTWARE,
     };
@@ -124,7 +126,7 @@ async fn run(config: Config, auth: Auth) -> u8 {
         }
     };
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let serving = tokio::spawn(server::serve(daemon.clone(), listener, stop_rx));
+    let serving = tokio::spawn(server::serve(daemon.clone(), auth, listener, stop_rx));
     tracing::info!(socket = %socket.display(), "ready");
     notify(&[sd_notify::NotifyState::Ready, sd_notify::NotifyState::Status(&daemon.status_line())]);
 

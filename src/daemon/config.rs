@@ -7,9 +7,10 @@ use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
-use crate::assist::{AssistMode, AssistParams};
+use crate::assist::{AssistMode, AssistModeError, AssistParams};
 use crate::hw::sim::SimSection;
 use crate::hw::DriverConfig;
+use crate::pipeline::live::{check_step_deg, check_total_deg, PipelineSettings, SpecError};
 
 /// Why a configuration cannot be used.
 #[derive(Debug, thiserror::Error)]
@@ -349,24 +350,27 @@ impl Config {
             }
         }
         let s = &self.scan;
-        if !(s.step_deg > 0.0 && s.step_deg <= 360.0) {
-            return bad("scan.step_deg", format!("must be within (0, 360], got {}", s.step_deg));
+        // The same bounds `scan.start` applies (ScanSpec::validate).
+        if let Err(SpecError::Range { expected, got, .. }) = check_step_deg(s.step_deg) {
+            return bad("scan.step_deg", format!("must be {expected}, got {got}"));
         }
-        if !(s.total_deg > 0.0 && s.total_deg <= 3600.0) {
-            return bad("scan.total_deg", format!("must be within (0, 3600], got {}", s.total_deg));
+        if let Err(SpecError::Range { expected, got, .. }) = check_total_deg(s.total_deg) {
+            return bad("scan.total_deg", format!("must be {expected}, got {got}"));
         }
         if s.queue_depth == 0 {
             return bad("scan.queue_depth", "must be at least 1".into());
         }
-        let m = &self.matching;
-        if m.num_disparities == 0 || m.num_disparities % 16 != 0 {
-            return bad("matching.num_disparities", format!("must be a positive multiple of 16, got {}", m.num_disparities));
-        }
-        if m.block < 5 || m.block % 2 == 0 || m.block > 255 {
-            return bad("matching.block", format!("must be odd and 5 … 255, got {}", m.block));
+        // The matcher's own rules (MatchParams::validate), on the parameters a scan will use.
+        if let Err(e) = self.pipeline_settings().pipeline.matching.validate() {
+            let key = match e.name {
+                "num_disparities" => "matching.num_disparities",
+                "block" => "matching.block",
+                _ => "matching",
+            };
+            return bad(key, format!("{}, got {}", e.expected, e.value));
         }
         if let Err(e) = self.assist() {
-            return bad("matching.assist", e);
+            return bad("matching.assist", e.to_string());
         }
         if let Err(e) = crate::hw::sim::check_object(&self.sim.object) {
             return bad("sim.object", e.to_string());
@@ -380,13 +384,44 @@ impl Config {
         Ok(())
     }
 
+    /// The pipeline settings a config asks for.
+    pub fn pipeline_settings(&self) -> PipelineSettings {
+        let config = self;
+        let mut pipeline = crate::pipeline::PipelineOptions::default();
+        pipeline.matching.num_disparities = config.matching.num_disparities;
+        pipeline.matching.block = config.matching.block;
+        // Parallelism comes from the pool: one thread per matcher.
+        pipeline.matching.threads = 1;
+        let registration = config.scan.register.then(|| {
+            let mut p = crate::register::ring::RegistrationParams::default();
+            if config.scan.register_max_points > 0 {
+                // Both ends of ICP: the view moved (source) and the view it lands on (target).
+                p.max_target_points = config.scan.register_max_points;
+                p.icp.max_source_points = p.icp.max_source_points.min(config.scan.register_max_points);
+            }
+            p
+        });
+        PipelineSettings {
+            pipeline,
+            segment: config.matching.segment,
+            // An unknown mode is refused by `validate`; unvalidated configs match full range.
+        assist: if registration.is_some() { config.assist().ok().flatten() } else { None },
+            registration,
+            matcher_threads: config.scan.matcher_threads,
+            queue_depth: config.scan.queue_depth,
+            record: true,
+            pace_hz: (config.backend.kind == BackendKind::Replay && config.backend.replay_paced).then_some(config.cameras.fps as f64),
+            register_newest_when_behind: false,
+        }
+    }
+
     /// The socket's permission bits.
     pub fn socket_mode(&self) -> Option<u32> {
         u32::from_str_radix(self.daemon.socket_mode.trim_start_matches("0o"), 8).ok().filter(|m| *m <= 0o777)
     }
 
     /// Registration-assisted matching settings (None: full range every frame).
-    pub fn assist(&self) -> Result<Option<AssistParams>, String> {
+    pub fn assist(&self) -> Result<Option<AssistParams>, AssistModeError> {
         let mode = AssistMode::parse(&self.matching.assist, self.matching.assist_w)?;
         Ok((!matches!(mode, AssistMode::None)).then(|| AssistParams { mode, ..AssistParams::default() }))
     }
@@ -430,5 +465,31 @@ mod tests {
         assert!(e.contains("backend.replay"), "{e}");
         let e = Config::parse(p, "[matching]\nassist = \"sometimes\"\n").unwrap_err().to_string();
         assert!(e.contains("matching.assist"), "{e}");
+    }
+
+    #[test]
+    fn matcher_parameters_follow_the_matchers_rules_and_every_accepted_value_builds() {
+        let p = Path::new("x.toml");
+        for (text, key) in [("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities")] {
+            let e = Config::parse(p, &format!("[matching]\n{text}\n")).unwrap_err().to_string();
+            assert!(e.contains(key), "{text}: {e}");
+        }
+        // The bounds of what is accepted: each builds the pipeline a scan starts with.
+        let calib = crate::hw::sim::ideal_calib(64, 48, 70.0, 60.0);
+        for (block, n) in [(3, 1), (31, 1), (31, 1024), (9, 100), (3, 1024)] {
+            let c = Config::parse(p, &format!("[matching]\nblock = {block}\nnum_disparities = {n}\n")).unwrap_or_else(|e| panic!("block {block}, {n} disparities: {e}"));
+            let settings = c.pipeline_settings();
+            crate::pipeline::Pipeline::new(&calib, (64, 48), settings.pipeline).unwrap_or_else(|e| panic!("block {block}, {n} disparities: {e}"));
+        }
+    }
+
+    #[test]
+    fn scan_bounds_are_the_socket_bounds() {
+        let p = Path::new("x.toml");
+        for text in ["step_deg = 0", "step_deg = 361", "total_deg = 3601", "total_deg = -5"] {
+            let e = Config::parse(p, &format!("[scan]\n{text}\n")).unwrap_err().to_string();
+            let key = text.split(' ').next().unwrap();
+            assert!(e.contains(&format!("scan.{key}")), "{text}: {e}");
+        }
     }
 }

@@ -139,10 +139,10 @@ mod tests {
         assert!((back.to_homogeneous() - t.to_homogeneous()).abs().max() < 1e-12);
         let mut rows = to_rows(&t);
         rows[0][0] *= 2.0;
-        assert!(from_rows(&rows, 1e-6).unwrap_err().contains("not a rotation"));
+        assert!(from_rows(&rows, 1e-6).unwrap_err().to_string().contains("not a rotation"));
         let mut rows = to_rows(&t);
         rows[3][3] = 2.0;
-        assert!(from_rows(&rows, 1e-6).unwrap_err().contains("last row"));
+        assert!(from_rows(&rows, 1e-6).unwrap_err().to_string().contains("last row"));
     }
 
     #[test]

@@ -316,3 +316,18 @@ pub(super) enum Note {
     View { frame_meta: StereoFrame, view: Box<View>, captured: Instant },
     Skipped { seq: u64, why: String },
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_cannot_escape_the_state_folder() {
+        for good in ["bunny", "vase-2026.11.22", "a_1"] {
+            assert!(validate_name(good).is_ok(), "{good}");
+        }
+        for bad in ["", "..", ".", "../etc", "a/b", "-rf", ".hidden", "a b", &"x".repeat(65)] {
+            assert!(validate_name(bad).is_err(), "{bad:?}");
+        }
+    }
+}

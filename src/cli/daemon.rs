@@ -1,4 +1,5 @@
-//! The `spinscan` subcommands that talk to `spinscand`: status, devices, scan, scans.
+//! The `spinscan` subcommands that talk to `spinscand`: status, devices, scan, scans — over
+//! the typed client of [`spinscan::control`].
 
 use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
@@ -6,10 +7,10 @@ use std::path::PathBuf;
 use clap::{Args, Subcommand};
 use serde_json::{json, Value};
 
-use spinscan::daemon::client::{Client, ClientError};
-
-/// Exit code when the daemon cannot be reached or refuses a request.
-pub const EXIT_DAEMON: u8 = 5;
+use super::exit::DAEMON as EXIT_DAEMON;
+use super::Failure;
+use spinscan::control::client::{Client, ClientError};
+use spinscan::control::ScanStartParams;
 
 #[derive(Args, Clone)]
 pub struct SocketArg {
@@ -72,11 +73,6 @@ pub struct ScanStartArgs {
     pub socket: SocketArg,
 }
 
-pub struct Failure {
-    pub code: u8,
-    pub message: String,
-}
-
 fn daemon_err(e: ClientError) -> Failure {
     Failure { code: EXIT_DAEMON, message: e.to_string() }
 }
@@ -91,7 +87,7 @@ fn print_json(v: &Value) {
 
 pub fn status(s: SocketArg) -> Result<(), Failure> {
     let mut c = connect(&s)?;
-    let v = c.call("status", json!({})).map_err(daemon_err)?;
+    let v = c.status().map_err(daemon_err)?;
     if s.json {
         print_json(&v);
         return Ok(());
@@ -115,7 +111,7 @@ pub fn devices(a: DevicesArgs) -> Result<(), Failure> {
         spinscan::hw::v4l2::list_devices()
     } else {
         let mut c = connect(&a.socket)?;
-        c.call("devices", json!({})).map_err(daemon_err)?
+        c.devices().map_err(daemon_err)?
     };
     if a.socket.json {
         print_json(&v);
@@ -151,17 +147,17 @@ pub fn scan(cmd: ScanCommand) -> Result<(), Failure> {
         ScanCommand::Start(a) => start(a),
         ScanCommand::Stop(s) => {
             let mut c = connect(&s)?;
-            let v = c.call("scan.stop", json!({})).map_err(daemon_err)?;
+            let v = c.scan_stop().map_err(daemon_err)?;
             if s.json {
-                print_json(&v);
+                print_json(&json!(v));
             } else {
-                println!("stopping {} after its current view", v["name"].as_str().unwrap_or("?"));
+                println!("stopping {} after its current view", v.name);
             }
             Ok(())
         }
         ScanCommand::Get { name, socket } => {
             let mut c = connect(&socket)?;
-            let v = c.call("scan.get", json!({"name": name})).map_err(daemon_err)?;
+            let v = c.scan_get(&name).map_err(daemon_err)?;
             print_json(&v);
             Ok(())
         }
@@ -170,23 +166,22 @@ pub fn scan(cmd: ScanCommand) -> Result<(), Failure> {
 
 pub fn scans(s: SocketArg) -> Result<(), Failure> {
     let mut c = connect(&s)?;
-    let v = c.call("scan.list", json!({})).map_err(daemon_err)?;
+    let list = c.scan_list().map_err(daemon_err)?;
     if s.json {
-        print_json(&v);
+        print_json(&json!(list));
         return Ok(());
     }
-    let list = v["scans"].as_array().cloned().unwrap_or_default();
-    if list.is_empty() {
+    if list.scans.is_empty() {
         println!("no scans");
     }
-    for e in list {
+    for e in list.scans {
         println!(
             "{:<24} {:<11} {:>5} views  {}{}",
-            e["name"].as_str().unwrap_or("?"),
-            e["status"].as_str().unwrap_or("?"),
-            e["frames"].as_u64().map_or("?".into(), |n| n.to_string()),
-            e["mode"].as_str().unwrap_or(""),
-            e["reason"].as_str().map(|r| format!("  ({r})")).unwrap_or_default()
+            e.name,
+            e.status.as_str().unwrap_or("?"),
+            e.frames.as_u64().map_or("?".into(), |n| n.to_string()),
+            e.mode.as_str().unwrap_or(""),
+            e.reason.as_str().map(|r| format!("  ({r})")).unwrap_or_default()
         );
     }
     Ok(())
@@ -196,40 +191,39 @@ fn start(a: ScanStartArgs) -> Result<(), Failure> {
     let mut c = connect(&a.socket)?;
     if a.watch {
         // Subscribe first so no event of this scan is missed.
-        c.call("events.subscribe", json!({})).map_err(daemon_err)?;
+        c.subscribe().map_err(daemon_err)?;
     }
-    let mut params = json!({"name": a.name, "mode": if a.continuous { "continuous" } else { "step" }});
-    for (k, v) in [("step_deg", a.step_deg), ("total_deg", a.total_deg), ("speed_deg_s", a.speed_deg_s)] {
-        if let Some(v) = v {
-            params[k] = json!(v);
-        }
-    }
-    if let Some(n) = a.max_views {
-        params["max_views"] = json!(n);
-    }
-    let started = c.call("scan.start", params).map_err(daemon_err)?;
+    let params = ScanStartParams {
+        name: a.name.clone(),
+        mode: Some(if a.continuous { "continuous" } else { "step" }.into()),
+        step_deg: a.step_deg,
+        total_deg: a.total_deg,
+        speed_deg_s: a.speed_deg_s,
+        max_views: a.max_views,
+    };
+    let started = c.scan_start(&params).map_err(daemon_err)?;
     if a.socket.json && !a.watch {
-        print_json(&started);
+        print_json(&json!(started));
         return Ok(());
     }
-    eprintln!("scan {} started: {} mode, {} views planned, folder {}", a.name, started["mode"].as_str().unwrap_or("?"), started["views_planned"].as_u64().map_or("(continuous)".into(), |n| n.to_string()), started["dir"].as_str().unwrap_or("?"));
+    eprintln!("scan {} started: {} mode, {} views planned, folder {}", a.name, started.mode, started.views_planned.map_or("(continuous)".into(), |n| n.to_string()), started.dir.display());
     if !a.watch {
         return Ok(());
     }
     c.set_timeout(None).map_err(daemon_err)?;
-    let planned = started["views_planned"].as_u64();
-    let total_deg = started["total_deg"].as_f64().unwrap_or(360.0);
+    let planned = started.views_planned.map(|n| n as u64);
+    let total_deg = started.total_deg;
     let tty = std::io::stderr().is_terminal();
     let mut start_deg: Option<f64> = None;
     let mut last_line = String::new();
     loop {
         let n = c.next_notification().map_err(daemon_err)?;
-        let p = &n["params"];
+        let p = &n.params;
         if p["name"].as_str() != Some(a.name.as_str()) {
             continue;
         }
-        match n["method"].as_str() {
-            Some("scan.progress") => {
+        match n.method.as_str() {
+            "scan.progress" => {
                 let views = p["views"].as_u64().unwrap_or(0);
                 let deg = p["table_deg"].as_f64().unwrap_or(0.0);
                 let s0 = *start_deg.get_or_insert(deg);
@@ -257,7 +251,7 @@ fn start(a: ScanStartArgs) -> Result<(), Failure> {
                 }
                 last_line = line;
             }
-            Some("scan.state") if p["status"] != "running" => {
+            "scan.state" if p["status"] != "running" => {
                 if tty {
                     eprintln!();
                 }
@@ -274,7 +268,7 @@ fn start(a: ScanStartArgs) -> Result<(), Failure> {
                     _ => Err(Failure { code: EXIT_DAEMON, message: format!("scan {} {status}{reason}", a.name) }),
                 };
             }
-            Some("device.error") => eprintln!("\ndevice error: {}", p["message"].as_str().unwrap_or("?")),
+            "device.error" => eprintln!("\ndevice error: {}", p["message"].as_str().unwrap_or("?")),
             _ => {}
         }
     }

@@ -3,7 +3,7 @@
 //! `events.subscribe` the daemon's notifications are interleaved with the answers.
 
 use std::os::unix::fs::PermissionsExt;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 
@@ -11,41 +11,58 @@ use serde_json::{json, Value};
 use tokio::io::{AsyncBufRead, AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{UnixListener, UnixStream};
 
-use super::rpc::{self, code, Request, RpcError};
-use super::Daemon;
+use super::auth::Auth;
+use super::error::ControlError;
+use super::protocol::{Call, Hello, ScanEntry, ScanList, Subscribed, EVENTS, PROTOCOL_VERSION};
+use super::rpc;
+use crate::daemon::{Daemon, Event};
+
+/// Why the socket could not be made.
+#[derive(Debug, thiserror::Error)]
+pub enum BindError {
+    #[error("cannot create {path}: {source}")]
+    Folder { path: PathBuf, source: std::io::Error },
+    #[error("{0} is in use: another spinscand is running (stop it, or pass --socket)")]
+    InUse(PathBuf),
+    #[error("cannot {what} {path}: {source}")]
+    Socket { what: &'static str, path: PathBuf, source: std::io::Error },
+    #[error("cannot give {path} to group {gid}: {source} (is spinscand in that group?)")]
+    Group { path: PathBuf, gid: u32, source: std::io::Error },
+}
 
 /// Binds the socket: refuses when another daemon answers on it, replaces a stale one,
 /// sets the mode and group.
-pub fn bind(path: &Path, mode: u32, gid: Option<u32>) -> Result<UnixListener, String> {
+pub fn bind(path: &Path, mode: u32, gid: Option<u32>) -> Result<UnixListener, BindError> {
+    let socket = |what| move |source| BindError::Socket { what, path: path.to_path_buf(), source };
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+        std::fs::create_dir_all(dir).map_err(|source| BindError::Folder { path: dir.to_path_buf(), source })?;
     }
     if path.exists() {
         if std::os::unix::net::UnixStream::connect(path).is_ok() {
-            return Err(format!("{} is in use: another spinscand is running (stop it, or pass --socket)", path.display()));
+            return Err(BindError::InUse(path.to_path_buf()));
         }
-        std::fs::remove_file(path).map_err(|e| format!("cannot remove the stale socket {}: {e}", path.display()))?;
+        std::fs::remove_file(path).map_err(socket("remove the stale socket"))?;
     }
-    let listener = UnixListener::bind(path).map_err(|e| format!("cannot bind {}: {e}", path.display()))?;
-    std::fs::set_permissions(path, std::fs::Permissions::from_mode(mode)).map_err(|e| format!("cannot chmod {}: {e}", path.display()))?;
+    let listener = UnixListener::bind(path).map_err(socket("bind"))?;
+    std::fs::set_permissions(path, std::fs::Permissions::from_mode(mode)).map_err(socket("chmod"))?;
     if let Some(gid) = gid {
-        std::os::unix::fs::chown(path, None, Some(gid)).map_err(|e| format!("cannot give {} to group {gid}: {e} (is spinscand in that group?)", path.display()))?;
+        std::os::unix::fs::chown(path, None, Some(gid)).map_err(|source| BindError::Group { path: path.to_path_buf(), gid, source })?;
     }
     Ok(listener)
 }
 
 /// Accepts connections until `shutdown` fires.
-pub async fn serve(daemon: Arc<Daemon>, listener: UnixListener, mut shutdown: tokio::sync::watch::Receiver<bool>) {
+pub async fn serve(daemon: Arc<Daemon>, auth: Arc<Auth>, listener: UnixListener, mut shutdown: tokio::sync::watch::Receiver<bool>) {
     let clients = Arc::new(AtomicUsize::new(0));
     loop {
         tokio::select! {
             accepted = listener.accept() => match accepted {
                 Ok((stream, _)) => {
-                    let (d, c) = (daemon.clone(), clients.clone());
+                    let (d, a, c) = (daemon.clone(), auth.clone(), clients.clone());
                     tokio::spawn(async move {
                         if c.fetch_add(1, Ordering::SeqCst) >= d.config.daemon.max_clients {
                             let _ = refuse(stream, d.config.daemon.max_clients).await;
-                        } else if let Err(e) = connection(d, stream).await {
+                        } else if let Err(e) = connection(d, &a, stream).await {
                             tracing::debug!("client connection ended: {e}");
                         }
                         c.fetch_sub(1, Ordering::SeqCst);
@@ -62,7 +79,7 @@ pub async fn serve(daemon: Arc<Daemon>, listener: UnixListener, mut shutdown: to
 }
 
 async fn refuse(mut stream: UnixStream, max: usize) -> std::io::Result<()> {
-    let e = RpcError::new(code::BUSY, format!("too many clients (daemon.max_clients = {max}); try again later"));
+    let e = ControlError::TooManyClients(max);
     stream.write_all(format!("{}\n", rpc::error_response(&Value::Null, &e)).as_bytes()).await
 }
 
@@ -111,10 +128,10 @@ fn finish(mut buf: Vec<u8>) -> Line {
     }
 }
 
-async fn connection(daemon: Arc<Daemon>, stream: UnixStream) -> std::io::Result<()> {
+async fn connection(daemon: Arc<Daemon>, auth: &Auth, stream: UnixStream) -> std::io::Result<()> {
     let cred = stream.peer_cred()?;
     let (uid, gid, pid) = (cred.uid(), cred.gid(), cred.pid());
-    let may_control = daemon.auth.may_control(uid, gid);
+    let may_control = auth.may_control(uid, gid);
     tracing::debug!(uid, gid, ?pid, may_control, "client connected");
     let (read, mut write) = stream.into_split();
     let mut reader = BufReader::new(read);
@@ -131,20 +148,20 @@ async fn connection(daemon: Arc<Daemon>, stream: UnixStream) -> std::io::Result<
         let tx = tx.clone();
         async move { tx.send(format!("{v}\n")).await.is_ok() }
     };
-    let hello = rpc::notification("hello", json!({"server": "spinscand", "version": env!("CARGO_PKG_VERSION"), "protocol": rpc::PROTOCOL_VERSION, "may_control": may_control}));
-    send(hello).await;
+    let hello = Hello { server: "spinscand".into(), version: env!("CARGO_PKG_VERSION").into(), protocol: PROTOCOL_VERSION, may_control };
+    send(rpc::notification("hello", json!(hello))).await;
     let max = daemon.config.daemon.max_request_bytes;
     let mut forwarder: Option<tokio::task::JoinHandle<()>> = None;
     loop {
         let line = match read_line(&mut reader, max).await? {
             Line::Eof => break,
             Line::TooLong => {
-                let e = RpcError::new(code::INVALID_REQUEST, format!("request line longer than {max} bytes (daemon.max_request_bytes)"));
+                let e = ControlError::InvalidRequest(format!("request line longer than {max} bytes (daemon.max_request_bytes)"));
                 send(rpc::error_response(&Value::Null, &e)).await;
                 continue;
             }
             Line::NotUtf8 => {
-                send(rpc::error_response(&Value::Null, &RpcError::new(code::PARSE_ERROR, "request line is not UTF-8"))).await;
+                send(rpc::error_response(&Value::Null, &ControlError::Parse("request line is not UTF-8".into()))).await;
                 continue;
             }
             Line::Text(t) if t.trim().is_empty() => continue,
@@ -158,18 +175,20 @@ async fn connection(daemon: Arc<Daemon>, stream: UnixStream) -> std::io::Result<
             }
         };
         let id = req.id.clone();
-        let result = if req.method == "events.subscribe" {
-            rpc::Params::new(&req, &[]).map(|_| {
+        let result = match Call::parse(&req) {
+            Err(e) => Err(e),
+            Ok(Call::EventsSubscribe) => {
                 if forwarder.is_none() {
                     forwarder = Some(forward_events(daemon.subscribe(), tx.clone()));
                 }
-                json!({"subscribed": ["scan.progress", "scan.state", "device.error"]})
-            })
-        } else {
-            let d = daemon.clone();
-            let who = format!("uid {uid}, pid {}", pid.map_or("?".to_string(), |p| p.to_string()));
-            // Methods may touch devices (a serial round trip): off the async threads.
-            tokio::task::spawn_blocking(move || dispatch(&d, &req, may_control, &who)).await.unwrap_or_else(|_| Err(RpcError::new(code::INTERNAL, "the request handler panicked")))
+                Ok(json!(Subscribed { subscribed: EVENTS.iter().map(|e| e.to_string()).collect() }))
+            }
+            Ok(call) => {
+                let d = daemon.clone();
+                let who = format!("uid {uid}, pid {}", pid.map_or("?".to_string(), |p| p.to_string()));
+                // Methods may touch devices (a serial round trip): off the async threads.
+                tokio::task::spawn_blocking(move || dispatch(&d, call, may_control, &who)).await.unwrap_or_else(|_| Err(ControlError::Internal("the request handler panicked".into())))
+            }
         };
         // A notification (no id) gets no answer.
         if let Some(id) = id {
@@ -191,11 +210,11 @@ async fn connection(daemon: Arc<Daemon>, stream: UnixStream) -> std::io::Result<
 }
 
 /// Forwards the daemon's notifications to one client until either side goes.
-fn forward_events(mut events: tokio::sync::broadcast::Receiver<Value>, tx: tokio::sync::mpsc::Sender<String>) -> tokio::task::JoinHandle<()> {
+fn forward_events(mut events: tokio::sync::broadcast::Receiver<Event>, tx: tokio::sync::mpsc::Sender<String>) -> tokio::task::JoinHandle<()> {
     tokio::spawn(async move {
         loop {
             let line = match events.recv().await {
-                Ok(v) => format!("{v}\n"),
+                Ok(e) => format!("{}\n", rpc::notification(&e.method, e.params)),
                 Err(tokio::sync::broadcast::error::RecvError::Lagged(n)) => format!("{}\n", rpc::notification("events.lagged", json!({"missed": n}))),
                 Err(tokio::sync::broadcast::error::RecvError::Closed) => break,
             };
@@ -207,18 +226,33 @@ fn forward_events(mut events: tokio::sync::broadcast::Receiver<Value>, tx: tokio
 }
 
 /// Runs one method (blocking).
-fn dispatch(daemon: &Arc<Daemon>, req: &Request, may_control: bool, who: &str) -> Result<Value, RpcError> {
-    let control = matches!(req.method.as_str(), "scan.start" | "scan.stop");
-    if control && !may_control {
-        return Err(RpcError::new(code::PERMISSION_DENIED, format!("{}: permission denied for {who}: only root, spinscand's user and members of group `{}` may control scans", req.method, daemon.config.daemon.group)));
+fn dispatch(daemon: &Arc<Daemon>, call: Call, may_control: bool, who: &str) -> Result<Value, ControlError> {
+    let method = call.method();
+    if call.controls() && !may_control {
+        return Err(ControlError::PermissionDenied { method: method.into(), who: who.into(), group: daemon.config.daemon.group.clone() });
     }
-    match req.method.as_str() {
-        "status" => rpc::Params::new(req, &[]).map(|_| daemon.status()),
-        "devices" => rpc::Params::new(req, &[]).map(|_| daemon.devices()),
-        "scan.start" => daemon.start_scan(req),
-        "scan.stop" => rpc::Params::new(req, &[]).and_then(|_| daemon.stop_scan(&format!("stopped by scan.stop ({who})"))),
-        "scan.list" => rpc::Params::new(req, &[]).map(|_| daemon.list_scans()),
-        "scan.get" => daemon.get_scan(req),
-        other => Err(RpcError::new(code::METHOD_NOT_FOUND, format!("unknown method `{other}` (known: status, devices, scan.start, scan.stop, scan.list, scan.get, events.subscribe)"))),
+    let of = |e| ControlError::of(method, e);
+    match call {
+        Call::Status => {
+            let mut s = daemon.status();
+            s["protocol"] = json!(PROTOCOL_VERSION);
+            Ok(s)
+        }
+        Call::Devices => Ok(daemon.devices()),
+        Call::ScanStart(p) => {
+            let spec = p.to_spec(&daemon.config)?;
+            daemon.start_scan(spec).map(|s| json!(s)).map_err(of)
+        }
+        Call::ScanStop => daemon.stop_scan(&format!("stopped by scan.stop ({who})")).map(|s| json!(s)).map_err(of),
+        Call::ScanList => {
+            let running = daemon.current_scan().map(|s| s.spec.name.clone());
+            let scans = crate::daemon::list_manifests(&daemon.config.daemon.state_dir)
+                .into_iter()
+                .map(|(name, m)| ScanEntry { running: running.as_deref() == Some(name.as_str()), name, status: m["status"].clone(), frames: m["frames"].clone(), mode: m["mode"].clone(), reason: m["reason"].clone() })
+                .collect();
+            Ok(json!(ScanList { scans }))
+        }
+        Call::ScanGet { name } => daemon.get_scan(&name).map_err(of),
+        Call::EventsSubscribe => unreachable!("answered on the connection's own task"),
     }
 }

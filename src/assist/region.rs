@@ -1,0 +1,91 @@
+//! Small pieces of the interval construction: rounding without libm, clipped intervals, and
+//! the rectangle of the image that holds the work.
+
+use crate::stereo::DisparityMap;
+
+/// `x.floor()` without a libm call (the baseline x86-64 target has no rounding instruction);
+/// exact for |x| < 2²³, where every value here lies, and ±∞ stays ±∞.
+#[inline(always)]
+pub(super) fn floor(x: f32) -> f32 {
+    if !(x.abs() < 8_388_608.0) {
+        return x;
+    }
+    let t = x as i32 as f32;
+    t - (t > x) as i32 as f32
+}
+
+/// `x.ceil()`, as [`floor`].
+#[inline(always)]
+pub(super) fn ceil(x: f32) -> f32 {
+    -floor(-x)
+}
+
+/// `[lo, hi]` rounded outwards and clipped to `range`; `None` when it misses the range.
+#[inline]
+pub(super) fn interval(range: (i32, i32), lo: f32, hi: f32) -> Option<(i32, i32)> {
+    // floor and ceil without a libm call (the baseline x86-64 target has no rounding
+    // instruction); the bounds are far inside i32.
+    let (tl, th) = (lo as i32, hi as i32);
+    let (a, b) = ((tl - (lo < tl as f32) as i32).max(range.0), (th + (hi > th as f32) as i32).min(range.1));
+    (a <= b).then_some((a, b))
+}
+
+/// Pixels nothing reached take the hull of the intervals within this many pixels.
+pub(super) const FILL: usize = 6;
+
+/// A rectangle of the image, `x0..x1` × `y0..y1`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub(super) struct Region {
+    pub(super) x0: usize,
+    pub(super) x1: usize,
+    pub(super) y0: usize,
+    pub(super) y1: usize,
+}
+
+impl Region {
+    /// The bounding box of the non-zero pixels of `mask` (the whole image without one).
+    pub(super) fn of(mask: Option<&[u8]>, w: usize, h: usize) -> Option<Region> {
+        match mask {
+            Some(m) => Region::bbox(m, w, |&v| v != 0),
+            None => Some(Region { x0: 0, x1: w, y0: 0, y1: h }),
+        }
+    }
+
+    /// The bounding box of the finite values of a disparity map (empty region if none).
+    pub(super) fn of_disparity(d: &DisparityMap) -> Region {
+        Region::bbox(d.values(), d.width, |v| v.is_finite()).unwrap_or_default()
+    }
+
+    /// The bounding box of the values `keep` accepts in a row-major `w`-wide image.
+    pub(super) fn bbox<T>(values: &[T], w: usize, keep: impl Fn(&T) -> bool) -> Option<Region> {
+        let mut r: Option<Region> = None;
+        for (y, row) in values.chunks_exact(w).enumerate() {
+            let Some(first) = row.iter().position(&keep) else { continue };
+            let last = w - row.iter().rev().position(&keep).expect("one exists");
+            r = Some(match r {
+                None => Region { x0: first, x1: last, y0: y, y1: y + 1 },
+                Some(r) => Region { x0: r.x0.min(first), x1: r.x1.max(last), y0: r.y0, y1: y + 1 },
+            });
+        }
+        r
+    }
+
+    pub(super) fn union(&self, o: &Region) -> Region {
+        if o.x1 == 0 {
+            return *self;
+        }
+        Region { x0: self.x0.min(o.x0), x1: self.x1.max(o.x1), y0: self.y0.min(o.y0), y1: self.y1.max(o.y1) }
+    }
+
+    pub(super) fn grow(&self, by: usize, w: usize, h: usize) -> Region {
+        Region { x0: self.x0.saturating_sub(by), x1: (self.x1 + by).min(w), y0: self.y0.saturating_sub(by), y1: (self.y1 + by).min(h) }
+    }
+
+    pub(super) fn xs(&self) -> std::ops::Range<usize> {
+        self.x0..self.x1
+    }
+
+    pub(super) fn ys(&self) -> std::ops::Range<usize> {
+        self.y0..self.y1
+    }
+}

@@ -1,0 +1,227 @@
+//! The two ways previous points are carried into this frame's search intervals: the paper's
+//! registration constraint (its two cases, weight w) and the Kalman-predicted motion. Both
+//! splat each previous pixel's sphere (or prediction ± uncertainty) into per-pixel `lo`/`hi`.
+
+use nalgebra::{Matrix3, Vector3};
+
+use super::motion;
+use super::region::{ceil, floor};
+use super::{Assistant, Plan};
+
+impl Assistant {
+    /// The paper's two cases into `lo`/`hi` (see the module docs).
+    pub(super) fn splat_paper(&mut self, weight: f64, gap: u64, lag: u64, mask: Option<&[u8]>, plan: &mut Plan) {
+        let (w, h) = self.size;
+        let prev = self.prev.as_ref().expect("planned with a previous frame");
+        let step = self.steps.back().expect("planned with a step").per_frame;
+        // Lag: widen by the relative change between the last two steps (at least 10 %).
+        let kappa = match (self.steps.len(), self.steps.front()) {
+            (2, Some(older)) => {
+                let (a, b) = (motion::log(&older.per_frame), motion::log(&step));
+                ((b - a).norm() / b.norm().max(1e-12)).max(0.1)
+            }
+            _ => 0.1,
+        };
+        let widen = gap as f64 * (1.0 + lag as f64 * kappa);
+        // P − M⁻¹·P = A·P + b with A = I − R⁻¹, b = R⁻¹·t.
+        let back = step.inverse();
+        let a_m = Matrix3::identity() - back.rotation.to_rotation_matrix().into_inner();
+        let b_v = -back.translation.vector;
+        let cam = self.cam;
+        let min_half = self.params.min_half_width_px as f32;
+        let (max_radius, scale) = (self.params.max_radius_px as f32, cam.fx * weight * widen);
+        let prev_d = prev.disparity.values();
+        let (lo, hi, region) = (&mut self.lo, &mut self.hi, self.region);
+        // The projected radius (pixels) of every previous point's sphere, once:
+        // ρ = fx·w·r/Z = fx·w·|A·(u, v, 1) + b/Z|, at least `min_half`; NaN where no point.
+        self.rho.resize(w * h, f32::NAN);
+        let rho = &mut self.rho;
+        let mut max_rho = 0f32;
+        let (a_m, b_v, scale) = (a_m.cast::<f32>(), b_v.cast::<f32>(), scale as f32);
+        let (cx, cy, dcx) = (cam.cx as f32, cam.cy as f32, cam.dcx as f32);
+        let (ifx, ify, inv_mtx) = (1.0 / cam.fx as f32, 1.0 / cam.fy as f32, -1.0 / cam.tx as f32);
+        for y in region.ys() {
+            let v = (y as f32 - cy) * ify;
+            // A·(u, v, 1) = A·(0, v, 1) + u·A[:, 0].
+            let base = a_m * Vector3::new(0.0, v, 1.0);
+            let col0 = a_m.column(0).into_owned();
+            for x in region.xs() {
+                let i = y * w + x;
+                let inv_z = (prev_d[i] - dcx) * inv_mtx;
+                // NaN (no disparity) and points behind the camera fail here.
+                if !(inv_z > 0.0) {
+                    rho[i] = f32::NAN;
+                    continue;
+                }
+                let u = (x as f32 - cx) * ifx;
+                let r = (base + col0 * u + b_v * inv_z).norm();
+                rho[i] = (scale * r).min(max_radius).max(min_half);
+                max_rho = max_rho.max(rho[i]);
+            }
+        }
+        let prev_fg = |i: usize| prev.mask.as_ref().is_none_or(|m| m[i] != 0);
+        // Case 1: a single circle around the previous correspondence.
+        self.union_needed.resize(w * h, 0);
+        let union_needed = &mut self.union_needed;
+        let mut any_union = false;
+        for y in region.ys() {
+            for x in region.xs() {
+                let i = y * w + x;
+                union_needed[i] = 0;
+                if mask.is_some_and(|m| m[i] == 0) {
+                    continue;
+                }
+                let r = rho[i];
+                if r.is_finite() && prev_fg(i) {
+                    let d = prev_d[i];
+                    lo[i] = d - r;
+                    hi[i] = d + r;
+                    plan.single_px += 1;
+                } else {
+                    union_needed[i] = 1;
+                    any_union = true;
+                }
+            }
+        }
+        if !any_union {
+            return;
+        }
+        // Case 2: the union of the spheres whose left projections contain the pixel. Most
+        // spheres are small: each such pixel gathers from the points within `reach` (the
+        // 99th percentile of the radii); the few larger spheres are splatted onto the pixels
+        // their discs cover. (The hull of a union does not mind a sphere counted twice.)
+        let mut hist = [0u32; 66];
+        let mut count = 0u32;
+        for y in region.ys() {
+            for &r in &rho[y * w + region.x0..y * w + region.x1] {
+                if r.is_finite() {
+                    hist[((r * 2.0) as usize).min(65)] += 1;
+                    count += 1;
+                }
+            }
+        }
+        let (mut acc, mut bin) = (0u32, 0usize);
+        while bin < 65 && (acc + hist[bin]) * 100 < count * 99 {
+            acc += hist[bin];
+            bin += 1;
+        }
+        let reach_f = ((bin + 1) as f32 * 0.5).min(max_rho);
+        let reach = reach_f.ceil() as i64;
+        for y in region.ys() {
+            for x in region.xs() {
+                let r = rho[y * w + x];
+                if !(r > reach_f) {
+                    continue;
+                }
+                let d = prev_d[y * w + x];
+                let (xi, yi, rr) = (x as i64, y as i64, r.ceil() as i64);
+                for yy in (yi - rr).max(region.y0 as i64)..=(yi + rr).min(region.y1 as i64 - 1) {
+                    let dy = (yy - yi) as f32;
+                    let c2 = r * r - dy * dy;
+                    if c2 < 0.0 {
+                        continue;
+                    }
+                    let c = c2.sqrt();
+                    for xx in (ceil(xi as f32 - c) as i64).max(region.x0 as i64)..=(floor(xi as f32 + c) as i64).min(region.x1 as i64 - 1) {
+                        let j = yy as usize * w + xx as usize;
+                        if union_needed[j] != 0 {
+                            let base = d + (xx - xi) as f32;
+                            lo[j] = lo[j].min(base - c);
+                            hi[j] = hi[j].max(base + c);
+                        }
+                    }
+                }
+            }
+        }
+        for y in region.ys() {
+            for x in region.xs() {
+                let j = y * w + x;
+                if union_needed[j] == 0 {
+                    continue;
+                }
+                let (xi, yi) = (x as i64, y as i64);
+                for sy in (yi - reach).max(region.y0 as i64)..=(yi + reach).min(region.y1 as i64 - 1) {
+                    let dy = (yi - sy) as f32;
+                    let row = sy as usize * w;
+                    for sx in (xi - reach).max(region.x0 as i64)..=(xi + reach).min(region.x1 as i64 - 1) {
+                        let r = rho[row + sx as usize];
+                        // NaN (no point) fails the comparison.
+                        let c2 = r * r - dy * dy;
+                        if !(c2 >= 0.0) {
+                            continue;
+                        }
+                        let c = c2.sqrt();
+                        let dx = (xi - sx) as f32;
+                        if dx.abs() > c {
+                            continue;
+                        }
+                        // Left pixel x lies on the sphere's left chord of row y; the right
+                        // chord maps it to d_prev + (x − sx) ± c.
+                        let base = prev_d[row + sx as usize] + dx;
+                        lo[j] = lo[j].min(base - c);
+                        hi[j] = hi[j].max(base + c);
+                    }
+                }
+            }
+        }
+        plan.union_px = region.ys().flat_map(|y| region.xs().map(move |x| y * w + x)).filter(|&i| union_needed[i] != 0 && lo[i] <= hi[i]).count();
+    }
+
+    /// The Kalman prediction of every previous point into `lo`/`hi`.
+    pub(super) fn splat_predicted(&mut self, gap: u64, lag: u64, mask: Option<&[u8]>, plan: &mut Plan) {
+        let w = self.size.0;
+        let prev = self.prev.as_ref().expect("planned with a previous frame");
+        let Some((m, cov)) = self.filter.predict(gap, lag) else { return };
+        let cam = self.cam;
+        let (k, s2) = (self.params.predicted_k as f32, self.params.predicted_sigma_px.powi(2) as f32);
+        let min_half = self.params.min_half_width_px as f32;
+        // In f32, per previous point with ray (u, v, 1) and 1/Z = (d − dcx)/(−tx):
+        // Q·(1/Z) = R·(u, v, 1) + t/Z, so one division gives the projection of the moved point.
+        let rot = m.rotation.to_rotation_matrix().into_inner().cast::<f32>();
+        let t = m.translation.vector.cast::<f32>();
+        // Var(Z) of a moved point q under a twist perturbation: δZ = δω_x·q_y − δω_y·q_x + δv_z.
+        let c = |i: usize, j: usize| cov[(i, j)] as f32;
+        let (c00, c01, c11, c05, c15, c55) = (c(0, 0), c(0, 1), c(1, 1), c(0, 5), c(1, 5), c(5, 5));
+        let (fx, fy, cx, cy, dcx, tx) = (cam.fx as f32, cam.fy as f32, cam.cx as f32, cam.cy as f32, cam.dcx as f32, cam.tx as f32);
+        let prev_d = prev.disparity.values();
+        let (lo, hi, region) = (&mut self.lo, &mut self.hi, self.region);
+        let (ifx, ify, inv_mtx) = (1.0 / fx, 1.0 / fy, -1.0 / tx);
+        for y in region.ys() {
+            let v = (y as f32 - cy) * ify;
+            let base = rot.column(1) * v + rot.column(2);
+            let col0 = rot.column(0);
+            for x in region.xs() {
+                let d = prev_d[y * w + x];
+                let iz = (d - dcx) * inv_mtx;
+                // NaN (no disparity) and points behind the camera fail here.
+                if !(iz > 0.0) {
+                    continue;
+                }
+                let u = (x as f32 - cx) * ifx;
+                let q = base + col0 * u + t * iz; // the moved point times 1/Z
+                if !(q.z > 0.0) {
+                    continue;
+                }
+                let s = 1.0 / q.z;
+                let (px, py, pd) = (fx * q.x * s + cx, fy * q.y * s + cy, dcx - tx * iz * s);
+                // Var(d) = (∂d/∂Z)²·Var(Z) with the moved point Q = q/iz (mm) and
+                // ∂d/∂Z = tx/Q_z² = tx·iz²·s², written without dividing by iz:
+                // Var(d) = tx²·s⁴·[iz²·(q_y²c00 − 2q_xq_y c01 + q_x²c11) + 2·iz³·(q_y c05 − q_x c15) + iz⁴·c55].
+                let (iz2, s2q) = (iz * iz, s * s);
+                let var_d = (tx * tx * s2q * s2q * iz2 * ((q.y * q.y * c00 - 2.0 * q.x * q.y * c01 + q.x * q.x * c11) + 2.0 * iz * (q.y * c05 - q.x * c15) + iz2 * c55)).max(0.0);
+                let half = (k * (var_d + s2).sqrt()).max(min_half);
+                let (a, b) = (pd - half, pd + half);
+                let (x0, y0) = (floor(px) as i64, floor(py) as i64);
+                if x0 < region.x0 as i64 || y0 < region.y0 as i64 || x0 + 1 >= region.x1 as i64 || y0 + 1 >= region.y1 as i64 {
+                    continue;
+                }
+                let i = y0 as usize * w + x0 as usize;
+                for j in [i, i + 1, i + w, i + w + 1] {
+                    lo[j] = lo[j].min(a);
+                    hi[j] = hi[j].max(b);
+                }
+            }
+        }
+        plan.single_px = region.ys().flat_map(|y| region.xs().map(move |x| y * w + x)).filter(|&i| mask.is_none_or(|m| m[i] != 0) && lo[i] <= hi[i]).count();
+    }
+}

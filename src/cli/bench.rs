@@ -1,0 +1,156 @@
+//! `spinscan bench table1` and `bench live`: the paper's Table 1, and the live pipeline's
+//! throughput.
+
+use std::path::{Path, PathBuf};
+
+use clap::{Args, Subcommand};
+use serde_json::json;
+
+use super::{input, output, AssistArgs, Failure, MatchArgs};
+use spinscan::assist::AssistMode;
+use spinscan::io;
+use spinscan::pipeline::PipelineOptions;
+
+#[derive(Subcommand)]
+pub enum BenchCommand {
+    /// Throughput of the live pipeline (the daemon's: bounded channel, matcher pool,
+    /// registration thread) fed a recording from memory at camera-like paces, and unpaced.
+    Live(LiveArgs),
+    /// The paper's Table 1 on a recording: matcher time per frame without registration
+    /// assistance, with it at each weighting factor w, and with the Kalman-predicted search;
+    /// plus accuracy, valid fraction and search width per row, and a Fig. 4-style image.
+    Table1(Table1Args),
+}
+
+#[derive(Args)]
+pub struct Table1Args {
+    /// Recording folder (e.g. from `spinscan sim render`).
+    pub recording: PathBuf,
+    /// Weighting factors of the paper's rows, comma-separated.
+    #[arg(long, default_value = "0.6,0.8,1,2", value_delimiter = ',')]
+    pub weights: Vec<f64>,
+    /// Write the table as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// The Fig. 4-style image (left image, then each row's disparity map).
+    #[arg(long, default_value = "table1-fig4.png")]
+    pub fig: PathBuf,
+    /// Frame shown in the figure (1-based, as in the table).
+    #[arg(long, default_value_t = 5)]
+    pub fig_frame: usize,
+    /// Use at most this many frames.
+    #[arg(long)]
+    pub frames: Option<usize>,
+    /// Runs per frame and row (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
+    /// Let registration run this many views behind the matcher (the daemon's situation).
+    #[arg(long, default_value_t = 0)]
+    pub lag: u64,
+    /// Frame columns printed (all are in the JSON).
+    #[arg(long, default_value_t = 10)]
+    pub columns: usize,
+    /// Leave out the predicted row.
+    #[arg(long)]
+    pub no_predicted: bool,
+    #[command(flatten)]
+    pub assist: AssistArgs,
+    #[command(flatten)]
+    pub matching: MatchArgs,
+}
+
+/// `spinscan bench live`'s arguments.
+#[derive(Args)]
+pub struct LiveArgs {
+    /// A recording (e.g. `spinscan sim render --frames 90 --deg-per-frame 2 -o REC`).
+    pub recording: PathBuf,
+    /// Paced runs, pairs per second.
+    #[arg(long, default_value = "15,30", value_delimiter = ',')]
+    pub pace: Vec<f64>,
+    /// Pairs fed per run (the recording is cycled when shorter).
+    #[arg(long, default_value_t = 90)]
+    pub pairs: usize,
+    /// Skip the unpaced run.
+    #[arg(long)]
+    pub no_unpaced: bool,
+    /// Matcher threads (default: one per core).
+    #[arg(long, default_value_t = 0)]
+    pub matcher_threads: usize,
+    /// Pairs waiting for the matchers.
+    #[arg(long, default_value_t = 16)]
+    pub queue_depth: usize,
+    /// Disparities searched (a count; `--max-disparity` is the older name).
+    #[arg(long, visible_alias = "max-disparity", default_value_t = 128)]
+    pub num_disparities: u32,
+    /// Registration keeps at most this many points of a view (0 = all).
+    #[arg(long, default_value_t = 20_000)]
+    pub register_max_points: usize,
+    /// Assistance: predicted, paper or none.
+    #[arg(long, default_value = "predicted")]
+    pub assist: String,
+    /// Write the runs as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+pub fn cmd_bench_live(a: LiveArgs) -> Result<(), Failure> {
+    use spinscan::daemon::config::Config;
+    let mut config = Config::default();
+    config.scan.matcher_threads = a.matcher_threads;
+    config.scan.queue_depth = a.queue_depth;
+    config.scan.register_max_points = a.register_max_points;
+    config.matching.num_disparities = a.num_disparities;
+    config.matching.assist = a.assist.clone();
+    config.validate(Path::new("bench live flags")).map_err(input)?;
+    if a.pairs == 0 || a.pace.iter().any(|p| !(*p > 0.0)) {
+        return Err(input("--pairs must be at least 1 and every --pace positive"));
+    }
+    let opts = spinscan::daemon::throughput::LiveOptions { settings: config.pipeline_settings(), pairs: a.pairs, paces: a.pace.clone(), unpaced: !a.no_unpaced };
+    let work = std::env::temp_dir().join(format!("spinscan-bench-live-{}", std::process::id()));
+    let runs = spinscan::daemon::throughput::live(&a.recording, &opts, &work, &mut |what| eprintln!("bench live: {what}")).map_err(input);
+    let _ = std::fs::remove_dir_all(&work);
+    let runs = runs?;
+    let threads = if a.matcher_threads == 0 { std::thread::available_parallelism().map_or(2, |n| n.get()) } else { a.matcher_threads };
+    println!("live pipeline: {} matcher threads, queue {}, {} disparities, assist {}, registration ≤ {} points/view", threads, a.queue_depth, a.num_disparities, a.assist, a.register_max_points);
+    print!("{}", spinscan::daemon::throughput::render(&runs));
+    if let Some(path) = &a.json {
+        let v = json!({"matcher_threads": threads, "queue_depth": a.queue_depth, "num_disparities": a.num_disparities, "assist": a.assist, "runs": runs.iter().map(|r| r.to_json()).collect::<Vec<_>>()});
+        io::write_atomic(path, serde_json::to_string_pretty(&v).unwrap().as_bytes()).map_err(|e| output(format!("cannot write {}: {e}", path.display())))?;
+    }
+    Ok(())
+}
+
+pub fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
+    if let Some(w) = a.weights.iter().find(|w| !(**w > 0.0 && w.is_finite())) {
+        return Err(input(format!("--weights: {w} is not a weighting factor (expected positive numbers, e.g. 0.6,0.8,1,2)")));
+    }
+    if a.repeat == 0 {
+        return Err(input("--repeat must be at least 1"));
+    }
+    if a.fig_frame == 0 {
+        return Err(input("--fig-frame counts from 1"));
+    }
+    let mut matching = a.matching.params_with_default(128);
+    // One thread unless asked: steadier timings on a shared machine.
+    matching.threads = a.matching.threads.unwrap_or(1);
+    let opts = spinscan::bench::Table1Options {
+        pipeline: PipelineOptions { min_disparity: a.matching.min_disparity, matching, ..Default::default() },
+        weights: a.weights.clone(),
+        predicted: !a.no_predicted,
+        max_frames: a.frames,
+        repeat: a.repeat,
+        lag: a.lag,
+        assist: a.assist.params(AssistMode::Predicted)?,
+        fig_frame: Some(a.fig_frame - 1),
+        ..Default::default()
+    };
+    let table = spinscan::bench::table1(&a.recording, &opts, &mut |row, done, total| eprint!("\rbench table1: {row:<10} {done}/{total}   ")).map_err(input)?;
+    eprintln!();
+    print!("{}", table.render(a.columns));
+    table.write_figure(&a.fig).map_err(output)?;
+    println!("figure: {} (left image of frame {}, then {})", a.fig.display(), opts.fig_frame.unwrap_or(0).min(table.frames.len() - 1) + 1, table.to_json()["fig_tiles"].as_array().map(|t| t[1..].iter().filter_map(|v| v.as_str()).collect::<Vec<_>>().join(", ")).unwrap_or_default());
+    if let Some(path) = &a.json {
+        io::write_atomic(path, serde_json::to_string_pretty(&table.to_json()).unwrap().as_bytes()).map_err(|e| output(format!("cannot write {}: {e}", path.display())))?;
+    }
+    Ok(())
+}

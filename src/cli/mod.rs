@@ -1,0 +1,297 @@
+//! The `spinscan` CLI's commands, one module per subcommand family, and the arguments they
+//! share (declared once here): the matcher's, the blue-screen key's, registration's and the
+//! assistant's.
+
+pub mod bench;
+pub mod daemon;
+pub mod register;
+pub mod replay;
+pub mod sim;
+pub mod stereo;
+
+use std::path::{Path, PathBuf};
+
+use clap::Args;
+
+use spinscan::assist::{AssistMode, AssistParams};
+use spinscan::io::{self, LoadedImage};
+use spinscan::pipeline::replay::ReplayOptions;
+use spinscan::pipeline::PipelineOptions;
+use spinscan::register::IcpParams;
+use spinscan::segment::ChromaKey;
+use spinscan::stereo::MatchParams;
+
+/// Exit codes, so scripts and systemd can tell kinds of failure apart.
+pub mod exit {
+    /// Bad input: unreadable or inconsistent files, impossible parameters.
+    pub const INPUT: u8 = 3;
+    /// An output could not be written.
+    pub const OUTPUT: u8 = 4;
+    /// The daemon cannot be reached or refuses a request.
+    pub const DAEMON: u8 = 5;
+}
+
+/// A failure with the exit code it maps to.
+pub struct Failure {
+    pub code: u8,
+    pub message: String,
+}
+
+pub fn input<E: std::fmt::Display>(e: E) -> Failure {
+    Failure { code: exit::INPUT, message: e.to_string() }
+}
+
+pub fn output<E: std::fmt::Display>(e: E) -> Failure {
+    Failure { code: exit::OUTPUT, message: e.to_string() }
+}
+
+pub fn load_pair(left: &Path, right: &Path) -> Result<(LoadedImage, LoadedImage), Failure> {
+    let l = io::load_image(left).map_err(input)?;
+    let r = io::load_image(right).map_err(input)?;
+    if (l.width, l.height) != (r.width, r.height) {
+        return Err(input(format!(
+            "{} is {}×{} but {} is {}×{}; a stereo pair must have one size",
+            left.display(),
+            l.width,
+            l.height,
+            right.display(),
+            r.width,
+            r.height
+        )));
+    }
+    Ok((l, r))
+}
+
+pub fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        (v[n / 2 - 1] + v[n / 2]) / 2.0
+    }
+}
+
+/// Matcher knobs shared by the commands that match.
+#[derive(Args, Clone)]
+pub struct MatchArgs {
+    /// First disparity searched (may be negative). Default: 0, or −(N−1) on a calibrated rig
+    /// whose rectified disparities are negative.
+    #[arg(long, allow_hyphen_values = true)]
+    pub min_disparity: Option<i32>,
+    /// Number of disparities N (a count): the search covers D … D+N−1. Default: 64 for single
+    /// pairs; 128 for `demo`, `replay` and `bench table1` (the simulated lab's disparities
+    /// span 0…127). `--max-disparity` is the older name of this same count.
+    #[arg(long = "num-disparities", visible_alias = "max-disparity", value_name = "N")]
+    pub num_disparities: Option<u32>,
+    /// Correlation window side (odd, 3…31).
+    #[arg(long, default_value_t = MatchParams::default().block)]
+    pub block: u32,
+    /// Worker threads; default all cores.
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Uniqueness ratio in percent (0 disables).
+    #[arg(long, default_value_t = MatchParams::default().uniqueness_ratio)]
+    pub uniqueness: u32,
+    /// Texture threshold: minimum summed |x-gradient| in the window (0 disables).
+    #[arg(long, default_value_t = MatchParams::default().texture_threshold)]
+    pub texture_threshold: u32,
+    /// Left–right check tolerance in pixels; a negative value disables the check.
+    #[arg(long, default_value_t = 1, allow_hyphen_values = true)]
+    pub lr_max_diff: i32,
+    /// Speckle filter: largest blob (pixels) removed; 0 disables.
+    #[arg(long, default_value_t = MatchParams::default().speckle_window)]
+    pub speckle_window: u32,
+    /// Speckle filter: largest disparity step inside a blob, pixels.
+    #[arg(long, default_value_t = MatchParams::default().speckle_range_px)]
+    pub speckle_range: f32,
+}
+
+impl MatchArgs {
+    pub fn params(&self) -> MatchParams {
+        self.params_with_default(64)
+    }
+
+    /// The parameters, with `num_disparities` defaulting to `default_range`.
+    pub fn params_with_default(&self, default_range: u32) -> MatchParams {
+        MatchParams {
+            min_disparity: self.min_disparity.unwrap_or(0),
+            num_disparities: self.num_disparities.unwrap_or(default_range),
+            block: self.block,
+            uniqueness_ratio: self.uniqueness,
+            texture_threshold: self.texture_threshold,
+            lr_max_diff: u32::try_from(self.lr_max_diff).ok(),
+            speckle_window: self.speckle_window,
+            speckle_range_px: self.speckle_range,
+            threads: self.threads.unwrap_or(0),
+            ..MatchParams::default()
+        }
+    }
+}
+
+/// Blue-screen segmentation knobs (used by `--mask auto`).
+#[derive(Args, Clone)]
+pub struct KeyArgs {
+    /// Background colour to key out, as R,G,B (0…255 each).
+    #[arg(long, value_parser = parse_rgb, default_value = "40,70,190")]
+    pub key_color: [u8; 3],
+    /// Largest chromaticity distance from the key colour still counted as background (0…1).
+    #[arg(long, default_value_t = ChromaKey::default().tolerance)]
+    pub key_tolerance: f32,
+    /// Image of the empty scene (raw left camera): pixels close to it are background too.
+    #[arg(long)]
+    pub plate: Option<PathBuf>,
+}
+
+impl KeyArgs {
+    pub fn chroma(&self) -> ChromaKey {
+        ChromaKey { key_rgb: self.key_color, tolerance: self.key_tolerance, ..ChromaKey::default() }
+    }
+}
+
+/// A colour `R,G,B` that is not one.
+#[derive(Debug, thiserror::Error)]
+#[error("`{0}` is not a colour: expected R,G,B with three numbers 0…255, e.g. 40,70,190")]
+pub struct BadColour(String);
+
+pub fn parse_rgb(s: &str) -> Result<[u8; 3], BadColour> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let err = || BadColour(s.to_string());
+    if parts.len() != 3 {
+        return Err(err());
+    }
+    let mut rgb = [0u8; 3];
+    for (c, p) in rgb.iter_mut().zip(parts) {
+        *c = p.parse().map_err(|_| err())?;
+    }
+    Ok(rgb)
+}
+
+#[derive(Args, Clone)]
+pub struct AssistArgs {
+    /// Smallest half-width of an assisted interval, pixels.
+    #[arg(long, default_value_t = AssistParams::default().min_half_width_px)]
+    pub assist_min_half_width: f64,
+    /// Predicted mode: the matcher's own disparity noise σ, pixels.
+    #[arg(long, default_value_t = AssistParams::default().predicted_sigma_px)]
+    pub predict_sigma_px: f64,
+    /// Predicted mode: interval half-width in σ.
+    #[arg(long, default_value_t = AssistParams::default().predicted_k)]
+    pub predict_k: f64,
+    /// Self-correction: rematch a frame over the full range when its valid fraction falls
+    /// below this share of the recent median.
+    #[arg(long, default_value_t = AssistParams::default().fallback_valid_ratio)]
+    pub fallback_valid_ratio: f64,
+    /// Self-correction: do not let a registration with lower ICP fitness guide the next frame.
+    #[arg(long, default_value_t = AssistParams::default().min_fitness)]
+    pub assist_min_fitness: f64,
+    /// Self-correction: nor one whose ICP RMSE exceeds this many times the recent median.
+    #[arg(long, default_value_t = AssistParams::default().max_rmse_ratio)]
+    pub assist_max_rmse_ratio: f64,
+}
+
+/// How `replay` and `demo` choose each frame's search range.
+#[derive(Args, Clone)]
+pub struct AssistModeArgs {
+    /// Search range per frame: `predicted` (the Kalman-predicted disparity ± its
+    /// uncertainty; default), `paper` (the paper's registration constraint, weight
+    /// --assist-w), or `none` (the full range). Needs registration.
+    #[arg(long)]
+    pub assist: Option<String>,
+    /// The paper's weighting factor w (with --assist paper).
+    #[arg(long, default_value_t = 0.8)]
+    pub assist_w: f64,
+    #[command(flatten)]
+    pub knobs: AssistArgs,
+}
+
+impl AssistModeArgs {
+    /// The assistance to run (None: full range), given whether registration runs.
+    pub fn params(&self, registering: bool) -> Result<Option<AssistParams>, Failure> {
+        let mode = AssistMode::parse(self.assist.as_deref().unwrap_or("predicted"), self.assist_w).map_err(|e| input(format!("--assist: {e}")))?;
+        match (mode, registering) {
+            (AssistMode::None, _) => Ok(None),
+            (_, true) => Ok(Some(self.knobs.params(mode)?)),
+            (_, false) if self.assist.is_some() => Err(input(format!("--assist {} uses the registered motion, which --no-register turns off", mode.name()))),
+            (_, false) => Ok(None),
+        }
+    }
+}
+
+impl AssistArgs {
+    pub fn params(&self, mode: AssistMode) -> Result<AssistParams, Failure> {
+        let positive = |name: &str, v: f64| if v > 0.0 && v.is_finite() { Ok(v) } else { Err(input(format!("--{name} must be a positive number, got {v}"))) };
+        let share = |name: &str, v: f64| if (0.0..=1.0).contains(&v) { Ok(v) } else { Err(input(format!("--{name} must lie in 0…1, got {v}"))) };
+        Ok(AssistParams {
+            mode,
+            min_half_width_px: positive("assist-min-half-width", self.assist_min_half_width)?,
+            predicted_sigma_px: positive("predict-sigma-px", self.predict_sigma_px)?,
+            predicted_k: positive("predict-k", self.predict_k)?,
+            fallback_valid_ratio: share("fallback-valid-ratio", self.fallback_valid_ratio)?,
+            min_fitness: share("assist-min-fitness", self.assist_min_fitness)?,
+            max_rmse_ratio: positive("assist-max-rmse-ratio", self.assist_max_rmse_ratio)?,
+            ..AssistParams::default()
+        })
+    }
+}
+
+/// Registration knobs of `replay` and `demo`.
+#[derive(Args, Clone)]
+pub struct RegistrationArgs {
+    /// Only match: no registration, no poses.jsonl, model.ply or turntable_estimated.yaml.
+    #[arg(long)]
+    pub no_register: bool,
+    /// m of the paper's block registration: every m views are registered together to the
+    /// model of the views before them (0 = pairwise only).
+    #[arg(long = "block-views", id = "block_views", default_value_t = 5)]
+    pub block_views: usize,
+    /// ICP correspondence distance between consecutive views, mm.
+    #[arg(long, default_value_t = 8.0)]
+    pub icp_max_distance: f64,
+    /// ICP method: point-to-plane or point-to-point (the paper's).
+    #[arg(long, default_value = "point-to-plane")]
+    pub icp_method: String,
+    /// Voxel side of model.ply, mm.
+    #[arg(long, default_value_t = 1.0)]
+    pub voxel: f64,
+    /// Keep isolated points in model.ply (no noise removal).
+    #[arg(long)]
+    pub no_denoise: bool,
+    /// Do not close the loop after a full turn.
+    #[arg(long)]
+    pub no_loop_closure: bool,
+    /// Keep the registered poses even when every step agrees with the turntable's angles
+    /// (by default the turntable's predictions about the estimated axis replace them then).
+    #[arg(long)]
+    pub no_turntable_poses: bool,
+}
+
+impl RegistrationArgs {
+    pub fn options(&self, pipeline: PipelineOptions) -> Result<ReplayOptions, Failure> {
+        let mut opts = ReplayOptions::with_registration(pipeline);
+        if !(self.voxel > 0.0 && self.voxel.is_finite()) {
+            return Err(input(format!("--voxel must be a positive number of mm, got {}", self.voxel)));
+        }
+        if !(self.icp_max_distance > 0.0 && self.icp_max_distance.is_finite()) {
+            return Err(input(format!("--icp-max-distance must be a positive number of mm, got {}", self.icp_max_distance)));
+        }
+        opts.model.voxel_mm = self.voxel;
+        if self.no_denoise {
+            opts.model.denoise = None;
+        }
+        if self.no_register {
+            opts.registration = None;
+        } else if let Some(r) = opts.registration.as_mut() {
+            r.block = self.block_views;
+            r.close_loop = !self.no_loop_closure;
+            r.turntable_poses = !self.no_turntable_poses;
+            let method = self.icp_method.parse().map_err(input)?;
+            let keep = r.icp.clone();
+            r.icp = IcpParams { method, ..IcpParams::new(self.icp_max_distance) };
+            r.icp.max_source_points = keep.max_source_points;
+            r.icp.kernel = keep.kernel;
+            r.icp.max_iterations = keep.max_iterations;
+        }
+        Ok(opts)
+    }
+}

@@ -1,0 +1,96 @@
+//! `spinscan replay`: a recording through the pipeline into a results folder.
+
+use std::path::{Path, PathBuf};
+
+use clap::Args;
+use serde_json::json;
+
+use super::{input, output, AssistModeArgs, Failure, KeyArgs, MatchArgs, RegistrationArgs};
+use spinscan::io;
+use spinscan::pipeline::replay::{self, ReplayOptions};
+use spinscan::pipeline::PipelineOptions;
+use spinscan::recording::Recording;
+
+#[derive(Args)]
+pub struct ReplayArgs {
+    /// Recording folder (calib.yaml or intrinsics.yml + extrinsics.yml, frames.jsonl, images).
+    pub dir: PathBuf,
+    /// Results folder (may be the recording folder itself).
+    #[arg(short = 'o', long = "out")]
+    pub out: PathBuf,
+    /// Process at most this many frames.
+    #[arg(long)]
+    pub frames: Option<usize>,
+    /// Match every pixel instead of segmenting the blue screen.
+    #[arg(long)]
+    pub no_segment: bool,
+    #[command(flatten)]
+    pub key: KeyArgs,
+    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub alpha: f64,
+    #[command(flatten)]
+    pub matching: MatchArgs,
+    #[command(flatten)]
+    pub reg: RegistrationArgs,
+    #[command(flatten)]
+    pub assist: AssistModeArgs,
+}
+
+pub fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
+    let rec = Recording::open(&a.dir).map_err(input)?;
+    if let Some(line) = rec.torn_line {
+        eprintln!("replay: warning: skipped the torn last line {line} of {}", a.dir.join("frames.jsonl").display());
+    }
+    let plate = match &a.key.plate {
+        Some(p) if a.no_segment => return Err(input(format!("--plate {} is used by the blue-screen segmentation, which --no-segment turns off", p.display()))),
+        Some(p) => {
+            let img = io::load_image(p).map_err(input)?;
+            if (img.width as u32, img.height as u32) != rec.image_size {
+                return Err(input(format!("plate {} is {}×{} but the recording's images are {}×{}", p.display(), img.width, img.height, rec.image_size.0, rec.image_size.1)));
+            }
+            Some(img.rgb)
+        }
+        None => None,
+    };
+    let opts = ReplayOptions {
+        max_frames: a.frames,
+        segment: !a.no_segment,
+        plate,
+        assist: a.assist.params(!a.reg.no_register)?,
+        ..a.reg.options(PipelineOptions {
+            alpha: a.alpha,
+            min_disparity: a.matching.min_disparity,
+            matching: a.matching.params_with_default(128),
+            chroma: a.key.chroma(),
+        })?
+    };
+    let total = a.frames.map_or(rec.frames.len(), |m| m.min(rec.frames.len()));
+    let summary = replay::run_recording(rec, &a.out, &opts, &mut |done, seq, ms| {
+        eprint!("\rreplay: {done}/{total} frames (seq {seq}, matched in {ms:.0} ms)")
+    });
+    eprintln!();
+    let summary = summary.map_err(|e| {
+        let why = format!("{e} (results so far are in {}, manifest status `failed`)", a.out.display());
+        if e.is_output() {
+            output(why)
+        } else {
+            input(why)
+        }
+    })?;
+    println!("{}", summary_json(&summary, &a.out));
+    Ok(())
+}
+
+pub fn summary_json(s: &replay::ReplaySummary, out: &Path) -> serde_json::Value {
+    let mut j = json!({"out": out, "frames": s.frames, "mean_match_ms": s.mean_match_ms, "disparity_sign": s.disparity_sign});
+    if let Some(gt) = s.gt {
+        j["gt_coverage"] = json!(gt.coverage);
+        j["gt_bad2_of_matched"] = json!(gt.bad2_of_matched);
+        j["gt_mean_abs_err_px"] = json!(gt.mean_abs_err_px);
+    }
+    if let Some(r) = &s.registration {
+        j["registration"] = r.clone();
+    }
+    j
+}

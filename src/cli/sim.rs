@@ -1,0 +1,162 @@
+//! `spinscan sim render` and `spinscan demo`: the simulated lab, and the README's demo on it.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use clap::{Args, Subcommand};
+use serde_json::json;
+
+use super::replay::summary_json;
+use super::{input, output, AssistModeArgs, Failure, MatchArgs, RegistrationArgs};
+use spinscan::hw::sim::{RenderOptions, SimObject};
+use spinscan::io;
+use spinscan::pipeline::replay::{self, ReplayOptions};
+use spinscan::pipeline::PipelineOptions;
+
+#[derive(Subcommand)]
+pub enum SimCommand {
+    /// Renders a recording (calib.yaml, frames.jsonl, left/, right/) with ground truth (gt/).
+    Render(SimRenderArgs),
+}
+
+#[derive(Args)]
+pub struct SimRenderArgs {
+    /// Built-in object: sphere, egg, vase or torus.
+    #[arg(long, conflicts_with = "mesh")]
+    pub object: Option<String>,
+    /// A triangle mesh (PLY) to put on the turntable instead, +y up.
+    #[arg(long)]
+    pub mesh: Option<PathBuf>,
+    /// Scale applied to the mesh's coordinates to get millimetres (e.g. 1000 for metres).
+    #[arg(long, default_value_t = 1.0, requires = "mesh")]
+    pub mesh_scale: f64,
+    /// Triangles of a built-in object's tessellation.
+    #[arg(long, default_value_t = 100_000)]
+    pub triangles: usize,
+    /// Number of stereo pairs.
+    #[arg(long, default_value_t = 30)]
+    pub frames: usize,
+    /// Turntable rotation between consecutive pairs, degrees (counterclockwise from above).
+    #[arg(long, default_value_t = 2.0, allow_hyphen_values = true)]
+    pub deg_per_frame: f64,
+    /// Turntable angle of the first pair, degrees.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub start_deg: f64,
+    /// Ideal rectified rig (no distortion, no misalignment) with gt/disparity/.
+    #[arg(long)]
+    pub ideal: bool,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Contrast of the object's texture, 0 (plain) … 1.
+    #[arg(long, default_value_t = 0.8)]
+    pub texture_contrast: f64,
+    /// Sensor noise, grey levels (standard deviation).
+    #[arg(long, default_value_t = 1.5)]
+    pub noise: f64,
+    /// Probability that a pair is dropped (a gap in seq), 0 … <1.
+    #[arg(long, default_value_t = 0.0)]
+    pub drop_probability: f64,
+    /// Output folder (must not hold a recording already).
+    #[arg(short = 'o', long = "out")]
+    pub out: PathBuf,
+}
+
+#[derive(Args)]
+pub struct DemoArgs {
+    /// Output folder: the recording in `recording/`, the results in `results/`.
+    #[arg(short = 'o', long = "out", default_value = "out/demo")]
+    pub out: PathBuf,
+    /// Built-in object: sphere, egg, vase or torus.
+    #[arg(long, default_value = "torus")]
+    pub object: String,
+    /// Number of stereo pairs.
+    #[arg(long, default_value_t = 8)]
+    pub frames: usize,
+    /// Turntable rotation between pairs, degrees.
+    #[arg(long, default_value_t = 3.0, allow_hyphen_values = true)]
+    pub deg_per_frame: f64,
+    /// Use the realistic rig (distortion, misalignment; no ground-truth disparity) instead of
+    /// the ideal one.
+    #[arg(long)]
+    pub realistic: bool,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    #[command(flatten)]
+    pub matching: MatchArgs,
+    #[command(flatten)]
+    pub reg: RegistrationArgs,
+    #[command(flatten)]
+    pub assist: AssistModeArgs,
+}
+
+pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
+    let object = match (&a.object, &a.mesh) {
+        (_, Some(path)) => {
+            let mesh = io::ply::read_ply(path).map_err(input)?;
+            if mesh.triangles.is_empty() {
+                return Err(input(format!("{} has no faces: `sim render --mesh` needs a triangle mesh, not a point cloud", path.display())));
+            }
+            if !(a.mesh_scale.is_finite() && a.mesh_scale > 0.0) {
+                return Err(input(format!("--mesh-scale must be a positive number, got {}", a.mesh_scale)));
+            }
+            SimObject::Mesh(mesh, a.mesh_scale)
+        }
+        (name, None) => SimObject::Builtin { name: name.clone().unwrap_or_else(|| "egg".into()), triangles: a.triangles },
+    };
+    let opts = RenderOptions {
+        object,
+        frames: a.frames,
+        start_deg: a.start_deg,
+        deg_per_frame: a.deg_per_frame,
+        ideal: a.ideal,
+        seed: a.seed,
+        texture_contrast: a.texture_contrast,
+        noise_sigma: a.noise,
+        drop_probability: a.drop_probability,
+        image_size: (640, 480),
+    };
+    let t0 = Instant::now();
+    let rec = spinscan::hw::sim::render_recording(&opts, &a.out, &mut |done, total| eprint!("\rsim render: {done}/{total} pairs")).map_err(|e| match e {
+        spinscan::hw::sim::SimError::Recording(
+            spinscan::recording::RecordingError::Io { .. } | spinscan::recording::RecordingError::Write { .. } | spinscan::recording::RecordingError::Exists(_),
+        ) => output(e),
+        other => input(other),
+    })?;
+    eprintln!();
+    let seconds = t0.elapsed().as_secs_f64();
+    println!(
+        "{}",
+        json!({"out": a.out, "frames": rec.frames.len(), "ideal": a.ideal, "width": rec.image_size.0, "height": rec.image_size.1,
+               "seconds": seconds, "gt_disparity": a.ideal})
+    );
+    Ok(())
+}
+
+pub fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
+    let (rec_dir, results_dir) = (a.out.join("recording"), a.out.join("results"));
+    if rec_dir.join("frames.jsonl").exists() {
+        std::fs::remove_dir_all(&rec_dir).map_err(|e| output(format!("cannot clear the previous demo in {}: {e}", rec_dir.display())))?;
+    }
+    let opts = RenderOptions {
+        object: SimObject::Builtin { name: a.object.clone(), triangles: 100_000 },
+        frames: a.frames,
+        deg_per_frame: a.deg_per_frame,
+        ideal: !a.realistic,
+        seed: a.seed,
+        ..RenderOptions::default()
+    };
+    eprintln!("demo: rendering {} stereo pairs of the `{}` turning on the simulated turntable…", a.frames, a.object);
+    let rec = spinscan::hw::sim::render_recording(&opts, &rec_dir, &mut |done, total| eprint!("\rdemo: rendered {done}/{total}")).map_err(input)?;
+    eprintln!("\ndemo: replaying {} (segment the blue screen, rectify, match, triangulate)…", rec_dir.display());
+    let replay_opts = ReplayOptions {
+        assist: a.assist.params(!a.reg.no_register)?,
+        ..a.reg.options(PipelineOptions { min_disparity: a.matching.min_disparity, matching: a.matching.params_with_default(128), ..Default::default() })?
+    };
+    let summary = replay::run_recording(rec, &results_dir, &replay_opts, &mut |done, seq, ms| {
+        eprint!("\rdemo: replayed {done}/{} (seq {seq}, {ms:.0} ms)", a.frames)
+    })
+    .map_err(input)?;
+    eprintln!("\ndemo: recording in {}, results in {} (views/*.ply open in MeshLab or Open3D)", rec_dir.display(), results_dir.display());
+    println!("{}", summary_json(&summary, &results_dir));
+    Ok(())
+}

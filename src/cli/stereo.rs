@@ -1,0 +1,248 @@
+//! `spinscan disparity`, `rectify` and `points`: one pair through the stereo core.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use clap::Args;
+use serde_json::json;
+
+use super::{input, load_pair, median, output, Failure, KeyArgs, MatchArgs};
+use spinscan::calib::StereoCalib;
+use spinscan::io;
+use spinscan::pipeline::{Pipeline, PipelineOptions};
+use spinscan::stereo::{DisparityMap, GrayView, StereoMatcher};
+
+#[derive(Args)]
+pub struct DisparityArgs {
+    /// Left image (PNG, JPEG or PNM; colour is converted to grey).
+    #[arg(long)]
+    pub left: PathBuf,
+    /// Right image, the same size.
+    #[arg(long)]
+    pub right: PathBuf,
+    /// Calibration (file or folder); without it the pair is taken as rectified.
+    #[arg(long)]
+    pub calib: Option<PathBuf>,
+    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub alpha: f64,
+    #[command(flatten)]
+    pub matching: MatchArgs,
+    /// Times the matcher K times and reports the median as `match_ms`; with K > 1 an untimed
+    /// warm-up run comes first (as the peer script does for OpenCV).
+    #[arg(long, default_value_t = 1)]
+    pub repeat: u32,
+    /// Disparity as 16-bit PNG (|d| × 256, 0 = none).
+    #[arg(short = 'o', long = "out")]
+    pub out: PathBuf,
+    /// Signed disparity as PFM.
+    #[arg(long)]
+    pub pfm: Option<PathBuf>,
+    /// False-colour disparity PNG.
+    #[arg(long)]
+    pub color: Option<PathBuf>,
+}
+
+#[derive(Args)]
+pub struct RectifyArgs {
+    /// Calibration: calib.yaml, or a folder with it or with intrinsics.yml + extrinsics.yml.
+    #[arg(long)]
+    pub calib: PathBuf,
+    /// Raw left image.
+    #[arg(long)]
+    pub left: PathBuf,
+    /// Raw right image, the same size.
+    #[arg(long)]
+    pub right: PathBuf,
+    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub alpha: f64,
+    /// Output folder: left.png, right.png, rectification.json.
+    #[arg(short = 'o', long = "out")]
+    pub out: PathBuf,
+}
+
+#[derive(Args)]
+pub struct PointsArgs {
+    /// Calibration: calib.yaml, or a folder with it or with intrinsics.yml + extrinsics.yml.
+    #[arg(long)]
+    pub calib: PathBuf,
+    /// Raw left image (colours the points).
+    #[arg(long)]
+    pub left: PathBuf,
+    /// Raw right image, the same size.
+    #[arg(long)]
+    pub right: PathBuf,
+    /// `auto` (blue-screen chroma key) or a mask image in raw left coordinates (non-zero = object).
+    #[arg(long)]
+    pub mask: Option<String>,
+    #[command(flatten)]
+    pub key: KeyArgs,
+    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub alpha: f64,
+    #[command(flatten)]
+    pub matching: MatchArgs,
+    /// Output point cloud: binary PLY, x y z float (mm, left raw camera frame), red green blue.
+    #[arg(short = 'o', long = "out")]
+    pub out: PathBuf,
+    /// Also write the disparity (16-bit PNG).
+    #[arg(long)]
+    pub disparity: Option<PathBuf>,
+    /// Also write the rectified mask used (PNG).
+    #[arg(long)]
+    pub mask_out: Option<PathBuf>,
+}
+
+pub fn write_disparity_outputs(disp: &DisparityMap, png: &Path, pfm: Option<&Path>, color: Option<&Path>, range: (f32, f32)) -> Result<(), Failure> {
+    io::write_disparity_png(png, disp).map_err(output)?;
+    if let Some(p) = pfm {
+        io::write_pfm(p, disp).map_err(output)?;
+    }
+    if let Some(p) = color {
+        io::write_rgb_png(p, disp.width, disp.height, &io::disparity_false_color(disp, range)).map_err(output)?;
+    }
+    Ok(())
+}
+
+pub fn cmd_disparity(a: DisparityArgs) -> Result<(), Failure> {
+    if a.repeat == 0 {
+        return Err(input("--repeat must be at least 1"));
+    }
+    let (l, r) = load_pair(&a.left, &a.right)?;
+    let (w, h) = (l.width, l.height);
+    // Rectify first (not timed), then time the matcher alone on grey images.
+    let (left_gray, right_gray, params, sign) = match &a.calib {
+        Some(path) => {
+            let calib = StereoCalib::load(path).map_err(input)?;
+            let opts = PipelineOptions {
+                alpha: a.alpha,
+                min_disparity: a.matching.min_disparity,
+                matching: a.matching.params(),
+                ..Default::default()
+            };
+            let pipe = Pipeline::new(&calib, (w as u32, h as u32), opts).map_err(input)?;
+            let (lr, rr) = pipe.rectify_rgb(&l.rgb, &r.rgb);
+            let params = (**pipe.matcher().params()).clone();
+            (io::rgb_to_gray(&lr), io::rgb_to_gray(&rr), params, pipe.rect.disparity_sign)
+        }
+        None => {
+            let params = a.matching.params();
+            let sign = if params.min_disparity + params.num_disparities as i32 - 1 <= 0 { -1 } else { 1 };
+            (l.gray, r.gray, params, sign)
+        }
+    };
+    let valid = params.clone().validate().map_err(input)?;
+    let threads = valid.thread_count();
+    let mut matcher = StereoMatcher::new(valid);
+    let intervals = matcher.full_intervals(w, h, None);
+    let (lv, rv) = (GrayView::new(w, h, &left_gray).unwrap(), GrayView::new(w, h, &right_gray).unwrap());
+    let mut disp = DisparityMap::new(w, h);
+    let mut times = Vec::new();
+    let mut stats = Default::default();
+    if a.repeat > 1 {
+        // One untimed warm-up (buffers, caches), as the peer script does for OpenCV.
+        matcher.compute(lv, rv, &intervals, &mut disp).map_err(input)?;
+    }
+    for _ in 0..a.repeat {
+        let t0 = Instant::now();
+        stats = matcher.compute(lv, rv, &intervals, &mut disp).map_err(input)?;
+        times.push(t0.elapsed().as_secs_f64() * 1e3);
+    }
+    let lo = params.min_disparity as f32;
+    let hi = (params.min_disparity + params.num_disparities as i32 - 1) as f32;
+    let range = (lo.abs().min(hi.abs()), lo.abs().max(hi.abs()));
+    write_disparity_outputs(&disp, &a.out, a.pfm.as_deref(), a.color.as_deref(), range)?;
+    let report = json!({
+        "match_ms": median(times),
+        "valid_fraction": stats.valid_fraction(),
+        "disparity_sign": sign,
+        "width": w,
+        "height": h,
+        "min_disparity": params.min_disparity,
+        "num_disparities": params.num_disparities,
+        "block": params.block,
+        "threads": threads,
+        "repeat": a.repeat,
+        "matched": stats.matched,
+        "searched": stats.searched,
+        "mean_search_px": stats.mean_search_px(),
+    });
+    println!("{report}");
+    Ok(())
+}
+
+pub fn cmd_rectify(a: RectifyArgs) -> Result<(), Failure> {
+    let (l, r) = load_pair(&a.left, &a.right)?;
+    let calib = StereoCalib::load(&a.calib).map_err(input)?;
+    let opts = PipelineOptions { alpha: a.alpha, ..Default::default() };
+    let pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts).map_err(input)?;
+    let (lr, rr) = pipe.rectify_rgb(&l.rgb, &r.rgb);
+    std::fs::create_dir_all(&a.out).map_err(|e| output(format!("cannot create {}: {e}", a.out.display())))?;
+    io::write_rgb_png(&a.out.join("left.png"), l.width, l.height, &lr).map_err(output)?;
+    io::write_rgb_png(&a.out.join("right.png"), l.width, l.height, &rr).map_err(output)?;
+    let m = |m: nalgebra::DMatrixView<f64>| -> Vec<Vec<f64>> { (0..m.nrows()).map(|i| m.row(i).iter().copied().collect()).collect() };
+    let rect = &pipe.rect;
+    let doc = json!({
+        "alpha": a.alpha,
+        "R1": m(rect.r1.as_view()), "R2": m(rect.r2.as_view()),
+        "P1": m(rect.p1.as_view()), "P2": m(rect.p2.as_view()), "Q": m(rect.q.as_view()),
+        "disparity_sign": rect.disparity_sign,
+    });
+    io::write_atomic(&a.out.join("rectification.json"), serde_json::to_string_pretty(&doc).unwrap().as_bytes()).map_err(output)?;
+    println!("{}", json!({"left": a.out.join("left.png"), "right": a.out.join("right.png"), "disparity_sign": rect.disparity_sign, "focal_px": rect.p1[(0, 0)]}));
+    Ok(())
+}
+
+pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
+    let (l, r) = load_pair(&a.left, &a.right)?;
+    let calib = StereoCalib::load(&a.calib).map_err(input)?;
+    let opts = PipelineOptions {
+        alpha: a.alpha,
+        min_disparity: a.matching.min_disparity,
+        matching: a.matching.params(),
+        chroma: a.key.chroma(),
+    };
+    let mut pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts).map_err(input)?;
+    let plate = match &a.key.plate {
+        Some(p) => {
+            let img = io::load_image(p).map_err(input)?;
+            if (img.width, img.height) != (l.width, l.height) {
+                return Err(input(format!("plate {} is {}×{} but the images are {}×{}", p.display(), img.width, img.height, l.width, l.height)));
+            }
+            Some(img.rgb)
+        }
+        None => None,
+    };
+    if plate.is_some() && a.mask.as_deref() != Some("auto") {
+        return Err(input("--plate is used by the blue-screen segmentation: add --mask auto"));
+    }
+    let view = match a.mask.as_deref() {
+        None => pipe.process_rgb(&l.rgb, &r.rgb, false),
+        Some("auto") => pipe.process_rgb_with_plate(&l.rgb, &r.rgb, true, plate.as_deref()),
+        Some(file) => {
+            let m = io::load_image(Path::new(file)).map_err(input)?;
+            if (m.width, m.height) != (l.width, l.height) {
+                return Err(input(format!("mask {file} is {}×{} but the images are {}×{}", m.width, m.height, l.width, l.height)));
+            }
+            let raw: Vec<u8> = m.gray.iter().map(|&v| if v > 0 { 255 } else { 0 }).collect();
+            let mask = pipe.rectify_left_mask(&raw);
+            let (lr, rr) = pipe.rectify_rgb(&l.rgb, &r.rgb);
+            pipe.process_rectified(lr, &rr, Some(mask))
+        }
+    }
+    .map_err(input)?;
+    io::ply::write_ply(&a.out, &view.cloud).map_err(output)?;
+    if let Some(p) = &a.disparity {
+        io::write_disparity_png(p, &view.disparity).map_err(output)?;
+    }
+    if let (Some(p), Some(mask)) = (&a.mask_out, &view.mask) {
+        io::write_gray_png(p, l.width, l.height, mask).map_err(output)?;
+    }
+    println!(
+        "{}",
+        json!({"points": view.cloud.len(), "match_ms": view.match_ms, "valid_fraction": view.stats.valid_fraction(),
+               "disparity_sign": pipe.rect.disparity_sign, "out": a.out})
+    );
+    Ok(())
+}
