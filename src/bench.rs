@@ -18,7 +18,7 @@ use serde_json::{json, Value};
 
 use crate::assist::{AssistMode, AssistParams, Assistant};
 use crate::io;
-use crate::pipeline::{Pipeline, PipelineError, PipelineOptions, Prepared};
+use crate::pipeline::{Assist, Pipeline, PipelineError, PipelineOptions, Prepared};
 use crate::recording::{Recording, TurntableAxis};
 use crate::register::posestore::{PoseSnapshot, PoseStore};
 use crate::register::ring::{Registrar, RegistrationParams};
@@ -245,10 +245,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
     let mut frames: Vec<(u64, Option<f64>, Prepared)> = Vec::with_capacity(n);
     for i in 0..n {
         let f = rec.load_frame(i).map_err(|e| BenchError::Recording(e.to_string()))?;
-        let bad = |what: String| BenchError::Recording(format!("frame seq {}: {what}", f.seq));
-        let (_, _, left) = f.left.to_rgb().map_err(|e| bad(format!("left image: {e}")))?;
-        let (_, _, right) = f.right.to_rgb().map_err(|e| bad(format!("right image: {e}")))?;
-        let p = pipe.prepare_rgb(&left, &right, true, None).map_err(|source| BenchError::Pipeline { seq: f.seq, source })?;
+        let p = pipe.prepare_frame(&f, true, None).map_err(|e| BenchError::Recording(format!("frame seq {}: {e}", f.seq)))?;
         frames.push((f.seq, f.table_deg, p));
         progress("prepare", i + 1, n);
     }
@@ -274,14 +271,8 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         .into_iter()
         .map(|mode| {
             let store = Arc::new(PoseStore::new());
-            let registrar = (mode != AssistMode::None).then(|| {
-                let mut p = opts.registration.clone();
-                if let Some(axis) = &calibrated {
-                    p.calibrated_axis = Some((axis.axis_point_mm.into(), axis.axis_dir.into()));
-                }
-                Registrar::new(p, store.clone())
-            });
-            RowState { row: Row::new(mode), assistant: Assistant::new(AssistParams { mode, ..opts.assist.clone() }, &pipe.rect, range), store, registrar }
+            let registrar = (mode != AssistMode::None).then(|| crate::pipeline::registrar(opts.registration.clone(), calibrated.as_ref(), store.clone()));
+            RowState { row: Row::new(mode), assistant: pipe.assistant(AssistParams { mode, ..opts.assist.clone() }), store, registrar }
         })
         .collect();
     let mut floor_ms = Vec::new();
@@ -313,7 +304,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         }
         for (k, st) in states.iter_mut().enumerate() {
             let label = row_label(&st.row);
-            let m = pipe.match_assisted(*seq, frame, &mut st.assistant, &poses[k]).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
+            let m = pipe.match_frame(*seq, frame, Some(Assist { assistant: &mut st.assistant, poses: &poses[k] })).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
             let o = &m.outcome;
             let total = o.interval_ms + o.match_ms;
             let first_try = total - o.accept_ms - o.rejected.map_or(0.0, |_| o.match_ms - o.first_match_ms);

@@ -1,6 +1,7 @@
 //! `spinscan`, the command line: single pairs, the simulated lab, replays, registration,
 //! benchmarks, and the daemon's client. Each subcommand lives in `cli/`.
 
+use std::io::IsTerminal;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
@@ -59,7 +60,8 @@ fn main() -> ExitCode {
     // row's views: their registration warnings only with RUST_LOG=warn.
     let default_level = if matches!(cli.command, Command::Bench(_)) { "error" } else { "warn" };
     tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
+        .with_writer(cli::progress::LogWriter)
+        .with_ansi(std::io::stderr().is_terminal())
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level)))
         .init();
     let result = match cli.command {

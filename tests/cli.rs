@@ -51,6 +51,13 @@ fn disparity_prints_its_json_contract_and_writes_every_format() {
     assert_eq!(png.valid_count(), pfm.valid_count());
     assert!(png.valid_count() > 1000);
     assert!(dir.join("c.png").is_file());
+    // `--num-disparities` is the name; `--max-disparity` (above) the older alias of the same
+    // count, kept so no script breaks.
+    let out2 = dir.join("d2.png");
+    let o = spinscan(&["disparity", "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--num-disparities", "48", "--threads", "1", "-o", out2.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!((json_line(&o)["num_disparities"].as_u64(), j["num_disparities"].as_u64()), (Some(48), Some(48)));
+    assert_eq!(std::fs::read(&out2).unwrap(), std::fs::read(&out).unwrap(), "the same count, the same map");
 }
 
 #[test]
@@ -137,6 +144,12 @@ fn demo_records_and_replays_a_scan_on_the_simulated_lab() {
     let dir = support::temp_dir("cli-demo");
     let o = spinscan(&["demo", "-o", dir.to_str().unwrap(), "--frames", "3"]);
     assert!(o.status.success(), "{}", stderr(&o));
+    // A newcomer's first run reads clean: the default object's expected condition (a ring
+    // ICP cannot turn about its own axis) is no warning, and progress never shares a line
+    // with a log line.
+    let err = stderr(&o);
+    assert!(!err.contains("WARN") && !err.contains("degenerate"), "{err}");
+    assert!(err.lines().all(|l| l.matches("demo:").count() <= 1 && !l.contains('\r')), "{err}");
     let j = json_line(&o);
     assert_eq!(j["frames"], 3);
     assert!(j["gt_coverage"].as_f64().unwrap() > 0.8, "{j}");

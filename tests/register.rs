@@ -185,8 +185,13 @@ fn a_surface_of_revolution_is_flagged_and_follows_the_table() {
     let (_, out, reg) = replay_turn("register-vase", "vase");
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     let frames = report["frames"].as_array().unwrap();
-    let flagged = frames.iter().filter(|f| f["warnings"].as_array().is_some_and(|w| w.iter().any(|w| w.as_str().unwrap().contains("degenerate")))).count();
+    // Flagged in the report: as a note once the table's step seeds the turn about its axis
+    // (the expected case), as a warning before.
+    let says = |f: &serde_json::Value, key: &str| f[key].as_array().is_some_and(|w| w.iter().any(|w| w.as_str().unwrap().contains("degenerate")));
+    let flagged = frames.iter().filter(|f| says(f, "warnings") || says(f, "notes")).count();
     assert!(flagged >= 40, "only {flagged} of 45 views say the registration is degenerate");
+    let noted = frames.iter().filter(|f| says(f, "notes")).count();
+    assert!(noted >= 30, "only {noted} of 45 views say the table's step explains it");
     // No confident wrong answer: the turn comes from the table, and the poses are right.
     let last_err = reg["gt_last_view"]["pose_err_deg"].as_f64().unwrap();
     assert!(last_err < 0.5, "last view {last_err:.3}° from the truth: {reg}");

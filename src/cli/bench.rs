@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use clap::{Args, Subcommand};
 use serde_json::json;
 
-use super::{input, output, AssistArgs, Failure, MatchArgs};
+use super::{input, output, progress, AssistArgs, Failure, MatchArgs};
 use spinscan::assist::AssistMode;
 use spinscan::io;
 use spinscan::pipeline::PipelineOptions;
@@ -144,8 +144,9 @@ pub fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
         fig_frame: Some(a.fig_frame - 1),
         ..Default::default()
     };
-    let table = spinscan::bench::table1(&a.recording, &opts, &mut |row, done, total| eprint!("\rbench table1: {row:<10} {done}/{total}   ")).map_err(input)?;
-    eprintln!();
+    let table = spinscan::bench::table1(&a.recording, &opts, &mut |row, done, total| progress::show(format!("bench table1: {row:<10} {done}/{total}")));
+    progress::finish();
+    let table = table.map_err(input)?;
     print!("{}", table.render(a.columns));
     table.write_figure(&a.fig).map_err(output)?;
     println!("figure: {} (left image of frame {}, then {})", a.fig.display(), opts.fig_frame.unwrap_or(0).min(table.frames.len() - 1) + 1, table.to_json()["fig_tiles"].as_array().map(|t| t[1..].iter().filter_map(|v| v.as_str()).collect::<Vec<_>>().join(", ")).unwrap_or_default());

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use clap::Args;
 use serde_json::json;
 
-use super::{input, output, AssistModeArgs, Failure, KeyArgs, MatchArgs, RegistrationArgs};
+use super::{input, output, progress, AssistModeArgs, Failure, KeyArgs, MatchArgs, RegistrationArgs};
 use spinscan::io;
 use spinscan::pipeline::replay::{self, ReplayOptions};
 use spinscan::pipeline::PipelineOptions;
@@ -67,9 +67,9 @@ pub fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
     };
     let total = a.frames.map_or(rec.frames.len(), |m| m.min(rec.frames.len()));
     let summary = replay::run_recording(rec, &a.out, &opts, &mut |done, seq, ms| {
-        eprint!("\rreplay: {done}/{total} frames (seq {seq}, matched in {ms:.0} ms)")
+        progress::show(format!("replay: {done}/{total} frames (seq {seq}, matched in {ms:.0} ms)"))
     });
-    eprintln!();
+    progress::finish();
     let summary = summary.map_err(|e| {
         let why = format!("{e} (results so far are in {}, manifest status `failed`)", a.out.display());
         if e.is_output() {

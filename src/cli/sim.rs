@@ -7,7 +7,7 @@ use clap::{Args, Subcommand};
 use serde_json::json;
 
 use super::replay::summary_json;
-use super::{input, output, AssistModeArgs, Failure, MatchArgs, RegistrationArgs};
+use super::{input, output, progress, AssistModeArgs, Failure, MatchArgs, RegistrationArgs};
 use spinscan::hw::sim::{RenderOptions, SimObject};
 use spinscan::io;
 use spinscan::pipeline::replay::{self, ReplayOptions};
@@ -116,13 +116,14 @@ pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
         image_size: (640, 480),
     };
     let t0 = Instant::now();
-    let rec = spinscan::hw::sim::render_recording(&opts, &a.out, &mut |done, total| eprint!("\rsim render: {done}/{total} pairs")).map_err(|e| match e {
+    let rec = spinscan::hw::sim::render_recording(&opts, &a.out, &mut |done, total| progress::show(format!("sim render: {done}/{total} pairs")));
+    progress::finish();
+    let rec = rec.map_err(|e| match e {
         spinscan::hw::sim::SimError::Recording(
             spinscan::recording::RecordingError::Io { .. } | spinscan::recording::RecordingError::Write { .. } | spinscan::recording::RecordingError::Exists(_),
         ) => output(e),
         other => input(other),
     })?;
-    eprintln!();
     let seconds = t0.elapsed().as_secs_f64();
     println!(
         "{}",
@@ -146,17 +147,20 @@ pub fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
         ..RenderOptions::default()
     };
     eprintln!("demo: rendering {} stereo pairs of the `{}` turning on the simulated turntable…", a.frames, a.object);
-    let rec = spinscan::hw::sim::render_recording(&opts, &rec_dir, &mut |done, total| eprint!("\rdemo: rendered {done}/{total}")).map_err(input)?;
-    eprintln!("\ndemo: replaying {} (segment the blue screen, rectify, match, triangulate)…", rec_dir.display());
+    let rec = spinscan::hw::sim::render_recording(&opts, &rec_dir, &mut |done, total| progress::show(format!("demo: rendered {done}/{total}")));
+    progress::finish();
+    let rec = rec.map_err(input)?;
+    eprintln!("demo: replaying {} (segment the blue screen, rectify, match, triangulate)…", rec_dir.display());
     let replay_opts = ReplayOptions {
         assist: a.assist.params(!a.reg.no_register)?,
         ..a.reg.options(PipelineOptions { min_disparity: a.matching.min_disparity, matching: a.matching.params_with_default(128), ..Default::default() })?
     };
     let summary = replay::run_recording(rec, &results_dir, &replay_opts, &mut |done, seq, ms| {
-        eprint!("\rdemo: replayed {done}/{} (seq {seq}, {ms:.0} ms)", a.frames)
-    })
-    .map_err(input)?;
-    eprintln!("\ndemo: recording in {}, results in {} (views/*.ply open in MeshLab or Open3D)", rec_dir.display(), results_dir.display());
+        progress::show(format!("demo: replayed {done}/{} (seq {seq}, {ms:.0} ms)", a.frames))
+    });
+    progress::finish();
+    let summary = summary.map_err(input)?;
+    eprintln!("demo: recording in {}, results in {} (views/*.ply open in MeshLab or Open3D)", rec_dir.display(), results_dir.display());
     println!("{}", summary_json(&summary, &results_dir));
     Ok(())
 }

@@ -289,6 +289,12 @@ pub fn register_view(reg: &mut Registrar, frame: &StereoFrame, cloud: &PointClou
             for w in &r.warnings {
                 tracing::warn!("{w}");
             }
+            for n in &r.notes {
+                tracing::info!("{n}");
+            }
+            if !r.notes.is_empty() {
+                entry["notes"] = json!(r.notes);
+            }
             if !r.warnings.is_empty() {
                 entry["warnings"] = json!(r.warnings);
             }

@@ -13,6 +13,8 @@
 
 use nalgebra::{Isometry3, Matrix3, SymmetricEigen, Vector3};
 
+use super::icp::Degeneracy;
+
 /// An estimated axis and how well the poses agree with it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct AxisEstimate {
@@ -95,6 +97,31 @@ pub fn estimate_axis(poses: &[(Isometry3<f64>, Option<f64>)], reference: &Vector
     })
 }
 
+/// Why ICP's free directions are explained by the set-up, so that keeping the guess along
+/// them is right — or None, when one is not (a warning then): a rotation about the table's
+/// axis when the table's step seeded it (`seeded_by_table`), or a rotation about a line
+/// across the table's axis (an object of revolution lying on its side, such as a ring facing
+/// the cameras), which the table's motion never turns about. `table_up` is the table's axis
+/// when known; before that the image's vertical stands in for it (as for the symmetry-axis
+/// seed of [`super::ring::Registrar`]), with a wider margin. A free translation is never
+/// expected.
+pub fn explained_degeneracy(degenerate: &[Degeneracy], table_up: Option<Vector3<f64>>, seeded_by_table: bool) -> Option<&'static str> {
+    let mut why = None;
+    for d in degenerate {
+        let (_, dir) = d.axis?;
+        let dir = Vector3::from(dir);
+        let cos = table_up.map_or(dir.y.abs(), |u| dir.dot(&u).abs());
+        if cos < if table_up.is_some() { 0.26 } else { 0.5 } {
+            why = why.or(Some("an object of revolution about a line across the table's axis; the table never turns about that line"));
+        } else if cos > std::f64::consts::FRAC_1_SQRT_2 && seeded_by_table {
+            why = why.or(Some("the turntable's step supplies the turn about its axis"));
+        } else {
+            return None;
+        }
+    }
+    why
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -118,5 +145,23 @@ mod tests {
         assert!((estimate_axis(&flipped, &Vector3::zeros(), 5.0).unwrap().dir + up).norm() < 1e-9);
         // Too little rotation: no estimate.
         assert!(estimate_axis(&poses[..1], &Vector3::zeros(), 5.0).is_none());
+    }
+
+    #[test]
+    fn only_degeneracies_the_set_up_explains_are_expected() {
+        let free = |dir: [f64; 3]| Degeneracy { rotation: dir, translation: [0.0; 3], ratio: 0.01, axis: Some(([0.0, 0.0, 400.0], dir)) };
+        // A ring facing the cameras: free about the line of sight, across the vertical.
+        assert!(explained_degeneracy(&[free([0.0, 0.19, -0.98])], None, false).is_some());
+        // A vase about its own (the table's) axis: expected only when the table's step seeded it.
+        assert!(explained_degeneracy(&[free([0.0, -1.0, 0.0])], None, false).is_none());
+        assert!(explained_degeneracy(&[free([0.0, -1.0, 0.0])], None, true).is_some());
+        // A line neither across nor along the axis, or a free translation: a warning.
+        assert!(explained_degeneracy(&[free([0.0, 0.6, 0.8])], None, true).is_none());
+        let slide = Degeneracy { rotation: [0.0; 3], translation: [1.0, 0.0, 0.0], ratio: 0.01, axis: None };
+        assert!(explained_degeneracy(&[slide], None, true).is_none());
+        // With the axis known, "across" is measured against it.
+        let up = Vector3::new(0.0, -0.98, -0.19);
+        assert!(explained_degeneracy(&[free([0.0, 0.19, -0.98])], Some(up), false).is_some());
+        assert!(explained_degeneracy(&[free([0.0, 0.5, -0.86])], Some(up), false).is_none());
     }
 }

@@ -53,7 +53,7 @@ use std::time::Instant;
 
 use nalgebra::{Isometry3, Vector3};
 
-use super::axis::{estimate_axis, AxisEstimate};
+use super::axis::{estimate_axis, explained_degeneracy, AxisEstimate};
 use super::icp::{icp, IcpParams, IcpResult, Target};
 use super::posestore::{PoseStore, ViewPose};
 use super::voxel::VoxelModel;
@@ -173,7 +173,11 @@ pub struct ViewRegistration {
     /// A block of m views ended here and was registered to the model.
     pub block: Option<IcpResult>,
     pub register_ms: f64,
+    /// Conditions that make the result doubtful.
     pub warnings: Vec<String>,
+    /// Expected conditions of the set-up, handled (e.g. an object of revolution whose free
+    /// turn the guess supplies): worth a line in the report, not a warning.
+    pub notes: Vec<String>,
 }
 
 /// How well the registered poses agree with the turntable's predictions.
@@ -283,6 +287,7 @@ impl Registrar {
         }
         let target = self.prepare(cloud, &what)?;
         let mut warnings = Vec::new();
+        let mut notes = Vec::new();
         let Some(prev) = self.prev.take() else {
             // The first view defines the frame.
             let c = cloud.points.iter().map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)).sum::<Vector3<f64>>() / cloud.len() as f64;
@@ -296,9 +301,9 @@ impl Registrar {
                 warnings.push(format!("view {seq}: long step for the axis: {e}"));
             }
             self.prev = Some(Stored { seq, table_deg, target });
-            self.end_block_if_full(&mut warnings);
+            self.end_block_if_full(&mut warnings, &mut notes);
             self.store.publish(self.poses.clone());
-            return Ok(ViewRegistration { seq, first_from_view: Isometry3::identity(), icp: None, seed: "none", block: None, register_ms: started.elapsed().as_secs_f64() * 1e3, warnings });
+            return Ok(ViewRegistration { seq, first_from_view: Isometry3::identity(), icp: None, seed: "none", block: None, register_ms: started.elapsed().as_secs_f64() * 1e3, warnings, notes });
         };
 
         let (seed, seed_kind) = match (self.seed_axis(), table_deg, prev.table_deg) {
@@ -350,7 +355,11 @@ impl Registrar {
             result.transform
         };
         if let Some(w) = result.degeneracy_warning() {
-            warnings.push(format!("view {seq}: {w}"));
+            if let Some(why) = self.degeneracy_expected(&result.degenerate, seed_kind) {
+                notes.push(format!("view {seq}: {w} (expected: {why})"));
+            } else {
+                warnings.push(format!("view {seq}: {w}"));
+            }
         }
         let prev_pose = self.poses.last().map(|p| p.first_from_view).unwrap_or_else(Isometry3::identity);
         let pose = prev_pose * prev_from_view;
@@ -368,7 +377,7 @@ impl Registrar {
             warnings.push(format!("view {seq}: long step for the axis: {e}"));
         }
         self.prev = Some(Stored { seq, table_deg, target });
-        let block = self.end_block_if_full(&mut warnings);
+        let block = self.end_block_if_full(&mut warnings, &mut notes);
         self.update_axis();
         self.store.publish(self.poses.clone());
         Ok(ViewRegistration {
@@ -379,7 +388,14 @@ impl Registrar {
             block,
             register_ms: started.elapsed().as_secs_f64() * 1e3,
             warnings,
+            notes,
         })
+    }
+
+    /// Why ICP's free directions are expected here ([`explained_degeneracy`]), with the
+    /// table's axis as far as it is known.
+    fn degeneracy_expected(&self, degenerate: &[super::icp::Degeneracy], seed_kind: &str) -> Option<&'static str> {
+        explained_degeneracy(degenerate, self.seed_axis().map(|(_, up)| up), seed_kind == "turntable")
     }
 
     fn remember(&mut self, index: usize, points: &[[f32; 3]]) {
@@ -457,7 +473,7 @@ impl Registrar {
 
     /// Algorithm 1's block step: once m views are chained, register their union to the model
     /// of everything before them, correct their poses, and add them to the model.
-    fn end_block_if_full(&mut self, warnings: &mut Vec<String>) -> Option<IcpResult> {
+    fn end_block_if_full(&mut self, warnings: &mut Vec<String>, notes: &mut Vec<String>) -> Option<IcpResult> {
         let m = self.params.block;
         if m == 0 || self.block.len() < m {
             if m == 0 {
@@ -479,7 +495,12 @@ impl Registrar {
                                 self.poses[*k].first_from_view = r.transform * self.poses[*k].first_from_view;
                             }
                             if let Some(w) = r.degeneracy_warning() {
-                                warnings.push(format!("block ending at view {}: {w}", self.poses.last().unwrap().seq));
+                                let line = format!("block ending at view {}: {w}", self.poses.last().unwrap().seq);
+                                if let Some(why) = self.degeneracy_expected(&r.degenerate, "chained") {
+                                    notes.push(format!("{line} (expected: {why})"));
+                                } else {
+                                    warnings.push(line);
+                                }
                             }
                             outcome = Some(r);
                         }
