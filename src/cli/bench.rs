@@ -102,7 +102,7 @@ pub fn cmd_bench_live(a: LiveArgs) -> Result<(), Failure> {
     config.matching.num_disparities = a.num_disparities;
     config.matching.assist = a.assist.clone();
     config.validate(Path::new("bench live flags")).map_err(input)?;
-    if a.pairs == 0 || a.pace.iter().any(|p| !(*p > 0.0)) {
+    if a.pairs == 0 || a.pace.iter().any(|p| p.is_nan() || *p <= 0.0) {
         return Err(input("--pairs must be at least 1 and every --pace positive"));
     }
     let opts = spinscan::daemon::throughput::LiveOptions { settings: config.pipeline_settings(), pairs: a.pairs, paces: a.pace.clone(), unpaced: !a.no_unpaced };

@@ -130,6 +130,28 @@ impl MatchArgs {
     }
 }
 
+/// A raw pair and its calibration (`rectify`, `points`).
+#[derive(Args, Clone)]
+pub struct RawPairArgs {
+    /// Calibration: calib.yaml, or a folder with it or with intrinsics.yml + extrinsics.yml.
+    #[arg(long)]
+    pub calib: PathBuf,
+    /// Raw left image (it also colours the points).
+    #[arg(long)]
+    pub left: PathBuf,
+    /// Raw right image, the same size.
+    #[arg(long)]
+    pub right: PathBuf,
+}
+
+/// How a calibrated pair is rectified (`disparity --calib`, `rectify`, `points`, `replay`).
+#[derive(Args, Clone)]
+pub struct RectArgs {
+    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub alpha: f64,
+}
+
 /// Blue-screen segmentation knobs (used by `--mask auto`).
 #[derive(Args, Clone)]
 pub struct KeyArgs {

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use clap::Args;
 use serde_json::json;
 
-use super::{input, output, progress, AssistModeArgs, Failure, KeyArgs, MatchArgs, RegistrationArgs};
+use super::{input, output, progress, AssistModeArgs, Failure, KeyArgs, MatchArgs, RectArgs, RegistrationArgs};
 use spinscan::io;
 use spinscan::pipeline::replay::{self, ReplayOptions};
 use spinscan::pipeline::PipelineOptions;
@@ -26,9 +26,8 @@ pub struct ReplayArgs {
     pub no_segment: bool,
     #[command(flatten)]
     pub key: KeyArgs,
-    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub alpha: f64,
+    #[command(flatten)]
+    pub rect: RectArgs,
     #[command(flatten)]
     pub matching: MatchArgs,
     #[command(flatten)]
@@ -59,7 +58,7 @@ pub fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
         plate,
         assist: a.assist.params(!a.reg.no_register)?,
         ..a.reg.options(PipelineOptions {
-            alpha: a.alpha,
+            alpha: a.rect.alpha,
             min_disparity: a.matching.min_disparity,
             matching: a.matching.params_with_default(128),
             chroma: a.key.chroma(),

@@ -6,7 +6,7 @@ use std::time::Instant;
 use clap::Args;
 use serde_json::json;
 
-use super::{input, load_pair, median, output, Failure, KeyArgs, MatchArgs};
+use super::{input, load_pair, median, output, Failure, KeyArgs, MatchArgs, RawPairArgs, RectArgs};
 use spinscan::calib::StereoCalib;
 use spinscan::io;
 use spinscan::pipeline::{Pipeline, PipelineOptions};
@@ -23,9 +23,8 @@ pub struct DisparityArgs {
     /// Calibration (file or folder); without it the pair is taken as rectified.
     #[arg(long)]
     pub calib: Option<PathBuf>,
-    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub alpha: f64,
+    #[command(flatten)]
+    pub rect: RectArgs,
     #[command(flatten)]
     pub matching: MatchArgs,
     /// Times the matcher K times and reports the median as `match_ms`; with K > 1 an untimed
@@ -45,18 +44,10 @@ pub struct DisparityArgs {
 
 #[derive(Args)]
 pub struct RectifyArgs {
-    /// Calibration: calib.yaml, or a folder with it or with intrinsics.yml + extrinsics.yml.
-    #[arg(long)]
-    pub calib: PathBuf,
-    /// Raw left image.
-    #[arg(long)]
-    pub left: PathBuf,
-    /// Raw right image, the same size.
-    #[arg(long)]
-    pub right: PathBuf,
-    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub alpha: f64,
+    #[command(flatten)]
+    pub pair: RawPairArgs,
+    #[command(flatten)]
+    pub rect: RectArgs,
     /// Output folder: left.png, right.png, rectification.json.
     #[arg(short = 'o', long = "out")]
     pub out: PathBuf,
@@ -64,23 +55,15 @@ pub struct RectifyArgs {
 
 #[derive(Args)]
 pub struct PointsArgs {
-    /// Calibration: calib.yaml, or a folder with it or with intrinsics.yml + extrinsics.yml.
-    #[arg(long)]
-    pub calib: PathBuf,
-    /// Raw left image (colours the points).
-    #[arg(long)]
-    pub left: PathBuf,
-    /// Raw right image, the same size.
-    #[arg(long)]
-    pub right: PathBuf,
+    #[command(flatten)]
+    pub pair: RawPairArgs,
     /// `auto` (blue-screen chroma key) or a mask image in raw left coordinates (non-zero = object).
     #[arg(long)]
     pub mask: Option<String>,
     #[command(flatten)]
     pub key: KeyArgs,
-    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub alpha: f64,
+    #[command(flatten)]
+    pub rect: RectArgs,
     #[command(flatten)]
     pub matching: MatchArgs,
     /// Output point cloud: binary PLY, x y z float (mm, left raw camera frame), red green blue.
@@ -116,7 +99,7 @@ pub fn cmd_disparity(a: DisparityArgs) -> Result<(), Failure> {
         Some(path) => {
             let calib = StereoCalib::load(path).map_err(input)?;
             let opts = PipelineOptions {
-                alpha: a.alpha,
+                alpha: a.rect.alpha,
                 min_disparity: a.matching.min_disparity,
                 matching: a.matching.params(),
                 ..Default::default()
@@ -173,9 +156,9 @@ pub fn cmd_disparity(a: DisparityArgs) -> Result<(), Failure> {
 }
 
 pub fn cmd_rectify(a: RectifyArgs) -> Result<(), Failure> {
-    let (l, r) = load_pair(&a.left, &a.right)?;
-    let calib = StereoCalib::load(&a.calib).map_err(input)?;
-    let opts = PipelineOptions { alpha: a.alpha, ..Default::default() };
+    let (l, r) = load_pair(&a.pair.left, &a.pair.right)?;
+    let calib = StereoCalib::load(&a.pair.calib).map_err(input)?;
+    let opts = PipelineOptions { alpha: a.rect.alpha, ..Default::default() };
     let pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts).map_err(input)?;
     let (lr, rr) = pipe.rectify_rgb(&l.rgb, &r.rgb);
     std::fs::create_dir_all(&a.out).map_err(|e| output(format!("cannot create {}: {e}", a.out.display())))?;
@@ -184,7 +167,7 @@ pub fn cmd_rectify(a: RectifyArgs) -> Result<(), Failure> {
     let m = |m: nalgebra::DMatrixView<f64>| -> Vec<Vec<f64>> { (0..m.nrows()).map(|i| m.row(i).iter().copied().collect()).collect() };
     let rect = &pipe.rect;
     let doc = json!({
-        "alpha": a.alpha,
+        "alpha": a.rect.alpha,
         "R1": m(rect.r1.as_view()), "R2": m(rect.r2.as_view()),
         "P1": m(rect.p1.as_view()), "P2": m(rect.p2.as_view()), "Q": m(rect.q.as_view()),
         "disparity_sign": rect.disparity_sign,
@@ -195,10 +178,10 @@ pub fn cmd_rectify(a: RectifyArgs) -> Result<(), Failure> {
 }
 
 pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
-    let (l, r) = load_pair(&a.left, &a.right)?;
-    let calib = StereoCalib::load(&a.calib).map_err(input)?;
+    let (l, r) = load_pair(&a.pair.left, &a.pair.right)?;
+    let calib = StereoCalib::load(&a.pair.calib).map_err(input)?;
     let opts = PipelineOptions {
-        alpha: a.alpha,
+        alpha: a.rect.alpha,
         min_disparity: a.matching.min_disparity,
         matching: a.matching.params(),
         chroma: a.key.chroma(),

@@ -44,11 +44,11 @@ impl Client {
         let hello = read(&mut reader)?;
         if hello["method"] == "hello" {
             let hello = serde_json::from_value(hello["params"].clone()).map_err(|e| ClientError::Protocol(format!("hello: {e}")))?;
-            return Ok(Client { reader, writer, next_id: 0, hello, pending: Default::default() });
+            Ok(Client { reader, writer, next_id: 0, hello, pending: Default::default() })
         } else if let Some(e) = hello.get("error") {
-            return Err(ClientError::Rpc { code: e["code"].as_i64().unwrap_or(0), message: e["message"].as_str().unwrap_or("").to_string() });
+            Err(ClientError::Rpc { code: e["code"].as_i64().unwrap_or(0), message: e["message"].as_str().unwrap_or("").to_string() })
         } else {
-            return Err(ClientError::Protocol(format!("expected a hello notification, got {hello}")));
+            Err(ClientError::Protocol(format!("expected a hello notification, got {hello}")))
         }
     }
 

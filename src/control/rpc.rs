@@ -30,6 +30,7 @@ pub struct Request {
 }
 
 /// Parses one line. On error, the id to answer with (null when unknown) and the error.
+#[allow(clippy::result_large_err)] // one per request line; the id must travel with the error
 pub fn parse_request(line: &str) -> Result<Request, (Value, ControlError)> {
     let v: Value = serde_json::from_str(line).map_err(|e| (Value::Null, ControlError::Parse(format!("not JSON: {e}; send one JSON-RPC 2.0 object per line"))))?;
     let Value::Object(obj) = v else {

@@ -150,7 +150,7 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
         Ok((r, outcome)) => (Some(r), outcome),
         Err(_) => (None, Err(ScanError::Panicked("registration thread"))),
     };
-    let rec_result = recorder.map(|r| r.join().unwrap_or_else(|_| Err(ScanError::Panicked("recorder")))).unwrap_or(Ok(()));
+    let rec_result = recorder.map(|r| r.join().unwrap_or(Err(ScanError::Panicked("recorder")))).unwrap_or(Ok(()));
     let (status, reason) = match (captured, rec_result, reg_result) {
         (Err(e), _, _) | (_, Err(e), _) | (_, _, Err(e)) => ("failed", Some(e.to_string())),
         (Ok(()), Ok(()), Ok(())) => match shared.stop_reason() {
