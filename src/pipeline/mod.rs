@@ -276,7 +276,7 @@ impl Pipeline {
 
     /// Matches frame `seq` over the intervals the assistant plans from `poses`; a result the
     /// assistant rejects is matched again over the full range (both calls are timed).
-    pub fn match_assisted(&mut self, seq: u64, frame: &Prepared, assistant: &mut Assistant, poses: &crate::register::posestore::PoseSnapshot) -> Result<AssistedMatch, PipelineError> {
+    fn match_assisted(&mut self, seq: u64, frame: &Prepared, assistant: &mut Assistant, poses: &crate::register::posestore::PoseSnapshot) -> Result<AssistedMatch, PipelineError> {
         let plan = assistant.plan(seq, frame.mask.as_deref(), poses);
         let mut outcome = AssistOutcome::of(&plan);
         let (mut disparity, mut stats, ms) = self.match_gray(&frame.left_gray, &frame.right_gray, &plan.intervals)?;

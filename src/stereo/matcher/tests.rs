@@ -1,3 +1,6 @@
+//! The matcher against brute force and against itself: every SIMD level, narrow and full
+//! intervals, crops, and the errors it names.
+
 use super::*;
 use crate::stereo::MatchParams;
 
