@@ -1,5 +1,6 @@
-//! The matcher against brute force and against itself: every SIMD level, narrow and full
-//! intervals, crops, and the errors it names.
+//! The matcher on synthetic shifted pairs: known shifts recovered, narrow intervals against
+//! the full search, masks, negative disparities, the portable and SIMD paths against each
+//! other, cropping against the whole image, and a size mismatch named.
 
 use super::*;
 use crate::stereo::MatchParams;
