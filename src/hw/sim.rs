@@ -156,7 +156,7 @@ impl Turntable for SimTurntable {
         self.driver.halt()
     }
     fn describe(&self) -> String {
-        format!("{} (simulated Horus firmware)", self.driver.describe())
+        self.driver.describe()
     }
 }
 
