@@ -33,10 +33,13 @@ pub enum TurntableFault {
     /// The n-th command line is answered with line noise instead of its reply.
     Garbage { line: u32 },
     /// The motor stalls when the angle reaches `at_deg` (firmware degrees): the move never
-    /// ends, `G4 P0` never answers, `?` shows the angle stuck.
+    /// ends, `?` shows the angle stuck and the state `Run`.
     Stall { at_deg: f64 },
     /// On the n-th command line the device disappears (the port closes).
     Vanish { line: u32 },
+    /// On the n-th command line the board resets by itself (a power glitch, a brown-out): the
+    /// line is lost, motion stops, the position is zeroed, the greeting comes again.
+    Reset { line: u32 },
 }
 
 /// Firmware settings.
@@ -45,19 +48,37 @@ pub struct FirmwareConfig {
     pub greeting: String,
     /// Feed rate after reset, degrees per second (Horus: 200).
     pub feed_deg_s: f64,
-    /// Acceleration after reset, degrees per second².
+    /// Acceleration after reset, degrees per second² (`$120`).
     pub accel_deg_s2: f64,
+    /// Steps per degree (`$100`; Horus: 16 microsteps per 1.8° step = 8.889): every target is
+    /// rounded to a whole step.
+    pub steps_per_deg: f64,
+    /// Highest feed rate, degrees per second (`$110`).
+    pub max_rate_deg_s: f64,
     /// Which way the table turns for positive X: +1 counterclockwise seen from above
     /// (spinscan's `table_deg` convention), −1 clockwise.
     pub direction: f64,
     /// Simulated seconds per real second (> 1 runs motion faster, for tests).
     pub time_scale: f64,
+    /// Real time from a host opening the port (which resets an Arduino-style board through
+    /// DTR) to the greeting: the bootloader's wait. About 2 s on a real board.
+    pub boot_delay: Duration,
     pub faults: Vec<TurntableFault>,
 }
 
 impl Default for FirmwareConfig {
     fn default() -> Self {
-        FirmwareConfig { greeting: HORUS_GREETING.to_string(), feed_deg_s: 200.0, accel_deg_s2: 400.0, direction: 1.0, time_scale: 1.0, faults: Vec::new() }
+        FirmwareConfig {
+            greeting: HORUS_GREETING.to_string(),
+            feed_deg_s: 200.0,
+            accel_deg_s2: 400.0,
+            steps_per_deg: 8.889,
+            max_rate_deg_s: 500.0,
+            direction: 1.0,
+            time_scale: 1.0,
+            boot_delay: Duration::from_secs(2),
+            faults: Vec::new(),
+        }
     }
 }
 
@@ -101,7 +122,7 @@ impl Drop for Emulator {
     }
 }
 
-/// One trapezoidal move, in firmware degrees and simulated seconds.
+/// One trapezoidal move, in machine degrees and simulated seconds.
 #[derive(Debug, Clone, Copy)]
 struct Move {
     from: f64,
@@ -142,44 +163,89 @@ impl Move {
         }
     }
 
+    /// Speed `t` seconds into the move.
+    fn speed(&self, t: f64) -> f64 {
+        let d = (self.to - self.from).abs();
+        let (v, a) = (self.feed, self.accel);
+        let total = self.duration_s();
+        if t <= 0.0 || t >= total {
+            return 0.0;
+        }
+        let t_acc = (v / a).min((d / a).sqrt());
+        (a * t).min(a * t_acc).min(a * (total - t))
+    }
+
     fn position(&self, now_s: f64) -> f64 {
         self.from + (self.to - self.from).signum() * self.covered(now_s - self.start_s)
     }
 }
 
-enum Step {
-    /// Line handled; reply sent (or withheld by a fault).
-    Done,
-    /// `G4`: the reply waits until the queue drains and the dwell ends.
-    Dwell(f64),
+/// What the motor is doing.
+#[derive(Debug, Clone, Copy)]
+enum Motion {
+    /// A move of the queue, rest to rest.
+    Move(Move),
+    /// A feed hold: decelerating from `speed` to rest; `to` is where the held move was going.
+    Hold { from: f64, dir: f64, speed: f64, accel: f64, start_s: f64, to: f64 },
+}
+
+impl Motion {
+    fn position(&self, now_s: f64) -> f64 {
+        match *self {
+            Motion::Move(m) => m.position(now_s),
+            Motion::Hold { from, dir, speed, accel, start_s, .. } => {
+                let t = (now_s - start_s).clamp(0.0, speed / accel);
+                from + dir * (speed * t - 0.5 * accel * t * t)
+            }
+        }
+    }
+
+    fn done(&self, now_s: f64) -> bool {
+        match *self {
+            Motion::Move(m) => now_s - m.start_s >= m.duration_s(),
+            Motion::Hold { speed, accel, start_s, .. } => now_s - start_s >= speed / accel,
+        }
+    }
 }
 
 struct Firmware {
     config: FirmwareConfig,
     angle: TableAngle,
     epoch: Instant,
-    /// Machine position of the motor when no move is running, firmware degrees.
+    /// Machine position of the motor when nothing runs, degrees (always a whole step).
     position: f64,
-    /// `G50` origin: reported and commanded positions are relative to it.
+    /// `G50` and reboots: reported and commanded positions are relative to it.
     origin: f64,
     feed: f64,
     accel: f64,
+    steps_per_deg: f64,
+    max_rate: f64,
     motor_on: bool,
-    current: Option<Move>,
+    /// The physical table follows the motor only while it is energised: the machine position
+    /// and the table angle (firmware direction) when it last was switched on.
+    anchor: (f64, f64),
+    current: Option<Motion>,
+    /// Targets waiting, machine degrees. After a feed hold the held move's target waits here
+    /// (state `Queue`) until `~`.
     queue: VecDeque<f64>,
+    held: bool,
+    alarm: bool,
     line: Vec<u8>,
     pending: VecDeque<String>,
-    /// A `G4` waiting: when the queue drains, its dwell runs until this many seconds later.
-    dwell: Option<(f64, Option<f64>)>,
     lines_seen: u32,
     stalled: bool,
+    /// A host has the port open (the master reads without EIO).
+    host: bool,
+    /// The bootloader runs until then (input is ignored); then the greeting.
+    booting_until: Option<Instant>,
 }
 
 const QUEUE_SLOTS: usize = 16;
 
 impl Firmware {
     fn new(config: FirmwareConfig, angle: TableAngle) -> Firmware {
-        let (feed, accel) = (config.feed_deg_s, config.accel_deg_s2);
+        let (feed, accel, spd, max_rate) = (config.feed_deg_s, config.accel_deg_s2, config.steps_per_deg, config.max_rate_deg_s);
+        let table_fw = angle.get() * config.direction;
         Firmware {
             config,
             angle,
@@ -188,14 +254,20 @@ impl Firmware {
             origin: 0.0,
             feed,
             accel,
+            steps_per_deg: spd,
+            max_rate,
             motor_on: false,
+            anchor: (0.0, table_fw),
             current: None,
             queue: VecDeque::new(),
+            held: false,
+            alarm: false,
             line: Vec::new(),
             pending: VecDeque::new(),
-            dwell: None,
             lines_seen: 0,
             stalled: false,
+            host: false,
+            booting_until: None,
         }
     }
 
@@ -205,32 +277,56 @@ impl Firmware {
 
     fn run(&mut self, port: &mut TTYPort, stop: &AtomicBool) {
         let mut buf = [0u8; 256];
-        // A real board prints its greeting at power-up (lost if nobody listens yet).
-        let _ = self.send(port, &format!("\r\n{}\r\n", self.config.greeting));
+        // A real board's power-up greeting is lost when nobody listens; a pty would keep it
+        // for the first reader, so the emulator greets only once a host has opened the port
+        // (which resets a real board, and the greeting follows the bootloader).
         while !stop.load(Ordering::Acquire) {
             let n = match port.read(&mut buf) {
-                Ok(n) => n,
-                Err(e) if e.kind() == io::ErrorKind::TimedOut || e.kind() == io::ErrorKind::WouldBlock || e.kind() == io::ErrorKind::Interrupted => 0,
-                // Nobody has the slave open yet (or it was closed): wait for a host.
-                Err(_) => {
-                    std::thread::sleep(Duration::from_millis(5));
-                    0
-                }
+                Ok(n) => Some(n),
+                Err(e) if e.kind() == io::ErrorKind::TimedOut || e.kind() == io::ErrorKind::WouldBlock || e.kind() == io::ErrorKind::Interrupted => Some(0),
+                // Nobody has the slave open (EIO on the master): wait for a host.
+                Err(_) => None,
             };
+            match (n.is_some(), self.host) {
+                (true, false) => {
+                    // A host opened the port: DTR resets the board; the bootloader runs first.
+                    self.host = true;
+                    self.reboot();
+                    self.booting_until = Some(Instant::now() + self.config.boot_delay);
+                }
+                (false, true) => self.host = false,
+                _ => {}
+            }
+            let Some(n) = n else {
+                std::thread::sleep(Duration::from_millis(5));
+                continue;
+            };
+            if let Some(t) = self.booting_until {
+                if Instant::now() < t {
+                    continue; // the bootloader ignores what the host sends
+                }
+                self.booting_until = None;
+                if self.send(port, &format!("\r\n{}\r\n", self.config.greeting)).is_err() {
+                    return;
+                }
+            }
             for &b in &buf[..n] {
                 match b {
                     0x18 => {
-                        self.reset();
-                        if self.send(port, &format!("\r\n{}\r\n", self.config.greeting)).is_err() {
+                        let text = self.ctrl_x();
+                        if self.send(port, &text).is_err() {
                             return;
                         }
                     }
                     b'?' => {
+                        self.advance();
                         let report = self.status();
                         if self.send(port, &report).is_err() {
                             return;
                         }
                     }
+                    b'!' => self.feed_hold(),
+                    b'~' => self.cycle_start(),
                     b'\n' | b'\r' => {
                         if !self.line.is_empty() {
                             let text = String::from_utf8_lossy(&self.line).into_owned();
@@ -253,91 +349,178 @@ impl Firmware {
         port.flush()
     }
 
-    fn reset(&mut self) {
-        // Ctrl-X stops motion where it is and clears everything queued.
+    /// Rounds machine degrees to a whole step.
+    fn to_step(&self, deg: f64) -> f64 {
+        (deg * self.steps_per_deg).round() / self.steps_per_deg
+    }
+
+    /// Stops everything where it is and forgets what was queued (reset, alarm, reboot).
+    fn stop_all(&mut self) {
         self.advance();
-        self.position = self.current_position();
+        self.position = self.to_step(self.current_position());
         self.current = None;
         self.queue.clear();
         self.pending.clear();
         self.line.clear();
-        self.dwell = None;
-        self.feed = self.config.feed_deg_s;
-        self.accel = self.config.accel_deg_s2;
-        self.motor_on = false;
+        self.held = false;
         self.stalled = false;
+        self.feed = self.config.feed_deg_s;
         self.publish();
+    }
+
+    /// Ctrl-X: a reset. During motion (`Run`, `Hold`) Grbl raises the alarm: the position
+    /// may be lost, and every G-code line is refused until `$X`.
+    fn ctrl_x(&mut self) -> String {
+        self.advance();
+        let moving = self.current.is_some();
+        self.stop_all();
+        if moving {
+            self.alarm = true;
+            format!("ALARM: Abort during cycle\r\n\r\n{}\r\n['$H'|'$X' to unlock]\r\n", self.config.greeting)
+        } else {
+            format!("\r\n{}\r\n", self.config.greeting)
+        }
+    }
+
+    /// Power-on (a host opened the port, or a glitch): the position restarts at zero, the
+    /// motor is off, the settings in EEPROM stay.
+    fn reboot(&mut self) {
+        self.stop_all();
+        self.origin = self.position;
+        self.alarm = false;
+        self.set_motor(false);
+    }
+
+    fn set_motor(&mut self, on: bool) {
+        if on && !self.motor_on {
+            self.anchor = (self.current_position(), self.physical());
+        } else if !on && self.motor_on {
+            self.anchor = (self.current_position(), self.physical());
+        }
+        self.motor_on = on;
+    }
+
+    /// `!`: decelerate to a stop; the rest of the move waits (`Queue`) for `~`.
+    fn feed_hold(&mut self) {
+        self.advance();
+        if self.held {
+            return;
+        }
+        if let (true, Some(Motion::Move(m))) = (self.stalled, self.current) {
+            // A stalled motor is already at rest: the hold ends at once, the move waits.
+            self.current = None;
+            self.stalled = false;
+            self.held = true;
+            self.queue.push_front(m.to);
+            return;
+        }
+        if let Some(Motion::Move(m)) = self.current {
+            let now = self.now_s();
+            let from = m.position(now);
+            let speed = m.speed(now - m.start_s);
+            self.current = Some(Motion::Hold { from, dir: (m.to - m.from).signum(), speed, accel: m.accel, start_s: now, to: m.to });
+            self.held = true;
+        }
+    }
+
+    /// `~`: resume after a hold.
+    fn cycle_start(&mut self) {
+        self.advance();
+        if self.held && self.current.is_none() {
+            self.held = false;
+        }
     }
 
     /// Where the motor is now (a stalled move stays where it stalled).
     fn current_position(&self) -> f64 {
         match self.current {
-            Some(m) if self.stalled => m.from,
+            Some(_) if self.stalled => self.position,
             Some(m) => m.position(self.now_s()),
             None => self.position,
         }
     }
 
+    /// The table's angle in firmware degrees: it follows the motor only while energised.
+    fn physical(&self) -> f64 {
+        if self.motor_on {
+            self.anchor.1 + (self.current_position() - self.anchor.0)
+        } else {
+            self.anchor.1
+        }
+    }
+
     fn publish(&self) {
-        self.angle.set(self.config.direction * self.current_position());
+        self.angle.set(self.config.direction * self.physical());
     }
 
     /// Moves time forward: finishes moves, starts queued ones, applies a stall.
     fn advance(&mut self) {
         let now = self.now_s();
         if let Some(m) = self.current {
-            let pos = m.position(now);
             if let Some(stall) = self.config.faults.iter().find_map(|f| match f {
-                TurntableFault::Stall { at_deg } => Some(*at_deg),
+                TurntableFault::Stall { at_deg } => Some(*at_deg + self.origin),
                 _ => None,
             }) {
-                let passed = (pos - stall) * (m.to - m.from).signum() >= 0.0 && (m.from - stall) * (m.to - m.from).signum() <= 0.0;
-                if passed || self.stalled {
-                    // The motor slips and stays: the move never finishes.
-                    self.stalled = true;
-                    self.current = Some(Move { from: stall, to: m.to, start_s: f64::INFINITY, ..m });
-                    self.angle.set(self.config.direction * stall);
+                if let Motion::Move(mv) = m {
+                    let dir = (mv.to - mv.from).signum();
+                    let passed = (mv.position(now) - stall) * dir >= 0.0 && (mv.from - stall) * dir <= 0.0;
+                    if passed && !self.stalled {
+                        // The motor slips and stays: the move never finishes.
+                        self.stalled = true;
+                        self.position = stall;
+                    }
+                }
+                if self.stalled {
+                    self.publish();
                     return;
                 }
             }
-            if now - m.start_s >= m.duration_s() {
-                self.position = m.to;
+            if m.done(now) {
+                match m {
+                    Motion::Move(mv) => self.position = mv.to,
+                    Motion::Hold { to, .. } => {
+                        // Stopped short: the held move's target waits for `~`.
+                        self.position = self.to_step(m.position(now));
+                        if (to - self.position).abs() > 0.5 / self.steps_per_deg {
+                            self.queue.push_front(to);
+                        } else {
+                            self.held = false;
+                        }
+                    }
+                }
                 self.current = None;
             }
         }
-        if self.current.is_none() {
+        if self.current.is_none() && !self.held && !self.alarm {
             if let Some(to) = self.queue.pop_front() {
-                self.current = Some(Move { from: self.position, to, start_s: now, feed: self.feed, accel: self.accel });
+                self.current = Some(Motion::Move(Move { from: self.position, to, start_s: now, feed: self.feed.min(self.max_rate), accel: self.accel }));
             }
         }
         self.publish();
     }
 
+    fn state(&self) -> &'static str {
+        if self.alarm {
+            "Alarm"
+        } else if matches!(self.current, Some(Motion::Hold { .. })) {
+            "Hold"
+        } else if self.current.is_some() {
+            "Run"
+        } else if !self.queue.is_empty() {
+            "Queue"
+        } else {
+            "Idle"
+        }
+    }
+
     fn status(&self) -> String {
-        let state = if self.current.is_some() || !self.queue.is_empty() { "Run" } else { "Idle" };
-        format!("<{state},MPos:{:.3},0.000,0.000>\r\n", self.current_position() - self.origin)
+        let x = self.to_step(self.current_position()) - self.origin;
+        format!("<{},MPos:{x:.3},0.000,0.000,WPos:{x:.3},0.000,0.000>\r\n", self.state())
     }
 
     /// Works through received lines; false when the device vanished.
     fn serve(&mut self, port: &mut TTYPort) -> bool {
         loop {
-            if let Some((_, until)) = self.dwell {
-                let idle = self.current.is_none() && self.queue.is_empty();
-                match until {
-                    None if idle => {
-                        let seconds = self.dwell.unwrap().0;
-                        self.dwell = Some((seconds, Some(self.now_s() + seconds)));
-                        continue;
-                    }
-                    Some(t) if self.now_s() >= t => {
-                        self.dwell = None;
-                        if self.send(port, "ok\r\n").is_err() {
-                            return false;
-                        }
-                    }
-                    _ => return true,
-                }
-            }
             let Some(line) = self.pending.pop_front() else { return true };
             if self.queue.len() >= QUEUE_SLOTS && line.to_ascii_uppercase().trim_start().starts_with("G1") {
                 // Planner full: the line waits, as Grbl blocks the stream.
@@ -350,93 +533,103 @@ impl Firmware {
             if faults.contains(&TurntableFault::Vanish { line: n }) {
                 return false;
             }
-            let (step, reply) = self.execute(&line);
+            if faults.contains(&TurntableFault::Reset { line: n }) {
+                self.reboot();
+                if self.send(port, &format!("\r\n{}\r\n", self.config.greeting)).is_err() {
+                    return false;
+                }
+                continue;
+            }
+            let reply = self.execute(&line);
             let reply = if faults.contains(&TurntableFault::Garbage { line: n }) {
                 Some("\u{7f}#\u{1}ok?r%\r\n".to_string())
             } else if faults.contains(&TurntableFault::MissOk { line: n }) {
                 None
             } else {
-                reply
+                Some(reply)
             };
-            match step {
-                Step::Dwell(seconds) => {
-                    self.dwell = Some((seconds, None));
-                    if reply.is_none() {
-                        // The fault eats this dwell's ok: finish the wait silently.
-                        self.dwell = None;
-                    }
-                }
-                Step::Done => {
-                    if let Some(r) = reply {
-                        if self.send(port, &r).is_err() {
-                            return false;
-                        }
-                    }
+            if let Some(r) = reply {
+                if self.send(port, &r).is_err() {
+                    return false;
                 }
             }
         }
     }
 
-    /// Runs one command line: what happens and the reply (a `G4`'s comes later).
-    fn execute(&mut self, raw: &str) -> (Step, Option<String>) {
-        let ok = || Some("ok\r\n".to_string());
-        let err = |why: &str| (Step::Done, Some(format!("error: {why}\r\n")));
+    /// Runs one command line and returns its whole reply. What this firmware knows is in
+    /// the spec's table; everything else is refused with the firmware's own words.
+    fn execute(&mut self, raw: &str) -> String {
+        const OK: &str = "ok\r\n";
+        let err = |why: &str| format!("error: {why}\r\n");
         let text: String = raw.chars().filter(|c| !c.is_whitespace()).collect::<String>().to_ascii_uppercase();
         if text.is_empty() {
-            return (Step::Done, ok());
+            return OK.into();
         }
         if let Some(setting) = text.strip_prefix('$') {
             return match setting.split_once('=') {
-                Some(("120", v)) => match v.parse::<f64>() {
-                    Ok(a) if a > 0.0 && a.is_finite() => {
-                        self.accel = a;
-                        (Step::Done, ok())
+                None if setting == "$" => format!(
+                    "$100={:.3} (x, step/deg)\r\n$110={:.3} (x max rate, deg/sec)\r\n$120={:.3} (x accel, deg/sec^2)\r\nok\r\n",
+                    self.steps_per_deg, self.max_rate, self.accel
+                ),
+                None if setting == "X" => {
+                    self.alarm = false;
+                    "[Caution: Unlocked]\r\nok\r\n".into()
+                }
+                Some((key, v)) => match (key, v.parse::<f64>()) {
+                    (_, Ok(v)) if !(v > 0.0 && v.is_finite()) => err("Bad number format"),
+                    (_, Err(_)) => err("Bad number format"),
+                    ("100", Ok(v)) => {
+                        self.steps_per_deg = v;
+                        OK.into()
                     }
-                    _ => err("Bad number format"),
+                    ("110", Ok(v)) => {
+                        self.max_rate = v;
+                        OK.into()
+                    }
+                    ("120", Ok(v)) => {
+                        self.accel = v;
+                        OK.into()
+                    }
+                    _ => err("Unsupported command"),
                 },
-                Some(_) => err("Unsupported setting"),
-                None => (Step::Done, Some(format!("$120={:.3}\r\nok\r\n", self.accel))),
+                None => err("Unsupported command"),
             };
         }
-        let words = match parse_words(&text) {
-            Some(w) => w,
-            None => return err("Bad number format"),
-        };
+        let Some(words) = parse_words(&text) else { return err("Bad number format") };
+        if self.alarm {
+            return err("Alarm lock");
+        }
         let get = |letter: char| words.iter().find(|(l, _)| *l == letter).map(|&(_, v)| v);
+        let only = |allowed: &[char]| words.iter().skip(1).all(|(l, _)| allowed.contains(l));
         match words.first() {
-            Some(('G', g)) if *g == 1.0 => {
+            Some(('G', g)) if *g == 1.0 && only(&['X', 'F']) => {
                 if let Some(f) = get('F') {
                     if f <= 0.0 {
-                        return err("Invalid feed rate");
+                        return err("Invalid statement");
                     }
                     self.feed = f;
                 }
                 if let Some(x) = get('X') {
-                    if !self.motor_on {
-                        return err("motor disabled");
-                    }
-                    self.queue.push_back(self.origin + x);
+                    self.queue.push_back(self.to_step(self.origin + x));
                 }
-                (Step::Done, ok())
+                OK.into()
             }
-            Some(('G', g)) if *g == 4.0 => match get('P') {
-                Some(p) if p >= 0.0 => (Step::Dwell(p), ok()),
-                _ => err("Expected P with dwell seconds"),
-            },
-            Some(('G', g)) if *g == 50.0 => {
-                self.origin = self.current_position();
-                (Step::Done, ok())
+            Some(('G', g)) if *g == 50.0 && only(&[]) => {
+                self.origin = self.to_step(self.current_position());
+                OK.into()
             }
-            Some(('M', m)) if *m == 17.0 => {
-                self.motor_on = true;
-                (Step::Done, ok())
+            Some(('M', m)) if *m == 17.0 && only(&[]) => {
+                self.set_motor(true);
+                OK.into()
             }
-            Some(('M', m)) if *m == 18.0 => {
-                self.motor_on = false;
-                (Step::Done, ok())
+            Some(('M', m)) if *m == 18.0 && only(&[]) => {
+                self.set_motor(false);
+                OK.into()
             }
-            Some(('M', m)) if *m == 70.0 || *m == 71.0 => (Step::Done, ok()),
-            _ => err("Unsupported statement"),
+            Some(('M', m)) if (*m == 70.0 || *m == 71.0) && only(&['T']) => OK.into(),
+            Some(('M', m)) if (*m == 0.0 || *m == 2.0) && only(&[]) => OK.into(),
+            Some(('M', m)) if *m == 50.0 && only(&['T']) => "0\r\nok\r\n".into(),
+            _ => err("Unsupported command"),
         }
     }
 }
@@ -483,6 +676,16 @@ mod tests {
                 last = p;
             }
         }
+    }
+
+    #[test]
+    fn a_hold_decelerates_to_rest_at_the_set_acceleration() {
+        let m = Move { from: 0.0, to: 100.0, start_s: 0.0, feed: 50.0, accel: 100.0 };
+        let speed = m.speed(1.0);
+        assert!((speed - 50.0).abs() < 1e-9, "cruising at the feed: {speed}");
+        let h = Motion::Hold { from: m.position(1.0), dir: 1.0, speed, accel: 100.0, start_s: 1.0, to: 100.0 };
+        assert!(!h.done(1.4) && h.done(1.5));
+        assert!((h.position(2.0) - (m.position(1.0) + 50.0 * 50.0 / 200.0)).abs() < 1e-9, "v²/2a to stop");
     }
 
     #[test]

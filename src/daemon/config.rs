@@ -183,6 +183,8 @@ pub struct TurntableSection {
     pub stall_tolerance_deg: f64,
     /// Wait after arrival before capturing, ms.
     pub settle_ms: u64,
+    /// Wait for the board's power-on greeting after opening the port (opening resets it), ms.
+    pub boot_wait_ms: u64,
     /// Rotation speed of a continuous scan, degrees per second (6 °/s at 15 fps = 0.4° per
     /// pair).
     pub continuous_deg_s: f64,
@@ -201,6 +203,7 @@ impl Default for TurntableSection {
             accel_deg_s2: d.accel_deg_s2,
             stall_tolerance_deg: d.stall_tolerance_deg,
             settle_ms: d.settle.as_millis() as u64,
+            boot_wait_ms: d.boot_wait.as_millis() as u64,
             continuous_deg_s: 6.0,
         }
     }
@@ -217,6 +220,7 @@ impl TurntableSection {
             accel_deg_s2: self.accel_deg_s2,
             stall_tolerance_deg: self.stall_tolerance_deg,
             settle: Duration::from_millis(self.settle_ms),
+            boot_wait: Duration::from_millis(self.boot_wait_ms),
         }
     }
 }

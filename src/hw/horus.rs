@@ -2,18 +2,26 @@
 //! (`shared/spec/turntable-protocol.md`).
 //!
 //! ```text
-//!  move_to(θ) ── "G1 X<θ·direction>" ─> ok ── "G4 P0" ─> ok (arrived) ── settle ─> capture
-//!  angle()    ── '?' ─> <Idle,MPos:12.000,0.000,0.000>
+//!  open      ── (port open resets the board) … greeting ≤ boot_wait; else Ctrl-X ── $$ (steps/°, rate, accel) ── M17, $120, G1 F
+//!  move_to(θ)── "G1 X<θ·direction, whole steps>" ─> ok ── '?' every 50 ms until <Idle,MPos:θ±½ step> ── settle ─> the angle read back
+//!  angle()   ── '?' ─> <Idle,MPos:12.000,0.000,0.000,…>   (each reply timestamped: angle_at(t) interpolates)
+//!  halt()    ── '!' (feed hold) ── '?' until Queue/Idle ── Ctrl-X ── greeting ── ($X if an alarm came) ── M17, G1 F
 //! ```
 //!
-//! Replies are read line by line with a deadline. A line that is not `ok`, `error: …`, a
-//! status report or the greeting is line noise: logged and skipped. A command whose `ok`
-//! does not come in time is sent again (every command spinscan sends is absolute, so a
-//! repeat is harmless) up to `retries` times, then the device counts as unresponsive. While
-//! waiting for arrival the driver polls `?`: a table whose angle stops changing short of the
-//! target has stalled. Read or write failures and end-of-file mean the device vanished.
-//! Every error names the port and the command.
+//! The firmware has no dwell (`G4` is refused) and acknowledges `G1` when it is queued, not
+//! when the move ends, so arrival is found by polling `?`. Every target is rounded to a whole
+//! motor step (8.889 steps per degree on a Horus board, read from `$100` at open), and
+//! positions are compared to half a step. A reset (Ctrl-X) while the table moves raises
+//! Grbl's alarm, so a moving table is first stopped with a feed hold. Replies are read line by
+//! line with a deadline; a line that is not `ok`, `error: …`, a status report, an alarm or the
+//! greeting is line noise: logged and skipped. A command whose `ok` does not come in time is
+//! sent again (every command spinscan sends is absolute, so a repeat is harmless) up to
+//! `tries` times, then the device counts as unresponsive. A greeting in the middle of a
+//! command means the board reset (power glitch): its position is lost, and the scan is told.
+//! Read or write failures and end-of-file mean the device vanished. Every error names the
+//! port and the command.
 
+use std::collections::VecDeque;
 use std::io::{Read, Write};
 use std::time::{Duration, Instant};
 
@@ -44,6 +52,9 @@ pub struct DriverConfig {
     pub stall_tolerance_deg: f64,
     /// Wait after arrival before capturing (vibration settles).
     pub settle: Duration,
+    /// How long to wait for the power-on greeting after opening the port (opening resets an
+    /// Arduino-style board; its bootloader takes about 2 s). Ctrl-X is sent only after it.
+    pub boot_wait: Duration,
 }
 
 impl Default for DriverConfig {
@@ -57,7 +68,53 @@ impl Default for DriverConfig {
             accel_deg_s2: 60.0,
             stall_tolerance_deg: 0.001,
             settle: Duration::from_millis(100),
+            boot_wait: Duration::from_secs(3),
         }
+    }
+}
+
+/// The firmware's state word in a status report.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TableState {
+    Idle,
+    /// Moves wait (after a feed hold, or before a cycle start).
+    Queue,
+    Run,
+    Hold,
+    Home,
+    Alarm,
+    Check,
+}
+
+impl TableState {
+    fn parse(word: &str) -> Option<TableState> {
+        Some(match word {
+            "Idle" => TableState::Idle,
+            "Queue" => TableState::Queue,
+            "Run" => TableState::Run,
+            "Hold" => TableState::Hold,
+            "Home" => TableState::Home,
+            "Alarm" => TableState::Alarm,
+            "Check" => TableState::Check,
+            _ => return None,
+        })
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            TableState::Idle => "Idle",
+            TableState::Queue => "Queue",
+            TableState::Run => "Run",
+            TableState::Hold => "Hold",
+            TableState::Home => "Home",
+            TableState::Alarm => "Alarm",
+            TableState::Check => "Check",
+        }
+    }
+
+    /// The motor is turning (or decelerating).
+    fn moving(self) -> bool {
+        matches!(self, TableState::Run | TableState::Hold | TableState::Home)
     }
 }
 
@@ -66,8 +123,12 @@ impl Default for DriverConfig {
 enum Reply {
     Ok,
     Error(String),
-    Status { running: bool, position_deg: f64 },
+    Status { state: TableState, position_deg: f64 },
     Greeting(String),
+    /// `ALARM: …`, or the unlock hint that follows an alarm's greeting.
+    Alarm(String),
+    /// A settings line of `$$`: `$100=8.889 (x, step/deg)`.
+    Setting(u32, f64),
     Noise(String),
 }
 
@@ -85,19 +146,43 @@ fn classify(line: &str) -> Result<Reply, UnreadableStatus> {
     if let Some(rest) = line.strip_prefix("error:") {
         return Ok(Reply::Error(rest.trim().to_string()));
     }
+    if line.starts_with("ALARM") || line.starts_with("['$H'|'$X'") {
+        return Ok(Reply::Alarm(line.to_string()));
+    }
     if line.starts_with("Horus") || line.starts_with("Grbl") {
         return Ok(Reply::Greeting(line.to_string()));
+    }
+    if let Some(rest) = line.strip_prefix('$') {
+        if let Some((key, value)) = rest.split_once('=') {
+            let number = value.split_whitespace().next().unwrap_or_default();
+            if let (Ok(k), Ok(v)) = (key.parse(), number.parse()) {
+                return Ok(Reply::Setting(k, v));
+            }
+        }
     }
     if let Some(body) = line.strip_prefix('<') {
         let bad = || UnreadableStatus(line.to_string());
         let body = body.strip_suffix('>').ok_or_else(bad)?;
         let (state, rest) = body.split_once(',').ok_or_else(bad)?;
+        let state = TableState::parse(state).ok_or_else(bad)?;
         let mpos = rest.strip_prefix("MPos:").ok_or_else(bad)?;
         let first = mpos.split(',').next().unwrap_or_default();
         let position_deg: f64 = first.parse().map_err(|_| bad())?;
-        return Ok(Reply::Status { running: !state.eq_ignore_ascii_case("Idle"), position_deg });
+        return Ok(Reply::Status { state, position_deg });
     }
     Ok(Reply::Noise(line.to_string()))
+}
+
+/// What the board says of itself at open (`$$` and the greeting).
+#[derive(Debug, Clone, PartialEq)]
+pub struct BoardInfo {
+    pub firmware: String,
+    /// `$100`: targets are whole multiples of 1 / this.
+    pub steps_per_deg: f64,
+    /// `$110`.
+    pub max_rate_deg_s: f64,
+    /// `$120` as the board had it before spinscan set its own.
+    pub accel_deg_s2: f64,
 }
 
 /// The Horus serial driver.
@@ -106,6 +191,13 @@ pub struct HorusTurntable {
     path: String,
     config: DriverConfig,
     pending: Vec<u8>,
+    info: BoardInfo,
+    /// Status replies with the monotonic time they arrived (ns), newest last, in firmware
+    /// degrees: what `angle_at` interpolates.
+    samples: VecDeque<(u64, f64)>,
+    /// `M17` sent since the last `M18` (the firmware moves its count with the motor off too,
+    /// but the table does not turn).
+    motor_on: bool,
 }
 
 enum ReadOutcome {
@@ -113,50 +205,133 @@ enum ReadOutcome {
     TimedOut,
 }
 
+/// How often arrival is polled.
+const POLL: Duration = Duration::from_millis(50);
+
+/// Status samples kept for interpolation.
+const SAMPLES: usize = 16;
+
+/// Two status replies further apart than this are not interpolated between, ns.
+const MAX_SAMPLE_GAP_NS: u64 = 1_000_000_000;
+
+/// Now on CLOCK_MONOTONIC, ns: the clock of UVC buffer timestamps.
+fn monotonic_ns() -> u64 {
+    super::v4l2::monotonic_ns()
+}
+
 impl HorusTurntable {
-    /// Opens `path`, resets the board (Ctrl-X), checks its greeting, switches the motor on
-    /// and sets feed and acceleration.
+    /// Opens `path` (which resets the board), waits for its greeting (Ctrl-X only if none
+    /// comes within `boot_wait`), checks it, reads `$$`, switches the motor on and sets feed
+    /// and acceleration.
     pub fn open(path: &str, config: DriverConfig) -> Result<HorusTurntable, TurntableError> {
         let _span = tracing::info_span!("turntable_open", port = path).entered();
         let port = serialport::new(path, config.baud)
             .timeout(Duration::from_millis(20))
             .open()
             .map_err(|e| TurntableError::Open { port: path.to_string(), what: e.to_string() })?;
-        let mut t = HorusTurntable { port, path: path.to_string(), config, pending: Vec::new() };
-        t.reset()?;
+        let info = BoardInfo { firmware: String::new(), steps_per_deg: 0.0, max_rate_deg_s: 0.0, accel_deg_s2: 0.0 };
+        let mut t = HorusTurntable { port, path: path.to_string(), config, pending: Vec::new(), info, samples: VecDeque::new(), motor_on: false };
+        let boot = t.config.boot_wait;
+        match t.await_greeting(Instant::now() + boot, "power-on greeting")? {
+            Some(greeting) => t.info.firmware = greeting,
+            None => {
+                tracing::info!(port = path, "no power-on greeting within {} ms; resetting", boot.as_millis());
+                t.reset()?;
+            }
+        }
+        t.read_settings()?;
         t.setup()?;
-        tracing::info!(port = path, "turntable ready");
+        tracing::info!(port = path, firmware = %t.info.firmware, steps_per_deg = t.info.steps_per_deg, "turntable ready");
         Ok(t)
+    }
+
+    /// What the board said of itself at open.
+    pub fn info(&self) -> &BoardInfo {
+        &self.info
+    }
+
+    /// `$$`: steps per degree, maximum rate and acceleration.
+    fn read_settings(&mut self) -> Result<(), TurntableError> {
+        let lines = self.command_collect("$$")?;
+        for line in lines {
+            if let Ok(Reply::Setting(k, v)) = classify(&line) {
+                match k {
+                    100 => self.info.steps_per_deg = v,
+                    110 => self.info.max_rate_deg_s = v,
+                    120 => self.info.accel_deg_s2 = v,
+                    _ => {}
+                }
+            }
+        }
+        if !(self.info.steps_per_deg > 0.0 && self.info.steps_per_deg.is_finite()) {
+            return Err(TurntableError::Rejected { port: self.path.clone(), command: "$$".into(), reply: "no `$100=<steps/deg>` setting in the answer".into() });
+        }
+        Ok(())
     }
 
     /// Motor on, acceleration and the step feed (after open and after a reset).
     fn setup(&mut self) -> Result<(), TurntableError> {
         self.command("M17")?;
+        self.motor_on = true;
         let (feed, accel) = (self.config.feed_deg_s, self.config.accel_deg_s2);
         self.command(&format!("$120={accel:.3}"))?;
         self.command(&format!("G1 F{feed:.3}"))
     }
 
-    /// Ctrl-X, then waits for the greeting.
-    pub fn reset(&mut self) -> Result<(), TurntableError> {
-        let command = "Ctrl-X (reset)";
-        self.write_bytes(&[0x18], command)?;
-        let waited = self.config.reply_timeout * self.config.tries.max(1);
-        let deadline = Instant::now() + waited;
-        loop {
+    /// Reads lines until the greeting (checked) or `deadline`; None when none came. An alarm
+    /// reported around the greeting is unlocked with `$X`.
+    fn await_greeting(&mut self, deadline: Instant, command: &str) -> Result<Option<String>, TurntableError> {
+        let mut alarm = false;
+        let greeting = loop {
             match self.read_line(deadline, command)? {
-                ReadOutcome::TimedOut => return Err(TurntableError::NoGreeting { port: self.path.clone(), waited_ms: waited.as_millis() as u64 }),
+                ReadOutcome::TimedOut => return Ok(None),
                 ReadOutcome::Line(line) => match classify(&line) {
-                    Ok(Reply::Greeting(g)) => {
-                        let words: Vec<&str> = g.split_whitespace().take(2).collect();
-                        if words.join(" ") != SUPPORTED_FIRMWARE {
-                            return Err(TurntableError::UnsupportedFirmware { port: self.path.clone(), greeting: g, expected: SUPPORTED_FIRMWARE });
-                        }
-                        return Ok(());
+                    Ok(Reply::Greeting(g)) => break g,
+                    Ok(Reply::Alarm(a)) => {
+                        tracing::warn!(port = %self.path, alarm = a, "the firmware raised an alarm");
+                        alarm = true;
                     }
                     _ => tracing::debug!(port = %self.path, line, "ignoring a line before the greeting"),
                 },
             }
+        };
+        let words: Vec<&str> = greeting.split_whitespace().take(2).collect();
+        if words.join(" ") != SUPPORTED_FIRMWARE {
+            return Err(TurntableError::UnsupportedFirmware { port: self.path.clone(), greeting, expected: SUPPORTED_FIRMWARE });
+        }
+        // The unlock hint follows the greeting of an alarm.
+        let hint_deadline = Instant::now() + Duration::from_millis(100);
+        if let ReadOutcome::Line(line) = self.read_line(hint_deadline, command)? {
+            match classify(&line) {
+                Ok(Reply::Alarm(_)) => alarm = true,
+                _ => self.pending.splice(0..0, format!("{line}\n").into_bytes()).for_each(drop),
+            }
+        }
+        if alarm {
+            self.unlock()?;
+        }
+        Ok(Some(greeting))
+    }
+
+    /// `$X`: leave the alarm lock.
+    fn unlock(&mut self) -> Result<(), TurntableError> {
+        tracing::warn!(port = %self.path, "unlocking the firmware after an alarm ($X)");
+        self.command("$X")
+    }
+
+    /// Ctrl-X, then waits for the greeting (unlocking an alarm with `$X`). Only for a table at
+    /// rest: [`Turntable::halt`] stops a moving one first.
+    pub fn reset(&mut self) -> Result<(), TurntableError> {
+        let command = "Ctrl-X (reset)";
+        self.pending.clear();
+        self.write_bytes(&[0x18], command)?;
+        let waited = self.config.reply_timeout * self.config.tries.max(1);
+        match self.await_greeting(Instant::now() + waited, command)? {
+            Some(g) => {
+                self.info.firmware = g;
+                Ok(())
+            }
+            None => Err(TurntableError::NoGreeting { port: self.path.clone(), waited_ms: waited.as_millis() as u64 }),
         }
     }
 
@@ -193,17 +368,20 @@ impl HorusTurntable {
 
     /// Sends one line and waits for its `ok`, resending on silence.
     fn command(&mut self, command: &str) -> Result<(), TurntableError> {
-        self.command_with_timeout(command, self.config.reply_timeout)
+        self.command_collect(command).map(drop)
     }
 
-    fn command_with_timeout(&mut self, command: &str, timeout: Duration) -> Result<(), TurntableError> {
+    /// As [`HorusTurntable::command`], returning the lines that came before the `ok` (`$$`).
+    fn command_collect(&mut self, command: &str) -> Result<Vec<String>, TurntableError> {
         let _span = tracing::debug_span!("turntable_command", port = %self.path, command).entered();
+        let timeout = self.config.reply_timeout;
         for attempt in 1..=self.config.tries.max(1) {
             // Drop whatever a previous, abandoned exchange left behind (a late `ok`).
             self.pending.clear();
             let _ = self.port.clear(serialport::ClearBuffer::Input);
             self.write_bytes(format!("{command}\n").as_bytes(), command)?;
             let deadline = Instant::now() + timeout;
+            let mut lines = Vec::new();
             loop {
                 match self.read_line(deadline, command)? {
                     ReadOutcome::TimedOut => {
@@ -211,28 +389,28 @@ impl HorusTurntable {
                         break;
                     }
                     ReadOutcome::Line(line) => match classify(&line) {
-                        Ok(Reply::Ok) => return Ok(()),
+                        Ok(Reply::Ok) => return Ok(lines),
                         Ok(Reply::Error(reply)) => return Err(TurntableError::Rejected { port: self.path.clone(), command: command.to_string(), reply }),
                         Ok(Reply::Greeting(g)) => {
-                            // The board reset under us (power glitch): what was queued is lost.
+                            // The board reset under us (power glitch): its position is lost.
                             tracing::warn!(port = %self.path, greeting = g, "the board reset during a command");
+                            return Err(TurntableError::BoardReset { port: self.path.clone(), command: command.to_string() });
                         }
-                        Ok(other) => tracing::debug!(port = %self.path, ?other, "ignoring"),
+                        Ok(Reply::Noise(noise)) => {
+                            tracing::debug!(port = %self.path, line = noise, "line before the ok");
+                            lines.push(line);
+                        }
+                        Ok(_) => lines.push(line),
                         Err(UnreadableStatus(noise)) => tracing::warn!(port = %self.path, line = noise, "ignoring a malformed status line"),
                     },
                 }
             }
         }
-        Err(TurntableError::Unresponsive {
-            port: self.path.clone(),
-            command: command.to_string(),
-            timeout_ms: timeout.as_millis() as u64,
-            tries: self.config.tries.max(1),
-        })
+        Err(TurntableError::Unresponsive { port: self.path.clone(), command: command.to_string(), timeout_ms: timeout.as_millis() as u64, tries: self.config.tries.max(1) })
     }
 
-    /// The firmware position (`?`), and whether the table is moving.
-    fn status(&mut self) -> Result<(bool, f64), TurntableError> {
+    /// The firmware's state and position (`?`), timestamped for [`Turntable::angle_at`].
+    pub fn status(&mut self) -> Result<(TableState, f64), TurntableError> {
         let command = "? (status)";
         for _ in 0..self.config.tries.max(1) {
             self.write_bytes(b"?", command)?;
@@ -241,102 +419,88 @@ impl HorusTurntable {
                 match self.read_line(deadline, command)? {
                     ReadOutcome::TimedOut => break,
                     ReadOutcome::Line(line) => match classify(&line) {
-                        Ok(Reply::Status { running, position_deg }) => return Ok((running, position_deg)),
+                        Ok(Reply::Status { state, position_deg }) => {
+                            if self.samples.len() == SAMPLES {
+                                self.samples.pop_front();
+                            }
+                            self.samples.push_back((monotonic_ns(), position_deg));
+                            return Ok((state, position_deg));
+                        }
+                        Ok(Reply::Greeting(_)) => return Err(TurntableError::BoardReset { port: self.path.clone(), command: command.into() }),
                         Err(UnreadableStatus(reply)) => return Err(TurntableError::BadStatus { port: self.path.clone(), reply }),
                         Ok(_) => {} // an `ok` of an earlier line, or noise
                     },
                 }
             }
         }
-        Err(TurntableError::Unresponsive {
-            port: self.path.clone(),
-            command: command.into(),
-            timeout_ms: self.config.reply_timeout.as_millis() as u64,
-            tries: self.config.tries.max(1),
-        })
+        Err(TurntableError::Unresponsive { port: self.path.clone(), command: command.into(), timeout_ms: self.config.reply_timeout.as_millis() as u64, tries: self.config.tries.max(1) })
     }
 
-    /// Waits for `G4 P0`'s `ok` (arrival). Its wait is as long as the move; while it is
-    /// silent, `?` tells a table still on its way from a stalled one, and a lost `ok` from
-    /// a lost table.
-    fn wait_arrival(&mut self, target_fw: f64) -> Result<(), TurntableError> {
-        let command = "G4 P0";
-        self.pending.clear();
-        self.write_bytes(b"G4 P0\n", command)?;
-        let mut last: Option<f64> = None;
-        let mut silent_polls = 0;
+    /// Half a motor step, degrees: how close "at the target" is.
+    fn half_step(&self) -> f64 {
+        0.5 / self.info.steps_per_deg
+    }
+
+    /// `deg` rounded to a whole motor step, as the firmware will.
+    fn to_step(&self, deg: f64) -> f64 {
+        (deg * self.info.steps_per_deg).round() / self.info.steps_per_deg
+    }
+
+    /// Polls `?` until the table is idle within half a step of `target_fw`. A table whose
+    /// angle does not change for a whole reply timeout while short of its target has stalled;
+    /// one that rests elsewhere for as long lost its move.
+    fn wait_arrival(&mut self, target_fw: f64, command: &str) -> Result<f64, TurntableError> {
+        let mut last: Option<(f64, Instant)> = None;
         loop {
-            let deadline = Instant::now() + self.config.reply_timeout;
-            loop {
-                match self.read_line(deadline, command)? {
-                    ReadOutcome::TimedOut => break,
-                    ReadOutcome::Line(line) => match classify(&line) {
-                        Ok(Reply::Ok) => return Ok(()),
-                        Ok(Reply::Error(reply)) => return Err(TurntableError::Rejected { port: self.path.clone(), command: command.into(), reply }),
-                        _ => tracing::warn!(port = %self.path, line, "ignoring an unexpected line while waiting for arrival"),
-                    },
-                }
+            let (state, pos) = self.status()?;
+            if state == TableState::Alarm {
+                return Err(TurntableError::Rejected { port: self.path.clone(), command: command.into(), reply: "the firmware is in its alarm state".into() });
             }
-            // Silent for a whole reply timeout: look at the table.
-            self.write_bytes(b"?", "? (status)")?;
-            let deadline = Instant::now() + self.config.reply_timeout;
-            let mut status = None;
-            loop {
-                match self.read_line(deadline, command)? {
-                    ReadOutcome::TimedOut => break,
-                    ReadOutcome::Line(line) => match classify(&line) {
-                        Ok(Reply::Ok) => return Ok(()),
-                        Ok(Reply::Status { running, position_deg }) => {
-                            status = Some((running, position_deg));
-                            break;
-                        }
-                        Ok(Reply::Error(reply)) => return Err(TurntableError::Rejected { port: self.path.clone(), command: command.into(), reply }),
-                        _ => {}
-                    },
-                }
+            if !state.moving() && (pos - target_fw).abs() <= self.half_step() {
+                return Ok(pos);
             }
-            match status {
-                None => {
-                    silent_polls += 1;
-                    if silent_polls >= self.config.tries.max(1) {
-                        return Err(TurntableError::Unresponsive {
-                            port: self.path.clone(),
-                            command: command.into(),
-                            timeout_ms: self.config.reply_timeout.as_millis() as u64,
-                            tries: silent_polls,
+            match last {
+                Some((prev, since)) if (pos - prev).abs() < self.config.stall_tolerance_deg => {
+                    if since.elapsed() >= self.config.reply_timeout {
+                        return Err(if state.moving() {
+                            TurntableError::Stalled { port: self.path.clone(), command: command.into(), target_deg: target_fw, at_deg: pos }
+                        } else {
+                            TurntableError::StoppedShort { port: self.path.clone(), command: command.into(), target_deg: target_fw, at_deg: pos, state: state.name() }
                         });
                     }
                 }
-                Some((false, pos)) if (pos - target_fw).abs() < 1e-3 => {
-                    // Idle at the target: the `ok` was lost on the line.
-                    tracing::warn!(port = %self.path, "arrival `ok` lost; the table is idle at its target");
-                    return Ok(());
-                }
-                Some((_, pos)) => {
-                    // Short of the target (or idle elsewhere): it must still be moving.
-                    silent_polls = 0;
-                    if let Some(prev) = last {
-                        if (pos - prev).abs() < self.config.stall_tolerance_deg {
-                            return Err(TurntableError::Stalled { port: self.path.clone(), command: command.into(), target_deg: target_fw, at_deg: pos });
-                        }
-                    }
-                    last = Some(pos);
-                }
+                _ => last = Some((pos, Instant::now())),
             }
+            std::thread::sleep(POLL);
         }
+    }
+
+    /// `M17` unless the motor is on: the firmware accepts moves with it off, and counts
+    /// steps the table never turns.
+    fn energise(&mut self) -> Result<(), TurntableError> {
+        if !self.motor_on {
+            self.command("M17")?;
+            self.motor_on = true;
+        }
+        Ok(())
+    }
+
+    /// Firmware degrees for spinscan's `table_deg`, rounded to a whole step.
+    fn target_fw(&self, table_deg: f64) -> f64 {
+        self.to_step(table_deg * self.config.direction as f64)
     }
 }
 
 impl Turntable for HorusTurntable {
-    fn move_to(&mut self, table_deg: f64) -> Result<(), TurntableError> {
+    fn move_to(&mut self, table_deg: f64) -> Result<f64, TurntableError> {
         let _span = tracing::info_span!("turntable_move", port = %self.path, table_deg).entered();
-        let target_fw = table_deg * self.config.direction as f64;
-        // Three decimals: the precision of the firmware's status report.
-        let target_fw = (target_fw * 1000.0).round() / 1000.0;
-        self.command(&format!("G1 X{target_fw:.3}"))?;
-        self.wait_arrival(target_fw)?;
+        let target_fw = self.target_fw(table_deg);
+        let command = format!("G1 X{target_fw:.3}");
+        self.energise()?;
+        self.command(&command)?;
+        let at = self.wait_arrival(target_fw, &command)?;
         std::thread::sleep(self.config.settle);
-        Ok(())
+        Ok(at * self.config.direction as f64)
     }
 
     fn angle(&mut self) -> Result<f64, TurntableError> {
@@ -344,19 +508,80 @@ impl Turntable for HorusTurntable {
         Ok(pos * self.config.direction as f64)
     }
 
+    fn angle_at(&mut self, t_ns: u64) -> Result<f64, TurntableError> {
+        let now = self.angle()?;
+        Ok(interpolate(&self.samples, t_ns).map_or(now, |fw| fw * self.config.direction as f64))
+    }
+
     fn start_move(&mut self, table_deg: f64, feed_deg_s: f64) -> Result<(), TurntableError> {
-        let target_fw = (table_deg * self.config.direction as f64 * 1000.0).round() / 1000.0;
+        let target_fw = self.target_fw(table_deg);
+        self.energise()?;
         self.command(&format!("G1 X{target_fw:.3} F{feed_deg_s:.3}"))
     }
 
+    /// Feed hold, wait for rest, then reset: a reset during motion would raise the alarm.
     fn halt(&mut self) -> Result<(), TurntableError> {
+        let command = "! (feed hold)";
+        self.write_bytes(b"!", command)?;
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            let (state, _) = self.status()?;
+            if matches!(state, TableState::Queue | TableState::Idle | TableState::Alarm) {
+                break;
+            }
+            if Instant::now() > deadline {
+                return Err(TurntableError::Unresponsive { port: self.path.clone(), command: command.into(), timeout_ms: 30_000, tries: 1 });
+            }
+            std::thread::sleep(POLL);
+        }
         self.reset()?;
         self.setup()
+    }
+
+    fn resolution_deg(&self) -> f64 {
+        1.0 / self.info.steps_per_deg
+    }
+
+    fn release(&mut self) -> Result<(), TurntableError> {
+        self.command("M18")?;
+        self.motor_on = false;
+        Ok(())
     }
 
     fn describe(&self) -> String {
         format!("Horus turntable on {}", self.path)
     }
+}
+
+/// The position at `t_ns` by linear interpolation between the status samples around it (or
+/// the two nearest, within one sample interval beyond them); None with fewer than two.
+fn interpolate(samples: &VecDeque<(u64, f64)>, t_ns: u64) -> Option<f64> {
+    if samples.len() < 2 {
+        return None;
+    }
+    let pairs = samples.iter().zip(samples.iter().skip(1));
+    let (a, b) = pairs.clone().find(|(a, b)| a.0 <= t_ns && t_ns <= b.0).or_else(|| {
+        let (first, last) = (samples.front()?, samples.back()?);
+        if t_ns < first.0 {
+            pairs.clone().next()
+        } else if t_ns > last.0 {
+            pairs.last()
+        } else {
+            None
+        }
+    })?;
+    let span = b.0.saturating_sub(a.0);
+    if span == 0 {
+        return Some(b.1);
+    }
+    // Replies far apart say nothing of the motion between them: the nearer one.
+    if span > MAX_SAMPLE_GAP_NS {
+        return Some(if t_ns.abs_diff(a.0) < t_ns.abs_diff(b.0) { a.1 } else { b.1 });
+    }
+    // Beyond the samples, extrapolate at most one interval.
+    let t = (t_ns as f64 - a.0 as f64) / span as f64;
+    let t = t.clamp(-1.0, 2.0);
+    Some(a.1 + (b.1 - a.1) * t)
 }
 
 #[cfg(test)]
@@ -367,10 +592,25 @@ mod tests {
     fn replies_are_classified() {
         assert_eq!(classify("ok"), Ok(Reply::Ok));
         assert_eq!(classify("error: Unsupported statement"), Ok(Reply::Error("Unsupported statement".into())));
-        assert_eq!(classify("<Run,MPos:-12.500,0.000,0.000>"), Ok(Reply::Status { running: true, position_deg: -12.5 }));
-        assert_eq!(classify("<Idle,MPos:3.000,0.000,0.000>"), Ok(Reply::Status { running: false, position_deg: 3.0 }));
+        assert_eq!(classify("<Run,MPos:-12.500,0.000,0.000>"), Ok(Reply::Status { state: TableState::Run, position_deg: -12.5 }));
+        assert_eq!(classify("<Idle,MPos:3.000,0.000,0.000,WPos:3.000,0.000,0.000>"), Ok(Reply::Status { state: TableState::Idle, position_deg: 3.0 }));
+        assert_eq!(classify("<Queue,MPos:1.012,0.000,0.000>"), Ok(Reply::Status { state: TableState::Queue, position_deg: 1.012 }));
+        assert_eq!(classify("ALARM: Abort during cycle"), Ok(Reply::Alarm("ALARM: Abort during cycle".into())));
+        assert_eq!(classify("$100=8.889 (x, step/deg)"), Ok(Reply::Setting(100, 8.889)));
+        assert!(classify("<Dancing,MPos:1.000,0.000,0.000>").is_err());
         assert_eq!(classify("Horus 0.2 ['$' for help]"), Ok(Reply::Greeting("Horus 0.2 ['$' for help]".into())));
         assert!(classify("<Idle,MPos:abc>").is_err());
         assert!(matches!(classify("\u{7f}#ok?"), Ok(Reply::Noise(_))));
+    }
+
+    #[test]
+    fn angles_are_interpolated_to_the_frame_time() {
+        let s: VecDeque<(u64, f64)> = [(1_000, 10.0), (2_000, 12.0), (3_000, 14.0)].into_iter().collect();
+        assert_eq!(interpolate(&s, 1_500), Some(11.0));
+        assert_eq!(interpolate(&s, 3_000), Some(14.0));
+        // Just past the newest reply: extrapolated along the last interval, not frozen.
+        assert_eq!(interpolate(&s, 3_500), Some(15.0));
+        assert_eq!(interpolate(&s, 500), Some(9.0));
+        assert_eq!(interpolate(&VecDeque::from([(1_000, 10.0)]), 1_500), None);
     }
 }

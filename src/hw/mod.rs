@@ -19,7 +19,7 @@ pub mod sim;
 pub mod v4l2;
 
 pub use frame::{DecodeError, Picture, StereoFrame};
-pub use horus::{DriverConfig, HorusTurntable};
+pub use horus::{BoardInfo, DriverConfig, HorusTurntable, TableState};
 pub use pairing::PairStats;
 
 use crate::calib::StereoCalib;
@@ -59,10 +59,24 @@ pub trait StereoSource: Send {
 /// Something that turns the object. Angles are spinscan's `table_deg`: counterclockwise
 /// seen from above.
 pub trait Turntable: Send {
-    /// Moves to `table_deg` and returns once the table has arrived (and settled).
-    fn move_to(&mut self, table_deg: f64) -> Result<(), TurntableError>;
+    /// Moves to `table_deg` and returns once the table has arrived (and settled), with the
+    /// angle read back: a stepper rounds the target to a whole step.
+    fn move_to(&mut self, table_deg: f64) -> Result<f64, TurntableError>;
     /// The current angle.
     fn angle(&mut self) -> Result<f64, TurntableError>;
+    /// The angle at `t_ns` on CLOCK_MONOTONIC (a frame's exposure), interpolated between
+    /// timestamped status replies while the table turns. Without history: the angle now.
+    fn angle_at(&mut self, _t_ns: u64) -> Result<f64, TurntableError> {
+        self.angle()
+    }
+    /// The smallest move, degrees (one motor step); half of it is the tolerance on angles.
+    fn resolution_deg(&self) -> f64 {
+        0.0
+    }
+    /// Switches the motor off (a scan ended): a Horus board keeps it energised otherwise.
+    fn release(&mut self) -> Result<(), TurntableError> {
+        Ok(())
+    }
     /// Starts turning towards `table_deg` at `feed_deg_s` and returns at once (continuous
     /// scans); [`Turntable::angle`] follows the motion.
     fn start_move(&mut self, table_deg: f64, feed_deg_s: f64) -> Result<(), TurntableError>;
@@ -91,5 +105,9 @@ pub enum TurntableError {
     Vanished { port: String, command: String, what: String },
     #[error("turntable on {port} sent a status report spinscan cannot read: `{reply}` (expected <State,MPos:x,y,z>)")]
     BadStatus { port: String, reply: String },
+    #[error("turntable on {port} reset itself during `{command}` (its greeting arrived): the position is lost; check its power supply and USB cable")]
+    BoardReset { port: String, command: String },
+    #[error("turntable on {port} stopped at {at_deg:.3}° ({state}) short of {target_deg:.3}° (firmware degrees; `{command}` was lost)")]
+    StoppedShort { port: String, command: String, target_deg: f64, at_deg: f64, state: &'static str },
 }
 

@@ -143,11 +143,20 @@ pub struct SimTurntable {
 }
 
 impl Turntable for SimTurntable {
-    fn move_to(&mut self, table_deg: f64) -> Result<(), TurntableError> {
+    fn move_to(&mut self, table_deg: f64) -> Result<f64, TurntableError> {
         self.driver.move_to(table_deg)
     }
     fn angle(&mut self) -> Result<f64, TurntableError> {
         self.driver.angle()
+    }
+    fn angle_at(&mut self, t_ns: u64) -> Result<f64, TurntableError> {
+        self.driver.angle_at(t_ns)
+    }
+    fn resolution_deg(&self) -> f64 {
+        self.driver.resolution_deg()
+    }
+    fn release(&mut self) -> Result<(), TurntableError> {
+        self.driver.release()
     }
     fn start_move(&mut self, table_deg: f64, feed_deg_s: f64) -> Result<(), TurntableError> {
         self.driver.start_move(table_deg, feed_deg_s)
@@ -176,7 +185,9 @@ impl SimLab {
         scene.rig = if s.ideal { hw_sim::Rig::ideal(s.width, s.height, focal, 60.0) } else { hw_sim::Rig::realistic(s.width, s.height, focal, 60.0) };
         scene.seed = s.seed;
         let angle = hw_sim::TableAngle::new(0.0);
-        let fw = hw_sim::FirmwareConfig { time_scale: s.time_scale, ..Default::default() };
+        // The bootloader's 2 s after the port opens, at the lab's time scale.
+        let boot_delay = std::time::Duration::from_secs_f64(2.0 / s.time_scale.max(1.0));
+        let fw = hw_sim::FirmwareConfig { time_scale: s.time_scale, boot_delay, ..Default::default() };
         let emulator = hw_sim::Emulator::spawn(fw, angle.clone()).map_err(|e| SimError::Emulator(e.to_string()))?;
         let renderer = hw_sim::Renderer::new(scene)?;
         let timing = hw_sim::Timing { fps, ..Default::default() };

@@ -10,20 +10,18 @@ use crossbeam_channel::{Receiver, Sender, TrySendError};
 use super::state::{Devices, Job, Note, PipelineSettings, ScanError, ScanMode, ScanShared};
 use crate::hw::{PairStats, StereoFrame};
 
-/// Moves to the start (step mode) and takes the first pair.
+/// Takes the first pair: one captured after the scan started (free-running cameras have
+/// been streaming since the daemon started; what waits in their buffers is stale), with the
+/// table's angle at its exposure.
 pub(super) fn capture_first(devices: &mut Devices, shared: &ScanShared) -> Result<Option<StereoFrame>, ScanError> {
-    if shared.spec.mode == ScanMode::Step {
-        if let Some(t) = devices.turntable.as_mut() {
-            let start = t.angle()?;
-            shared.counters.table_deg_bits.store(start.to_bits(), Ordering::Relaxed);
-            let mut f = devices.source.fresh_frame()?;
-            if let Some(f) = f.as_mut() {
-                f.table_deg.get_or_insert(start);
-            }
-            return Ok(f);
+    let mut f = devices.source.fresh_frame()?;
+    if let (Some(t), Some(f)) = (devices.turntable.as_mut(), f.as_mut()) {
+        if f.table_deg.is_none() {
+            f.table_deg = Some(t.angle_at(f.t_left_ns)?);
         }
+        shared.counters.table_deg_bits.store(f.table_deg.unwrap_or(0.0).to_bits(), Ordering::Relaxed);
     }
-    Ok(devices.source.next_frame()?)
+    Ok(f)
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -117,12 +115,13 @@ pub(super) fn capture(
                 }
                 let target = start + i as f64 * spec.step_deg;
                 let table = devices.turntable.as_mut().unwrap();
-                table.move_to(target)?;
+                // The angle read back: the table stops on a whole motor step, not on `target`.
+                let arrived = table.move_to(target)?;
                 let mut frame = match devices.source.fresh_frame()? {
                     Some(f) => f,
                     None => break,
                 };
-                frame.table_deg.get_or_insert(target);
+                frame.table_deg.get_or_insert(arrived);
                 deliver(frame, devices.source.pairing())?;
             }
         }
@@ -149,7 +148,8 @@ pub(super) fn capture(
                     let deg = match frame.table_deg {
                         Some(d) => d,
                         None => {
-                            let d = table.angle()?;
+                            // The angle at the pair's exposure, not at its dequeue.
+                            let d = table.angle_at(frame.t_left_ns)?;
                             frame.table_deg = Some(d);
                             d
                         }
@@ -160,8 +160,10 @@ pub(super) fn capture(
                     // A full turn's last pair would repeat the first view.
                     // Within half a pair's turn of the end (the cameras' rate from the pairs'
                     // timestamps; 15 fps until two are known).
+                    // The table itself stops on a whole motor step, up to half a step short.
                     let half_step = 0.5 * spec.speed_deg_s * frame_period_s;
-                    let done = deg >= end - 1e-6 || (spec.total_deg >= 360.0 && deg >= end - half_step);
+                    let table_tolerance = (0.5 * table.resolution_deg()).max(1e-6);
+                    let done = deg >= end - table_tolerance || (spec.total_deg >= 360.0 && deg >= end - half_step);
                     if done && spec.total_deg >= 360.0 {
                         break;
                     }
@@ -186,6 +188,12 @@ pub(super) fn capture(
                 deliver(frame, devices.source.pairing())?;
                 n += 1;
             }
+        }
+    }
+    // The scan is over: the motor need not hold the table (a Horus board keeps it energised).
+    if let Some(t) = devices.turntable.as_mut() {
+        if let Err(e) = t.release() {
+            tracing::warn!("cannot switch the turntable's motor off: {e}");
         }
     }
     Ok(())
