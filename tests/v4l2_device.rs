@@ -27,8 +27,10 @@ fn two_cameras_deliver_paired_frames_on_one_clock() {
     fourcc.copy_from_slice(&format.as_bytes()[..4]);
     let cfg = StreamConfig { width: w, height: h, fps: 15, fourcc, buffers: 4, timeout: Duration::from_secs(2), auto_exposure: None, exposure_100us: None, gain: None };
     let calib = spinscan::hw::sim::calib_of(&hw_sim::Rig::ideal(w as usize, h as usize, 700.0, 60.0));
-    let tolerance_ns = 33_333_333;
-    let mut cams = V4l2Stereo::open(left.as_ref(), right.as_ref(), cfg, tolerance_ns, calib).expect("open both cameras");
+    let mut cams = V4l2Stereo::open(left.as_ref(), right.as_ref(), cfg, None, calib).expect("open both cameras");
+    // The pairing tolerance follows the rate the drivers chose: half its period.
+    let tolerance_ns = spinscan::hw::v4l2::half_period_ns(cams.fps());
+    eprintln!("the cameras run at {:.2} fps (15 asked)", cams.fps());
     let mut last_seq = None;
     for _ in 0..30 {
         let f = cams.next_frame().expect("a pair").expect("cameras never run out");
@@ -42,4 +44,12 @@ fn two_cameras_deliver_paired_frames_on_one_clock() {
     let stats = cams.pair_stats();
     assert!(stats.pairs >= 30);
     eprintln!("pairs {}, unpaired left {} right {}, max skew {:.2} ms", stats.pairs, stats.unpaired_left, stats.unpaired_right, stats.max_abs_skew_ns as f64 / 1e6);
+
+    // A captured frame is a standard JPEG: Huffman tables present (the lab check-list's DHT
+    // check), whole through its end marker.
+    let f = cams.fresh_frame().expect("a pair").expect("cameras never run out");
+    if let spinscan::hw::Picture::Jpeg { bytes } = &f.left {
+        assert!(bytes.windows(2).any(|w| w == [0xFF, 0xC4]), "a DHT segment");
+        assert_eq!(&bytes[bytes.len() - 2..], &[0xFF, 0xD9]);
+    }
 }

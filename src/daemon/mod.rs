@@ -176,7 +176,8 @@ fn open_backend(config: &Config) -> Result<Devices, DeviceError> {
                 exposure_100us: c.exposure_100us,
                 gain: c.gain,
             };
-            let cams = crate::hw::v4l2::V4l2Stereo::open(&c.left, &c.right, stream, c.pair_tolerance_ns(), calib)?;
+            let tolerance = (c.pair_tolerance_ms > 0.0).then(|| c.pair_tolerance_ns());
+            let cams = crate::hw::v4l2::V4l2Stereo::open(&c.left, &c.right, stream, tolerance, calib)?;
             let table = crate::hw::HorusTurntable::open(&config.turntable.port, config.turntable.driver())?;
             Ok(Devices { source: Box::new(cams), turntable: Some(Box::new(table)) })
         }

@@ -13,6 +13,7 @@
 
 pub mod frame;
 pub mod horus;
+pub mod mjpeg;
 pub mod pairing;
 pub mod replay;
 pub mod sim;

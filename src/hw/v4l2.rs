@@ -18,6 +18,7 @@ use std::time::Duration;
 use serde_json::{json, Value};
 
 use crate::calib::StereoCalib;
+use super::mjpeg::{self, MjpegError};
 use super::pairing::{CameraFrame, PairStats, Pairer, Side};
 use super::{CaptureError, Picture, StereoFrame, StereoSource};
 
@@ -27,8 +28,8 @@ use super::{CaptureError, Picture, StereoFrame, StereoSource};
 pub enum FormatError {
     #[error("{fourcc} frame of {got} bytes is too short for {width}×{height} (expected {expected})")]
     Short { fourcc: String, got: usize, expected: usize, width: usize, height: usize },
-    #[error("MJPG frame of {bytes} bytes does not start with a JPEG marker (FF D8)")]
-    NotJpeg { bytes: usize },
+    #[error(transparent)]
+    Mjpeg(#[from] MjpegError),
     #[error("bytesused {used} exceeds the buffer's {len} bytes")]
     Overrun { used: usize, len: usize },
     #[error("pixel format {0} is not supported (expected MJPG, YUYV or GREY)")]
@@ -52,10 +53,9 @@ pub fn to_picture(fourcc: [u8; 4], buffer: &[u8], bytesused: usize, width: usize
     let short = |expected: usize| FormatError::Short { fourcc: fourcc_name(fourcc), got: data.len(), expected, width, height };
     match &fourcc {
         b"MJPG" | b"JPEG" => {
-            if data.len() < 4 || data[0] != 0xFF || data[1] != 0xD8 {
-                return Err(FormatError::NotJpeg { bytes: data.len() });
-            }
-            Ok(Picture::Jpeg { bytes: data.to_vec() })
+            // Whole frames only (through FF D9), with Huffman tables: a standard JPEG.
+            let whole = mjpeg::complete(data)?;
+            Ok(Picture::Jpeg { bytes: mjpeg::standardize(whole)?.into_owned() })
         }
         b"YUYV" => {
             let expected = width * height * 2;
@@ -133,7 +133,51 @@ enum SetupError {
     Offers { path: PathBuf, got: String, wanted: String },
 }
 
-fn open_device(path: &Path, cfg: &StreamConfig) -> Result<(v4l::Device, usize, usize), SetupError> {
+/// The frame rate of a frame interval (`numerator / denominator` seconds), frames per second.
+pub fn frame_rate(interval: v4l::Fraction) -> Option<f64> {
+    (interval.numerator > 0 && interval.denominator > 0).then(|| interval.denominator as f64 / interval.numerator as f64)
+}
+
+/// Whether the rate a driver chose is not the one asked for (more than 1 % off).
+pub fn rate_differs(requested_fps: u32, got_fps: f64) -> bool {
+    (got_fps - requested_fps as f64).abs() > 0.01 * requested_fps as f64
+}
+
+/// Half a frame period at `fps`, ns: the pairing tolerance unless one is configured.
+pub fn half_period_ns(fps: f64) -> u64 {
+    (0.5e9 / fps.max(1e-3)) as u64
+}
+
+/// A dequeued buffer's capture time, or why it is dropped. Current uvcvideo hands back
+/// incomplete frames flagged `V4L2_BUF_FLAG_ERROR` instead of dropping them; and a timestamp
+/// is only on CLOCK_MONOTONIC (the clock pairing and the turntable's replies use) when the
+/// flags say so — otherwise the time of dequeue (`dequeued_ns`) stands in, and the second
+/// value is false.
+pub fn buffer_time(flags: v4l::buffer::Flags, timestamp_ns: u64, dequeued_ns: u64) -> Result<(u64, bool), &'static str> {
+    use v4l::buffer::Flags;
+    if flags.contains(Flags::ERROR) {
+        return Err("the driver flagged the buffer as damaged (V4L2_BUF_FLAG_ERROR)");
+    }
+    let clock = Flags::from_bits_truncate(flags.bits() & Flags::TIMESTAMP_MASK.bits());
+    if clock == Flags::TIMESTAMP_MONOTONIC && timestamp_ns > 0 {
+        Ok((timestamp_ns, true))
+    } else {
+        Ok((dequeued_ns, false))
+    }
+}
+
+/// A streaming error with what a lab can do about it.
+pub fn stream_error_advice(e: &std::io::Error) -> String {
+    match e.raw_os_error() {
+        Some(libc::ENOSPC) => format!(
+            "{e} (ENOSPC: the USB controller has no bandwidth left for this camera; use MJPG rather than YUYV, put the two cameras on separate USB controllers, or lower the frame rate or size)"
+        ),
+        Some(libc::EBUSY) => format!("{e} (EBUSY: another program streams from this camera; stop it)"),
+        _ => e.to_string(),
+    }
+}
+
+fn open_device(path: &Path, cfg: &StreamConfig) -> Result<(v4l::Device, usize, usize, f64), SetupError> {
     use v4l::video::Capture;
     let ioctl = |what: String| move |source: std::io::Error| SetupError::Ioctl { path: path.to_path_buf(), what, source };
     let dev = v4l::Device::with_path(path).map_err(|source| SetupError::Open { path: path.to_path_buf(), source })?;
@@ -146,7 +190,9 @@ fn open_device(path: &Path, cfg: &StreamConfig) -> Result<(v4l::Device, usize, u
     if got.fourcc.repr != cfg.fourcc || got.width != cfg.width || got.height != cfg.height {
         return Err(SetupError::Offers { path: path.to_path_buf(), got: format!("{}×{} {}", got.width, got.height, fourcc_name(got.fourcc.repr)), wanted });
     }
-    dev.set_params(&v4l::video::capture::Parameters::with_fps(cfg.fps)).map_err(ioctl(format!("set {} fps", cfg.fps)))?;
+    let params = dev.set_params(&v4l::video::capture::Parameters::with_fps(cfg.fps)).map_err(ioctl(format!("set {} fps", cfg.fps)))?;
+    // The driver picks the nearest rate it can do at this size and format.
+    let fps = frame_rate(params.interval).unwrap_or(cfg.fps as f64);
     let mut controls = Vec::new();
     if let Some(auto) = cfg.auto_exposure {
         controls.push((CID_EXPOSURE_AUTO, if auto { EXPOSURE_APERTURE_PRIORITY } else { EXPOSURE_MANUAL }, "auto_exposure"));
@@ -160,7 +206,7 @@ fn open_device(path: &Path, cfg: &StreamConfig) -> Result<(v4l::Device, usize, u
     for (id, value, key) in controls {
         dev.set_control(v4l::Control { id, value: v4l::control::Value::Integer(value) }).map_err(ioctl(format!("set cameras.{key} = {value}")))?;
     }
-    Ok((dev, got.width as usize, got.height as usize))
+    Ok((dev, got.width as usize, got.height as usize, fps))
 }
 
 /// Captures from one camera until `stop` is set or the camera fails; frames go to `tx`.
@@ -171,22 +217,36 @@ fn capture_loop(side: Side, path: PathBuf, cfg: StreamConfig, tx: crossbeam_chan
     let fail = |e: CaptureError| {
         let _ = tx.send(Err(e));
     };
-    let (dev, w, h) = match open_device(&path, &cfg) {
+    let (dev, w, h, _) = match open_device(&path, &cfg) {
         Ok(d) => d,
         Err(e) => return fail(CaptureError::Device { camera: side.name().into(), what: e.to_string() }),
     };
     let mut timeouts = 0;
+    let mut warned_clock = false;
     'streams: while !stop.load(Ordering::Relaxed) {
         let mut stream = match v4l::io::mmap::Stream::with_buffers(&dev, v4l::buffer::Type::VideoCapture, cfg.buffers) {
             Ok(s) => s,
-            Err(e) => return fail(CaptureError::Device { camera: side.name().into(), what: format!("{}: cannot start streaming: {e}", path.display()) }),
+            Err(e) => return fail(CaptureError::Device { camera: side.name().into(), what: format!("{}: cannot start streaming: {}", path.display(), stream_error_advice(&e)) }),
         };
         stream.set_timeout(cfg.timeout);
         while !stop.load(Ordering::Relaxed) {
             match stream.next() {
                 Ok((buf, meta)) => {
                     timeouts = 0;
-                    let t_ns = meta.timestamp.sec as u64 * 1_000_000_000 + meta.timestamp.usec as u64 * 1000;
+                    let stamp = meta.timestamp.sec as u64 * 1_000_000_000 + meta.timestamp.usec as u64 * 1000;
+                    let t_ns = match buffer_time(meta.flags, stamp, monotonic_ns()) {
+                        Ok((t, trusted)) => {
+                            if !trusted && !warned_clock {
+                                warned_clock = true;
+                                tracing::warn!(camera = side.name(), "the driver's timestamps are not on CLOCK_MONOTONIC; pairing by the time of dequeue");
+                            }
+                            t
+                        }
+                        Err(why) => {
+                            tracing::warn!(camera = side.name(), sequence = meta.sequence, "dropping a frame: {why}");
+                            continue;
+                        }
+                    };
                     let frame = to_picture(cfg.fourcc, buf, meta.bytesused as usize, w, h).map(|picture| CameraFrame { side, t_ns, sequence: meta.sequence, picture });
                     match frame {
                         Ok(f) => {
@@ -222,15 +282,51 @@ pub struct V4l2Stereo {
     threads: Vec<std::thread::JoinHandle<()>>,
     timeout: Duration,
     paths: (PathBuf, PathBuf),
+    fps: f64,
+}
+
+/// Waits until both cameras delivered a frame (discarded: a scan takes fresh ones), or the
+/// first error either reports.
+pub fn await_first_frames(rx: &crossbeam_channel::Receiver<Result<CameraFrame, CaptureError>>, within: Duration) -> Result<(), CaptureError> {
+    let deadline = std::time::Instant::now() + within;
+    let (mut left, mut right) = (false, false);
+    while !(left && right) {
+        let wait = deadline.saturating_duration_since(std::time::Instant::now());
+        match rx.recv_timeout(wait) {
+            Ok(Ok(f)) => match f.side {
+                Side::Left => left = true,
+                Side::Right => right = true,
+            },
+            Ok(Err(e)) => return Err(e),
+            Err(_) => {
+                let camera = match (left, right) {
+                    (false, false) => "left and right",
+                    (false, true) => "left",
+                    _ => "right",
+                };
+                return Err(CaptureError::NoFrame { camera: camera.into(), waited_ms: within.as_millis() as u64 });
+            }
+        }
+    }
+    Ok(())
 }
 
 impl V4l2Stereo {
-    /// Opens both cameras and starts streaming.
-    pub fn open(left: &Path, right: &Path, cfg: StreamConfig, pair_tolerance_ns: u64, calib: StereoCalib) -> Result<V4l2Stereo, CaptureError> {
+    /// Opens both cameras, starts both streams and waits for a first frame from each, so a
+    /// daemon never reports ready with cameras that cannot stream (two UVC cameras on one USB
+    /// controller may fail STREAMON for bandwidth). `pair_tolerance_ns`: None pairs within
+    /// half a frame period at the rate the drivers actually chose.
+    pub fn open(left: &Path, right: &Path, cfg: StreamConfig, pair_tolerance_ns: Option<u64>, calib: StereoCalib) -> Result<V4l2Stereo, CaptureError> {
         // Open both once up front so a wrong path or format is reported before a scan.
+        let mut slowest = f64::INFINITY;
         for (side, p) in [(Side::Left, left), (Side::Right, right)] {
-            open_device(p, &cfg).map_err(|e| CaptureError::Device { camera: side.name().into(), what: e.to_string() })?;
+            let (_, _, _, fps) = open_device(p, &cfg).map_err(|e| CaptureError::Device { camera: side.name().into(), what: e.to_string() })?;
+            if rate_differs(cfg.fps, fps) {
+                tracing::warn!(camera = side.name(), path = %p.display(), "runs at {fps:.2} fps, not the configured {} (the driver's nearest at {}×{} {}); pairing follows the real rate", cfg.fps, cfg.width, cfg.height, fourcc_name(cfg.fourcc));
+            }
+            slowest = slowest.min(fps);
         }
+        let pair_tolerance_ns = pair_tolerance_ns.unwrap_or_else(|| half_period_ns(slowest));
         let (tx, rx) = crossbeam_channel::bounded(4 * cfg.buffers as usize);
         let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
         let mut threads = Vec::new();
@@ -242,7 +338,14 @@ impl V4l2Stereo {
                 .map_err(|e| CaptureError::Device { camera: side.name().into(), what: format!("cannot start its capture thread: {e}") })?;
             threads.push(t);
         }
-        Ok(V4l2Stereo { calib, rx, pairer: Pairer::new(pair_tolerance_ns), ready: VecDeque::new(), stop, threads, timeout: cfg.timeout * 2, paths: (left.into(), right.into()) })
+        let cams = V4l2Stereo { calib, rx, pairer: Pairer::new(pair_tolerance_ns), ready: VecDeque::new(), stop, threads, timeout: cfg.timeout * 2, paths: (left.into(), right.into()), fps: slowest };
+        await_first_frames(&cams.rx, cfg.timeout * 3)?;
+        Ok(cams)
+    }
+
+    /// The frame rate the drivers chose (the slower camera's).
+    pub fn fps(&self) -> f64 {
+        self.fps
     }
 
     pub fn pair_stats(&self) -> PairStats {
@@ -372,11 +475,59 @@ mod tests {
         let (w, h, rgb) = p.to_rgb().unwrap();
         assert_eq!((w, h, rgb.len()), (16, 8, 16 * 8 * 3));
         // Garbage, a short YUYV frame, an overrun and an unknown format are named.
-        assert_eq!(to_picture(*b"MJPG", &[0u8; 64], 64, 16, 8), Err(FormatError::NotJpeg { bytes: 64 }));
+        assert_eq!(to_picture(*b"MJPG", &[0u8; 64], 64, 16, 8), Err(FormatError::Mjpeg(MjpegError::NotJpeg(64))));
+        // Defect 5: an MJPEG frame cut short passes the FF D8 check but has no FF D9.
+        let cut = &jpeg[..jpeg.len() / 2];
+        assert_eq!(to_picture(*b"MJPG", cut, cut.len(), 16, 8), Err(FormatError::Mjpeg(MjpegError::Truncated(cut.len()))));
         assert!(matches!(to_picture(*b"YUYV", &[0u8; 100], 100, 16, 8), Err(FormatError::Short { expected: 256, .. })));
         assert!(matches!(to_picture(*b"YUYV", &[0u8; 100], 200, 16, 8), Err(FormatError::Overrun { .. })));
         assert_eq!(to_picture(*b"RGB3", &[0u8; 400], 400, 16, 8).unwrap_err().to_string(), "pixel format RGB3 is not supported (expected MJPG, YUYV or GREY)");
         // YUYV with bytesused 0 (the full buffer).
         assert!(matches!(to_picture(*b"YUYV", &[128u8; 256], 0, 16, 8), Ok(Picture::Raw { channels: 3, .. })));
+    }
+
+    /// Defect 5: a buffer the driver flags as damaged is dropped; timestamps are trusted
+    /// only when they say CLOCK_MONOTONIC.
+    #[test]
+    fn flagged_buffers_are_dropped_and_only_monotonic_stamps_trusted() {
+        use v4l::buffer::Flags;
+        assert!(buffer_time(Flags::ERROR | Flags::TIMESTAMP_MONOTONIC, 5, 9).is_err());
+        assert_eq!(buffer_time(Flags::DONE | Flags::TIMESTAMP_MONOTONIC, 5, 9), Ok((5, true)));
+        assert_eq!(buffer_time(Flags::DONE | Flags::TIMESTAMP_COPY, 5, 9), Ok((9, false)));
+        assert_eq!(buffer_time(Flags::DONE, 5, 9), Ok((9, false)), "unknown clock");
+    }
+
+    /// Defect 4: the rate the driver chose is read back; the pairing tolerance follows it.
+    #[test]
+    fn the_real_frame_rate_sets_the_pairing_tolerance() {
+        let got = frame_rate(v4l::Fraction::new(1, 10)).unwrap();
+        assert_eq!(got, 10.0);
+        assert!(rate_differs(15, got) && !rate_differs(15, frame_rate(v4l::Fraction::new(1001, 15015)).unwrap()));
+        assert_eq!(half_period_ns(got), 50_000_000, "half of 100 ms, not of the configured 66.7 ms");
+        assert_eq!(frame_rate(v4l::Fraction::new(0, 15)), None);
+    }
+
+    /// Risk 9: ENOSPC at STREAMON gets advice a lab can act on.
+    #[test]
+    fn no_bandwidth_is_explained() {
+        let e = std::io::Error::from_raw_os_error(libc::ENOSPC);
+        let text = stream_error_advice(&e);
+        assert!(text.contains("USB controller") && text.contains("MJPG"), "{text}");
+    }
+
+    /// Risk 9: opening waits for a first frame from each camera, and names the silent one.
+    #[test]
+    fn opening_waits_for_both_cameras() {
+        let frame = |side| CameraFrame { side, t_ns: 1, sequence: 0, picture: Picture::Raw { width: 1, height: 1, channels: 1, data: vec![0] } };
+        let (tx, rx) = crossbeam_channel::unbounded();
+        tx.send(Ok(frame(Side::Left))).unwrap();
+        tx.send(Ok(frame(Side::Left))).unwrap();
+        let e = await_first_frames(&rx, Duration::from_millis(50)).unwrap_err();
+        assert!(matches!(&e, CaptureError::NoFrame { camera, .. } if camera == "right"), "{e}");
+        tx.send(Ok(frame(Side::Right))).unwrap();
+        tx.send(Ok(frame(Side::Left))).unwrap();
+        assert!(await_first_frames(&rx, Duration::from_millis(50)).is_ok());
+        tx.send(Err(CaptureError::Device { camera: "left".into(), what: "cannot start streaming: ENOSPC".into() })).unwrap();
+        assert!(matches!(await_first_frames(&rx, Duration::from_millis(50)), Err(CaptureError::Device { .. })));
     }
 }

@@ -225,6 +225,83 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
+    /// Free-running cameras that have been streaming since the daemon started: frames wait
+    /// in their queue until a fresh one is asked for.
+    struct Streaming {
+        calib: StereoCalib,
+        waiting: std::collections::VecDeque<u64>,
+        next_seq: u64,
+    }
+
+    impl StereoSource for Streaming {
+        fn describe(&self) -> String {
+            "streaming cameras".into()
+        }
+        fn calibration(&self) -> &StereoCalib {
+            &self.calib
+        }
+        fn next_frame(&mut self) -> Result<Option<StereoFrame>, CaptureError> {
+            let seq = self.waiting.pop_front().unwrap_or_else(|| {
+                self.next_seq += 1;
+                self.next_seq
+            });
+            let pic = || crate::hw::Picture::Raw { width: 1, height: 1, channels: 1, data: vec![0] };
+            Ok(Some(StereoFrame { seq, t_left_ns: seq, t_right_ns: seq, table_deg: None, left: pic(), right: pic() }))
+        }
+        fn fresh_frame(&mut self) -> Result<Option<StereoFrame>, CaptureError> {
+            self.waiting.clear();
+            self.next_frame()
+        }
+    }
+
+    /// Defect 3: a continuous scan's first view is a pair captured after the scan started,
+    /// not one that waited in the cameras' queue since the daemon started.
+    #[test]
+    fn a_continuous_scan_starts_with_a_fresh_pair() {
+        let calib = crate::hw::sim::ideal_calib(64, 48, 70.0, 60.0);
+        let mut devices = Devices { source: Box::new(Streaming { calib, waiting: (0..10).collect(), next_seq: 100 }), turntable: None };
+        let spec = ScanSpec { name: "fresh".into(), mode: ScanMode::Continuous, step_deg: 1.0, total_deg: 360.0, speed_deg_s: 6.0, max_views: None };
+        let shared = ScanShared::new(spec, std::env::temp_dir(), Box::new(|_, _| {}));
+        let first = capture::capture_first(&mut devices, &shared).unwrap().unwrap();
+        assert_eq!(first.seq, 101, "a pair from after the scan started");
+    }
+
+    /// A table turning at 10° per second of the monotonic clock, queried late.
+    struct Turning;
+
+    impl crate::hw::Turntable for Turning {
+        fn move_to(&mut self, table_deg: f64) -> Result<f64, crate::hw::TurntableError> {
+            Ok(table_deg)
+        }
+        fn angle(&mut self) -> Result<f64, crate::hw::TurntableError> {
+            Ok(-1.0) // "now": long after the exposure
+        }
+        fn angle_at(&mut self, t_ns: u64) -> Result<f64, crate::hw::TurntableError> {
+            Ok(t_ns as f64 * 1e-8)
+        }
+        fn start_move(&mut self, _: f64, _: f64) -> Result<(), crate::hw::TurntableError> {
+            Ok(())
+        }
+        fn halt(&mut self) -> Result<(), crate::hw::TurntableError> {
+            Ok(())
+        }
+        fn describe(&self) -> String {
+            "turning".into()
+        }
+    }
+
+    /// Risk 10: a pair without an angle of its own gets the table's angle at its exposure,
+    /// not at the moment it was dequeued.
+    #[test]
+    fn a_pair_gets_the_angle_at_its_exposure() {
+        let calib = crate::hw::sim::ideal_calib(64, 48, 70.0, 60.0);
+        let mut devices = Devices { source: Box::new(Streaming { calib, waiting: Default::default(), next_seq: 300_000_000 }), turntable: Some(Box::new(Turning)) };
+        let spec = ScanSpec { name: "t".into(), mode: ScanMode::Continuous, step_deg: 1.0, total_deg: 360.0, speed_deg_s: 6.0, max_views: None };
+        let shared = ScanShared::new(spec, std::env::temp_dir(), Box::new(|_, _| {}));
+        let first = capture::capture_first(&mut devices, &shared).unwrap().unwrap();
+        assert_eq!(first.table_deg, Some(first.t_left_ns as f64 * 1e-8));
+    }
+
     #[test]
     fn step_views_cover_a_turn_once_and_an_arc_with_both_ends() {
         let spec = |step: f64, total: f64| ScanSpec { name: "x".into(), mode: ScanMode::Step, step_deg: step, total_deg: total, speed_deg_s: 6.0, max_views: None };
