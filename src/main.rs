@@ -10,7 +10,7 @@ mod cli;
 
 use cli::bench::BenchCommand;
 use cli::sim::SimCommand;
-use cli::{bench, daemon, register, replay, sim, stereo};
+use cli::{bench, daemon, register, replay, sim, stereo, turntable};
 
 #[derive(Parser)]
 #[command(name = "spinscan", version, about = "Registration-assisted stereo scanning for turntable labs")]
@@ -52,6 +52,8 @@ enum Command {
     Scan(daemon::ScanCommand),
     /// The daemon's scans with their status.
     Scans(daemon::SocketArg),
+    /// The turntable alone, without the daemon: `info`, `status`, `move DEG`, `off`.
+    Turntable(turntable::TurntableArgs),
 }
 
 fn main() -> ExitCode {
@@ -78,6 +80,7 @@ fn main() -> ExitCode {
         Command::Devices(a) => daemon::devices(a),
         Command::Scan(c) => daemon::scan(c),
         Command::Scans(a) => daemon::scans(a),
+        Command::Turntable(a) => turntable::cmd_turntable(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -390,3 +390,43 @@ fn driver_refuses_other_firmware_and_missing_ports() {
     let e = HorusTurntable::open("/dev/spinscan-no-such-port", quick_driver()).err().unwrap().to_string();
     assert!(e.contains("cannot open turntable port /dev/spinscan-no-such-port"), "{e}");
 }
+
+/// `spinscan turntable`: one JSON object per action, against the emulator on its pty, each
+/// waiting for the greeting as a real board needs.
+#[test]
+fn the_turntable_bench_command_talks_to_the_board() {
+    let (emu, angle) = emulator(vec![]);
+    let run = |args: &[&str]| {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_spinscan")).args(["turntable", "--port", emu.port_path()]).args(args).output().unwrap();
+        let text = String::from_utf8_lossy(&o.stdout).into_owned();
+        (o.status.code(), serde_json::from_str::<serde_json::Value>(text.trim()).ok(), String::from_utf8_lossy(&o.stderr).into_owned())
+    };
+    let (code, info, err) = run(&["info"]);
+    let info = info.unwrap_or_else(|| panic!("{err}"));
+    assert_eq!(code, Some(0));
+    assert_eq!((info["state"].as_str(), info["steps_per_deg"].as_f64(), info["firmware"].as_str()), (Some("Idle"), Some(8.889), Some("Horus 0.2 ['$' for help]")), "{info}");
+    assert!(info["max_rate_deg_s"].as_f64().unwrap() > 0.0 && info["accel_deg_s2"].as_f64().unwrap() > 0.0);
+    let (code, moved, err) = run(&["move", "30", "--speed", "200"]);
+    let moved = moved.unwrap_or_else(|| panic!("{err}"));
+    assert_eq!((code, moved["state"].as_str(), moved["angle_deg"].as_f64()), (Some(0), Some("Idle"), Some(30.037)), "{moved}");
+    assert!((angle.get() - 30.037).abs() < 2e-3);
+    // Stopped the safe way mid-move (the port reopened: the position counts from here).
+    let (code, stopped, err) = run(&["move", "300", "--speed", "30", "--stop-after", "0.3"]);
+    let stopped = stopped.unwrap_or_else(|| panic!("{err}"));
+    assert_eq!((code, stopped["stopped"].as_bool()), (Some(0), Some(true)), "{stopped}");
+    let a = stopped["angle_deg"].as_f64().unwrap();
+    assert!(a > 0.5 && a < 300.0 && stopped["state"] == "Idle", "{stopped}");
+    let (code, status, _) = run(&["status"]);
+    assert_eq!((code, status.unwrap()["state"].as_str()), (Some(0), Some("Idle")), "no alarm left behind");
+    let (code, off, _) = run(&["off"]);
+    assert_eq!((code, off.unwrap()["motor"].as_str()), (Some(0), Some("off")));
+    // A port that is not a board: a clear error, non-zero.
+    let (code, _, err) = run_missing();
+    assert_eq!(code, Some(6));
+    assert!(err.contains("cannot open turntable port"), "{err}");
+}
+
+fn run_missing() -> (Option<i32>, Option<serde_json::Value>, String) {
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_spinscan")).args(["turntable", "--port", "/dev/spinscan-no-such-port", "status"]).output().unwrap();
+    (o.status.code(), None, String::from_utf8_lossy(&o.stderr).into_owned())
+}

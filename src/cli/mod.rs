@@ -9,6 +9,7 @@ pub mod register;
 pub mod replay;
 pub mod sim;
 pub mod stereo;
+pub mod turntable;
 
 use std::path::{Path, PathBuf};
 
@@ -30,6 +31,8 @@ pub mod exit {
     pub const OUTPUT: u8 = 4;
     /// The daemon cannot be reached or refuses a request.
     pub const DAEMON: u8 = 5;
+    /// A device (the turntable) did not do what it was asked; the message has its words.
+    pub const DEVICE: u8 = 6;
 }
 
 /// A failure with the exit code it maps to.

@@ -274,7 +274,11 @@ impl HorusTurntable {
         self.command("M17")?;
         self.motor_on = true;
         let (feed, accel) = (self.config.feed_deg_s, self.config.accel_deg_s2);
-        self.command(&format!("$120={accel:.3}"))?;
+        // `$120` lives in EEPROM: not written when the board has it already (rewriting the
+        // same value costs no wear either).
+        if (self.info.accel_deg_s2 - accel).abs() > 1e-3 {
+            self.command(&format!("$120={accel:.3}"))?;
+        }
         self.command(&format!("G1 F{feed:.3}"))
     }
 
