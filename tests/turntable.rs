@@ -430,3 +430,13 @@ fn run_missing() -> (Option<i32>, Option<serde_json::Value>, String) {
     let o = std::process::Command::new(env!("CARGO_BIN_EXE_spinscan")).args(["turntable", "--port", "/dev/spinscan-no-such-port", "status"]).output().unwrap();
     (o.status.code(), None, String::from_utf8_lossy(&o.stderr).into_owned())
 }
+
+/// Risk 11: the udev example covers the boards labs have (Arduino on ttyACM, FTDI on ttyUSB)
+/// and identical cameras (by USB port), and says how to read the values.
+#[test]
+fn the_udev_example_covers_ftdi_boards_and_port_based_names() {
+    let rules = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/systemd/99-spinscan.rules")).unwrap();
+    for needed in ["ATTRS{idVendor}==\"2341\"", "ATTRS{idVendor}==\"0403\"", "ENV{ID_PATH}", "udevadm info", "SYMLINK+=\"spinscan-table\"", "SYMLINK+=\"spinscan-left\""] {
+        assert!(rules.contains(needed), "{needed} missing from the udev example");
+    }
+}

@@ -27,6 +27,10 @@ pub struct DevicesArgs {
     /// List this machine's V4L2 devices and serial ports without asking the daemon.
     #[arg(long)]
     pub local: bool,
+    /// With --local: check the `[cameras]` of this spinscand config against what the
+    /// cameras offer (format, size, rate).
+    #[arg(long, requires = "local", value_name = "FILE")]
+    pub config: Option<PathBuf>,
     #[command(flatten)]
     pub socket: SocketArg,
 }
@@ -108,7 +112,13 @@ pub fn status(s: SocketArg) -> Result<(), Failure> {
 
 pub fn devices(a: DevicesArgs) -> Result<(), Failure> {
     let v = if a.local {
-        spinscan::hw::v4l2::list_devices()
+        let mut v = spinscan::hw::v4l2::list_devices();
+        if let Some(path) = &a.config {
+            let config = spinscan::daemon::config::Config::load(path).map_err(|e| Failure { code: super::exit::INPUT, message: e.to_string() })?;
+            let c = &config.cameras;
+            v["warnings"] = json!(spinscan::hw::v4l2::check_offered(&v, &[&c.left, &c.right], c.fourcc(), c.width, c.height, c.fps));
+        }
+        v
     } else {
         let mut c = connect(&a.socket)?;
         c.devices().map_err(daemon_err)?
@@ -128,10 +138,23 @@ pub fn devices(a: DevicesArgs) -> Result<(), Failure> {
         for cam in cams {
             println!("  {} {}{}", cam["path"].as_str().unwrap_or("?"), cam["card"].as_str().or(cam["name"].as_str()).unwrap_or(""), cam["error"].as_str().map(|e| format!(" ({e})")).unwrap_or_default());
             for f in cam["formats"].as_array().into_iter().flatten() {
-                let sizes: Vec<&str> = f["sizes"].as_array().into_iter().flatten().filter_map(|s| s.as_str()).collect();
+                // Each size with the rates it runs at: 640x480@30/15.
+                let sizes: Vec<String> = f["sizes"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .filter_map(|s| s.as_str())
+                    .map(|s| match f["rates"][s].as_array().filter(|r| !r.is_empty()) {
+                        Some(r) => format!("{s}@{}", r.iter().filter_map(|v| v.as_f64()).map(|v| format!("{v}")).collect::<Vec<_>>().join("/")),
+                        None => s.to_string(),
+                    })
+                    .collect();
                 println!("    {} {}: {}", f["fourcc"].as_str().unwrap_or("?"), f["description"].as_str().unwrap_or(""), sizes.join(" "));
             }
         }
+    }
+    for w in v["warnings"].as_array().into_iter().flatten().filter_map(|w| w.as_str()) {
+        println!("warning: the configured cameras: {w}");
     }
     if let Some(ports) = listing["serial_ports"].as_array() {
         println!("serial ports:{}", if ports.is_empty() { " none" } else { "" });

@@ -158,6 +158,15 @@ impl Default for CameraSection {
 }
 
 impl CameraSection {
+    /// `pixel_format` as a fourcc (validated to be 4 ASCII letters).
+    pub fn fourcc(&self) -> [u8; 4] {
+        let mut fourcc = [b' '; 4];
+        for (d, s) in fourcc.iter_mut().zip(self.pixel_format.bytes()) {
+            *d = s;
+        }
+        fourcc
+    }
+
     /// The pairing tolerance in ns (half a frame period unless set).
     pub fn pair_tolerance_ns(&self) -> u64 {
         if self.pair_tolerance_ms > 0.0 {

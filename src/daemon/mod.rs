@@ -163,8 +163,7 @@ fn open_backend(config: &Config) -> Result<Devices, DeviceError> {
         BackendKind::V4l2 => {
             let c = &config.cameras;
             let calib = crate::calib::StereoCalib::load(&c.calibration).map_err(DeviceError::Calibration)?;
-            let mut fourcc = [b' '; 4];
-            fourcc.copy_from_slice(&c.pixel_format.as_bytes()[..4]);
+            let fourcc = c.fourcc();
             let stream = crate::hw::v4l2::StreamConfig {
                 width: c.width,
                 height: c.height,
@@ -294,7 +293,13 @@ impl Daemon {
             "turntable": table,
         });
         match c.backend.kind {
-            BackendKind::V4l2 => out["present"] = crate::hw::v4l2::list_devices(),
+            BackendKind::V4l2 => {
+                let present = crate::hw::v4l2::list_devices();
+                let cams = &c.cameras;
+                let warnings = crate::hw::v4l2::check_offered(&present, &[&cams.left, &cams.right], cams.fourcc(), cams.width, cams.height, cams.fps);
+                out["present"] = present;
+                out["warnings"] = json!(warnings);
+            }
             BackendKind::Sim => out["sim"] = json!({"object": c.sim.object, "width": c.sim.width, "height": c.sim.height, "ideal": c.sim.ideal}),
             BackendKind::Replay => out["replay"] = json!(c.backend.replay),
         }

@@ -93,6 +93,39 @@ pub fn yuyv_to_rgb(yuyv: &[u8], width: usize, height: usize) -> Vec<u8> {
     out
 }
 
+/// What is wrong with a camera configuration against a device listing ([`list_devices`]):
+/// a camera not present, or one that does not offer the format, size or rate. Empty when
+/// each camera offers it (or when a camera's formats could not be read).
+pub fn check_offered(listing: &Value, cameras: &[&Path], fourcc: [u8; 4], width: u32, height: u32, fps: u32) -> Vec<String> {
+    let (format, size) = (fourcc_name(fourcc), format!("{width}x{height}"));
+    let mut out = Vec::new();
+    let present = listing["cameras"].as_array().cloned().unwrap_or_default();
+    for path in cameras {
+        // A udev link (/dev/spinscan-left) names the node it points at.
+        let real = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
+        let Some(cam) = present.iter().find(|c| c["path"].as_str().is_some_and(|p| Path::new(p) == *path || Path::new(p) == real)) else {
+            out.push(format!("{} is not present", path.display()));
+            continue;
+        };
+        let Some(formats) = cam["formats"].as_array() else { continue };
+        let Some(f) = formats.iter().find(|f| f["fourcc"] == format) else {
+            let have: Vec<&str> = formats.iter().filter_map(|f| f["fourcc"].as_str()).collect();
+            out.push(format!("{} does not offer {format} (it offers {})", path.display(), have.join(", ")));
+            continue;
+        };
+        if !f["sizes"].as_array().is_some_and(|s| s.iter().any(|s| s == &json!(size))) {
+            out.push(format!("{} does not offer {size} in {format} (sizes: {})", path.display(), f["sizes"]));
+            continue;
+        }
+        if let Some(rates) = f["rates"][&size].as_array().filter(|r| !r.is_empty()) {
+            if !rates.iter().filter_map(Value::as_f64).any(|r| !rate_differs(fps, r)) {
+                out.push(format!("{} does not run {format} {size} at {fps} fps (rates: {})", path.display(), f["rates"][&size]));
+            }
+        }
+    }
+    out
+}
+
 /// Now on CLOCK_MONOTONIC, ns (the clock of UVC buffer timestamps).
 pub fn monotonic_ns() -> u64 {
     let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
@@ -423,14 +456,24 @@ pub fn list_devices() -> Value {
                     .unwrap_or_default()
                     .into_iter()
                     .map(|f| {
-                        let sizes: Vec<String> = dev
-                            .enum_framesizes(f.fourcc)
-                            .unwrap_or_default()
-                            .into_iter()
-                            .flat_map(|s| s.size.to_discrete())
-                            .map(|d| format!("{}x{}", d.width, d.height))
-                            .collect();
-                        json!({"fourcc": fourcc_name(f.fourcc.repr), "description": f.description, "sizes": sizes})
+                        let discrete: Vec<(u32, u32)> = dev.enum_framesizes(f.fourcc).unwrap_or_default().into_iter().flat_map(|s| s.size.to_discrete()).map(|d| (d.width, d.height)).collect();
+                        let sizes: Vec<String> = discrete.iter().map(|(w, h)| format!("{w}x{h}")).collect();
+                        // The rates each size can run at (what `cameras.fps` may be).
+                        let mut rates = serde_json::Map::new();
+                        for (w, h) in &discrete {
+                            let fps: Vec<f64> = dev
+                                .enum_frameintervals(f.fourcc, *w, *h)
+                                .unwrap_or_default()
+                                .into_iter()
+                                .filter_map(|i| match i.interval {
+                                    v4l::frameinterval::FrameIntervalEnum::Discrete(frac) => frame_rate(frac),
+                                    v4l::frameinterval::FrameIntervalEnum::Stepwise(s) => frame_rate(s.min),
+                                })
+                                .map(|r| (r * 100.0).round() / 100.0)
+                                .collect();
+                            rates.insert(format!("{w}x{h}"), json!(fps));
+                        }
+                        json!({"fourcc": fourcc_name(f.fourcc.repr), "description": f.description, "sizes": sizes, "rates": rates})
                     })
                     .collect();
                 entry["formats"] = json!(formats);
@@ -529,5 +572,22 @@ mod tests {
         assert!(await_first_frames(&rx, Duration::from_millis(50)).is_ok());
         tx.send(Err(CaptureError::Device { camera: "left".into(), what: "cannot start streaming: ENOSPC".into() })).unwrap();
         assert!(matches!(await_first_frames(&rx, Duration::from_millis(50)), Err(CaptureError::Device { .. })));
+    }
+
+    /// `devices` warns when the configured format, size or rate is not offered.
+    #[test]
+    fn a_configuration_the_cameras_cannot_do_is_named() {
+        let listing = json!({"cameras": [
+            {"path": "/dev/video0", "formats": [{"fourcc": "MJPG", "sizes": ["640x480", "1280x720"], "rates": {"640x480": [30.0, 15.0], "1280x720": [10.0]}}]},
+            {"path": "/dev/video2", "formats": [{"fourcc": "YUYV", "sizes": ["640x480"], "rates": {"640x480": [30.0]}}]},
+        ]});
+        let (l, r) = (Path::new("/dev/video0"), Path::new("/dev/video2"));
+        assert!(check_offered(&listing, &[l], *b"MJPG", 640, 480, 15).is_empty());
+        let w = check_offered(&listing, &[l], *b"MJPG", 1280, 720, 15);
+        assert!(w.len() == 1 && w[0].contains("at 15 fps") && w[0].contains("10"), "{w:?}");
+        let w = check_offered(&listing, &[l, r], *b"MJPG", 640, 480, 15);
+        assert!(w.len() == 1 && w[0].contains("/dev/video2 does not offer MJPG (it offers YUYV)"), "{w:?}");
+        let w = check_offered(&listing, &[Path::new("/dev/video9")], *b"MJPG", 640, 480, 15);
+        assert_eq!(w, vec!["/dev/video9 is not present".to_string()]);
     }
 }
