@@ -302,6 +302,62 @@ mod tests {
         assert_eq!(first.table_deg, Some(first.t_left_ns as f64 * 1e-8));
     }
 
+    /// A stepper that stops on whole steps of 1/8.889° and counts how often its motor was
+    /// switched off.
+    struct Stepper(Arc<std::sync::atomic::AtomicUsize>);
+
+    impl crate::hw::Turntable for Stepper {
+        fn move_to(&mut self, table_deg: f64) -> Result<f64, crate::hw::TurntableError> {
+            Ok((table_deg * 8.889).round() / 8.889)
+        }
+        fn angle(&mut self) -> Result<f64, crate::hw::TurntableError> {
+            Ok(0.0)
+        }
+        fn start_move(&mut self, _: f64, _: f64) -> Result<(), crate::hw::TurntableError> {
+            Ok(())
+        }
+        fn halt(&mut self) -> Result<(), crate::hw::TurntableError> {
+            Ok(())
+        }
+        fn release(&mut self) -> Result<(), crate::hw::TurntableError> {
+            self.0.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            Ok(())
+        }
+        fn describe(&self) -> String {
+            "stepper".into()
+        }
+    }
+
+    /// Defect 6 and risk 11: a step frame records the angle the table arrived at (whole
+    /// steps), not the one requested; the motor is switched off when the scan ends.
+    #[test]
+    fn step_frames_carry_the_angle_read_back_and_the_motor_is_released() {
+        let calib = crate::hw::sim::ideal_calib(64, 48, 70.0, 60.0);
+        let released = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let mut devices = Devices { source: Box::new(Streaming { calib, waiting: Default::default(), next_seq: 0 }), turntable: Some(Box::new(Stepper(released.clone()))) };
+        let spec = ScanSpec { name: "steps".into(), mode: ScanMode::Step, step_deg: 45.0, total_deg: 90.0, speed_deg_s: 6.0, max_views: None };
+        let shared = ScanShared::new(spec, std::env::temp_dir(), Box::new(|_, _| {}));
+        let first = capture::capture_first(&mut devices, &shared).unwrap().unwrap();
+        let (jobs, jobs_rx) = crossbeam_channel::unbounded();
+        let (notes, _notes_rx) = crossbeam_channel::unbounded();
+        let (recorder, _rec_rx) = crossbeam_channel::unbounded();
+        let settings = PipelineSettings {
+            pipeline: crate::pipeline::PipelineOptions::default(),
+            segment: false,
+            registration: None,
+            assist: None,
+            matcher_threads: 1,
+            queue_depth: 8,
+            record: false,
+            pace_hz: None,
+            register_newest_when_behind: false,
+        };
+        capture::capture(&mut devices, &shared, first, &jobs, &jobs_rx, &notes, &recorder, &settings).unwrap();
+        let angles: Vec<Option<f64>> = jobs_rx.try_iter().map(|j| j.frame.table_deg).collect();
+        assert_eq!(angles, vec![Some(0.0), Some(400.0 / 8.889), Some(800.0 / 8.889)]);
+        assert_eq!(released.load(std::sync::atomic::Ordering::SeqCst), 1);
+    }
+
     #[test]
     fn step_views_cover_a_turn_once_and_an_arc_with_both_ends() {
         let spec = |step: f64, total: f64| ScanSpec { name: "x".into(), mode: ScanMode::Step, step_deg: step, total_deg: total, speed_deg_s: 6.0, max_views: None };
