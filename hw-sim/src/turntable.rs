@@ -392,9 +392,8 @@ impl Firmware {
     }
 
     fn set_motor(&mut self, on: bool) {
-        if on && !self.motor_on {
-            self.anchor = (self.current_position(), self.physical());
-        } else if !on && self.motor_on {
+        // Switching either way re-anchors the table to the motor where both are now.
+        if on != self.motor_on {
             self.anchor = (self.current_position(), self.physical());
         }
         self.motor_on = on;

@@ -61,3 +61,12 @@ impl StereoFrame {
         StereoFrame { left: empty(), right: empty(), ..*self }
     }
 }
+
+/// Now on CLOCK_MONOTONIC, ns: the clock of UVC buffer timestamps, of pairing, and of the
+/// turntable's timestamped status replies.
+pub fn monotonic_ns() -> u64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: clock_gettime writes the timespec it is given.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
+}

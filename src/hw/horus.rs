@@ -27,6 +27,7 @@ use std::time::{Duration, Instant};
 
 use serialport::SerialPort;
 
+use super::frame::monotonic_ns;
 use super::{Turntable, TurntableError};
 
 /// The firmware line spinscan supports (the greeting's first words).
@@ -214,10 +215,6 @@ const SAMPLES: usize = 16;
 /// Two status replies further apart than this are not interpolated between, ns.
 const MAX_SAMPLE_GAP_NS: u64 = 1_000_000_000;
 
-/// Now on CLOCK_MONOTONIC, ns: the clock of UVC buffer timestamps.
-fn monotonic_ns() -> u64 {
-    super::v4l2::monotonic_ns()
-}
 
 impl HorusTurntable {
     /// Opens `path` (which resets the board), waits for its greeting (Ctrl-X only if none
@@ -569,7 +566,7 @@ fn interpolate(samples: &VecDeque<(u64, f64)>, t_ns: u64) -> Option<f64> {
         if t_ns < first.0 {
             pairs.clone().next()
         } else if t_ns > last.0 {
-            pairs.last()
+            Some((&samples[samples.len() - 2], last))
         } else {
             None
         }

@@ -20,6 +20,7 @@ use serde_json::{json, Value};
 use crate::calib::StereoCalib;
 use super::mjpeg::{self, MjpegError};
 use super::pairing::{CameraFrame, PairStats, Pairer, Side};
+use super::frame::monotonic_ns;
 use super::{CaptureError, Picture, StereoFrame, StereoSource};
 
 
@@ -126,13 +127,6 @@ pub fn check_offered(listing: &Value, cameras: &[&Path], fourcc: [u8; 4], width:
     out
 }
 
-/// Now on CLOCK_MONOTONIC, ns (the clock of UVC buffer timestamps).
-pub fn monotonic_ns() -> u64 {
-    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
-    // SAFETY: clock_gettime writes the timespec it is given.
-    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
-    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
-}
 
 /// Settings of one capture stream.
 #[derive(Debug, Clone)]
