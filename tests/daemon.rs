@@ -305,7 +305,8 @@ fn bad_requests_get_json_rpc_errors_and_the_connection_survives() {
     // A notification (no id) is not answered: the next line is the status answer.
     c.send_raw("{\"jsonrpc\": \"2.0\", \"method\": \"status\"}\n");
     assert_eq!(c.ok("status", json!({}))["state"], "idle");
-    assert!(d.state.is_dir() && std::fs::read_dir(&d.state).unwrap().next().is_none(), "no folder for refused scans");
+    // (The state folder holds the daemon's lock file, `.spinscand.lock`.)
+    assert!(d.state.is_dir() && std::fs::read_dir(&d.state).unwrap().flatten().all(|e| e.file_name().to_string_lossy().starts_with('.')), "no folder for refused scans");
 }
 
 /// Starts a 2° step scan (180 views) and returns once `views` of them are matched.
@@ -415,4 +416,64 @@ fn the_cli_drives_the_daemon() {
     let out = Command::new(env!("CARGO_BIN_EXE_spinscan")).args(["status", "--socket"]).arg(dir.join("nothing.sock")).output().unwrap();
     assert_eq!(out.status.code(), Some(5));
     assert!(String::from_utf8_lossy(&out.stderr).contains("cannot connect to spinscand"));
+}
+
+/// Hardening (issue 17), 4: a second daemon on the same state folder touches nothing there —
+/// not even the first daemon's running scan — and says why; 2: `--socket` never deletes a
+/// file that is not a socket.
+#[test]
+fn a_second_daemon_and_a_socket_path_that_is_a_file_are_refused() {
+    let dir = support::temp_dir("daemon-second");
+    let d = Daemon::start(&dir, "");
+    let (mut c, _) = Client::connect(&d.socket);
+    // A scan that runs long enough (2° steps, a full turn), under way.
+    c.ok("scan.start", json!({"name": "long", "step_deg": 2}));
+    let t0 = Instant::now();
+    while !d.state.join("long/manifest.json").is_file() {
+        assert!(t0.elapsed() < Duration::from_secs(20), "the scan wrote no manifest");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let other = dir.join("other.sock");
+    let out = Command::new(env!("CARGO_BIN_EXE_spinscand")).arg("--config").arg(dir.join("spinscand.toml")).arg("--socket").arg(&other).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(69), "{err}");
+    assert!(err.contains("another spinscand uses the state folder"), "{err}");
+    let m = manifest(&d.state.join("long"));
+    assert_ne!(m["status"], "interrupted", "the first daemon's scan was left alone: {m}");
+    c.ok("scan.stop", json!({}));
+    // A regular file at the socket path stays, and the daemon says what it is.
+    let dir2 = support::temp_dir("daemon-socket-file");
+    let config = small_config(&dir2, "");
+    let precious = dir2.join("s.sock");
+    std::fs::write(&precious, "notes").unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_spinscand")).arg("--config").arg(&config).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(73), "{err}");
+    assert!(err.contains("is not a socket"), "{err}");
+    assert_eq!(std::fs::read_to_string(&precious).unwrap(), "notes", "the file is intact");
+}
+
+/// Hardening (issue 17), 1 and 8: values that would kill or wedge the daemon are refused by
+/// `--check-config` naming the key, and a step too small to advance by `scan.start`.
+#[test]
+fn harmful_values_are_refused_at_the_edge() {
+    let dir = support::temp_dir("daemon-harmful");
+    for (section, line, key) in [
+        ("scan", "queue_depth = 1000000000", "scan.queue_depth"),
+        ("scan", "matcher_threads = 500", "scan.matcher_threads"),
+        ("turntable", "reply_timeout_ms = 0", "turntable.reply_timeout_ms"),
+        ("sim", "time_scale = inf", "sim.time_scale"),
+        ("scan", "step_deg = 5e-324", "scan.step_deg"),
+    ] {
+        let bad = dir.join("bad.toml");
+        std::fs::write(&bad, format!("[{section}]\n{line}\n")).unwrap();
+        let out = Command::new(env!("CARGO_BIN_EXE_spinscand")).arg("--config").arg(&bad).arg("--check-config").output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(78), "{line}: {err}");
+        assert!(err.contains(key), "{line}: {err}");
+    }
+    let d = Daemon::start(&dir, "");
+    let (mut c, _) = Client::connect(&d.socket);
+    let (code, msg) = c.error_code("scan.start", json!({"name": "tiny", "step_deg": 5e-324}));
+    assert!(code == -32602 && msg.contains("step_deg") && msg.contains("0.05"), "{msg}");
 }

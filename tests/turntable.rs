@@ -440,3 +440,27 @@ fn the_udev_example_covers_ftdi_boards_and_port_based_names() {
         assert!(rules.contains(needed), "{needed} missing from the udev example");
     }
 }
+
+/// Hardening (issue 17), 6: a table that takes forever is abandoned as soon as a stop is
+/// requested, not after minutes.
+#[test]
+fn a_stop_request_ends_a_wait_for_arrival() {
+    let (emu, _) = emulator(vec![]);
+    // 0.5°/s to 300°: ten minutes of waiting.
+    let mut t = HorusTurntable::open(emu.port_path(), DriverConfig { feed_deg_s: 0.5, ..quick_driver() }).unwrap();
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    t.watch_stop(stop.clone());
+    let flag = stop.clone();
+    std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(300));
+        flag.store(true, std::sync::atomic::Ordering::SeqCst);
+    });
+    let t0 = Instant::now();
+    let e = t.move_to(300.0).unwrap_err();
+    assert!(matches!(e, TurntableError::Aborted { .. }), "{e}");
+    assert!(t0.elapsed() < Duration::from_secs(2), "ended {:?} after the request", t0.elapsed());
+    // And the table is stopped the safe way: no alarm, it can move again.
+    t.halt().unwrap();
+    stop.store(false, std::sync::atomic::Ordering::SeqCst);
+    assert_ne!(t.status().unwrap().0, spinscan::hw::TableState::Alarm);
+}

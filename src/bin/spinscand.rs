@@ -114,7 +114,11 @@ async fn run(config: Config, auth: Auth) -> u8 {
         Ok(Err(e)) => {
             tracing::error!("cannot start: {e}");
             eprintln!("spinscand: {e}");
-            return if matches!(e, DaemonError::StateDir { .. }) { exit::CANT_CREATE } else { exit::UNAVAILABLE };
+            return match e {
+                DaemonError::StateDir { .. } => exit::CANT_CREATE,
+                DaemonError::Locked(_) => exit::UNAVAILABLE,
+                _ => exit::UNAVAILABLE,
+            };
         }
         Err(_) => return exit::SOFTWARE,
     };
@@ -139,7 +143,10 @@ async fn run(config: Config, auth: Auth) -> u8 {
     let _ = stop_tx.send(true);
     let _ = serving.await;
     pulse.abort();
-    let _ = std::fs::remove_file(&socket);
+    // Only our socket is removed (the path may have been replaced meanwhile).
+    if std::fs::symlink_metadata(&socket).is_ok_and(|m| std::os::unix::fs::FileTypeExt::is_socket(&m.file_type())) {
+        let _ = std::fs::remove_file(&socket);
+    }
     let d = daemon.clone();
     let _ = tokio::task::spawn_blocking(move || d.close()).await;
     tracing::info!("stopped");

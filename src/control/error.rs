@@ -35,7 +35,7 @@ pub enum ControlError {
     /// A parameter is unknown, missing, of the wrong type or out of bounds.
     #[error("{0}")]
     Params(String),
-    #[error("{method}: permission denied for {who}: only root, spinscand's user and members of group `{group}` may control scans")]
+    #[error("{method}: permission denied for {who}: only root{} may control scans", if group.is_empty() { " and spinscand's user".to_string() } else { format!(", spinscand's user and members of group `{group}`") })]
     PermissionDenied { method: String, who: String, group: String },
     #[error("too many clients (daemon.max_clients = {0}); try again later")]
     TooManyClients(usize),
@@ -61,7 +61,7 @@ impl ControlError {
                 DaemonError::Busy(_) => code::BUSY,
                 DaemonError::Exists { .. } => code::EXISTS,
                 DaemonError::Devices(_) => code::DEVICE,
-                DaemonError::Create { .. } | DaemonError::StateDir { .. } => code::INTERNAL,
+                DaemonError::Create { .. } | DaemonError::StateDir { .. } | DaemonError::Locked(_) => code::INTERNAL,
                 DaemonError::NoScan | DaemonError::NoSuchScan { .. } => code::NOT_FOUND,
             },
         }
@@ -89,5 +89,8 @@ mod tests {
         assert_eq!(ControlError::from(DaemonError::Exists { name: "a".into(), dir: "/x/a".into() }).code(), code::EXISTS);
         let e = ControlError::of("scan.start", DaemonError::Spec(SpecError::Range { field: "step_deg", expected: "within (0, 360]", got: "0".into() }));
         assert_eq!((e.code(), e.to_string().as_str()), (code::INVALID_PARAMS, "scan.start: `step_deg` must be within (0, 360], got 0"));
+        // No group configured: the message names no empty group.
+        let e = ControlError::PermissionDenied { method: "scan.start".into(), who: "uid 1000".into(), group: String::new() };
+        assert!(e.to_string().ends_with("only root and spinscand's user may control scans"), "{e}");
     }
 }

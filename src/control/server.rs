@@ -24,6 +24,8 @@ pub enum BindError {
     Folder { path: PathBuf, source: std::io::Error },
     #[error("{0} is in use: another spinscand is running (stop it, or pass --socket)")]
     InUse(PathBuf),
+    #[error("{0} exists and is not a socket; spinscand replaces only a stale socket (choose another --socket, or remove the file yourself)")]
+    NotASocket(PathBuf),
     #[error("cannot {what} {path}: {source}")]
     Socket { what: &'static str, path: PathBuf, source: std::io::Error },
     #[error("cannot give {path} to group {gid}: {source} (is spinscand in that group?)")]
@@ -37,7 +39,11 @@ pub fn bind(path: &Path, mode: u32, gid: Option<u32>) -> Result<UnixListener, Bi
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(|source| BindError::Folder { path: dir.to_path_buf(), source })?;
     }
-    if path.exists() {
+    if let Ok(meta) = std::fs::symlink_metadata(path) {
+        // Only a socket nobody answers on is replaced; any other file stays.
+        if !std::os::unix::fs::FileTypeExt::is_socket(&meta.file_type()) {
+            return Err(BindError::NotASocket(path.to_path_buf()));
+        }
         if std::os::unix::net::UnixStream::connect(path).is_ok() {
             return Err(BindError::InUse(path.to_path_buf()));
         }

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use crate::assist::{AssistMode, AssistModeError, AssistParams};
 use crate::hw::sim::SimSection;
 use crate::hw::DriverConfig;
-use crate::pipeline::live::{check_step_deg, check_total_deg, PipelineSettings, SpecError};
+use crate::pipeline::live::{check_step_deg, check_total_deg, PipelineSettings, SpecError, MAX_MATCHER_THREADS, MAX_QUEUE_DEPTH};
 
 /// Why a configuration cannot be used.
 #[derive(Debug, thiserror::Error)]
@@ -316,62 +316,76 @@ impl Config {
         Ok(c)
     }
 
-    /// Checks values a type cannot.
+    /// Checks values a type cannot: every number within a range that keeps the daemon
+    /// healthy (the ranges are documented in `config/spinscand.toml`), the matcher's
+    /// parameters by the matcher's own rules, and the scan bounds by `scan.start`'s.
     pub fn validate(&self, path: &Path) -> Result<(), ConfigError> {
         let bad = |key: &'static str, what: String| Err(ConfigError::Invalid { path: path.to_path_buf(), key, what });
+        // Whole numbers within lo…hi.
+        fn whole(v: u64, lo: u64, hi: u64) -> Option<String> {
+            (!(lo..=hi).contains(&v)).then(|| format!("must be {lo} … {hi}, got {v}"))
+        }
+        // Finite numbers within lo…hi (lo excluded when `open`).
+        fn real(v: f64, lo: f64, hi: f64, open: bool) -> Option<String> {
+            let ok = v.is_finite() && v <= hi && if open { v > lo } else { v >= lo };
+            (!ok).then(|| format!("must be {}{lo}, {hi}], got {v}", if open { "within (" } else { "within [" }))
+        }
+        let d = &self.daemon;
+        let c = &self.cameras;
+        let t = &self.turntable;
+        let s = &self.scan;
+        let checks: [(&'static str, Option<String>); 27] = [
+            ("daemon.max_request_bytes", whole(d.max_request_bytes as u64, 256, 16 << 20)),
+            ("daemon.max_clients", whole(d.max_clients as u64, 1, 1024)),
+            ("daemon.stall_s", real(d.stall_s, 0.5, 3600.0, false)),
+            ("cameras.width", whole(c.width as u64, 32, 8192)),
+            ("cameras.height", whole(c.height as u64, 32, 8192)),
+            ("cameras.fps", whole(c.fps as u64, 1, 240)),
+            ("cameras.buffers", whole(c.buffers as u64, 2, 32)),
+            ("cameras.pair_tolerance_ms", real(c.pair_tolerance_ms, 0.0, 1000.0, false)),
+            ("cameras.frame_timeout_ms", whole(c.frame_timeout_ms, 50, 60_000)),
+            ("turntable.baud", whole(t.baud as u64, 1200, 4_000_000)),
+            ("turntable.reply_timeout_ms", whole(t.reply_timeout_ms, 10, 30_000)),
+            ("turntable.tries", whole(t.tries as u64, 1, 20)),
+            ("turntable.feed_deg_s", real(t.feed_deg_s, 0.0, 3600.0, true)),
+            ("turntable.accel_deg_s2", real(t.accel_deg_s2, 0.0, 100_000.0, true)),
+            ("turntable.stall_tolerance_deg", real(t.stall_tolerance_deg, 0.0, 10.0, false)),
+            ("turntable.settle_ms", whole(t.settle_ms, 0, 10_000)),
+            ("turntable.boot_wait_ms", whole(t.boot_wait_ms, 0, 30_000)),
+            ("turntable.continuous_deg_s", real(t.continuous_deg_s, 0.0, 360.0, true)),
+            ("scan.queue_depth", whole(s.queue_depth as u64, 1, MAX_QUEUE_DEPTH as u64)),
+            ("scan.matcher_threads", whole(s.matcher_threads as u64, 0, MAX_MATCHER_THREADS as u64)),
+            ("scan.register_max_points", whole(s.register_max_points as u64, 0, 1_000_000)),
+            ("matching.assist_w", real(self.matching.assist_w, 0.0, 100.0, true)),
+            ("sim.width", whole(self.sim.width as u64, 32, 4096)),
+            ("sim.height", whole(self.sim.height as u64, 32, 4096)),
+            ("sim.time_scale", real(self.sim.time_scale, 0.0, 1000.0, true)),
+            ("cameras.exposure_100us", c.exposure_100us.filter(|e| !(1..=10_000_000).contains(e)).map(|e| format!("must be 1 … 10000000, got {e}"))),
+            ("cameras.gain", c.gain.filter(|g| !(0..=1_000_000).contains(g)).map(|g| format!("must be 0 … 1000000, got {g}"))),
+        ];
+        for (key, problem) in checks {
+            if let Some(what) = problem {
+                return bad(key, what);
+            }
+        }
         if self.socket_mode().is_none() {
             return bad("daemon.socket_mode", format!("must be octal permission bits like \"0660\", got {:?}", self.daemon.socket_mode));
-        }
-        if self.daemon.max_request_bytes < 256 {
-            return bad("daemon.max_request_bytes", format!("must be at least 256, got {}", self.daemon.max_request_bytes));
-        }
-        if !(self.daemon.stall_s > 0.0) {
-            return bad("daemon.stall_s", format!("must be positive, got {}", self.daemon.stall_s));
-        }
-        if self.daemon.max_clients == 0 {
-            return bad("daemon.max_clients", "must be at least 1".into());
         }
         if self.backend.kind == BackendKind::Replay && self.backend.replay.as_os_str().is_empty() {
             return bad("backend.replay", "must name a recording when backend.kind = \"replay\"".into());
         }
-        let c = &self.cameras;
-        if c.width < 32 || c.height < 32 {
-            return bad("cameras.width", format!("cameras must be at least 32×32, got {}×{}", c.width, c.height));
-        }
-        if c.fps == 0 || c.fps > 240 {
-            return bad("cameras.fps", format!("must be 1 … 240, got {}", c.fps));
-        }
         if !["MJPG", "YUYV"].contains(&c.pixel_format.as_str()) {
             return bad("cameras.pixel_format", format!("must be \"MJPG\" or \"YUYV\", got {:?}", c.pixel_format));
         }
-        if !(2..=32).contains(&c.buffers) {
-            return bad("cameras.buffers", format!("must be 2 … 32, got {}", c.buffers));
-        }
-        if !(c.pair_tolerance_ms >= 0.0) {
-            return bad("cameras.pair_tolerance_ms", format!("must be ≥ 0, got {}", c.pair_tolerance_ms));
-        }
-        let t = &self.turntable;
         if t.direction != 1 && t.direction != -1 {
             return bad("turntable.direction", format!("must be 1 or -1, got {}", t.direction));
         }
-        if t.tries == 0 {
-            return bad("turntable.tries", "must be at least 1".into());
-        }
-        for (key, v) in [("turntable.feed_deg_s", t.feed_deg_s), ("turntable.accel_deg_s2", t.accel_deg_s2), ("turntable.continuous_deg_s", t.continuous_deg_s)] {
-            if !(v > 0.0 && v.is_finite()) {
-                return bad(key, format!("must be positive, got {v}"));
-            }
-        }
-        let s = &self.scan;
         // The same bounds `scan.start` applies (ScanSpec::validate).
         if let Err(SpecError::Range { expected, got, .. }) = check_step_deg(s.step_deg) {
             return bad("scan.step_deg", format!("must be {expected}, got {got}"));
         }
         if let Err(SpecError::Range { expected, got, .. }) = check_total_deg(s.total_deg) {
             return bad("scan.total_deg", format!("must be {expected}, got {got}"));
-        }
-        if s.queue_depth == 0 {
-            return bad("scan.queue_depth", "must be at least 1".into());
         }
         // The matcher's own rules (MatchParams::validate), on the parameters a scan will use.
         if let Err(e) = self.pipeline_settings().pipeline.matching.validate() {
@@ -387,12 +401,6 @@ impl Config {
         }
         if let Err(e) = crate::hw::sim::check_object(&self.sim.object) {
             return bad("sim.object", e.to_string());
-        }
-        if self.sim.width < 32 || self.sim.height < 32 {
-            return bad("sim.width", format!("the simulated cameras must be at least 32×32, got {}×{}", self.sim.width, self.sim.height));
-        }
-        if !(self.sim.time_scale > 0.0) {
-            return bad("sim.time_scale", format!("must be positive, got {}", self.sim.time_scale));
         }
         Ok(())
     }

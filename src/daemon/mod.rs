@@ -43,8 +43,10 @@ pub enum DaemonError {
     Devices(#[from] DeviceError),
     #[error("cannot create {path}: {source}")]
     Create { path: PathBuf, source: std::io::Error },
-    #[error("cannot create the state folder {path}: {source}")]
+    #[error("cannot use the state folder {path}: {source}")]
     StateDir { path: PathBuf, source: std::io::Error },
+    #[error("another spinscand uses the state folder {0} (its lock file {0}/.spinscand.lock is held); stop it, or give this one another --state-dir")]
+    Locked(PathBuf),
     #[error("no scan is running")]
     NoScan,
     #[error("no scan named {name} in {state_dir}")]
@@ -103,6 +105,26 @@ pub mod exit {
     pub const SOFTWARE: u8 = 70;
 }
 
+/// Takes the state folder's lock (`flock` on `.spinscand.lock`, released when the file
+/// closes, so a crashed daemon leaves no stale lock).
+fn lock_state_dir(state: &Path) -> Result<std::fs::File, DaemonError> {
+    use std::os::fd::AsRawFd;
+    let path = state.join(".spinscand.lock");
+    let file = std::fs::OpenOptions::new().create(true).truncate(false).write(true).open(&path).map_err(|source| DaemonError::StateDir { path: state.to_path_buf(), source })?;
+    // SAFETY: flock on a descriptor this function owns.
+    if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
+        return Err(DaemonError::Locked(state.to_path_buf()));
+    }
+    Ok(file)
+}
+
+/// A state folder the daemon can write scans into (checked at start, not at the first scan).
+fn check_writable(state: &Path) -> std::io::Result<()> {
+    let probe = state.join(format!(".spinscand-probe-{}", std::process::id()));
+    std::fs::write(&probe, b"ok")?;
+    std::fs::remove_file(&probe)
+}
+
 /// Marks scans left `running` by a daemon that died (crash, SIGKILL, power loss) as
 /// `interrupted`; their recordings replay. Returns their names.
 pub fn recover_interrupted(state_dir: &Path) -> Vec<String> {
@@ -110,7 +132,7 @@ pub fn recover_interrupted(state_dir: &Path) -> Vec<String> {
     for (name, mut m) in list_manifests(state_dir) {
         if m["status"] == "running" {
             m["status"] = json!("interrupted");
-            m["reason"] = json!(format!("spinscand stopped while the scan was running (crash, SIGKILL or power loss); its recording replays: spinscan replay {}", state_dir.join(&name).display()));
+            m["reason"] = json!(format!("spinscand stopped while the scan was running (crash, SIGKILL or power loss); its recording replays: spinscan replay {} -o {}", state_dir.join(&name).display(), state_dir.join(&name).join("replayed").display()));
             let path = state_dir.join(&name).join("manifest.json");
             match crate::io::write_atomic(&path, serde_json::to_string_pretty(&m).unwrap().as_bytes()) {
                 Ok(()) => {
@@ -194,6 +216,8 @@ struct Inner {
 /// The daemon's state, shared by every connection.
 pub struct Daemon {
     pub config: Config,
+    /// The state folder's lock, held for the daemon's life: one daemon per state folder.
+    _lock: std::fs::File,
     events: tokio::sync::broadcast::Sender<Event>,
     inner: Mutex<Inner>,
     started: Instant,
@@ -205,12 +229,17 @@ impl Daemon {
     /// Opens the devices (an error is fatal at start: the caller exits with
     /// [`exit::UNAVAILABLE`]) and marks scans an earlier daemon left running.
     pub fn start(config: Config) -> Result<Arc<Daemon>, DaemonError> {
-        std::fs::create_dir_all(&config.daemon.state_dir).map_err(|source| DaemonError::StateDir { path: config.daemon.state_dir.clone(), source })?;
-        recover_interrupted(&config.daemon.state_dir);
+        let state = &config.daemon.state_dir;
+        std::fs::create_dir_all(state).map_err(|source| DaemonError::StateDir { path: state.clone(), source })?;
+        // Before anything in the folder is touched (recovery marks scans left `running`).
+        let lock = lock_state_dir(state)?;
+        check_writable(state).map_err(|source| DaemonError::StateDir { path: state.clone(), source })?;
+        recover_interrupted(state);
         let devices = open_backend(&config)?;
         let (events, _) = tokio::sync::broadcast::channel(256);
         Ok(Arc::new(Daemon {
             config,
+            _lock: lock,
             events,
             inner: Mutex::new(Inner { devices: Some(devices), device_error: None, scan: None, last: None }),
             started: Instant::now(),
@@ -375,6 +404,13 @@ impl Daemon {
         inner.scan = None;
         inner.last = Some((name.clone(), end.clone()));
         drop(inner);
+        // The scan's buffers are gone; hand glibc's arenas back to the system, so a daemon
+        // that runs for months does not grow with every scan.
+        #[cfg(target_env = "gnu")]
+        // SAFETY: malloc_trim only releases free memory of the allocator.
+        unsafe {
+            libc::malloc_trim(0);
+        }
         let mut state = json!({"name": name, "status": end.status, "reason": end.reason});
         state["progress"] = shared.progress();
         self.emit("scan.state", state);

@@ -199,6 +199,8 @@ pub struct HorusTurntable {
     /// `M17` sent since the last `M18` (the firmware moves its count with the motor off too,
     /// but the table does not turn).
     motor_on: bool,
+    /// Set by a scan's stop request: every wait ends.
+    stop: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
 }
 
 enum ReadOutcome {
@@ -227,7 +229,7 @@ impl HorusTurntable {
             .open()
             .map_err(|e| TurntableError::Open { port: path.to_string(), what: e.to_string() })?;
         let info = BoardInfo { firmware: String::new(), steps_per_deg: 0.0, max_rate_deg_s: 0.0, accel_deg_s2: 0.0 };
-        let mut t = HorusTurntable { port, path: path.to_string(), config, pending: Vec::new(), info, samples: VecDeque::new(), motor_on: false };
+        let mut t = HorusTurntable { port, path: path.to_string(), config, pending: Vec::new(), info, samples: VecDeque::new(), motor_on: false, stop: None };
         let boot = t.config.boot_wait;
         match t.await_greeting(Instant::now() + boot, "power-on greeting")? {
             Some(greeting) => t.info.firmware = greeting,
@@ -452,8 +454,19 @@ impl HorusTurntable {
     /// one that rests elsewhere for as long lost its move.
     fn wait_arrival(&mut self, target_fw: f64, command: &str) -> Result<f64, TurntableError> {
         let mut last: Option<(f64, Instant)> = None;
+        let started = Instant::now();
+        let mut allowed: Option<Duration> = None;
         loop {
+            if self.stop.as_ref().is_some_and(|s| s.load(std::sync::atomic::Ordering::SeqCst)) {
+                return Err(TurntableError::Aborted { port: self.path.clone(), command: command.into() });
+            }
             let (state, pos) = self.status()?;
+            // An overall deadline: twice the trapezoid's time from here, and 10 s more.
+            let (feed, accel) = (self.config.feed_deg_s.max(1e-3), self.config.accel_deg_s2.max(1e-3));
+            let allowed = *allowed.get_or_insert_with(|| Duration::from_secs_f64(2.0 * ((target_fw - pos).abs() / feed + feed / accel) + 10.0));
+            if started.elapsed() > allowed {
+                return Err(TurntableError::TooSlow { port: self.path.clone(), command: command.into(), waited_s: allowed.as_secs_f64(), at_deg: pos });
+            }
             if state == TableState::Alarm {
                 return Err(TurntableError::Rejected { port: self.path.clone(), command: command.into(), reply: "the firmware is in its alarm state".into() });
             }
@@ -524,14 +537,17 @@ impl Turntable for HorusTurntable {
     fn halt(&mut self) -> Result<(), TurntableError> {
         let command = "! (feed hold)";
         self.write_bytes(b"!", command)?;
-        let deadline = Instant::now() + Duration::from_secs(30);
+        // Deceleration from the feed takes feed / accel; a table that will not come to rest
+        // within that and 5 s more is not waited for.
+        let bound = Duration::from_secs_f64(self.config.feed_deg_s.max(0.0) / self.config.accel_deg_s2.max(1e-3)).min(Duration::from_secs(60)) + Duration::from_secs(5);
+        let deadline = Instant::now() + bound;
         loop {
             let (state, _) = self.status()?;
             if matches!(state, TableState::Queue | TableState::Idle | TableState::Alarm) {
                 break;
             }
             if Instant::now() > deadline {
-                return Err(TurntableError::Unresponsive { port: self.path.clone(), command: command.into(), timeout_ms: 30_000, tries: 1 });
+                return Err(TurntableError::Unresponsive { port: self.path.clone(), command: command.into(), timeout_ms: bound.as_millis() as u64, tries: 1 });
             }
             std::thread::sleep(POLL);
         }
@@ -547,6 +563,10 @@ impl Turntable for HorusTurntable {
         self.command("M18")?;
         self.motor_on = false;
         Ok(())
+    }
+
+    fn watch_stop(&mut self, stop: std::sync::Arc<std::sync::atomic::AtomicBool>) {
+        self.stop = Some(stop);
     }
 
     fn describe(&self) -> String {

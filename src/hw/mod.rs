@@ -78,6 +78,9 @@ pub trait Turntable: Send {
     fn release(&mut self) -> Result<(), TurntableError> {
         Ok(())
     }
+    /// A flag that, once set, ends any wait of this table with [`TurntableError::Aborted`]
+    /// (a scan's stop request: `scan.stop`, SIGTERM).
+    fn watch_stop(&mut self, _stop: std::sync::Arc<std::sync::atomic::AtomicBool>) {}
     /// Starts turning towards `table_deg` at `feed_deg_s` and returns at once (continuous
     /// scans); [`Turntable::angle`] follows the motion.
     fn start_move(&mut self, table_deg: f64, feed_deg_s: f64) -> Result<(), TurntableError>;
@@ -106,6 +109,10 @@ pub enum TurntableError {
     Vanished { port: String, command: String, what: String },
     #[error("turntable on {port} sent a status report spinscan cannot read: `{reply}` (expected <State,MPos:x,y,z>)")]
     BadStatus { port: String, reply: String },
+    #[error("turntable on {port}: `{command}` abandoned: a stop was requested")]
+    Aborted { port: String, command: String },
+    #[error("turntable on {port} did not arrive within {waited_s:.0} s of `{command}` (at {at_deg:.3}°, firmware degrees)")]
+    TooSlow { port: String, command: String, waited_s: f64, at_deg: f64 },
     #[error("turntable on {port} reset itself during `{command}` (its greeting arrived): the position is lost; check its power supply and USB cable")]
     BoardReset { port: String, command: String },
     #[error("turntable on {port} stopped at {at_deg:.3}° ({state}) short of {target_deg:.3}° (firmware degrees; `{command}` was lost)")]

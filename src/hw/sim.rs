@@ -158,6 +158,9 @@ impl Turntable for SimTurntable {
     fn release(&mut self) -> Result<(), TurntableError> {
         self.driver.release()
     }
+    fn watch_stop(&mut self, stop: std::sync::Arc<std::sync::atomic::AtomicBool>) {
+        self.driver.watch_stop(stop)
+    }
     fn start_move(&mut self, table_deg: f64, feed_deg_s: f64) -> Result<(), TurntableError> {
         self.driver.start_move(table_deg, feed_deg_s)
     }

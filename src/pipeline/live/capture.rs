@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 
 use super::state::{Devices, Job, Note, PipelineSettings, ScanError, ScanMode, ScanShared};
-use crate::hw::{PairStats, StereoFrame};
+use crate::hw::{PairStats, StereoFrame, TurntableError};
 
 /// Takes the first pair: one captured after the scan started (free-running cameras have
 /// been streaming since the daemon started; what waits in their buffers is stale), with the
@@ -103,6 +103,10 @@ pub(super) fn capture(
         Ok(())
     };
 
+    if let Some(t) = devices.turntable.as_mut() {
+        // A stop request ends any wait for the table (bounded stop, whatever it does).
+        t.watch_stop(shared.stop_signal());
+    }
     let start_deg = first.table_deg;
     deliver(first, devices.source.pairing())?;
     let limit = spec.max_views.unwrap_or(usize::MAX);
@@ -116,7 +120,17 @@ pub(super) fn capture(
                 let target = start + i as f64 * spec.step_deg;
                 let table = devices.turntable.as_mut().unwrap();
                 // The angle read back: the table stops on a whole motor step, not on `target`.
-                let arrived = table.move_to(target)?;
+                let arrived = match table.move_to(target) {
+                    Ok(a) => a,
+                    Err(TurntableError::Aborted { .. }) if shared.stop_requested() => {
+                        // Stopped mid-move: bring the table to rest the safe way, and end.
+                        if let Err(e) = table.halt() {
+                            tracing::warn!("stopping the table after a stop request: {e}");
+                        }
+                        break;
+                    }
+                    Err(e) => return Err(e.into()),
+                };
                 let mut frame = match devices.source.fresh_frame()? {
                     Some(f) => f,
                     None => break,

@@ -21,7 +21,7 @@ mod pool;
 mod register;
 mod state;
 
-pub use state::{check_step_deg, check_total_deg, validate_name, Counters, Devices, PipelineSettings, ScanEnd, ScanError, ScanMode, ScanShared, ScanSpec, SpecError};
+pub use state::{check_step_deg, check_total_deg, validate_name, Counters, Devices, PipelineSettings, ScanEnd, ScanError, ScanMode, ScanShared, ScanSpec, SpecError, MAX_MATCHER_THREADS, MAX_QUEUE_DEPTH, MIN_STEP_DEG};
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
@@ -115,7 +115,7 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
     };
 
     // Matcher pool and registration.
-    let threads = if settings.matcher_threads == 0 { std::thread::available_parallelism().map_or(2, |n| n.get()) } else { settings.matcher_threads };
+    let threads = if settings.matcher_threads == 0 { std::thread::available_parallelism().map_or(2, |n| n.get()) } else { settings.matcher_threads }.min(MAX_MATCHER_THREADS);
     let (job_tx, job_rx) = crossbeam_channel::bounded::<Job>(settings.queue_depth);
     // Announcements and drops come from the capture task, which must not wait: unbounded
     // (small). Views come from the matchers: bounded, so a registration thread that falls

@@ -4,7 +4,7 @@
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use serde_json::{json, Value};
@@ -82,12 +82,23 @@ impl ScanSpec {
     }
 }
 
-/// Step between views of a step scan: within (0, 360] degrees.
+/// Most pairs waiting for the matcher pool (`scan.queue_depth`): each holds a decoded pair.
+pub const MAX_QUEUE_DEPTH: usize = 256;
+
+/// Most matcher threads (`scan.matcher_threads`; 0 = one per core, at most this many): each
+/// keeps its own scratch buffers.
+pub const MAX_MATCHER_THREADS: usize = 32;
+
+/// The smallest step of a step scan, degrees: below it a turn has more views than any lab
+/// wants (7200 at 0.05°), and a tiny step would never advance.
+pub const MIN_STEP_DEG: f64 = 0.05;
+
+/// Step between views of a step scan: within [0.05, 360] degrees.
 pub fn check_step_deg(step_deg: f64) -> Result<(), SpecError> {
-    if step_deg > 0.0 && step_deg <= 360.0 {
+    if (MIN_STEP_DEG..=360.0).contains(&step_deg) {
         Ok(())
     } else {
-        Err(SpecError::Range { field: "step_deg", expected: "within (0, 360]", got: step_deg.to_string() })
+        Err(SpecError::Range { field: "step_deg", expected: "within [0.05, 360]", got: step_deg.to_string() })
     }
 }
 
@@ -205,13 +216,13 @@ pub struct ScanShared {
     pub started: Instant,
     pub counters: Counters,
     stop: Mutex<Option<String>>,
-    stop_flag: AtomicBool,
+    stop_flag: Arc<AtomicBool>,
     events: Box<dyn Fn(&str, Value) + Send + Sync>,
 }
 
 impl ScanShared {
     pub fn new(spec: ScanSpec, dir: PathBuf, events: Box<dyn Fn(&str, Value) + Send + Sync>) -> ScanShared {
-        ScanShared { spec, dir, started: Instant::now(), counters: Counters::default(), stop: Mutex::new(None), stop_flag: AtomicBool::new(false), events }
+        ScanShared { spec, dir, started: Instant::now(), counters: Counters::default(), stop: Mutex::new(None), stop_flag: Arc::new(AtomicBool::new(false)), events }
     }
 
     /// Asks the scan to stop after the current view; `why` goes into the manifest.
@@ -221,6 +232,11 @@ impl ScanShared {
             *s = Some(why.to_string());
         }
         self.stop_flag.store(true, Ordering::SeqCst);
+    }
+
+    /// The stop flag itself, for device waits that must end when a stop is asked for.
+    pub fn stop_signal(&self) -> Arc<AtomicBool> {
+        self.stop_flag.clone()
     }
 
     pub fn stop_requested(&self) -> bool {
