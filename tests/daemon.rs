@@ -477,3 +477,33 @@ fn harmful_values_are_refused_at_the_edge() {
     let (code, msg) = c.error_code("scan.start", json!({"name": "tiny", "step_deg": 5e-324}));
     assert!(code == -32602 && msg.contains("step_deg") && msg.contains("0.05"), "{msg}");
 }
+
+/// Hardening (issue 17), 7: a connection that never sends anything is closed after
+/// `daemon.idle_timeout_s`, so idle clients cannot hold every slot forever; one that
+/// subscribed to events stays.
+#[test]
+fn idle_connections_are_closed() {
+    let dir = support::temp_dir("daemon-idle");
+    let text = std::fs::read_to_string(small_config(&dir, "")).unwrap().replace("group = \"\"", "group = \"\"\nidle_timeout_s = 0.5");
+    std::fs::write(dir.join("spinscand.toml"), text).unwrap();
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_spinscand"));
+    cmd.arg("--config").arg(dir.join("spinscand.toml")).stdout(Stdio::null()).stderr(Stdio::null());
+    let mut child = cmd.spawn().unwrap();
+    let socket = dir.join("s.sock");
+    let t0 = Instant::now();
+    while UnixStream::connect(&socket).is_err() {
+        assert!(t0.elapsed() < Duration::from_secs(30));
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let (mut idle, _) = Client::connect(&socket);
+    let (mut watcher, _) = Client::connect(&socket);
+    watcher.ok("events.subscribe", json!({}));
+    std::thread::sleep(Duration::from_millis(900));
+    let bye = idle.line();
+    assert!(bye["error"]["message"].as_str().unwrap().contains("idle_timeout_s"), "{bye}");
+    let mut rest = String::new();
+    assert_eq!(idle.r.read_line(&mut rest).unwrap(), 0, "the idle connection is closed");
+    assert_eq!(watcher.ok("status", json!({}))["state"], "idle", "the subscriber is still served");
+    let _ = child.kill();
+    let _ = child.wait();
+}

@@ -58,8 +58,11 @@ impl Auth {
         Err(AuthError::NoGroup(group.to_string()))
     }
 
-    /// May the peer `uid`/`gid` control scans?
-    pub fn may_control(&self, uid: u32, gid: u32) -> bool {
+    /// May the peer `uid`/`gid` control scans? `groups` are the peer's own supplementary
+    /// groups at connect time (`SO_PEERGROUPS`): a member added later gets in without a
+    /// restart, a process that dropped its groups does not. Where the kernel cannot tell
+    /// (None), the group file read at start decides.
+    pub fn may_control(&self, uid: u32, gid: u32, groups: Option<&[u32]>) -> bool {
         if uid == 0 || uid == self.daemon_uid {
             return true;
         }
@@ -67,7 +70,34 @@ impl Auth {
         if gid == *group_gid {
             return true;
         }
-        self.users.iter().any(|(u, name, primary)| *u == uid && (primary == group_gid || members.contains(name)))
+        match groups {
+            Some(g) => g.contains(group_gid),
+            None => self.users.iter().any(|(u, name, primary)| *u == uid && (primary == group_gid || members.contains(name))),
+        }
+    }
+}
+
+/// `SO_PEERGROUPS` (Linux ≥ 4.13; not in every libc binding).
+const SO_PEERGROUPS: libc::c_int = 59;
+
+/// The supplementary groups of the process at the other end of a Unix socket, as they were
+/// when it connected; None when the kernel does not say.
+pub fn peer_groups(fd: std::os::fd::RawFd) -> Option<Vec<u32>> {
+    let mut groups = vec![0 as libc::gid_t; 64];
+    loop {
+        let mut len = (groups.len() * std::mem::size_of::<libc::gid_t>()) as libc::socklen_t;
+        // SAFETY: the buffer holds `len` bytes; the kernel writes at most that and sets `len`.
+        let r = unsafe { libc::getsockopt(fd, libc::SOL_SOCKET, SO_PEERGROUPS, groups.as_mut_ptr().cast(), &mut len) };
+        if r == 0 {
+            groups.truncate(len as usize / std::mem::size_of::<libc::gid_t>());
+            return Some(groups);
+        }
+        // ERANGE: the buffer is too small; `len` says how much is needed.
+        if std::io::Error::last_os_error().raw_os_error() == Some(libc::ERANGE) && (len as usize) > groups.len() * std::mem::size_of::<libc::gid_t>() {
+            groups.resize(len as usize / std::mem::size_of::<libc::gid_t>() + 1, 0);
+            continue;
+        }
+        return None;
     }
 }
 
@@ -75,27 +105,31 @@ impl Auth {
 mod tests {
     use super::*;
 
-#[test]
-fn control_is_for_root_the_daemon_and_the_group() {
-    let dir = std::env::temp_dir().join(format!("spinscan-auth-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    std::fs::write(dir.join("group"), "root:x:0:\nspinscan:x:1500:alice,bob\nother:x:1600:\n").unwrap();
-    std::fs::write(dir.join("passwd"), "alice:x:2001:100::/:/bin/sh\ncarol:x:2003:1500::/:/bin/sh\nmallory:x:2004:1600::/:/bin/sh\n").unwrap();
-    let auth = Auth::from_files("spinscan", &dir.join("group"), &dir.join("passwd")).unwrap();
-    assert!(auth.may_control(0, 0), "root");
-    assert!(auth.may_control(auth.daemon_uid, 12345), "the daemon's user");
-    assert!(auth.may_control(2001, 100), "a listed member");
-    assert!(auth.may_control(2003, 1500), "primary group");
-    assert!(auth.may_control(2222, 1500), "peer gid is the group");
-    if auth.daemon_uid != 2004 {
-        assert!(!auth.may_control(2004, 1600), "not in the group");
+    #[test]
+    fn control_is_for_root_the_daemon_and_the_group() {
+        let dir = std::env::temp_dir().join(format!("spinscan-auth-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("group"), "root:x:0:\nspinscan:x:1500:alice,bob\nother:x:1600:\n").unwrap();
+        std::fs::write(dir.join("passwd"), "alice:x:2001:100::/:/bin/sh\ncarol:x:2003:1500::/:/bin/sh\nmallory:x:2004:1600::/:/bin/sh\n").unwrap();
+        let auth = Auth::from_files("spinscan", &dir.join("group"), &dir.join("passwd")).unwrap();
+        assert!(auth.may_control(0, 0, None), "root");
+        assert!(auth.may_control(auth.daemon_uid, 12345, None), "the daemon's user");
+        assert!(auth.may_control(2001, 100, None), "a listed member");
+        assert!(auth.may_control(2003, 1500, None), "primary group");
+        assert!(auth.may_control(2222, 1500, None), "peer gid is the group");
+        // The caller's own groups decide when the kernel gives them: one added to the group
+        // after the daemon started gets in, a listed member that dropped its groups does not.
+        assert!(auth.may_control(2004, 1600, Some(&[1600, 1500])), "a member added later");
+        assert!(!auth.may_control(2001, 100, Some(&[100])), "dropped its groups");
+        if auth.daemon_uid != 2004 {
+            assert!(!auth.may_control(2004, 1600, None), "not in the group");
+        }
+        let e = Auth::from_files("nosuch", &dir.join("group"), &dir.join("passwd")).unwrap_err().to_string();
+        assert!(e.contains("nosuch") && e.contains("groupadd"), "{e}");
+        let none = Auth::from_files("", &dir.join("group"), &dir.join("passwd")).unwrap();
+        if none.daemon_uid != 2001 {
+            assert!(!none.may_control(2001, 1500, None));
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
     }
-    let e = Auth::from_files("nosuch", &dir.join("group"), &dir.join("passwd")).unwrap_err().to_string();
-    assert!(e.contains("nosuch") && e.contains("groupadd"), "{e}");
-    let none = Auth::from_files("", &dir.join("group"), &dir.join("passwd")).unwrap();
-    if none.daemon_uid != 2001 {
-        assert!(!none.may_control(2001, 1500));
-    }
-    std::fs::remove_dir_all(&dir).unwrap();
-}
 }

@@ -20,6 +20,54 @@ impl From<&ControlError> for RpcError {
     }
 }
 
+/// Deserialises any JSON, failing on an object with a key twice (at any depth).
+struct NoDuplicateKeys;
+
+impl<'de> serde::Deserialize<'de> for NoDuplicateKeys {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Visit;
+        impl<'de> serde::de::Visitor<'de> for Visit {
+            type Value = NoDuplicateKeys;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("JSON")
+            }
+            fn visit_map<M: serde::de::MapAccess<'de>>(self, mut map: M) -> Result<NoDuplicateKeys, M::Error> {
+                let mut seen = std::collections::HashSet::new();
+                while let Some(key) = map.next_key::<String>()? {
+                    if !seen.insert(key.clone()) {
+                        return Err(serde::de::Error::custom(format!("key `{key}` appears twice")));
+                    }
+                    map.next_value::<NoDuplicateKeys>()?;
+                }
+                Ok(NoDuplicateKeys)
+            }
+            fn visit_seq<S: serde::de::SeqAccess<'de>>(self, mut seq: S) -> Result<NoDuplicateKeys, S::Error> {
+                while seq.next_element::<NoDuplicateKeys>()?.is_some() {}
+                Ok(NoDuplicateKeys)
+            }
+            fn visit_bool<E>(self, _: bool) -> Result<NoDuplicateKeys, E> {
+                Ok(NoDuplicateKeys)
+            }
+            fn visit_i64<E>(self, _: i64) -> Result<NoDuplicateKeys, E> {
+                Ok(NoDuplicateKeys)
+            }
+            fn visit_u64<E>(self, _: u64) -> Result<NoDuplicateKeys, E> {
+                Ok(NoDuplicateKeys)
+            }
+            fn visit_f64<E>(self, _: f64) -> Result<NoDuplicateKeys, E> {
+                Ok(NoDuplicateKeys)
+            }
+            fn visit_str<E>(self, _: &str) -> Result<NoDuplicateKeys, E> {
+                Ok(NoDuplicateKeys)
+            }
+            fn visit_unit<E>(self) -> Result<NoDuplicateKeys, E> {
+                Ok(NoDuplicateKeys)
+            }
+        }
+        d.deserialize_any(Visit)
+    }
+}
+
 /// A request as read from a line.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Request {
@@ -33,6 +81,10 @@ pub struct Request {
 #[allow(clippy::result_large_err)] // one per request line; the id must travel with the error
 pub fn parse_request(line: &str) -> Result<Request, (Value, ControlError)> {
     let v: Value = serde_json::from_str(line).map_err(|e| (Value::Null, ControlError::Parse(format!("not JSON: {e}; send one JSON-RPC 2.0 object per line"))))?;
+    // serde_json keeps the last of duplicate keys; a request that says two things is refused.
+    if let Err(e) = serde_json::from_str::<NoDuplicateKeys>(line) {
+        return Err((Value::Null, ControlError::InvalidRequest(format!("{e}; every key may appear once"))));
+    }
     let Value::Object(obj) = v else {
         return Err((Value::Null, ControlError::InvalidRequest("expected a JSON object like {\"jsonrpc\": \"2.0\", \"id\": 1, \"method\": \"status\"} (batches are not supported)".into())));
     };
@@ -134,6 +186,10 @@ mod tests {
         let r = parse_request(r#"{"jsonrpc":"2.0","id":1,"method":"scan.start","params":{"name":"a","stepdeg":2}}"#).unwrap();
         let e = Params::new(&r, &["name", "step_deg"]).err().unwrap();
         assert!(e.to_string().contains("`stepdeg`") && e.to_string().contains("step_deg"), "{e}");
+        // Two values for one key: refused, not silently the last.
+        let (_, e) = parse_request(r#"{"jsonrpc":"2.0","id":1,"method":"scan.start","params":{"name":"a","name":"b"}}"#).unwrap_err();
+        assert_eq!(e.code(), code::INVALID_REQUEST);
+        assert!(e.to_string().contains("`name` appears twice"), "{e}");
         let r = parse_request(r#"{"jsonrpc":"2.0","id":1,"method":"scan.start","params":{"name":3}}"#).unwrap();
         assert!(Params::new(&r, &["name"]).unwrap().str("name").unwrap_err().to_string().contains("must be a string"));
     }

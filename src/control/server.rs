@@ -57,7 +57,9 @@ pub fn bind(path: &Path, mode: u32, gid: Option<u32>) -> Result<UnixListener, Bi
     Ok(listener)
 }
 
-/// Accepts connections until `shutdown` fires.
+/// Accepts connections until `shutdown` fires. The last [`RESERVED_FOR_CONTROL`] slots of
+/// `daemon.max_clients` are kept for peers with control rights, so idle readers can never
+/// lock out the people who run scans.
 pub async fn serve(daemon: Arc<Daemon>, auth: Arc<Auth>, listener: UnixListener, mut shutdown: tokio::sync::watch::Receiver<bool>) {
     let clients = Arc::new(AtomicUsize::new(0));
     loop {
@@ -66,10 +68,15 @@ pub async fn serve(daemon: Arc<Daemon>, auth: Arc<Auth>, listener: UnixListener,
                 Ok((stream, _)) => {
                     let (d, a, c) = (daemon.clone(), auth.clone(), clients.clone());
                     tokio::spawn(async move {
-                        if c.fetch_add(1, Ordering::SeqCst) >= d.config.daemon.max_clients {
-                            let _ = refuse(stream, d.config.daemon.max_clients).await;
-                        } else if let Err(e) = connection(d, &a, stream).await {
-                            tracing::debug!("client connection ended: {e}");
+                        let peer = Peer::of(&stream, &a);
+                        let max = d.config.daemon.max_clients;
+                        let limit = if peer.as_ref().is_some_and(|p| p.may_control) { max } else { max - RESERVED_FOR_CONTROL.min(max / 4) };
+                        if c.fetch_add(1, Ordering::SeqCst) >= limit {
+                            let _ = refuse(stream, max).await;
+                        } else if let Some(peer) = peer {
+                            if let Err(e) = connection(d, peer, stream).await {
+                                tracing::debug!("client connection ended: {e}");
+                            }
                         }
                         c.fetch_sub(1, Ordering::SeqCst);
                     });
@@ -81,6 +88,28 @@ pub async fn serve(daemon: Arc<Daemon>, auth: Arc<Auth>, listener: UnixListener,
             },
             _ = shutdown.changed() => return,
         }
+    }
+}
+
+/// Connection slots held back for peers with control rights (at most a quarter of them).
+pub const RESERVED_FOR_CONTROL: usize = 4;
+
+/// Who is at the other end of a connection.
+struct Peer {
+    uid: u32,
+    pid: Option<i32>,
+    may_control: bool,
+}
+
+impl Peer {
+    /// The peer's credentials at connect time: uid and gid (`SO_PEERCRED`) and its own groups
+    /// (`SO_PEERGROUPS`).
+    fn of(stream: &UnixStream, auth: &Auth) -> Option<Peer> {
+        use std::os::fd::AsRawFd;
+        let cred = stream.peer_cred().ok()?;
+        let groups = super::auth::peer_groups(stream.as_raw_fd());
+        let may_control = auth.may_control(cred.uid(), cred.gid(), groups.as_deref());
+        Some(Peer { uid: cred.uid(), pid: cred.pid(), may_control })
     }
 }
 
@@ -134,11 +163,9 @@ fn finish(mut buf: Vec<u8>) -> Line {
     }
 }
 
-async fn connection(daemon: Arc<Daemon>, auth: &Auth, stream: UnixStream) -> std::io::Result<()> {
-    let cred = stream.peer_cred()?;
-    let (uid, gid, pid) = (cred.uid(), cred.gid(), cred.pid());
-    let may_control = auth.may_control(uid, gid);
-    tracing::debug!(uid, gid, ?pid, may_control, "client connected");
+async fn connection(daemon: Arc<Daemon>, peer: Peer, stream: UnixStream) -> std::io::Result<()> {
+    let Peer { uid, pid, may_control } = peer;
+    tracing::debug!(uid, ?pid, may_control, "client connected");
     let (read, mut write) = stream.into_split();
     let mut reader = BufReader::new(read);
     // Everything written goes through one channel: answers and forwarded events.
@@ -157,9 +184,25 @@ async fn connection(daemon: Arc<Daemon>, auth: &Auth, stream: UnixStream) -> std
     let hello = Hello { server: "spinscand".into(), version: env!("CARGO_PKG_VERSION").into(), protocol: PROTOCOL_VERSION, may_control };
     send(rpc::notification("hello", json!(hello))).await;
     let max = daemon.config.daemon.max_request_bytes;
+    let idle = std::time::Duration::from_secs_f64(daemon.config.daemon.idle_timeout_s);
     let mut forwarder: Option<tokio::task::JoinHandle<()>> = None;
     loop {
-        let line = match read_line(&mut reader, max).await? {
+        // A connection that says nothing for `daemon.idle_timeout_s` is closed, unless it
+        // subscribed to events (a `--watch` waits for them as long as a scan runs).
+        let read = read_line(&mut reader, max);
+        let next = if forwarder.is_some() {
+            read.await?
+        } else {
+            match tokio::time::timeout(idle, read).await {
+                Ok(r) => r?,
+                Err(_) => {
+                    let e = ControlError::InvalidRequest(format!("no request for {} s (daemon.idle_timeout_s); closing", idle.as_secs_f64()));
+                    send(rpc::error_response(&Value::Null, &e)).await;
+                    break;
+                }
+            }
+        };
+        let line = match next {
             Line::Eof => break,
             Line::TooLong => {
                 let e = ControlError::InvalidRequest(format!("request line longer than {max} bytes (daemon.max_request_bytes)"));

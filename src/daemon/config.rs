@@ -72,8 +72,11 @@ pub struct DaemonSection {
     pub state_dir: PathBuf,
     /// Longest request line accepted, bytes.
     pub max_request_bytes: usize,
-    /// Most clients connected at once.
+    /// Most clients connected at once (the last few kept for peers with control rights).
     pub max_clients: usize,
+    /// A connection that sends no request for this long is closed (event subscribers
+    /// excepted), seconds.
+    pub idle_timeout_s: f64,
     /// A scan whose pipeline makes no progress for this long is unhealthy (the systemd
     /// watchdog stops being fed), seconds.
     pub stall_s: f64,
@@ -88,6 +91,7 @@ impl Default for DaemonSection {
             state_dir: "/var/lib/spinscan/scans".into(),
             max_request_bytes: 65_536,
             max_clients: 32,
+            idle_timeout_s: 300.0,
             stall_s: 10.0,
         }
     }
@@ -334,10 +338,11 @@ impl Config {
         let c = &self.cameras;
         let t = &self.turntable;
         let s = &self.scan;
-        let checks: [(&'static str, Option<String>); 27] = [
+        let checks: [(&'static str, Option<String>); 28] = [
             ("daemon.max_request_bytes", whole(d.max_request_bytes as u64, 256, 16 << 20)),
             ("daemon.max_clients", whole(d.max_clients as u64, 1, 1024)),
             ("daemon.stall_s", real(d.stall_s, 0.5, 3600.0, false)),
+            ("daemon.idle_timeout_s", real(d.idle_timeout_s, 0.1, 86_400.0, false)),
             ("cameras.width", whole(c.width as u64, 32, 8192)),
             ("cameras.height", whole(c.height as u64, 32, 8192)),
             ("cameras.fps", whole(c.fps as u64, 1, 240)),
