@@ -507,3 +507,27 @@ fn idle_connections_are_closed() {
     let _ = child.kill();
     let _ = child.wait();
 }
+
+/// Hardening (issue 17), 3: a service that runs for months stays flat — twenty 45-view
+/// scans, and the daemon's resident memory after the last is within 10 % of after the second.
+#[test]
+fn memory_stays_flat_across_repeated_scans() {
+    let dir = support::temp_dir("daemon-rss");
+    let d = Daemon::start(&dir, "");
+    let (mut c, _) = Client::connect(&d.socket);
+    let rss = || -> f64 {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", d.child.id())).unwrap();
+        status.lines().find(|l| l.starts_with("VmRSS:")).unwrap().split_whitespace().nth(1).unwrap().parse::<f64>().unwrap() / 1024.0
+    };
+    let mut series = Vec::new();
+    for k in 0..20 {
+        c.ok("events.subscribe", json!({}));
+        c.ok("scan.start", json!({"name": format!("r{k}"), "step_deg": 8}));
+        let end = c.until_end(&format!("r{k}"));
+        assert_eq!(end["status"], "complete", "{end}");
+        series.push(rss());
+    }
+    let (second, last) = (series[1], series[19]);
+    assert!(last <= second * 1.10, "RSS after each scan, MiB: {series:?}");
+    eprintln!("RSS after each of 20 scans, MiB: {series:.0?}");
+}
