@@ -61,7 +61,7 @@ impl ControlError {
                 DaemonError::Busy(_) => code::BUSY,
                 DaemonError::Exists { .. } => code::EXISTS,
                 DaemonError::Devices(_) => code::DEVICE,
-                DaemonError::Create { .. } | DaemonError::StateDir { .. } | DaemonError::Locked(_) => code::INTERNAL,
+                DaemonError::Create { .. } | DaemonError::StateDir { .. } | DaemonError::Locked(_) | DaemonError::NoRoom { .. } => code::INTERNAL,
                 DaemonError::NoScan | DaemonError::NoSuchScan { .. } => code::NOT_FOUND,
             },
         }

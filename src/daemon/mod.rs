@@ -45,6 +45,8 @@ pub enum DaemonError {
     Create { path: PathBuf, source: std::io::Error },
     #[error("cannot use the state folder {path}: {source}")]
     StateDir { path: PathBuf, source: std::io::Error },
+    #[error("the state folder {path} has {free_mib} MiB free; a scan needs at least {need_mib} MiB to start")]
+    NoRoom { path: PathBuf, free_mib: u64, need_mib: u64 },
     #[error("another spinscand uses the state folder {0} (its lock file {0}/.spinscand.lock is held); stop it, or give this one another --state-dir")]
     Locked(PathBuf),
     #[error("no scan is running")]
@@ -103,6 +105,18 @@ pub mod exit {
     pub const CANT_CREATE: u8 = 73;
     /// Anything else.
     pub const SOFTWARE: u8 = 70;
+}
+
+/// Free space a scan needs to start: a few dozen views with their recording.
+const MIN_FREE_BYTES: u64 = 64 << 20;
+
+/// Bytes free for the daemon's user on the file system of `path` (None when it cannot say).
+fn free_bytes(path: &Path) -> Option<u64> {
+    use std::os::unix::ffi::OsStrExt;
+    let c = std::ffi::CString::new(path.as_os_str().as_bytes()).ok()?;
+    let mut st: libc::statvfs = unsafe { std::mem::zeroed() };
+    // SAFETY: a valid C string and a statvfs the call fills in.
+    (unsafe { libc::statvfs(c.as_ptr(), &mut st) } == 0).then(|| st.f_bavail as u64 * st.f_frsize as u64)
 }
 
 /// Takes the state folder's lock (`flock` on `.spinscand.lock`, released when the file
@@ -363,7 +377,18 @@ impl Daemon {
                 }
             }
         }
+        // Room for a scan's first views, and a folder that says what it is from the start:
+        // a scan that cannot even begin is refused here, not reported later as "unknown".
+        let state = &self.config.daemon.state_dir;
+        if let Some(free) = free_bytes(state).filter(|&f| f < MIN_FREE_BYTES) {
+            return Err(DaemonError::NoRoom { path: state.clone(), free_mib: free >> 20, need_mib: MIN_FREE_BYTES >> 20 });
+        }
         std::fs::create_dir_all(&dir).map_err(|source| DaemonError::Create { path: dir.clone(), source })?;
+        let first = json!({"format": 1, "status": "running", "frames": 0, "name": name, "mode": mode.name(), "total_deg": spec.total_deg, "written_by": format!("spinscan {}", env!("CARGO_PKG_VERSION"))});
+        if let Err(source) = crate::io::write_atomic(&dir.join("manifest.json"), first.to_string().as_bytes()) {
+            let _ = std::fs::remove_dir_all(&dir);
+            return Err(DaemonError::Create { path: dir, source });
+        }
         let mut devices = inner.devices.take().expect("opened above");
         let events = self.events.clone();
         let shared = Arc::new(ScanShared::new(spec.clone(), dir.clone(), Box::new(move |method, params| {

@@ -61,8 +61,12 @@ pub fn write_atomic(path: &Path, data: &[u8]) -> std::io::Result<()> {
     let mut tmp = path.as_os_str().to_owned();
     tmp.push(format!(".tmp-{}", std::process::id()));
     let tmp = PathBuf::from(tmp);
-    std::fs::write(&tmp, data)?;
-    std::fs::rename(&tmp, path)
+    let written = std::fs::write(&tmp, data).and_then(|()| std::fs::rename(&tmp, path));
+    if written.is_err() {
+        // A full disk or a failed rename leaves no half-written temp file behind.
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written
 }
 
 fn encode_png<P: image::PixelWithColorType>(path: &Path, img: &ImageBuffer<P, Vec<P::Subpixel>>) -> Result<(), ImageIoError>
@@ -185,6 +189,19 @@ pub fn disparity_false_color(disp: &DisparityMap, range: (f32, f32)) -> Vec<u8> 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_failed_atomic_write_leaves_no_temp_file() {
+        let dir = std::env::temp_dir().join(format!("spinscan-atomic-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        // The target is a non-empty folder: the rename fails after the temp file was written.
+        let target = dir.join("manifest.json");
+        std::fs::create_dir_all(target.join("inside")).unwrap();
+        assert!(write_atomic(&target, b"{}").is_err());
+        let left: Vec<_> = std::fs::read_dir(&dir).unwrap().flatten().map(|e| e.file_name()).collect();
+        assert_eq!(left, vec![std::ffi::OsString::from("manifest.json")], "no .tmp file left");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[test]
     fn pfm_and_png_round_trip_signed() {

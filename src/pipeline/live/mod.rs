@@ -44,7 +44,10 @@ use state::{Job, Note};
 pub fn run(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineSettings) -> ScanEnd {
     let end = run_scan(devices, shared.clone(), settings);
     let path = shared.dir.join("manifest.json");
-    if !path.exists() {
+    // Missing, or still saying `running` (the scan failed before its results were set up):
+    // the manifest tells how the scan ended.
+    let still_running = std::fs::read_to_string(&path).ok().and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok()).is_none_or(|m| m["status"] == "running");
+    if still_running {
         let spec = &shared.spec;
         let m = json!({
             "format": 1, "status": end.status, "reason": end.reason, "frames": 0,
@@ -151,9 +154,9 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
         Err(_) => (None, Err(ScanError::Panicked("registration thread"))),
     };
     let rec_result = recorder.map(|r| r.join().unwrap_or(Err(ScanError::Panicked("recorder")))).unwrap_or(Ok(()));
-    let (status, reason) = match (captured, rec_result, reg_result) {
-        (Err(e), _, _) | (_, Err(e), _) | (_, _, Err(e)) => ("failed", Some(e.to_string())),
-        (Ok(()), Ok(()), Ok(())) => match shared.stop_reason() {
+    let (status, reason) = match first_error(captured, rec_result, reg_result) {
+        Some(e) => ("failed", Some(e.to_string())),
+        None => match shared.stop_reason() {
             Some(why) => ("interrupted", Some(why)),
             None => ("complete", None),
         },
@@ -165,7 +168,38 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
     };
     match written {
         Ok(()) => ScanEnd { status, reason },
-        Err(e) => ScanEnd { status: "failed", reason: Some(format!("{}{e}", reason.map(|r| format!("{r}; then ")).unwrap_or_default())) },
+        Err(e) => {
+            let end = ScanEnd { status: "failed", reason: Some(format!("{}{e}", reason.map(|r| format!("{r}; then ")).unwrap_or_default())) };
+            // The results could not be finished (a full disk): the manifest must not stay
+            // `running`. A small rewrite in place reuses the file's own blocks.
+            write_manifest_in_place(&dir.join("manifest.json"), &end);
+            end
+        }
+    }
+}
+
+/// The error that caused the others: a stage that stopped because another failed ("the
+/// recorder stopped") gives way to that stage's own error (the disk that filled up).
+fn first_error(captured: Result<(), ScanError>, recorded: Result<(), ScanError>, registered: Result<(), ScanError>) -> Option<ScanError> {
+    let errors: Vec<ScanError> = [captured, recorded, registered].into_iter().filter_map(Result::err).collect();
+    let consequence = |e: &ScanError| matches!(e, ScanError::Stopped(_));
+    let mut errors = errors.into_iter();
+    let first = errors.next()?;
+    if consequence(&first) {
+        let rest: Vec<ScanError> = errors.collect();
+        return Some(rest.into_iter().find(|e| !consequence(e)).unwrap_or(first));
+    }
+    Some(first)
+}
+
+/// `{"status": "failed", "reason": …}` merged into the manifest, rewritten in place (no
+/// temporary file: there may be no room for one).
+fn write_manifest_in_place(path: &Path, end: &ScanEnd) {
+    let mut m: serde_json::Value = std::fs::read_to_string(path).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_else(|| json!({"format": 1}));
+    m["status"] = json!(end.status);
+    m["reason"] = json!(end.reason);
+    if let Err(e) = std::fs::write(path, m.to_string()) {
+        tracing::error!("cannot mark {} {}: {e}", path.display(), end.status);
     }
 }
 
@@ -356,6 +390,31 @@ mod tests {
         let angles: Vec<Option<f64>> = jobs_rx.try_iter().map(|j| j.frame.table_deg).collect();
         assert_eq!(angles, vec![Some(0.0), Some(400.0 / 8.889), Some(800.0 / 8.889)]);
         assert_eq!(released.load(std::sync::atomic::Ordering::SeqCst), 1);
+    }
+
+    /// Hardening (issue 17), 5: the disk that filled up is the reason, not "the recorder
+    /// stopped" that the capture saw as a consequence.
+    #[test]
+    fn the_cause_is_the_reason_not_its_consequence() {
+        let disk = || ScanError::Recording { seq: 7, source: crate::recording::RecordingError::Exists(PathBuf::from("/full/disk")) };
+        let e = first_error(Err(ScanError::Stopped("recorder")), Err(disk()), Ok(())).unwrap();
+        assert!(matches!(e, ScanError::Recording { seq: 7, .. }), "{e}");
+        let e = first_error(Err(ScanError::Stopped("matcher pool")), Ok(()), Ok(())).unwrap();
+        assert!(matches!(e, ScanError::Stopped(_)));
+        assert!(first_error(Ok(()), Ok(()), Ok(())).is_none());
+    }
+
+    /// A scan whose results cannot be finished leaves a manifest that says `failed`.
+    #[test]
+    fn an_unfinished_manifest_is_marked_failed_in_place() {
+        let dir = std::env::temp_dir().join(format!("spinscan-inplace-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("manifest.json");
+        std::fs::write(&path, r#"{"format": 1, "status": "running", "frames": 12}"#).unwrap();
+        write_manifest_in_place(&path, &ScanEnd { status: "failed", reason: Some("no space left on device".into()) });
+        let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        assert_eq!((m["status"].as_str(), m["frames"].as_u64(), m["reason"].as_str()), (Some("failed"), Some(12), Some("no space left on device")));
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
