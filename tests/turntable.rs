@@ -421,14 +421,10 @@ fn the_turntable_bench_command_talks_to_the_board() {
     let (code, off, _) = run(&["off"]);
     assert_eq!((code, off.unwrap()["motor"].as_str()), (Some(0), Some("off")));
     // A port that is not a board: a clear error, non-zero.
-    let (code, _, err) = run_missing();
-    assert_eq!(code, Some(6));
-    assert!(err.contains("cannot open turntable port"), "{err}");
-}
-
-fn run_missing() -> (Option<i32>, Option<serde_json::Value>, String) {
     let o = std::process::Command::new(env!("CARGO_BIN_EXE_spinscan")).args(["turntable", "--port", "/dev/spinscan-no-such-port", "status"]).output().unwrap();
-    (o.status.code(), None, String::from_utf8_lossy(&o.stderr).into_owned())
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(6));
+    assert!(err.contains("cannot open turntable port"), "{err}");
 }
 
 /// Risk 11: the udev example covers the boards labs have (Arduino on ttyACM, FTDI on ttyUSB)

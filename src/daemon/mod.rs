@@ -384,8 +384,7 @@ impl Daemon {
             return Err(DaemonError::NoRoom { path: state.clone(), free_mib: free >> 20, need_mib: MIN_FREE_BYTES >> 20 });
         }
         std::fs::create_dir_all(&dir).map_err(|source| DaemonError::Create { path: dir.clone(), source })?;
-        let first = json!({"format": 1, "status": "running", "frames": 0, "name": name, "mode": mode.name(), "total_deg": spec.total_deg, "written_by": format!("spinscan {}", env!("CARGO_PKG_VERSION"))});
-        if let Err(source) = crate::io::write_atomic(&dir.join("manifest.json"), first.to_string().as_bytes()) {
+        if let Err(source) = crate::io::write_atomic(&dir.join("manifest.json"), spec.manifest("running", None).to_string().as_bytes()) {
             let _ = std::fs::remove_dir_all(&dir);
             return Err(DaemonError::Create { path: dir, source });
         }

@@ -107,7 +107,7 @@ pub fn standardize(jpeg: &[u8]) -> Result<Cow<'_, [u8]>, MjpegError> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// A JPEG of a gradient, and the same with its DHT segments cut out (what a UVC camera
@@ -116,6 +116,12 @@ mod tests {
         let img = image::RgbImage::from_fn(32, 16, |x, y| image::Rgb([(x * 8) as u8, (y * 16) as u8, 90]));
         let mut jpeg = Vec::new();
         image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 85).encode_image(&img).unwrap();
+        let stripped = without_dht(&jpeg);
+        (jpeg, stripped)
+    }
+
+    /// `jpeg` with its DHT segments cut out.
+    pub(crate) fn without_dht(jpeg: &[u8]) -> Vec<u8> {
         let mut stripped = jpeg[..2].to_vec();
         let mut pos = 2;
         loop {
@@ -130,7 +136,7 @@ mod tests {
             }
             pos += 2 + len;
         }
-        (jpeg, stripped)
+        stripped
     }
 
     fn decode(bytes: &[u8]) -> Option<Vec<u8>> {

@@ -520,16 +520,7 @@ mod tests {
         assert!(matches!(to_picture(*b"YUYV", &[0u8; 100], 200, 16, 8), Err(FormatError::Overrun { .. })));
         assert_eq!(to_picture(*b"RGB3", &[0u8; 400], 400, 16, 8).unwrap_err().to_string(), "pixel format RGB3 is not supported (expected MJPG, YUYV or GREY)");
         // Risk 8: a UVC frame without Huffman tables is recorded with the standard ones.
-        let mut no_dht = jpeg[..2].to_vec();
-        let mut pos = 2;
-        while jpeg[pos + 1] != 0xDA {
-            let len = u16::from_be_bytes([jpeg[pos + 2], jpeg[pos + 3]]) as usize;
-            if jpeg[pos + 1] != 0xC4 {
-                no_dht.extend_from_slice(&jpeg[pos..pos + 2 + len]);
-            }
-            pos += 2 + len;
-        }
-        no_dht.extend_from_slice(&jpeg[pos..]);
+        let no_dht = crate::hw::mjpeg::tests::without_dht(&jpeg);
         let Picture::Jpeg { bytes } = to_picture(*b"MJPG", &no_dht, no_dht.len(), 16, 8).unwrap() else { panic!("kept as JPEG") };
         assert!(bytes.windows(2).any(|w| w == [0xFF, 0xC4]), "a DHT segment was inserted");
         assert_eq!(Picture::Jpeg { bytes }.to_rgb().unwrap().2, rgb, "and it decodes as the original");

@@ -48,12 +48,8 @@ pub fn run(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineSe
     // the manifest tells how the scan ended.
     let still_running = std::fs::read_to_string(&path).ok().and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok()).is_none_or(|m| m["status"] == "running");
     if still_running {
-        let spec = &shared.spec;
-        let m = json!({
-            "format": 1, "status": end.status, "reason": end.reason, "frames": 0,
-            "name": spec.name, "mode": spec.mode.name(), "total_deg": spec.total_deg,
-            "source": devices.source.describe(), "written_by": format!("spinscan {}", env!("CARGO_PKG_VERSION")),
-        });
+        let mut m = shared.spec.manifest(end.status, end.reason.as_deref());
+        m["source"] = json!(devices.source.describe());
         if let Err(e) = crate::io::write_atomic(&path, serde_json::to_string_pretty(&m).unwrap().as_bytes()) {
             tracing::error!("cannot write {}: {e}", path.display());
         }
@@ -182,14 +178,8 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
 /// recorder stopped") gives way to that stage's own error (the disk that filled up).
 fn first_error(captured: Result<(), ScanError>, recorded: Result<(), ScanError>, registered: Result<(), ScanError>) -> Option<ScanError> {
     let errors: Vec<ScanError> = [captured, recorded, registered].into_iter().filter_map(Result::err).collect();
-    let consequence = |e: &ScanError| matches!(e, ScanError::Stopped(_));
-    let mut errors = errors.into_iter();
-    let first = errors.next()?;
-    if consequence(&first) {
-        let rest: Vec<ScanError> = errors.collect();
-        return Some(rest.into_iter().find(|e| !consequence(e)).unwrap_or(first));
-    }
-    Some(first)
+    let cause = errors.iter().position(|e| !matches!(e, ScanError::Stopped(_))).unwrap_or(0);
+    errors.into_iter().nth(cause)
 }
 
 /// `{"status": "failed", "reason": …}` merged into the manifest, rewritten in place (no

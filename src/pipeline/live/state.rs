@@ -73,6 +73,19 @@ impl ScanSpec {
         Ok(())
     }
 
+    /// The manifest of a scan that has no results yet: what it is, how it stands, and why.
+    pub fn manifest(&self, status: &str, reason: Option<&str>) -> Value {
+        let mut m = json!({
+            "format": 1, "status": status, "frames": 0,
+            "name": self.name, "mode": self.mode.name(), "total_deg": self.total_deg,
+            "written_by": format!("spinscan {}", env!("CARGO_PKG_VERSION")),
+        });
+        if let Some(r) = reason {
+            m["reason"] = json!(r);
+        }
+        m
+    }
+
     /// Views of a step scan: a full turn (or more) does not capture its start twice; a
     /// partial arc includes both ends.
     pub fn step_views(&self) -> usize {
