@@ -91,6 +91,17 @@ fn main() {
                 let (min, med) = time(15, || stats = m.compute(lv, rv, &narrow, &mut o2).unwrap());
                 println!("{name:<34} {min:>9.2} {med:>9.2} {:>10.1}", stats.mean_search_px());
             }
+            // One disparity everywhere: the matcher's fixed per-pixel cost (the floor row of
+            // `bench table1`).
+            let mid = case.num_disparities as i32 / 2;
+            let one = DisparityIntervals::full(w, h, mid, mid);
+            let name = format!("{} one disparity t{threads}", case.name);
+            if filter.as_ref().is_none_or(|f| name.contains(f.as_str())) {
+                let mut stats = Default::default();
+                let mut o2 = DisparityMap::new(w, h);
+                let (min, med) = time(15, || stats = m.compute(lv, rv, &one, &mut o2).unwrap());
+                println!("{name:<34} {min:>9.2} {med:>9.2} {:>10.1}", stats.mean_search_px());
+            }
         }
     }
 }

@@ -41,11 +41,13 @@ use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
 use super::kernels;
 use super::params::ValidMatchParams;
 use super::speckle::SpeckleFilter;
-use rows::{column_bands, left_right_check, row_intervals, select_row, update_column_sums, update_texture};
+use rows::{column_bands, left_right_check, row_intervals, select_row, texture_row, tile_bands, update_column_sums, update_texture};
 use scratch::{Geometry, StripeInput, StripeScratch};
+use tiles::{TileSums, TILE_H, TILE_W};
 
 mod rows;
 mod scratch;
+mod tiles;
 #[cfg(test)]
 mod tests;
 
@@ -378,44 +380,73 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
     s.tex_col.resize(wp, 0);
     s.tex_row.resize(w, 0);
 
+    let tiles = w.div_ceil(TILE_W);
+    s.tile_cs.resize(tiles * (TILE_W + 2 * g.r) * n, 0);
+    s.tile_sums.clear();
+    s.tile_sums.resize(tiles, TileSums { lo: 1, hi: 0, row: usize::MAX });
+    // The narrow-band path needs AVX2 and whole blocks of disparities; a tile row takes it
+    // when its tiles' bands are narrow on average (the full range stays on the row path).
+    let tile_path_ok = AVX2 && tiles::supported(g);
+    let mut narrow = false;
+
     let mut stats = MatchStats::default();
-    let y0 = rows.start;
-    // Columns whose sums were brought down to the previous row (all others hold no band),
-    // and whether that previous row is the one just above.
+    let (y0, y_end) = (rows.start, rows.end);
+    // Columns whose sums (row path) were brought down to the previous row (all others hold
+    // no band), and the previous row with its span; whether the row path's column sums
+    // hold that row (not after a row of the narrow-band path).
     let mut live: Range<usize> = 0..0;
     let mut prev_row: Option<(usize, Range<usize>)> = None;
+    let mut row_sums_valid = false;
     for y in rows {
         std::mem::swap(&mut s.ilo, &mut s.prev_ilo);
         std::mem::swap(&mut s.ihi, &mut s.prev_ihi);
         let out_row = &mut out[(y - y0) * w..][..w];
+        if (y - y0) % TILE_H == 0 {
+            let mean_band = tile_bands(g, intervals, y..(y + TILE_H).min(y_end), &mut s.clip_lo, &mut s.clip_hi, &mut s.tile_lo, &mut s.tile_hi, &mut s.tile_px);
+            narrow = tile_path_ok && mean_band <= (n / 2) as f64;
+        }
         // Only the row's searched span is worked on: rows and columns of background cost
         // (almost) nothing.
-        let Some(span) = row_intervals(g, intervals, y, &mut s.tlo, &mut s.thi, &mut s.ilo, &mut s.ihi, &mut stats) else {
+        let Some(span) = row_intervals(g, (&s.clip_lo[(y - y0) % TILE_H * w..], &s.clip_hi[(y - y0) % TILE_H * w..]), (&s.tile_lo, &s.tile_hi), &mut s.tlo, &mut s.thi, &mut s.ilo, &mut s.ihi, &mut stats) else {
             out_row.fill(f32::NAN);
             continue;
         };
-        let cols = span.start..span.end + 2 * g.r;
         let first_row = prev_row.as_ref().is_none_or(|(py, _)| py + 1 != y);
-        // Columns leaving the live set (all of it after a gap) lose their band.
-        for xp in live.clone() {
-            if first_row || !cols.contains(&xp) {
-                s.band_lo[xp] = 1;
-                s.band_hi[xp] = 0;
-            }
-        }
-        live = cols.clone();
-        // A row whose span and ranges repeat the previous row's (always so with the full
-        // range) keeps the previous row's column bands.
-        let same = !first_row && prev_row.as_ref().is_some_and(|(_, ps)| *ps == span) && s.ilo[span.clone()] == s.prev_ilo[span.clone()] && s.ihi[span.clone()] == s.prev_ihi[span.clone()];
-        if !same {
-            let sub = Geometry { w: span.len(), wp: span.len() + 2 * g.r, ..g };
-            column_bands(sub, &s.ilo[span.clone()], &s.ihi[span.clone()], &mut s.need_lo[cols.clone()], &mut s.need_hi[cols.clone()], &mut s.band_tmp);
-        }
-        update_column_sums::<AVX2, AVX512>(g, lpf, rrev, y, first_row, cols, s);
         if p.texture_threshold > 0 {
             update_texture(g, lpf, y, first_row, p.prefilter_cap, &mut s.tex_col);
+            texture_row(g, s, span.clone());
         }
-        select_row::<AVX2, AVX512>(p, g, s, span.clone());
+        if narrow {
+            // SAFETY: `narrow` implies AVX2 (checked at dispatch) and `tiles::supported`;
+            // the stripe's buffers were sized above and this row's intervals and tile bands
+            // computed.
+            #[cfg(target_arch = "x86_64")]
+            unsafe {
+                tiles::tile_row(p, g, lpf, rrev, y, s, span.clone())
+            };
+            row_sums_valid = false;
+        } else {
+            let cols = span.start..span.end + 2 * g.r;
+            let fresh = first_row || !row_sums_valid;
+            // Columns leaving the live set (all of it after a gap) lose their band.
+            for xp in live.clone() {
+                if fresh || !cols.contains(&xp) {
+                    s.band_lo[xp] = 1;
+                    s.band_hi[xp] = 0;
+                }
+            }
+            live = cols.clone();
+            // A row whose span and ranges repeat the previous row's (always so with the full
+            // range) keeps the previous row's column bands.
+            let same = !fresh && prev_row.as_ref().is_some_and(|(_, ps)| *ps == span) && s.ilo[span.clone()] == s.prev_ilo[span.clone()] && s.ihi[span.clone()] == s.prev_ihi[span.clone()];
+            if !same {
+                let sub = Geometry { w: span.len(), wp: span.len() + 2 * g.r, ..g };
+                column_bands(sub, &s.ilo[span.clone()], &s.ihi[span.clone()], &mut s.need_lo[cols.clone()], &mut s.need_hi[cols.clone()], &mut s.band_tmp);
+            }
+            update_column_sums::<AVX2, AVX512>(g, lpf, rrev, y, fresh, cols, s);
+            select_row::<AVX2, AVX512>(p, g, s, span.clone());
+            row_sums_valid = true;
+        }
         let t0 = std::time::Instant::now();
         out_row[..span.start].fill(f32::NAN);
         out_row[span.end..].fill(f32::NAN);

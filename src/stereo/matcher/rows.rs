@@ -5,48 +5,115 @@
 use std::ops::Range;
 
 use super::scratch::{clamp_row, Geometry, StripeScratch, BLOCK, NARROW};
+use super::tiles::TILE_W;
 use crate::stereo::disparity::{DisparityIntervals, MatchStats};
 use crate::stereo::kernels::{self, absdiff, add_absdiff, add_into, first_index_of, min_into, min_u16, min_u16_away_from, slide_column, slide_row};
 use crate::stereo::params::ValidMatchParams;
 
-/// This row's intervals as disparity indices, clipped to the search range and to right
-/// pixels inside the image (`tlo..=thi`, what is searched), and the block-aligned ranges the
-/// sums are computed over (`ilo..=ihi`, see [`BLOCK`]); counts searched pixels and pairs.
-/// Returns the span from the first to the last searched pixel (None: nothing searched).
+/// Row `y`'s intervals as disparity indices, clipped to the search range and to right
+/// pixels inside the image, into `lo`/`hi` (`lo > hi`: nothing to search). Branch-free, so
+/// it vectorises.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-pub(super) fn row_intervals(g: Geometry, iv: &DisparityIntervals, y: usize, tlo: &mut [i32], thi: &mut [i32], ilo: &mut [i32], ihi: &mut [i32], stats: &mut MatchStats) -> Option<Range<usize>> {
+pub(super) fn clip_row(g: Geometry, iv: &DisparityIntervals, y: usize, lo: &mut [i32], hi: &mut [i32]) {
     let Geometry { w, n, dmin, .. } = g;
-    let (mut first, mut last) = (usize::MAX, 0);
     let (row_lo, row_hi) = (&iv.lo[y * w..][..w], &iv.hi[y * w..][..w]);
-    let (mut searched, mut evaluated) = (0usize, 0u64);
-    let block = BLOCK as i32;
+    let (lo, hi) = (&mut lo[..w], &mut hi[..w]);
     for x in 0..w {
-        let (mut lo, mut hi, mut clo, mut chi) = (1, 0, 1, 0);
-        let (dlo, dhi) = (row_lo[x] as i32, row_hi[x] as i32);
         // The right pixel x − d must lie inside the image: x − w + 1 ≤ d ≤ x.
         let kmin = (x as i32 - w as i32 + 1).max(dmin) - dmin;
         let kmax = (x as i32).min(dmin + n as i32 - 1) - dmin;
-        let (a, b) = (dlo - dmin, dhi - dmin);
-        if dlo <= dhi && a.max(kmin) <= b.min(kmax) {
-            (lo, hi) = (a.max(kmin), b.min(kmax));
-            // Whole blocks, so that neighbours with slightly different intervals share one
-            // range and slide instead of recomputing; not clipped to the image (the right
-            // rows are padded for that), so border pixels share their neighbours' blocks.
-            (clo, chi) = (lo - lo.rem_euclid(block), (hi - hi.rem_euclid(block) + block - 1).min(n as i32 - 1));
-            searched += 1;
-            evaluated += (hi - lo + 1) as u64;
-            first = first.min(x);
-            last = x;
-        }
-        tlo[x] = lo;
-        thi[x] = hi;
-        ilo[x] = clo;
-        ihi[x] = chi;
+        let (dlo, dhi) = (row_lo[x] as i32, row_hi[x] as i32);
+        let (a, b) = ((dlo - dmin).max(kmin), (dhi - dmin).min(kmax));
+        let ok = dlo <= dhi && a <= b;
+        lo[x] = if ok { a } else { 1 };
+        hi[x] = if ok { b } else { 0 };
     }
-    stats.searched += searched;
+}
+
+/// The clipped intervals of the tile row `rows` (into `clip_lo/hi`, row by row, `w` apart)
+/// and the band of each of its tiles: the union of its pixels' intervals, widened to whole
+/// blocks of [`BLOCK`] disparities (empty tiles get `lo > hi`). Returns the mean band width
+/// over the searched pixels (0: none).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize>, clip_lo: &mut Vec<i32>, clip_hi: &mut Vec<i32>, tile_lo: &mut Vec<i32>, tile_hi: &mut Vec<i32>, tile_px: &mut Vec<u32>) -> f64 {
+    let Geometry { w, n, .. } = g;
+    let tiles = w.div_ceil(TILE_W);
+    tile_lo.clear();
+    tile_lo.resize(tiles, i32::MAX);
+    tile_hi.clear();
+    tile_hi.resize(tiles, i32::MIN);
+    tile_px.clear();
+    tile_px.resize(tiles, 0);
+    clip_lo.resize(rows.len() * w, 1);
+    clip_hi.resize(rows.len() * w, 0);
+    for (i, y) in rows.enumerate() {
+        let (lo, hi) = (&mut clip_lo[i * w..][..w], &mut clip_hi[i * w..][..w]);
+        clip_row(g, iv, y, lo, hi);
+        for (t, (lo, hi)) in lo.chunks(TILE_W).zip(hi.chunks(TILE_W)).enumerate() {
+            // Branch-free min, max and count over the tile's searched pixels.
+            let (mut a, mut b, mut c) = (i32::MAX, i32::MIN, 0u32);
+            for (&l, &h) in lo.iter().zip(hi) {
+                let ok = l <= h;
+                a = a.min(if ok { l } else { i32::MAX });
+                b = b.max(if ok { h } else { i32::MIN });
+                c += ok as u32;
+            }
+            tile_lo[t] = tile_lo[t].min(a);
+            tile_hi[t] = tile_hi[t].max(b);
+            tile_px[t] += c;
+        }
+    }
+    let block = BLOCK as i32;
+    let (mut pairs, mut pixels) = (0u64, 0u64);
+    for ((lo, hi), &px) in tile_lo.iter_mut().zip(tile_hi.iter_mut()).zip(tile_px.iter()) {
+        if *lo <= *hi {
+            // Whole blocks; not clipped to the image (the right rows are padded for that),
+            // so border pixels share their neighbours' blocks.
+            (*lo, *hi) = (*lo - lo.rem_euclid(block), (*hi - hi.rem_euclid(block) + block - 1).min(n as i32 - 1));
+            pairs += (*hi - *lo + 1) as u64 * px as u64;
+            pixels += px as u64;
+        } else {
+            (*lo, *hi) = (1, 0);
+        }
+    }
+    if pixels == 0 {
+        0.0
+    } else {
+        pairs as f64 / pixels as f64
+    }
+}
+
+/// This row's clipped intervals (`lo`/`hi`, from [`tile_bands`]) into `tlo..=thi`, what is
+/// searched, and the ranges the sums are computed over (`ilo..=ihi`: the pixel's tile
+/// band); counts searched pixels and pairs. Returns the span from the first to the last
+/// searched pixel (None: nothing searched).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+pub(super) fn row_intervals(g: Geometry, clipped: (&[i32], &[i32]), bands: (&[i32], &[i32]), tlo: &mut [i32], thi: &mut [i32], ilo: &mut [i32], ihi: &mut [i32], stats: &mut MatchStats) -> Option<Range<usize>> {
+    let w = g.w;
+    let (lo, hi) = (&clipped.0[..w], &clipped.1[..w]);
+    let first = lo.iter().zip(hi).position(|(a, b)| a <= b)?;
+    let last = w - 1 - lo.iter().zip(hi).rev().position(|(a, b)| a <= b).expect("one exists");
+    tlo[..w].copy_from_slice(lo);
+    thi[..w].copy_from_slice(hi);
+    let (mut searched, mut evaluated) = (0u64, 0u64);
+    for (&a, &b) in lo.iter().zip(hi) {
+        let ok = a <= b;
+        searched += ok as u64;
+        evaluated += if ok { (b - a + 1) as u64 } else { 0 };
+    }
+    for (t, ((il, ih), (l, h))) in ilo[..w].chunks_mut(TILE_W).zip(ihi[..w].chunks_mut(TILE_W)).zip(lo.chunks(TILE_W).zip(hi.chunks(TILE_W))).enumerate() {
+        let (bl, bh) = (bands.0[t], bands.1[t]);
+        for i in 0..il.len() {
+            let ok = l[i] <= h[i];
+            il[i] = if ok { bl } else { 1 };
+            ih[i] = if ok { bh } else { 0 };
+        }
+    }
+    stats.searched += searched as usize;
     stats.evaluated += evaluated;
-    (first <= last).then(|| first..last + 1)
+    Some(first..last + 1)
 }
 
 /// For each padded column, the union of the intervals of the pixels whose window covers it:
@@ -248,23 +315,25 @@ pub(super) fn update_texture(g: Geometry, lpf: &[u8], y: usize, first_row: bool,
     }
 }
 
+/// Window texture of every pixel of the span: the column sums slid along the row.
+#[inline(always)]
+pub(super) fn texture_row(g: Geometry, s: &mut StripeScratch, span: Range<usize>) {
+    let b = 2 * g.r + 1;
+    let mut tex: u32 = s.tex_col[span.start..span.start + b].iter().sum();
+    s.tex_row[span.start] = tex;
+    for x in span.start + 1..span.end {
+        tex = tex + s.tex_col[x + b - 1] - s.tex_col[x - 1];
+        s.tex_row[x] = tex;
+    }
+}
+
 /// Window sums, winner-take-all, texture and uniqueness tests, sub-pixel fit, and the
 /// right-image minima for the left–right check.
 #[inline(always)]
 pub(super) fn select_row<const AVX2: bool, const AVX512: bool>(p: &ValidMatchParams, g: Geometry, s: &mut StripeScratch, span: Range<usize>) {
-    let Geometry { w, r, n, .. } = g;
-    let b = 2 * r + 1;
+    let Geometry { w, n, .. } = g;
     // The right pixels this span's pairs land on: entries w − 1 − x + k.
     s.right_min[w - span.end..w - span.start + n].fill(u16::MAX);
-    if p.texture_threshold > 0 {
-        // Window texture of every pixel of the span: the column sums slid along the row.
-        let mut tex: u32 = s.tex_col[span.start..span.start + b].iter().sum();
-        s.tex_row[span.start] = tex;
-        for x in span.start + 1..span.end {
-            tex = tex + s.tex_col[x + b - 1] - s.tex_col[x - 1];
-            s.tex_row[x] = tex;
-        }
-    }
     let (mut x, xe) = (span.start, span.end);
     while x < xe {
         let (lo, hi) = (s.ilo[x], s.ihi[x]);

@@ -131,6 +131,20 @@ pub(super) struct StripeScratch {
     pub(super) band_tmp: Vec<i32>,
     pub(super) prev_ilo: Vec<i32>,
     pub(super) prev_ihi: Vec<i32>,
+    /// The bands of the current tile row's tiles.
+    pub(super) tile_lo: Vec<i32>,
+    pub(super) tile_hi: Vec<i32>,
+    /// The clipped intervals of the current tile row's rows, `w` apart.
+    pub(super) clip_lo: Vec<i32>,
+    pub(super) clip_hi: Vec<i32>,
+    /// Searched pixels per tile of the current tile row.
+    pub(super) tile_px: Vec<u32>,
+    /// The narrow-band path's vertical window sums: per tile, its columns and their halo
+    /// (`TILE_W + 2r`), `n` entries each (only the tile's band is used).
+    pub(super) tile_cs: AlignedBuf,
+    pub(super) tile_sums: Vec<super::tiles::TileSums>,
+    /// The narrow-band path's copies of the right-row minima (see `tiles::tile_row`).
+    pub(super) tile_right: Vec<u16>,
 }
 
 

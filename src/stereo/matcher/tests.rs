@@ -155,6 +155,53 @@ fn portable_and_simd_paths_agree() {
 }
 
 #[test]
+fn narrow_band_tiles_agree_with_the_row_path() {
+    // Intervals of random width around a slanted surface, some pixels unsearched, a few
+    // with the full range, rows left empty (tile sums must be summed afresh after them),
+    // tiles whose band changes from one tile row to the next: the narrow-band path
+    // (`tiles.rs`, taken by the AVX2 copy when the tiles' bands are narrow) must give
+    // exactly what the row path gives.
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        let mut state = 99u32;
+        let mut rand = move |m: u32| {
+            state = state.wrapping_mul(1664525).wrapping_add(1013904223);
+            (state >> 8) % m
+        };
+        for (n, min_disparity, block, threads) in [(128u32, 0, 9, 1), (64, 0, 5, 2), (128, -20, 11, 1)] {
+            let (w, h) = (230, 70);
+            // The shift grows down the image, so tile bands change between tile rows.
+            let (l, r) = shifted_pair(w, h, |_, y| 25 + y / 12);
+            let (lv, rv) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap());
+            let p = MatchParams { num_disparities: n, min_disparity, block, threads, speckle_window: 0, ..Default::default() }.validate().unwrap();
+            let mut m = StereoMatcher::new(p);
+            let mut iv = DisparityIntervals::full(w, h, 0, 0);
+            for y in 0..h {
+                for x in 0..w {
+                    let d = 25 + (y / 12) as i32;
+                    let searched = !(20..23).contains(&y) && rand(9) != 0 && !(y > 40 && x > 150 && x < 190);
+                    let range = match rand(4000) {
+                        0 => (min_disparity, min_disparity + n as i32 - 1),
+                        _ => (d - 1 - rand(6) as i32, d + 1 + rand(6) as i32),
+                    };
+                    iv.set(x, y, searched.then_some(range));
+                }
+            }
+            let rows = run_path::<false, false>(&mut m, lv, rv, &iv);
+            let tiles = run_path::<true, false>(&mut m, lv, rv, &iv);
+            let differ = rows.iter().zip(&tiles).filter(|(a, b)| !(a == b || (a.is_nan() && b.is_nan()))).count();
+            assert_eq!(differ, 0, "n = {n}, min {min_disparity}, block {block}");
+            let good = rows.iter().enumerate().filter(|(i, v)| (*v - (25 + i / w / 12) as f32).abs() < 1.0).count();
+            assert!(good > w * h / 2, "n = {n}: {good} pixels right");
+            // And through `compute`: stripes (their own tile grids) and the crop change nothing.
+            let mut out = DisparityMap::new(w, h);
+            m.compute(lv, rv, &iv, &mut out).unwrap();
+            assert!(out.values().iter().zip(&rows).all(|(a, b)| a == b || (a.is_nan() && b.is_nan())), "compute differs, n = {n}");
+        }
+    }
+}
+
+#[test]
 fn matching_the_crop_gives_what_matching_the_whole_image_gives() {
     let (w, h) = (200, 90);
     let (l, r) = shifted_pair(w, h, |x, y| 20 + (x + 2 * y) / 30);
