@@ -40,38 +40,34 @@ impl Assistant {
         let (a_m, b_v, scale) = (a_m.cast::<f32>(), b_v.cast::<f32>(), scale as f32);
         let (cx, cy, dcx) = (cam.cx as f32, cam.cy as f32, cam.dcx as f32);
         let (ifx, ify, inv_mtx) = (1.0 / cam.fx as f32, 1.0 / cam.fy as f32, -1.0 / cam.tx as f32);
+        let prev_fg = |i: usize| prev.mask.as_ref().is_none_or(|m| m[i] != 0);
+        self.union_needed.resize(w * h, 0);
+        let union_needed = &mut self.union_needed;
+        let mut any_union = false;
         for y in region.ys() {
             let v = (y as f32 - cy) * ify;
             // A·(u, v, 1) = A·(0, v, 1) + u·A[:, 0].
             let base = a_m * Vector3::new(0.0, v, 1.0);
             let col0 = a_m.column(0).into_owned();
+            let mrow = mask.map(|m| &m[y * w..(y + 1) * w]);
             for x in region.xs() {
                 let i = y * w + x;
                 let inv_z = (prev_d[i] - dcx) * inv_mtx;
                 // NaN (no disparity) and points behind the camera fail here.
-                if !(inv_z > 0.0) {
-                    rho[i] = f32::NAN;
-                    continue;
-                }
-                let u = (x as f32 - cx) * ifx;
-                let r = (base + col0 * u + b_v * inv_z).norm();
-                rho[i] = (scale * r).min(max_radius).max(min_half);
-                max_rho = max_rho.max(rho[i]);
-            }
-        }
-        let prev_fg = |i: usize| prev.mask.as_ref().is_none_or(|m| m[i] != 0);
-        // Case 1: a single circle around the previous correspondence.
-        self.union_needed.resize(w * h, 0);
-        let union_needed = &mut self.union_needed;
-        let mut any_union = false;
-        for y in region.ys() {
-            for x in region.xs() {
-                let i = y * w + x;
+                let r = if inv_z > 0.0 {
+                    let u = (x as f32 - cx) * ifx;
+                    let r = (scale * (base + col0 * u + b_v * inv_z).norm()).min(max_radius).max(min_half);
+                    max_rho = max_rho.max(r);
+                    r
+                } else {
+                    f32::NAN
+                };
+                rho[i] = r;
                 union_needed[i] = 0;
-                if mask.is_some_and(|m| m[i] == 0) {
+                if mrow.is_some_and(|m| m[x] == 0) {
                     continue;
                 }
-                let r = rho[i];
+                // Case 1: a single circle around the previous correspondence.
                 if r.is_finite() && prev_fg(i) {
                     let d = prev_d[i];
                     lo[i] = d - r;
