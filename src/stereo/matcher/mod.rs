@@ -19,12 +19,13 @@
 //! - per pixel, the window cost `SAD(x, d) = Σ CS(x−r … x+r, d)` is slid from pixel `x−1` where
 //!   their intervals overlap, summed from scratch elsewhere.
 //!
-//! Sums are computed over each tile's band: the union of its pixels' searched intervals in
-//! whole blocks of [`BLOCK`] disparities (clipped to the valid range; tiles of
-//! [`TILE_W`] × [`TILE_H`]), so that neighbours with slightly different narrow intervals share
-//! a range and slide; the work is proportional to the tiles' band widths. Runs of pixels and
-//! columns sharing one range go through tight AVX2 loops; tile rows with narrow bands take
-//! the narrow-band path (`tiles.rs`), which gives the same results.
+//! Sums are computed over whole blocks of [`BLOCK`] disparities around each searched interval
+//! (clipped to the valid range), so that neighbours with slightly different narrow intervals
+//! share a range and slide; the work is proportional to the summed interval widths rounded up
+//! to blocks. Runs of pixels and columns sharing one range go through tight AVX2 loops. Tile
+//! rows ([`TILE_W`] × [`TILE_H`] tiles) whose bands — the union of a tile's intervals in
+//! whole blocks — are narrow take the narrow-band path (`tiles.rs`), which gives the same
+//! results.
 //!
 //! # The left–right check with left intervals only
 //! The right image gets no intervals of its own: the candidate set of a right pixel `x_r` is
@@ -409,7 +410,7 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         }
         // Only the row's searched span is worked on: rows and columns of background cost
         // (almost) nothing.
-        let Some(span) = row_intervals(g, (&s.clip_lo[(y - y0) % TILE_H * w..], &s.clip_hi[(y - y0) % TILE_H * w..]), (&s.tile_lo, &s.tile_hi), &mut s.tlo, &mut s.thi, &mut s.ilo, &mut s.ihi, &mut stats) else {
+        let Some(span) = row_intervals(g, (&s.clip_lo[(y - y0) % TILE_H * w..], &s.clip_hi[(y - y0) % TILE_H * w..]), &mut s.tlo, &mut s.thi, &mut s.ilo, &mut s.ihi, &mut stats) else {
             out_row.fill(f32::NAN);
             continue;
         };

@@ -85,31 +85,30 @@ pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize
 }
 
 /// This row's clipped intervals (`lo`/`hi`, from [`tile_bands`]) into `tlo..=thi`, what is
-/// searched, and the ranges the sums are computed over (`ilo..=ihi`: the pixel's tile
-/// band); counts searched pixels and pairs. Returns the span from the first to the last
+/// searched, and the block-aligned ranges the row path computes sums over (`ilo..=ihi`, see
+/// [`BLOCK`]); counts searched pixels and pairs. Returns the span from the first to the last
 /// searched pixel (None: nothing searched).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn row_intervals(g: Geometry, clipped: (&[i32], &[i32]), bands: (&[i32], &[i32]), tlo: &mut [i32], thi: &mut [i32], ilo: &mut [i32], ihi: &mut [i32], stats: &mut MatchStats) -> Option<Range<usize>> {
-    let w = g.w;
+pub(super) fn row_intervals(g: Geometry, clipped: (&[i32], &[i32]), tlo: &mut [i32], thi: &mut [i32], ilo: &mut [i32], ihi: &mut [i32], stats: &mut MatchStats) -> Option<Range<usize>> {
+    let Geometry { w, n, .. } = g;
     let (lo, hi) = (&clipped.0[..w], &clipped.1[..w]);
     let first = lo.iter().zip(hi).position(|(a, b)| a <= b)?;
     let last = w - 1 - lo.iter().zip(hi).rev().position(|(a, b)| a <= b).expect("one exists");
     tlo[..w].copy_from_slice(lo);
     thi[..w].copy_from_slice(hi);
     let (mut searched, mut evaluated) = (0u64, 0u64);
-    for (&a, &b) in lo.iter().zip(hi) {
+    let block = BLOCK as i32;
+    for x in 0..w {
+        let (a, b) = (lo[x], hi[x]);
         let ok = a <= b;
         searched += ok as u64;
         evaluated += if ok { (b - a + 1) as u64 } else { 0 };
-    }
-    for (t, ((il, ih), (l, h))) in ilo[..w].chunks_mut(TILE_W).zip(ihi[..w].chunks_mut(TILE_W)).zip(lo.chunks(TILE_W).zip(hi.chunks(TILE_W))).enumerate() {
-        let (bl, bh) = (bands.0[t], bands.1[t]);
-        for i in 0..il.len() {
-            let ok = l[i] <= h[i];
-            il[i] = if ok { bl } else { 1 };
-            ih[i] = if ok { bh } else { 0 };
-        }
+        // Whole blocks, so that neighbours with slightly different intervals share one
+        // range and slide instead of recomputing; not clipped to the image (the right rows
+        // are padded for that), so border pixels share their neighbours' blocks.
+        ilo[x] = if ok { a - a.rem_euclid(block) } else { 1 };
+        ihi[x] = if ok { (b - b.rem_euclid(block) + block - 1).min(n as i32 - 1) } else { 0 };
     }
     stats.searched += searched as usize;
     stats.evaluated += evaluated;
