@@ -45,8 +45,7 @@ use super::kernels;
 use super::params::ValidMatchParams;
 use super::speckle::SpeckleFilter;
 use rows::{column_bands, left_right_check, row_intervals, select_row, texture_row, tile_bands, update_column_sums, update_texture};
-use scratch::{Geometry, StripeInput, StripeScratch};
-use tiles::{TileSums, TILE_H, TILE_W};
+use scratch::{Geometry, StripeInput, StripeScratch, TileSums, TILE_H, TILE_W};
 
 mod rows;
 mod scratch;

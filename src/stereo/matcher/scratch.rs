@@ -13,6 +13,20 @@ pub(super) const NARROW: usize = 8;
 /// recomputing window sums from scratch at every shift.
 pub(super) const BLOCK: usize = 16;
 
+/// Tile width, pixels.
+pub(super) const TILE_W: usize = 32;
+/// Tile height, rows.
+pub(super) const TILE_H: usize = 16;
+
+/// Where a tile's window sums stand: its band `lo..=hi` and the row they are valid for.
+#[derive(Clone, Copy, PartialEq, Default)]
+pub(super) struct TileSums {
+    pub(super) lo: i32,
+    pub(super) hi: i32,
+    /// The row the sums hold (usize::MAX: none).
+    pub(super) row: usize,
+}
+
 /// Sizes shared by every stripe of one call.
 #[derive(Clone, Copy)]
 pub(super) struct Geometry {
@@ -142,7 +156,7 @@ pub(super) struct StripeScratch {
     /// The narrow-band path's vertical window sums: per tile, its columns and their halo
     /// (`TILE_W + 2r`), `n` entries each (only the tile's band is used).
     pub(super) tile_cs: AlignedBuf,
-    pub(super) tile_sums: Vec<super::tiles::TileSums>,
+    pub(super) tile_sums: Vec<TileSums>,
     /// The narrow-band path's copies of the right-row minima (see `tiles::tile_row`).
     pub(super) tile_right: Vec<u16>,
 }

@@ -16,25 +16,11 @@
 use std::ops::Range;
 
 use super::rows::{decide_at, right_start};
-use super::scratch::{clamp_row, Geometry, StripeScratch};
+use super::scratch::{clamp_row, Geometry, StripeScratch, TileSums, TILE_W};
 use crate::stereo::params::ValidMatchParams;
 
-/// Tile width, pixels.
-pub(super) const TILE_W: usize = 32;
 /// Copies of the right row's minima the pixels of a row take turns at.
 const RIGHT_COPIES: usize = 4;
-
-/// Tile height, rows.
-pub(super) const TILE_H: usize = 16;
-
-/// Where a tile's window sums stand: its band `lo..=hi` and the row they are valid for.
-#[derive(Clone, Copy, PartialEq, Default)]
-pub(super) struct TileSums {
-    pub(super) lo: i32,
-    pub(super) hi: i32,
-    /// The row the sums hold (usize::MAX: none).
-    pub(super) row: usize,
-}
 
 /// Whether the tile path can run with these sizes: whole blocks of 16 disparities, at most
 /// [`MAX_BLOCKS`] of them.
