@@ -378,9 +378,12 @@ impl Assistant {
         self.region = region;
         self.lo.resize(w * h, f32::INFINITY);
         self.hi.resize(w * h, f32::NEG_INFINITY);
-        for y in region.ys() {
-            self.lo[y * w + region.x0..y * w + region.x1].fill(f32::INFINITY);
-            self.hi[y * w + region.x0..y * w + region.x1].fill(f32::NEG_INFINITY);
+        if self.params.mode == AssistMode::Predicted {
+            // (`paper` writes every pixel of the region itself.)
+            for y in region.ys() {
+                self.lo[y * w + region.x0..y * w + region.x1].fill(f32::INFINITY);
+                self.hi[y * w + region.x0..y * w + region.x1].fill(f32::NEG_INFINITY);
+            }
         }
         match self.params.mode {
             AssistMode::Paper { w: weight } => self.splat_paper(weight, gap, plan.lag, mask, &mut plan),
@@ -409,35 +412,39 @@ impl Assistant {
         };
         let (r0, r1) = (range.0 as f32, range.1 as f32);
         let mut holes = Vec::new();
+        let all = vec![1u8; w];
+        let xs = region.xs();
         for y in region.ys() {
             let (out_lo, out_hi) = iv.row_mut(y);
             let row = y * w;
-            let mrow = mask.map(|m| &m[row..row + w]);
-            for x in region.xs() {
-                let i = row + x;
-                if mrow.is_some_and(|m| m[x] == 0) {
-                    continue;
-                }
-                // Clipped, then rounded outwards (the range's ends are whole, so the order does
-                // not matter); nothing reached (lo = +∞, hi = −∞) fails `a <= b`.
-                let (a, b) = (lo[i].max(r0), hi[i].min(r1));
-                if a <= b {
-                    let (ta, tb) = (a as i32, b as i32);
-                    out_lo[x] = (ta - (ta as f32 > a) as i32) as i16;
-                    out_hi[x] = (tb + ((tb as f32) < b) as i32) as i16;
-                } else {
-                    holes.push((x, y));
-                }
+            let mrow = &mask.map_or(&all[..], |m| &m[row..row + w])[xs.clone()];
+            let (lo_row, hi_row) = (&lo[row + xs.start..row + xs.end], &hi[row + xs.start..row + xs.end]);
+            let (out_lo, out_hi) = (&mut out_lo[xs.clone()], &mut out_hi[xs.clone()]);
+            // Clipped, then rounded outwards (the range's ends are whole, so the order does not
+            // matter); nothing reached (lo = +∞, hi = −∞) fails `a <= b`. Branch-free, so it
+            // vectorises; the rare holes are collected after.
+            let mut row_holes = 0usize;
+            for k in 0..mrow.len() {
+                let here = mrow[k] != 0;
+                let (a, b) = (lo_row[k].max(r0), hi_row[k].min(r1));
+                let reached = a <= b;
+                let (ta, tb) = (a as i32, b as i32);
+                out_lo[k] = if here & reached { (ta - (ta as f32 > a) as i32) as i16 } else { 1 };
+                out_hi[k] = if here & reached { (tb + ((tb as f32) < b) as i32) as i16 } else { 0 };
+                row_holes += (here & !reached) as usize;
+            }
+            if row_holes > 0 {
+                holes.extend((0..mrow.len()).filter(|&k| mrow[k] != 0 && !(lo_row[k].max(r0) <= hi_row[k].min(r1))).map(|k| (xs.start + k, y)));
             }
         }
         for (x, y) in holes {
             let (mut a, mut b) = (f32::INFINITY, f32::NEG_INFINITY);
+            let xs = x.saturating_sub(FILL).max(region.x0)..(x + FILL + 1).min(region.x1);
             for yy in y.saturating_sub(FILL).max(region.y0)..(y + FILL + 1).min(region.y1) {
                 let row = yy * w;
-                for xx in x.saturating_sub(FILL).max(region.x0)..(x + FILL + 1).min(region.x1) {
-                    a = a.min(lo[row + xx]);
-                    b = b.max(hi[row + xx]);
-                }
+                // (The bounds are never NaN.)
+                a = lo[row + xs.start..row + xs.end].iter().fold(a, |m, &v| if v < m { v } else { m });
+                b = hi[row + xs.start..row + xs.end].iter().fold(b, |m, &v| if v > m { v } else { m });
             }
             match (a <= b).then(|| interval(range, a - MARGIN, b + MARGIN)).flatten() {
                 Some(r) => {

@@ -60,8 +60,8 @@ impl Region {
     pub(super) fn bbox<T>(values: &[T], w: usize, keep: impl Fn(&T) -> bool) -> Option<Region> {
         let mut r: Option<Region> = None;
         for (y, row) in values.chunks_exact(w).enumerate() {
-            let Some(first) = row.iter().position(&keep) else { continue };
-            let last = w - row.iter().rev().position(&keep).expect("one exists");
+            let Some(first) = row.iter().position(|v| keep(v)) else { continue };
+            let last = w - row.iter().rev().position(|v| keep(v)).expect("one exists");
             r = Some(match r {
                 None => Region { x0: first, x1: last, y0: y, y1: y + 1 },
                 Some(r) => Region { x0: r.x0.min(first), x1: r.x1.max(last), y0: r.y0, y1: y + 1 },

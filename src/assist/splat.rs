@@ -40,44 +40,53 @@ impl Assistant {
         let (a_m, b_v, scale) = (a_m.cast::<f32>(), b_v.cast::<f32>(), scale as f32);
         let (cx, cy, dcx) = (cam.cx as f32, cam.cy as f32, cam.dcx as f32);
         let (ifx, ify, inv_mtx) = (1.0 / cam.fx as f32, 1.0 / cam.fy as f32, -1.0 / cam.tx as f32);
-        let prev_fg = |i: usize| prev.mask.as_ref().is_none_or(|m| m[i] != 0);
         self.union_needed.resize(w * h, 0);
         let union_needed = &mut self.union_needed;
         let mut any_union = false;
+        let (a00, a10, a20) = (a_m[(0, 0)], a_m[(1, 0)], a_m[(2, 0)]);
+        // Stands in for a missing mask; the column's ray once per column, exactly as per pixel.
+        let all = vec![1u8; region.x1 - region.x0];
+        let u_col: Vec<f32> = region.xs().map(|x| (x as f32 - cx) * ifx).collect();
+        let (bx, by, bz) = (b_v.x, b_v.y, b_v.z);
         for y in region.ys() {
             let v = (y as f32 - cy) * ify;
             // A·(u, v, 1) = A·(0, v, 1) + u·A[:, 0].
             let base = a_m * Vector3::new(0.0, v, 1.0);
-            let col0 = a_m.column(0).into_owned();
-            let mrow = mask.map(|m| &m[y * w..(y + 1) * w]);
-            for x in region.xs() {
-                let i = y * w + x;
-                let inv_z = (prev_d[i] - dcx) * inv_mtx;
-                // NaN (no disparity) and points behind the camera fail here.
-                let r = if inv_z > 0.0 {
-                    let u = (x as f32 - cx) * ifx;
-                    let r = (scale * (base + col0 * u + b_v * inv_z).norm()).min(max_radius).max(min_half);
-                    max_rho = max_rho.max(r);
-                    r
-                } else {
-                    f32::NAN
-                };
-                rho[i] = r;
-                union_needed[i] = 0;
-                if mrow.is_some_and(|m| m[x] == 0) {
-                    continue;
-                }
-                // Case 1: a single circle around the previous correspondence.
-                if r.is_finite() && prev_fg(i) {
-                    let d = prev_d[i];
-                    lo[i] = d - r;
-                    hi[i] = d + r;
-                    plan.single_px += 1;
-                } else {
-                    union_needed[i] = 1;
-                    any_union = true;
-                }
+            let row = y * w + region.x0..y * w + region.x1;
+            let n = row.len();
+            let (d_row, rho_row) = (&prev_d[row.clone()], &mut rho[row.clone()]);
+            // Branch-free over the row, so that it vectorises: NaN (no disparity) and points
+            // behind the camera give ρ = NaN.
+            for k in 0..n {
+                let inv_z = (d_row[k] - dcx) * inv_mtx;
+                let u = u_col[k];
+                let (px, py, pz) = (base.x + a00 * u + bx * inv_z, base.y + a10 * u + by * inv_z, base.z + a20 * u + bz * inv_z);
+                let r = (scale * (px * px + py * py + pz * pz).sqrt()).min(max_radius).max(min_half);
+                rho_row[k] = if inv_z > 0.0 { r } else { f32::NAN };
             }
+            for &r in rho_row.iter() {
+                // NaN fails the comparison.
+                max_rho = if r > max_rho { r } else { max_rho };
+            }
+            let (lo_row, hi_row, un_row) = (&mut lo[row.clone()], &mut hi[row.clone()], &mut union_needed[row.clone()]);
+            let m_row = mask.map_or(&all[..n], |m| &m[row.clone()]);
+            let pm_row = prev.mask.as_deref().map_or(&all[..n], |m| &m[row.clone()]);
+            let (mut singles, mut unions) = (0usize, 0u8);
+            for k in 0..n {
+                let r = rho_row[k];
+                let here = m_row[k] != 0;
+                // Case 1: a single circle around the previous correspondence.
+                let single = here & (r == r) & (pm_row[k] != 0);
+                let d = d_row[k];
+                lo_row[k] = if single { d - r } else { f32::INFINITY };
+                hi_row[k] = if single { d + r } else { f32::NEG_INFINITY };
+                let union = (here & !single) as u8;
+                un_row[k] = union;
+                singles += single as usize;
+                unions |= union;
+            }
+            plan.single_px += singles;
+            any_union |= unions != 0;
         }
         if !any_union {
             return;
@@ -86,9 +95,11 @@ impl Assistant {
         // spheres are small: each such pixel gathers from the points within `reach` (the
         // 99th percentile of the radii); the few larger spheres are splatted onto the pixels
         // their discs cover. (The hull of a union does not mind a sphere counted twice.)
+        // Which spheres are gathered and which splatted changes nothing in the union, only the
+        // time: the radii of every fourth row are enough to choose.
         let mut hist = [0u32; 66];
         let mut count = 0u32;
-        for y in region.ys() {
+        for y in region.ys().step_by(4) {
             for &r in &rho[y * w + region.x0..y * w + region.x1] {
                 if r.is_finite() {
                     hist[((r * 2.0) as usize).min(65)] += 1;
@@ -104,6 +115,11 @@ impl Assistant {
         let reach_f = ((bin + 1) as f32 * 0.5).min(max_rho);
         let reach = reach_f.ceil() as i64;
         for y in region.ys() {
+            let rho_row = &rho[y * w + region.x0..y * w + region.x1];
+            // NaN fails the comparisons.
+            if !(rho_row.iter().fold(0f32, |m, &r| if r > m { r } else { m }) > reach_f) {
+                continue;
+            }
             for x in region.xs() {
                 let r = rho[y * w + x];
                 if !(r > reach_f) {
@@ -129,38 +145,43 @@ impl Assistant {
                 }
             }
         }
+        let mut union_px = 0;
         for y in region.ys() {
+            let un_row = &union_needed[y * w + region.x0..y * w + region.x1];
+            if un_row.iter().fold(0u8, |a, &v| a | v) == 0 {
+                continue;
+            }
             for x in region.xs() {
                 let j = y * w + x;
                 if union_needed[j] == 0 {
                     continue;
                 }
                 let (xi, yi) = (x as i64, y as i64);
+                let (sx0, sx1) = ((xi - reach).max(region.x0 as i64) as usize, ((xi + reach).min(region.x1 as i64 - 1) + 1) as usize);
+                let (mut a, mut b) = (lo[j], hi[j]);
                 for sy in (yi - reach).max(region.y0 as i64)..=(yi + reach).min(region.y1 as i64 - 1) {
-                    let dy = (yi - sy) as f32;
+                    let dy2 = ((yi - sy) * (yi - sy)) as f32;
                     let row = sy as usize * w;
-                    for sx in (xi - reach).max(region.x0 as i64)..=(xi + reach).min(region.x1 as i64 - 1) {
-                        let r = rho[row + sx as usize];
-                        // NaN (no point) fails the comparison.
-                        let c2 = r * r - dy * dy;
-                        if !(c2 >= 0.0) {
-                            continue;
-                        }
-                        let c = c2.sqrt();
-                        let dx = (xi - sx) as f32;
-                        if dx.abs() > c {
-                            continue;
-                        }
-                        // Left pixel x lies on the sphere's left chord of row y; the right
-                        // chord maps it to d_prev + (x − sx) ± c.
-                        let base = prev_d[row + sx as usize] + dx;
-                        lo[j] = lo[j].min(base - c);
-                        hi[j] = hi[j].max(base + c);
+                    let (r_row, d_row) = (&rho[row + sx0..row + sx1], &prev_d[row + sx0..row + sx1]);
+                    // Branch-free: left pixel x lies on the sphere's left chord of row y when
+                    // |x − sx| ≤ c = √(r² − dy²); the right chord maps it to d_prev + (x − sx) ± c.
+                    // NaN (no point) fails the comparison.
+                    for k in 0..r_row.len() {
+                        let (r, dx) = (r_row[k], x as f32 - (sx0 + k) as f32);
+                        let c2 = r * r - dy2;
+                        let c = c2.max(0.0).sqrt();
+                        let inside = c2 >= 0.0 && dx.abs() <= c;
+                        let base = d_row[k] + dx;
+                        a = if inside && base - c < a { base - c } else { a };
+                        b = if inside && base + c > b { base + c } else { b };
                     }
                 }
+                lo[j] = a;
+                hi[j] = b;
+                union_px += (a <= b) as usize;
             }
         }
-        plan.union_px = region.ys().flat_map(|y| region.xs().map(move |x| y * w + x)).filter(|&i| union_needed[i] != 0 && lo[i] <= hi[i]).count();
+        plan.union_px = union_px;
     }
 
     /// The Kalman prediction of every previous point into `lo`/`hi`.
