@@ -129,6 +129,62 @@ fn paper_intervals_hold_the_true_disparity_and_are_narrow() {
 }
 
 #[test]
+fn paper_intervals_are_the_rule_itself() {
+    // Every foreground pixel's interval, as the plan builds it (single circle, union gathered
+    // within a reach and splatted beyond it), against the paper's two cases written out
+    // directly: the single circle d_prev ± ρ, and the hull of the chords of *every* previous
+    // sphere whose left projection holds the pixel — rounded outwards and clipped as the plan
+    // does. Pixels no sphere reaches are the hole fill's, checked elsewhere.
+    let scene = Scene::new();
+    for w in [0.8, 2.0] {
+        let mut a = assistant(&scene, AssistMode::Paper { w }, 3);
+        let truth = scene.disparity(3.0);
+        let mask = Scene::mask(&truth);
+        let plan = a.plan(3, Some(&mask), &scene.poses(0..3));
+        assert!(plan.assisted());
+        let prev = a.prev.as_ref().unwrap();
+        let (width, height) = (truth.width, truth.height);
+        let rho = |x: usize, y: usize| a.rho[y * width + x];
+        let points: Vec<(usize, usize, f32, f32)> = (0..height).flat_map(|y| (0..width).map(move |x| (x, y))).filter(|&(x, y)| a.region.xs().contains(&x) && a.region.ys().contains(&y) && rho(x, y).is_finite()).map(|(x, y)| (x, y, prev.disparity.get(x, y).unwrap(), rho(x, y))).collect();
+        assert!(points.len() > 1000);
+        let round = |lo: f32, hi: f32| interval((0, 127), lo, hi);
+        let (mut singles, mut unions) = (0, 0);
+        for y in 0..height {
+            for x in 0..width {
+                if mask[y * width + x] == 0 {
+                    continue;
+                }
+                let single = prev.disparity.get(x, y).is_some() && rho(x, y).is_finite() && prev.mask.as_ref().unwrap()[y * width + x] != 0;
+                let expected = if single {
+                    singles += 1;
+                    let (d, r) = (prev.disparity.get(x, y).unwrap(), rho(x, y));
+                    round(d - r, d + r)
+                } else {
+                    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                    for &(sx, sy, d, r) in &points {
+                        let dy = y as f32 - sy as f32;
+                        let c2 = r * r - dy * dy;
+                        let dx = x as f32 - sx as f32;
+                        if c2 >= 0.0 && dx.abs() <= c2.sqrt() {
+                            lo = lo.min(d + dx - c2.sqrt());
+                            hi = hi.max(d + dx + c2.sqrt());
+                        }
+                    }
+                    if lo > hi {
+                        continue; // a hole: filled from its neighbours
+                    }
+                    unions += 1;
+                    round(lo, hi)
+                };
+                assert_eq!(plan.intervals.get(x, y), expected, "w = {w}, pixel ({x}, {y}), single: {single}");
+            }
+        }
+        assert_eq!((singles, unions), (plan.single_px, plan.union_px), "w = {w}");
+        assert!(unions > 0, "w = {w}");
+    }
+}
+
+#[test]
 fn predicted_intervals_hold_the_true_disparity_and_are_narrow() {
     let scene = Scene::new();
     let truth = scene.disparity(4.0);
