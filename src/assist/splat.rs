@@ -190,7 +190,7 @@ impl Assistant {
         let prev = self.prev.as_ref().expect("planned with a previous frame");
         let Some((m, cov)) = self.filter.predict(gap, lag) else { return };
         let cam = self.cam;
-        let (k, s2) = (self.params.predicted_k as f32, self.params.predicted_sigma_px.powi(2) as f32);
+        let (k_sigma, s2) = (self.params.predicted_k as f32, self.params.predicted_sigma_px.powi(2) as f32);
         let min_half = self.params.min_half_width_px as f32;
         // In f32, per previous point with ray (u, v, 1) and 1/Z = (d − dcx)/(−tx):
         // Q·(1/Z) = R·(u, v, 1) + t/Z, so one division gives the projection of the moved point.
@@ -203,35 +203,48 @@ impl Assistant {
         let prev_d = prev.disparity.values();
         let (lo, hi, region) = (&mut self.lo, &mut self.hi, self.region);
         let (ifx, ify, inv_mtx) = (1.0 / fx, 1.0 / fy, -1.0 / tx);
+        let u_col: Vec<f32> = region.xs().map(|x| (x as f32 - cx) * ifx).collect();
+        let n = u_col.len();
+        // Per row: the projections and bounds of every point, branch-free so that it
+        // vectorises (NaN where there is no point or it moves behind the camera), then the
+        // splats.
+        let (mut pxs, mut pys, mut los, mut his) = (vec![0f32; n], vec![0f32; n], vec![0f32; n], vec![0f32; n]);
+        let (r00, r10, r20) = (rot[(0, 0)], rot[(1, 0)], rot[(2, 0)]);
         for y in region.ys() {
             let v = (y as f32 - cy) * ify;
             let base = rot.column(1) * v + rot.column(2);
-            let col0 = rot.column(0);
-            for x in region.xs() {
-                let d = prev_d[y * w + x];
+            let d_row = &prev_d[y * w + region.x0..y * w + region.x1];
+            for k in 0..n {
+                let d = d_row[k];
                 let iz = (d - dcx) * inv_mtx;
-                // NaN (no disparity) and points behind the camera fail here.
-                if !(iz > 0.0) {
-                    continue;
-                }
-                let u = (x as f32 - cx) * ifx;
-                let q = base + col0 * u + t * iz; // the moved point times 1/Z
-                if !(q.z > 0.0) {
-                    continue;
-                }
-                let s = 1.0 / q.z;
-                let (px, py, pd) = (fx * q.x * s + cx, fy * q.y * s + cy, dcx - tx * iz * s);
+                let u = u_col[k];
+                // The moved point times 1/Z.
+                let (qx, qy, qz) = (base.x + r00 * u + t.x * iz, base.y + r10 * u + t.y * iz, base.z + r20 * u + t.z * iz);
+                let s = 1.0 / qz;
+                let (px, py, pd) = (fx * qx * s + cx, fy * qy * s + cy, dcx - tx * iz * s);
                 // Var(d) = (∂d/∂Z)²·Var(Z) with the moved point Q = q/iz (mm) and
                 // ∂d/∂Z = tx/Q_z² = tx·iz²·s², written without dividing by iz:
                 // Var(d) = tx²·s⁴·[iz²·(q_y²c00 − 2q_xq_y c01 + q_x²c11) + 2·iz³·(q_y c05 − q_x c15) + iz⁴·c55].
                 let (iz2, s2q) = (iz * iz, s * s);
-                let var_d = (tx * tx * s2q * s2q * iz2 * ((q.y * q.y * c00 - 2.0 * q.x * q.y * c01 + q.x * q.x * c11) + 2.0 * iz * (q.y * c05 - q.x * c15) + iz2 * c55)).max(0.0);
-                let half = (k * (var_d + s2).sqrt()).max(min_half);
-                let (a, b) = (pd - half, pd + half);
+                let var_d = (tx * tx * s2q * s2q * iz2 * ((qy * qy * c00 - 2.0 * qx * qy * c01 + qx * qx * c11) + 2.0 * iz * (qy * c05 - qx * c15) + iz2 * c55)).max(0.0);
+                let half = (k_sigma * (var_d + s2).sqrt()).max(min_half);
+                // NaN (no disparity), points behind the camera and points moved behind it fail.
+                let ok = iz > 0.0 && qz > 0.0;
+                pxs[k] = if ok { px } else { f32::NAN };
+                pys[k] = py;
+                los[k] = pd - half;
+                his[k] = pd + half;
+            }
+            for k in 0..n {
+                let (px, py) = (pxs[k], pys[k]);
+                if px.is_nan() {
+                    continue;
+                }
                 let (x0, y0) = (floor(px) as i64, floor(py) as i64);
                 if x0 < region.x0 as i64 || y0 < region.y0 as i64 || x0 + 1 >= region.x1 as i64 || y0 + 1 >= region.y1 as i64 {
                     continue;
                 }
+                let (a, b) = (los[k], his[k]);
                 let i = y0 as usize * w + x0 as usize;
                 for j in [i, i + 1, i + w, i + w + 1] {
                     lo[j] = lo[j].min(a);
@@ -239,6 +252,14 @@ impl Assistant {
                 }
             }
         }
-        plan.single_px = region.ys().flat_map(|y| region.xs().map(move |x| y * w + x)).filter(|&i| mask.is_none_or(|m| m[i] != 0) && lo[i] <= hi[i]).count();
+        let all = vec![1u8; n];
+        let mut singles = 0;
+        for y in region.ys() {
+            let row = y * w + region.x0..y * w + region.x1;
+            let m_row = mask.map_or(&all[..], |m| &m[row.clone()]);
+            singles += m_row.iter().zip(&lo[row.clone()]).zip(&hi[row]).filter(|((&m, &a), &b)| m != 0 && a <= b).count();
+        }
+        plan.single_px = singles;
+
     }
 }
