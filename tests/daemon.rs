@@ -246,7 +246,9 @@ fn a_continuous_scan_records_every_pair_and_accounts_for_drops() {
     let d = Daemon::start(&dir, "queue_depth = 1\nmatcher_threads = 1\n");
     let (mut c, _) = Client::connect(&d.socket);
     c.ok("events.subscribe", json!({}));
-    let started = c.ok("scan.start", json!({"name": "spin", "mode": "continuous", "total_deg": 90, "speed_deg_s": 20}));
+    // A slow turn (18 s of simulated time, ≈ 0.4 s here), so that even a loaded machine
+    // renders well over ten pairs during it.
+    let started = c.ok("scan.start", json!({"name": "spin", "mode": "continuous", "total_deg": 90, "speed_deg_s": 5}));
     assert_eq!(started["mode"], "continuous");
     let end = c.until_end("spin");
     assert_eq!(end["status"], "complete", "{end}");
