@@ -511,7 +511,10 @@ fn idle_connections_are_closed() {
 }
 
 /// Hardening (issue 17), 3: a service that runs for months stays flat — twenty 45-view
-/// scans, and the daemon's resident memory after the last is within 10 % of after the second.
+/// scans, and the daemon's resident memory after the last is within 10 % of the highest after
+/// any of the first five. (At this frame size the daemon holds ≈ 12 MiB and single readings
+/// wander by 2–3 MiB with the allocator's timing; a leak of the kind this guards against grew
+/// by tens of MiB per scan.)
 #[test]
 fn memory_stays_flat_across_repeated_scans() {
     let dir = support::temp_dir("daemon-rss");
@@ -529,7 +532,7 @@ fn memory_stays_flat_across_repeated_scans() {
         assert_eq!(end["status"], "complete", "{end}");
         series.push(rss());
     }
-    let (second, last) = (series[1], series[19]);
-    assert!(last <= second * 1.10, "RSS after each scan, MiB: {series:?}");
+    let (early, last) = (series[..5].iter().copied().fold(0.0, f64::max), series[19]);
+    assert!(last <= early * 1.10, "RSS after each scan, MiB: {series:?}");
     eprintln!("RSS after each of 20 scans, MiB: {series:.0?}");
 }
