@@ -58,6 +58,17 @@ fn time(runs: usize, mut f: impl FnMut()) -> (f64, f64) {
     (t[0], t[t.len() / 2])
 }
 
+/// Times the matcher on one set of intervals and prints a line, unless `filter` leaves it out.
+fn run(m: &mut StereoMatcher, (lv, rv): (GrayView, GrayView), iv: &DisparityIntervals, name: &str, filter: Option<&str>) {
+    if filter.is_some_and(|f| !name.contains(f)) {
+        return;
+    }
+    let mut stats = Default::default();
+    let mut out = DisparityMap::new(lv.width, lv.height);
+    let (min, med) = time(15, || stats = m.compute(lv, rv, iv, &mut out).unwrap());
+    println!("{name:<34} {min:>9.2} {med:>9.2} {:>10.1}", stats.mean_search_px());
+}
+
 fn main() {
     let filter: Option<String> = std::env::args().skip(1).find(|a| !a.starts_with('-'));
     println!("{:<34} {:>9} {:>9} {:>10}", "case", "min ms", "median ms", "search px");
@@ -66,42 +77,24 @@ fn main() {
             let params = MatchParams { num_disparities: case.num_disparities, threads, ..Default::default() }.validate().unwrap();
             let mut m = StereoMatcher::new(params);
             let (w, h) = (case.width, case.height);
-            let (lv, rv) = (GrayView::new(w, h, &case.left).unwrap(), GrayView::new(w, h, &case.right).unwrap());
-            let mut out = DisparityMap::new(w, h);
+            let pair = (GrayView::new(w, h, &case.left).unwrap(), GrayView::new(w, h, &case.right).unwrap());
             let full = m.full_intervals(w, h, None);
-            let name = format!("{} full t{threads}", case.name);
-            if filter.as_ref().is_none_or(|f| name.contains(f.as_str())) {
-                let mut stats = Default::default();
-                let (min, med) = time(15, || stats = m.compute(lv, rv, &full, &mut out).unwrap());
-                println!("{name:<34} {min:>9.2} {med:>9.2} {:>10.1}", stats.mean_search_px());
-            }
+            run(&mut m, pair, &full, &format!("{} full t{threads}", case.name), filter.as_deref());
             // Narrow intervals (±2 px) around the full-range result, as the registration
             // constraint gives them: the work must drop in proportion.
-            m.compute(lv, rv, &full, &mut out).unwrap();
+            let mut out = DisparityMap::new(w, h);
+            m.compute(pair.0, pair.1, &full, &mut out).unwrap();
             let mut narrow = DisparityIntervals::full(w, h, 0, case.num_disparities as i32 - 1);
             for y in 0..h {
                 for x in 0..w {
                     narrow.set(x, y, out.get(x, y).map(|d| (d.round() as i32 - 2, d.round() as i32 + 2)));
                 }
             }
-            let name = format!("{} ±2px t{threads}", case.name);
-            if filter.as_ref().is_none_or(|f| name.contains(f.as_str())) {
-                let mut stats = Default::default();
-                let mut o2 = DisparityMap::new(w, h);
-                let (min, med) = time(15, || stats = m.compute(lv, rv, &narrow, &mut o2).unwrap());
-                println!("{name:<34} {min:>9.2} {med:>9.2} {:>10.1}", stats.mean_search_px());
-            }
+            run(&mut m, pair, &narrow, &format!("{} ±2px t{threads}", case.name), filter.as_deref());
             // One disparity everywhere: the matcher's fixed per-pixel cost (the floor row of
             // `bench table1`).
             let mid = case.num_disparities as i32 / 2;
-            let one = DisparityIntervals::full(w, h, mid, mid);
-            let name = format!("{} one disparity t{threads}", case.name);
-            if filter.as_ref().is_none_or(|f| name.contains(f.as_str())) {
-                let mut stats = Default::default();
-                let mut o2 = DisparityMap::new(w, h);
-                let (min, med) = time(15, || stats = m.compute(lv, rv, &one, &mut o2).unwrap());
-                println!("{name:<34} {min:>9.2} {med:>9.2} {:>10.1}", stats.mean_search_px());
-            }
+            run(&mut m, pair, &DisparityIntervals::full(w, h, mid, mid), &format!("{} one disparity t{threads}", case.name), filter.as_deref());
         }
     }
 }

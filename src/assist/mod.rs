@@ -51,7 +51,7 @@ use nalgebra::{Isometry3, Matrix3, UnitQuaternion, Vector3};
 use crate::register::posestore::PoseSnapshot;
 use crate::stereo::{DisparityIntervals, DisparityMap, MatchStats, Rectification};
 use motion::{MotionFilter, MotionNoise};
-use region::{interval, Region, FILL};
+use region::{interval, MaskRows, Region, FILL};
 
 /// How the search range of a frame is chosen.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -412,12 +412,12 @@ impl Assistant {
         };
         let (r0, r1) = (range.0 as f32, range.1 as f32);
         let mut holes = Vec::new();
-        let all = vec![1u8; w];
+        let masks = MaskRows::new(mask, w, &region);
         let xs = region.xs();
         for y in region.ys() {
             let (out_lo, out_hi) = iv.row_mut(y);
             let row = y * w;
-            let mrow = &mask.map_or(&all[..], |m| &m[row..row + w])[xs.clone()];
+            let mrow = masks.row(y);
             let (lo_row, hi_row) = (&lo[row + xs.start..row + xs.end], &hi[row + xs.start..row + xs.end]);
             let (out_lo, out_hi) = (&mut out_lo[xs.clone()], &mut out_hi[xs.clone()]);
             // Clipped, then rounded outwards (the range's ends are whole, so the order does not

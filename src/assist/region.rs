@@ -81,11 +81,40 @@ impl Region {
         Region { x0: self.x0.saturating_sub(by), x1: (self.x1 + by).min(w), y0: self.y0.saturating_sub(by), y1: (self.y1 + by).min(h) }
     }
 
+    /// The columns `(x − cx)/fx` of the rays of this region's pixel columns, in f32 (as the
+    /// splats compute them per pixel).
+    pub(super) fn column_rays(&self, cx: f32, ifx: f32) -> Vec<f32> {
+        self.xs().map(|x| (x as f32 - cx) * ifx).collect()
+    }
+
     pub(super) fn xs(&self) -> std::ops::Range<usize> {
         self.x0..self.x1
     }
 
     pub(super) fn ys(&self) -> std::ops::Range<usize> {
         self.y0..self.y1
+    }
+}
+
+/// The rows of a `w`-wide foreground mask inside a region; without a mask every pixel is
+/// foreground (a row of ones stands in).
+pub(super) struct MaskRows<'a> {
+    mask: Option<&'a [u8]>,
+    ones: Vec<u8>,
+    w: usize,
+    xs: std::ops::Range<usize>,
+}
+
+impl<'a> MaskRows<'a> {
+    pub(super) fn new(mask: Option<&'a [u8]>, w: usize, region: &Region) -> MaskRows<'a> {
+        MaskRows { ones: if mask.is_some() { Vec::new() } else { vec![1; region.x1 - region.x0] }, mask, w, xs: region.xs() }
+    }
+
+    /// Row `y` of the mask, the region's columns only.
+    pub(super) fn row(&self, y: usize) -> &[u8] {
+        match self.mask {
+            Some(m) => &m[y * self.w + self.xs.start..y * self.w + self.xs.end],
+            None => &self.ones,
+        }
     }
 }

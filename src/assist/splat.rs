@@ -5,7 +5,7 @@
 use nalgebra::{Matrix3, Vector3};
 
 use super::motion;
-use super::region::{ceil, floor};
+use super::region::{ceil, floor, MaskRows};
 use super::{Assistant, Plan};
 
 impl Assistant {
@@ -44,9 +44,8 @@ impl Assistant {
         let union_needed = &mut self.union_needed;
         let mut any_union = false;
         let (a00, a10, a20) = (a_m[(0, 0)], a_m[(1, 0)], a_m[(2, 0)]);
-        // Stands in for a missing mask; the column's ray once per column, exactly as per pixel.
-        let all = vec![1u8; region.x1 - region.x0];
-        let u_col: Vec<f32> = region.xs().map(|x| (x as f32 - cx) * ifx).collect();
+        let u_col = region.column_rays(cx, ifx);
+        let (masks, prev_masks) = (MaskRows::new(mask, w, &region), MaskRows::new(prev.mask.as_deref(), w, &region));
         let (bx, by, bz) = (b_v.x, b_v.y, b_v.z);
         for y in region.ys() {
             let v = (y as f32 - cy) * ify;
@@ -69,14 +68,13 @@ impl Assistant {
                 max_rho = if r > max_rho { r } else { max_rho };
             }
             let (lo_row, hi_row, un_row) = (&mut lo[row.clone()], &mut hi[row.clone()], &mut union_needed[row.clone()]);
-            let m_row = mask.map_or(&all[..n], |m| &m[row.clone()]);
-            let pm_row = prev.mask.as_deref().map_or(&all[..n], |m| &m[row.clone()]);
+            let (m_row, pm_row) = (masks.row(y), prev_masks.row(y));
             let (mut singles, mut unions) = (0usize, 0u8);
             for k in 0..n {
                 let r = rho_row[k];
                 let here = m_row[k] != 0;
                 // Case 1: a single circle around the previous correspondence.
-                let single = here & (r == r) & (pm_row[k] != 0);
+                let single = here & !r.is_nan() & (pm_row[k] != 0);
                 let d = d_row[k];
                 lo_row[k] = if single { d - r } else { f32::INFINITY };
                 hi_row[k] = if single { d + r } else { f32::NEG_INFINITY };
@@ -203,7 +201,7 @@ impl Assistant {
         let prev_d = prev.disparity.values();
         let (lo, hi, region) = (&mut self.lo, &mut self.hi, self.region);
         let (ifx, ify, inv_mtx) = (1.0 / fx, 1.0 / fy, -1.0 / tx);
-        let u_col: Vec<f32> = region.xs().map(|x| (x as f32 - cx) * ifx).collect();
+        let u_col = region.column_rays(cx, ifx);
         let n = u_col.len();
         // Per row: the projections and bounds of every point, branch-free so that it
         // vectorises (NaN where there is no point or it moves behind the camera), then the
@@ -252,12 +250,11 @@ impl Assistant {
                 }
             }
         }
-        let all = vec![1u8; n];
+        let masks = MaskRows::new(mask, w, &region);
         let mut singles = 0;
         for y in region.ys() {
             let row = y * w + region.x0..y * w + region.x1;
-            let m_row = mask.map_or(&all[..], |m| &m[row.clone()]);
-            singles += m_row.iter().zip(&lo[row.clone()]).zip(&hi[row]).filter(|((&m, &a), &b)| m != 0 && a <= b).count();
+            singles += masks.row(y).iter().zip(&lo[row.clone()]).zip(&hi[row]).filter(|((&m, &a), &b)| m != 0 && a <= b).count();
         }
         plan.single_px = singles;
 

@@ -382,13 +382,15 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
     s.tex_col.resize(wp, 0);
     s.tex_row.resize(w, 0);
 
-    let tiles = w.div_ceil(TILE_W);
-    s.tile_cs.resize(tiles * (TILE_W + 2 * g.r) * n, 0);
-    s.tile_sums.clear();
-    s.tile_sums.resize(tiles, TileSums { lo: 1, hi: 0, row: usize::MAX });
     // The narrow-band path needs AVX2 and whole blocks of disparities; a tile row takes it
     // when its tiles' bands are narrow on average (the full range stays on the row path).
     let tile_path_ok = AVX2 && tiles::supported(g);
+    if tile_path_ok {
+        let tiles = w.div_ceil(TILE_W);
+        s.tile_cs.resize(tiles * (TILE_W + 2 * g.r) * n, 0);
+        s.tile_sums.clear();
+        s.tile_sums.resize(tiles, TileSums { lo: 1, hi: 0, row: usize::MAX });
+    }
     let mut narrow = false;
 
     let mut stats = MatchStats::default();

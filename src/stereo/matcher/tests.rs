@@ -24,6 +24,11 @@ fn shifted_pair(w: usize, h: usize, shift: impl Fn(usize, usize) -> usize) -> (V
     (left, right)
 }
 
+/// Two disparity maps hold the same values (NaN, no match, equal to NaN).
+fn same_map(a: &[f32], b: &[f32]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x == y || (x.is_nan() && y.is_nan()))
+}
+
 fn params(n: u32) -> ValidMatchParams {
     MatchParams { num_disparities: n, threads: 2, ..Default::default() }.validate().unwrap()
 }
@@ -141,12 +146,11 @@ fn portable_and_simd_paths_agree() {
             let portable = run_path::<false, false>(&mut m, lv, rv, iv);
             #[cfg(target_arch = "x86_64")]
             {
-                let same = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| x == y || (x.is_nan() && y.is_nan()));
                 if std::is_x86_feature_detected!("avx2") {
-                    assert!(same(&portable, &run_path::<true, false>(&mut m, lv, rv, iv)), "AVX2 differs, n = {n}");
+                    assert!(same_map(&portable, &run_path::<true, false>(&mut m, lv, rv, iv)), "AVX2 differs, n = {n}");
                 }
                 if std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512bw") {
-                    assert!(same(&portable, &run_path::<true, true>(&mut m, lv, rv, iv)), "AVX-512 differs, n = {n}");
+                    assert!(same_map(&portable, &run_path::<true, true>(&mut m, lv, rv, iv)), "AVX-512 differs, n = {n}");
                 }
             }
             assert!(portable.iter().filter(|v| v.is_finite()).count() > w * h / 2, "n = {n}");
@@ -189,14 +193,13 @@ fn narrow_band_tiles_agree_with_the_row_path() {
             }
             let rows = run_path::<false, false>(&mut m, lv, rv, &iv);
             let tiles = run_path::<true, false>(&mut m, lv, rv, &iv);
-            let differ = rows.iter().zip(&tiles).filter(|(a, b)| !(a == b || (a.is_nan() && b.is_nan()))).count();
-            assert_eq!(differ, 0, "n = {n}, min {min_disparity}, block {block}");
+            assert!(same_map(&rows, &tiles), "n = {n}, min {min_disparity}, block {block}");
             let good = rows.iter().enumerate().filter(|(i, v)| (*v - (25 + i / w / 12) as f32).abs() < 1.0).count();
             assert!(good > w * h / 2, "n = {n}: {good} pixels right");
             // And through `compute`: stripes (their own tile grids) and the crop change nothing.
             let mut out = DisparityMap::new(w, h);
             m.compute(lv, rv, &iv, &mut out).unwrap();
-            assert!(out.values().iter().zip(&rows).all(|(a, b)| a == b || (a.is_nan() && b.is_nan())), "compute differs, n = {n}");
+            assert!(same_map(out.values(), &rows), "compute differs, n = {n}");
         }
     }
 }
@@ -224,7 +227,7 @@ fn matching_the_crop_gives_what_matching_the_whole_image_gives() {
         let mut whole = DisparityMap::new(w, h);
         let whole_stats = m.compute_whole(lv, rv, &iv, &mut whole);
         assert_eq!((stats.searched, stats.evaluated, stats.matched), (whole_stats.searched, whole_stats.evaluated, whole_stats.matched));
-        assert!(cropped.values().iter().zip(whole.values()).all(|(a, b)| a == b || (a.is_nan() && b.is_nan())));
+        assert!(same_map(cropped.values(), whole.values()));
         assert!(stats.matched > 2000, "{}", stats.matched);
         iv.set(0, 0, Some((min_d, min_d + 5)));
         assert_eq!(Crop::of(&iv, &m.params).unwrap().x0, 0);

@@ -186,10 +186,13 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, lpf: &[u8], rre
             };
             let i0 = (t0 - lo) as usize;
             let costs = std::slice::from_raw_parts(row.add(i0), (t1 - t0 + 1) as usize);
-            *s.best.get_unchecked_mut(x) = match decide_at(p, costs, min, best - i0, rival, tex) {
+            // A `match`, not `Option::map`: the closure was not inlined into this AVX2 function.
+            #[allow(clippy::manual_map)]
+            let chosen = match decide_at(p, costs, min, best - i0, rival, tex) {
                 Some((bi, frac)) => Some(((t0 as usize + bi) as u16, frac)),
                 None => None,
             };
+            *s.best.get_unchecked_mut(x) = chosen;
         }
     }
     let (copies, merged) = (&s.tile_right, &mut s.right_min[right_range.clone()]);
