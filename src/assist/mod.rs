@@ -485,8 +485,12 @@ impl Assistant {
         while self.recent_valid.len() > 5 {
             self.recent_valid.pop_front();
         }
-        // Disparities exist only where something was searched: inside the plan's region.
-        let region = if plan.assisted() { self.region } else { Region::of_disparity(disparity) };
+        // The bounding box of the disparities: the next frame's spheres start there. (Not the
+        // plan's region, which is grown for the fill: taken as the next bound, it would creep
+        // outwards frame after frame.) Disparities exist only where something was searched:
+        // inside the plan's region when assisted.
+        let within = if plan.assisted() { self.region } else { Region { x0: 0, x1: disparity.width, y0: 0, y1: disparity.height } };
+        let region = Region::of_disparity(disparity, within);
         match &mut self.prev {
             Some(p) if (p.disparity.width, p.disparity.height) == (disparity.width, disparity.height) => {
                 p.seq = seq;

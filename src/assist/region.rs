@@ -51,9 +51,25 @@ impl Region {
         }
     }
 
-    /// The bounding box of the finite values of a disparity map (empty region if none).
-    pub(super) fn of_disparity(d: &DisparityMap) -> Region {
-        Region::bbox(d.values(), d.width, |v| v.is_finite()).unwrap_or_default()
+    /// The bounding box of the finite values of a disparity map inside `within` (empty
+    /// region if none).
+    pub(super) fn of_disparity(d: &DisparityMap, within: Region) -> Region {
+        let (w, v) = (d.width, d.values());
+        let mut r: Option<Region> = None;
+        for y in within.ys() {
+            let row = &v[y * w + within.x0..y * w + within.x1];
+            // Whole-row test first, branch-free (it vectorises); most rows have none or many.
+            if !row.iter().fold(false, |any, d| any | d.is_finite()) {
+                continue;
+            }
+            let first = within.x0 + row.iter().position(|d| d.is_finite()).expect("one exists");
+            let last = within.x0 + row.len() - row.iter().rev().position(|d| d.is_finite()).expect("one exists");
+            r = Some(match r {
+                None => Region { x0: first, x1: last, y0: y, y1: y + 1 },
+                Some(r) => Region { x0: r.x0.min(first), x1: r.x1.max(last), y0: r.y0, y1: y + 1 },
+            });
+        }
+        r.unwrap_or_default()
     }
 
     /// The bounding box of the values `keep` accepts in a row-major `w`-wide image.
