@@ -51,7 +51,7 @@ use nalgebra::{Isometry3, Matrix3, UnitQuaternion, Vector3};
 use crate::register::posestore::PoseSnapshot;
 use crate::stereo::{DisparityIntervals, DisparityMap, MatchStats, Rectification};
 use motion::{MotionFilter, MotionNoise};
-use region::{interval, MaskRows, Region, FILL};
+use region::{for_each_set, interval, MaskRows, Region, FILL};
 
 /// How the search range of a frame is chosen.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -385,19 +385,42 @@ impl Assistant {
                 self.hi[y * w + region.x0..y * w + region.x1].fill(f32::NEG_INFINITY);
             }
         }
-        match self.params.mode {
-            AssistMode::Paper { w: weight } => self.splat_paper(weight, gap, plan.lag, mask, &mut plan),
-            AssistMode::Predicted => self.splat_predicted(gap, plan.lag, mask, &mut plan),
-            AssistMode::None => unreachable!("handled above"),
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU has AVX2 (checked just above).
+            unsafe { self.build_avx2(gap, mask, &mut plan) };
+            plan.build_ms = t0.elapsed().as_secs_f64() * 1e3;
+            return plan;
         }
-        plan.intervals = self.intervals(mask, &mut plan);
+        self.build(gap, mask, &mut plan);
         plan.build_ms = t0.elapsed().as_secs_f64() * 1e3;
         plan
+    }
+
+    /// [`Assistant::build`] compiled for AVX2: its per-pixel passes are written branch-free
+    /// so that they vectorise, eight `f32` lanes here instead of the baseline's four. The
+    /// same operations in the same order (no fused multiply-add), so the same intervals.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn build_avx2(&mut self, gap: u64, mask: Option<&[u8]>, plan: &mut Plan) {
+        self.build(gap, mask, plan)
+    }
+
+    /// The splats of the mode, then the intervals from them.
+    #[inline(always)]
+    fn build(&mut self, gap: u64, mask: Option<&[u8]>, plan: &mut Plan) {
+        match self.params.mode {
+            AssistMode::Paper { w: weight } => self.splat_paper(weight, gap, plan.lag, mask, plan),
+            AssistMode::Predicted => self.splat_predicted(gap, plan.lag, mask, plan),
+            AssistMode::None => unreachable!("handled by plan"),
+        }
+        plan.intervals = self.intervals(mask, plan);
     }
 
     /// The intervals from the splatted bounds: foreground pixels with bounds search them;
     /// those without take the hull of the bounds within `FILL` pixels, widened by `MARGIN`
     /// (the disparity of a surface continues across a small gap); the rest the full range.
+    #[inline(always)]
     fn intervals(&mut self, mask: Option<&[u8]>, plan: &mut Plan) -> DisparityIntervals {
         const MARGIN: f32 = 2.0;
         let (w, h) = self.size;
@@ -412,6 +435,7 @@ impl Assistant {
         };
         let (r0, r1) = (range.0 as f32, range.1 as f32);
         let mut holes = Vec::new();
+        let mut hole_flags = vec![0u8; region.x1 - region.x0];
         let masks = MaskRows::new(mask, w, &region);
         let xs = region.xs();
         for y in region.ys() {
@@ -423,18 +447,25 @@ impl Assistant {
             // Clipped, then rounded outwards (the range's ends are whole, so the order does not
             // matter); nothing reached (lo = +∞, hi = −∞) fails `a <= b`. Branch-free, so it
             // vectorises; the rare holes are collected after.
-            let mut row_holes = 0usize;
+            let mut row_holes = 0u8;
+            let hole_row = &mut hole_flags[..mrow.len()];
             for k in 0..mrow.len() {
                 let here = mrow[k] != 0;
                 let (a, b) = (lo_row[k].max(r0), hi_row[k].min(r1));
-                let reached = a <= b;
-                let (ta, tb) = (a as i32, b as i32);
-                out_lo[k] = if here & reached { (ta - (ta as f32 > a) as i32) as i16 } else { 1 };
-                out_hi[k] = if here & reached { (tb + ((tb as f32) < b) as i32) as i16 } else { 0 };
-                row_holes += (here & !reached) as usize;
+                let ok = here & (a <= b);
+                // Inside the range once selected, so the plain conversion is exact (and,
+                // unlike `as`, needs no saturation checks: it vectorises).
+                let (a, b) = (if ok { a } else { r0 }, if ok { b } else { r0 });
+                // SAFETY: a and b lie in [r0, r1], whole numbers of i16 range.
+                let (ta, tb) = unsafe { (a.to_int_unchecked::<i32>(), b.to_int_unchecked::<i32>()) };
+                out_lo[k] = if ok { (ta - (ta as f32 > a) as i32) as i16 } else { 1 };
+                out_hi[k] = if ok { (tb + ((tb as f32) < b) as i32) as i16 } else { 0 };
+                let hole = here & !ok;
+                hole_row[k] = hole as u8;
+                row_holes |= hole as u8;
             }
-            if row_holes > 0 {
-                holes.extend((0..mrow.len()).filter(|&k| mrow[k] != 0 && !(lo_row[k].max(r0) <= hi_row[k].min(r1))).map(|k| (xs.start + k, y)));
+            if row_holes != 0 {
+                for_each_set(hole_row, |k| holes.push((xs.start + k, y)));
             }
         }
         for (x, y) in holes {

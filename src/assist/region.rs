@@ -30,6 +30,28 @@ pub(super) fn interval(range: (i32, i32), lo: f32, hi: f32) -> Option<(i32, i32)
     (a <= b).then_some((a, b))
 }
 
+/// Calls `f(k)` for every non-zero `flags[k]`, in order; eight flags are tested at once, so
+/// that sparse flags (the few pixels of a row needing more work) cost little to find.
+#[inline(always)]
+pub(super) fn for_each_set(flags: &[u8], mut f: impl FnMut(usize)) {
+    let mut words = flags.chunks_exact(8);
+    let mut base = 0;
+    for word in words.by_ref() {
+        let mut bits = u64::from_le_bytes(word.try_into().expect("8 bytes"));
+        while bits != 0 {
+            f(base + bits.trailing_zeros() as usize / 8);
+            // Clear the lowest set byte.
+            bits &= !(0xff << (bits.trailing_zeros() / 8 * 8));
+        }
+        base += 8;
+    }
+    for (k, &v) in words.remainder().iter().enumerate() {
+        if v != 0 {
+            f(base + k);
+        }
+    }
+}
+
 /// Pixels nothing reached take the hull of the intervals within this many pixels.
 pub(super) const FILL: usize = 6;
 
@@ -46,7 +68,7 @@ impl Region {
     /// The bounding box of the non-zero pixels of `mask` (the whole image without one).
     pub(super) fn of(mask: Option<&[u8]>, w: usize, h: usize) -> Option<Region> {
         match mask {
-            Some(m) => Region::bbox(m, w, |&v| v != 0),
+            Some(m) => Region::mask_bbox(m, w),
             None => Some(Region { x0: 0, x1: w, y0: 0, y1: h }),
         }
     }
@@ -72,12 +94,18 @@ impl Region {
         r.unwrap_or_default()
     }
 
-    /// The bounding box of the values `keep` accepts in a row-major `w`-wide image.
-    pub(super) fn bbox<T>(values: &[T], w: usize, keep: impl Fn(&T) -> bool) -> Option<Region> {
+    /// The bounding box of the non-zero bytes of a row-major `w`-wide mask.
+    fn mask_bbox(mask: &[u8], w: usize) -> Option<Region> {
         let mut r: Option<Region> = None;
-        for (y, row) in values.chunks_exact(w).enumerate() {
-            let Some(first) = row.iter().position(|v| keep(v)) else { continue };
-            let last = w - row.iter().rev().position(|v| keep(v)).expect("one exists");
+        for (y, row) in mask.chunks_exact(w).enumerate() {
+            // Whole-row test first, eight bytes at a time: most rows hold none.
+            let (words, rest) = row.split_at(w / 8 * 8);
+            let any = words.chunks_exact(8).fold(0u64, |a, c| a | u64::from_le_bytes(c.try_into().expect("8 bytes"))) | rest.iter().fold(0u64, |a, &v| a | v as u64);
+            if any == 0 {
+                continue;
+            }
+            let first = row.iter().position(|&v| v != 0).expect("one exists");
+            let last = w - row.iter().rev().position(|&v| v != 0).expect("one exists");
             r = Some(match r {
                 None => Region { x0: first, x1: last, y0: y, y1: y + 1 },
                 Some(r) => Region { x0: r.x0.min(first), x1: r.x1.max(last), y0: r.y0, y1: y + 1 },

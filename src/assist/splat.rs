@@ -5,11 +5,15 @@
 use nalgebra::{Matrix3, Vector3};
 
 use super::motion;
-use super::region::{ceil, floor, MaskRows};
+use super::region::{ceil, floor, for_each_set, MaskRows};
 use super::{Assistant, Plan};
+
+/// Columns of spheres one union pixel gathers from at a time (eight `f32` lanes).
+const GATHER: usize = 8;
 
 impl Assistant {
     /// The paper's two cases into `lo`/`hi` (see the module docs).
+    #[inline(always)]
     pub(super) fn splat_paper(&mut self, weight: f64, gap: u64, lag: u64, mask: Option<&[u8]>, plan: &mut Plan) {
         let (w, h) = self.size;
         let prev = self.prev.as_ref().expect("planned with a previous frame");
@@ -47,6 +51,8 @@ impl Assistant {
         let u_col = region.column_rays(cx, ifx);
         let (masks, prev_masks) = (MaskRows::new(mask, w, &region), MaskRows::new(prev.mask.as_deref(), w, &region));
         let (bx, by, bz) = (b_v.x, b_v.y, b_v.z);
+        // The largest radius of each row of the region.
+        let mut row_rho_max = Vec::with_capacity(region.y1 - region.y0);
         for y in region.ys() {
             let v = (y as f32 - cy) * ify;
             // A·(u, v, 1) = A·(0, v, 1) + u·A[:, 0].
@@ -63,10 +69,11 @@ impl Assistant {
                 let r = (scale * (px * px + py * py + pz * pz).sqrt()).min(max_radius).max(min_half);
                 rho_row[k] = if inv_z > 0.0 { r } else { f32::NAN };
             }
-            for &r in rho_row.iter() {
-                // NaN fails the comparison.
-                max_rho = if r > max_rho { r } else { max_rho };
-            }
+            // The row's largest radius, as the bits of a positive float (integers reduce in
+            // vector lanes; floats would not, for NaN). NaN fails the comparison.
+            let row_max = f32::from_bits(rho_row.iter().fold(0u32, |m, &r| m.max(if r > 0.0 { r.to_bits() } else { 0 })));
+            row_rho_max.push(row_max);
+            max_rho = max_rho.max(row_max);
             let (lo_row, hi_row, un_row) = (&mut lo[row.clone()], &mut hi[row.clone()], &mut union_needed[row.clone()]);
             let (m_row, pm_row) = (masks.row(y), prev_masks.row(y));
             let (mut singles, mut unions) = (0usize, 0u8);
@@ -113,9 +120,7 @@ impl Assistant {
         let reach_f = ((bin + 1) as f32 * 0.5).min(max_rho);
         let reach = reach_f.ceil() as i64;
         for y in region.ys() {
-            let rho_row = &rho[y * w + region.x0..y * w + region.x1];
-            // NaN fails the comparisons.
-            if !(rho_row.iter().fold(0f32, |m, &r| if r > m { r } else { m }) > reach_f) {
+            if row_rho_max[y - region.y0] <= reach_f {
                 continue;
             }
             for x in region.xs() {
@@ -144,36 +149,43 @@ impl Assistant {
             }
         }
         let mut union_px = 0;
+        let mut pixels = Vec::new();
         for y in region.ys() {
-            let un_row = &union_needed[y * w + region.x0..y * w + region.x1];
-            if un_row.iter().fold(0u8, |a, &v| a | v) == 0 {
-                continue;
-            }
-            for x in region.xs() {
+            pixels.clear();
+            for_each_set(&union_needed[y * w + region.x0..y * w + region.x1], |k| pixels.push(region.x0 + k));
+            for &x in &pixels {
                 let j = y * w + x;
-                if union_needed[j] == 0 {
-                    continue;
-                }
                 let (xi, yi) = (x as i64, y as i64);
                 let (sx0, sx1) = ((xi - reach).max(region.x0 as i64) as usize, ((xi + reach).min(region.x1 as i64 - 1) + 1) as usize);
-                let (mut a, mut b) = (lo[j], hi[j]);
+                // Per lane of GATHER columns, reduced at the end: fixed-width lanes vectorise
+                // (the row of spheres, 2·reach + 1 wide, is taken GATHER at a time).
+                let (mut a, mut b) = ([f32::INFINITY; GATHER], [f32::NEG_INFINITY; GATHER]);
                 for sy in (yi - reach).max(region.y0 as i64)..=(yi + reach).min(region.y1 as i64 - 1) {
                     let dy2 = ((yi - sy) * (yi - sy)) as f32;
                     let row = sy as usize * w;
-                    let (r_row, d_row) = (&rho[row + sx0..row + sx1], &prev_d[row + sx0..row + sx1]);
-                    // Branch-free: left pixel x lies on the sphere's left chord of row y when
-                    // |x − sx| ≤ c = √(r² − dy²); the right chord maps it to d_prev + (x − sx) ± c.
-                    // NaN (no point) fails the comparison.
-                    for k in 0..r_row.len() {
-                        let (r, dx) = (r_row[k], x as f32 - (sx0 + k) as f32);
-                        let c2 = r * r - dy2;
-                        let c = c2.max(0.0).sqrt();
-                        let inside = c2 >= 0.0 && dx.abs() <= c;
-                        let base = d_row[k] + dx;
-                        a = if inside && base - c < a { base - c } else { a };
-                        b = if inside && base + c > b { base + c } else { b };
+                    for c0 in (sx0..sx1).step_by(GATHER) {
+                        let len = (sx1 - c0).min(GATHER);
+                        let (mut r_l, mut d_l) = ([f32::NAN; GATHER], [0f32; GATHER]);
+                        r_l[..len].copy_from_slice(&rho[row + c0..row + c0 + len]);
+                        d_l[..len].copy_from_slice(&prev_d[row + c0..row + c0 + len]);
+                        // Branch-free: left pixel x lies on the sphere's left chord of row y
+                        // when |x − sx| ≤ c = √(r² − dy²); the right chord maps it to
+                        // d_prev + (x − sx) ± c. NaN (no point, or past the row) fails the
+                        // comparison.
+                        // (Differences of small integers in i32, converted in vector lanes.)
+                        let dx0 = x as i32 - c0 as i32;
+                        for k in 0..GATHER {
+                            let (r, dx) = (r_l[k], (dx0 - k as i32) as f32);
+                            let c2 = r * r - dy2;
+                            let c = c2.max(0.0).sqrt();
+                            let inside = c2 >= 0.0 && dx.abs() <= c;
+                            let base = d_l[k] + dx;
+                            a[k] = if inside && base - c < a[k] { base - c } else { a[k] };
+                            b[k] = if inside && base + c > b[k] { base + c } else { b[k] };
+                        }
                     }
                 }
+                let (a, b) = (a.iter().fold(lo[j], |m, &v| if v < m { v } else { m }), b.iter().fold(hi[j], |m, &v| if v > m { v } else { m }));
                 lo[j] = a;
                 hi[j] = b;
                 union_px += (a <= b) as usize;
@@ -183,6 +195,7 @@ impl Assistant {
     }
 
     /// The Kalman prediction of every previous point into `lo`/`hi`.
+    #[inline(always)]
     pub(super) fn splat_predicted(&mut self, gap: u64, lag: u64, mask: Option<&[u8]>, plan: &mut Plan) {
         let w = self.size.0;
         let prev = self.prev.as_ref().expect("planned with a previous frame");

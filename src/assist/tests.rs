@@ -273,3 +273,25 @@ fn fast_rounding_matches_the_standard_library() {
         assert_eq!(super::region::ceil(x), x.ceil(), "{x}");
     }
 }
+
+#[test]
+fn set_flags_are_found_in_order_whatever_the_length() {
+    // Lengths around the eight-byte words, flags of every density, any non-zero value.
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    for len in [0usize, 1, 7, 8, 9, 15, 16, 17, 64, 203] {
+        for density in [0u64, 1, 8, 64] {
+            let flags: Vec<u8> = (0..len)
+                .map(|_| {
+                    state ^= state << 13;
+                    state ^= state >> 7;
+                    state ^= state << 17;
+                    if state % 64 < density { (state >> 32) as u8 | 1 } else { 0 }
+                })
+                .collect();
+            let mut found = Vec::new();
+            super::region::for_each_set(&flags, |k| found.push(k));
+            let expected: Vec<usize> = (0..len).filter(|&k| flags[k] != 0).collect();
+            assert_eq!(found, expected, "len {len}, density {density}/64");
+        }
+    }
+}
