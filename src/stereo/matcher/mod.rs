@@ -45,7 +45,7 @@ use super::kernels;
 use super::params::ValidMatchParams;
 use super::speckle::SpeckleFilter;
 use rows::{column_bands, left_right_check, row_intervals, select_row, texture_row, tile_bands, update_column_sums, update_texture};
-use scratch::{Geometry, StripeInput, StripeScratch, TileSums, TILE_H, TILE_W};
+use scratch::{searched_span, Geometry, StripeInput, StripeScratch, TileSums, TILE_H, TILE_W};
 
 mod rows;
 mod scratch;
@@ -100,15 +100,17 @@ impl Crop {
         let (mut dlo, mut dhi) = (i32::MAX, i32::MIN);
         for y in 0..h {
             let (lo, hi) = (&iv.lo[y * w..][..w], &iv.hi[y * w..][..w]);
-            let Some(first) = lo.iter().zip(hi).position(|(a, b)| a <= b) else { continue };
-            let last = w - 1 - lo.iter().zip(hi).rev().position(|(a, b)| a <= b).expect("one exists");
+            let Some((first, last)) = searched_span(lo, hi) else { continue };
             (x0, x1, y0, y1) = (x0.min(first), x1.max(last), y0.min(y), y1.max(y));
-            for (a, b) in lo[first..=last].iter().zip(&hi[first..=last]) {
-                if a <= b {
-                    dlo = dlo.min(*a as i32);
-                    dhi = dhi.max(*b as i32);
-                }
+            // Branch-free, so that it vectorises.
+            let (mut a_min, mut b_max) = (i16::MAX, i16::MIN);
+            for (&a, &b) in lo[first..=last].iter().zip(&hi[first..=last]) {
+                let ok = a <= b;
+                a_min = a_min.min(if ok { a } else { i16::MAX });
+                b_max = b_max.max(if ok { b } else { i16::MIN });
             }
+            dlo = dlo.min(a_min as i32);
+            dhi = dhi.max(b_max as i32);
         }
         if x0 > x1 {
             return None;

@@ -4,7 +4,7 @@
 
 use std::ops::Range;
 
-use super::scratch::{clamp_row, Geometry, StripeScratch, BLOCK, NARROW, TILE_W};
+use super::scratch::{clamp_row, searched_span, Geometry, StripeScratch, BLOCK, NARROW, TILE_W};
 use crate::stereo::disparity::{DisparityIntervals, MatchStats};
 use crate::stereo::kernels::{self, absdiff, add_absdiff, add_into, first_index_of, min_into, min_u16, min_u16_away_from, slide_column, slide_row};
 use crate::stereo::params::ValidMatchParams;
@@ -92,8 +92,7 @@ pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize
 pub(super) fn row_intervals(g: Geometry, clipped: (&[i32], &[i32]), tlo: &mut [i32], thi: &mut [i32], ilo: &mut [i32], ihi: &mut [i32], stats: &mut MatchStats) -> Option<Range<usize>> {
     let Geometry { w, n, .. } = g;
     let (lo, hi) = (&clipped.0[..w], &clipped.1[..w]);
-    let first = lo.iter().zip(hi).position(|(a, b)| a <= b)?;
-    let last = w - 1 - lo.iter().zip(hi).rev().position(|(a, b)| a <= b).expect("one exists");
+    let (first, last) = searched_span(lo, hi)?;
     tlo[..w].copy_from_slice(lo);
     thi[..w].copy_from_slice(hi);
     let (mut searched, mut evaluated) = (0u64, 0u64);
@@ -106,8 +105,9 @@ pub(super) fn row_intervals(g: Geometry, clipped: (&[i32], &[i32]), tlo: &mut [i
         // Whole blocks, so that neighbours with slightly different intervals share one
         // range and slide instead of recomputing; not clipped to the image (the right rows
         // are padded for that), so border pixels share their neighbours' blocks.
-        ilo[x] = if ok { a - a.rem_euclid(block) } else { 1 };
-        ihi[x] = if ok { (b - b.rem_euclid(block) + block - 1).min(n as i32 - 1) } else { 0 };
+        // (Clipped indices are ≥ 0: rounding down to a block is a mask, which vectorises.)
+        ilo[x] = if ok { a & !(block - 1) } else { 1 };
+        ihi[x] = if ok { ((b & !(block - 1)) + block - 1).min(n as i32 - 1) } else { 0 };
     }
     stats.searched += searched as usize;
     stats.evaluated += evaluated;
