@@ -295,3 +295,27 @@ fn set_flags_are_found_in_order_whatever_the_length() {
         }
     }
 }
+
+#[test]
+fn the_working_region_follows_the_object_and_does_not_creep() {
+    // The region of a plan is this frame's foreground and the previous frame's disparities,
+    // grown by the fill distance: over many frames of an object that stays put in the image,
+    // it stays as large as that (it once grew by the fill distance at every frame).
+    let scene = Scene::new();
+    for mode in [AssistMode::Paper { w: 0.8 }, AssistMode::Predicted] {
+        let mut a = assistant(&scene, mode, 3);
+        for k in 3..20u64 {
+            let d = scene.disparity(k as f64);
+            let mask = Scene::mask(&d);
+            let prev = a.prev.as_ref().expect("a previous frame").disparity.clone();
+            let plan = a.plan(k, Some(&mask), &scene.poses(0..k));
+            assert!(plan.assisted(), "{mode:?} frame {k}: {:?}", plan.full_range);
+            let (w, h) = (d.width, d.height);
+            let full = Region { x0: 0, x1: w, y0: 0, y1: h };
+            let bound = Region::of(Some(&mask), w, h).unwrap().union(&Region::of_disparity(&prev, full)).grow(FILL + 1, w, h);
+            assert_eq!(a.region, bound, "{mode:?} frame {k}");
+            assert!(a.accept(k, &plan, &d, Some(&mask), &stats(0.9)).is_none());
+            a.recycle(plan);
+        }
+    }
+}
