@@ -341,14 +341,28 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
         "model_voxel_mm": voxel,
         "turned_deg": reg.turned_deg(),
         "loop_closure": closure.as_ref().map(loop_json),
-        "turntable_fit": reg.turntable_fit().map(|f| json!({"steps": f.steps, "rms_deviation_deg": f.rms_deviation_deg, "max_deviation_deg": f.max_deviation_deg, "worst_seq": f.worst_seq, "applied": f.applied, "axis_source": f.axis_source})),
+        "turntable_fit": reg.turntable_fit().map(|f| json!({
+            "steps": f.steps, "rms_deviation_deg": f.rms_deviation_deg, "max_deviation_deg": f.max_deviation_deg, "worst_seq": f.worst_seq,
+            "applied": f.applied, "axis_source": f.axis_source, "kept_because": f.kept_because,
+            "axis_sigma_deg": f.refined.as_ref().map(|r| r.sigma_dir_deg), "axis_point_sigma_mm": f.refined.as_ref().map(|r| r.sigma_point_mm),
+            "axis_fit_rms_mm": f.refined.as_ref().map(|r| r.rms_mm), "axis_fit_pairs": f.refined.as_ref().map(|r| r.pairs),
+            "turntable_score_mm": f.scores.map(|s| s.0), "registered_score_mm": f.scores.map(|s| s.1),
+        })),
         "pose_source": if reg.turntable_fit().is_some_and(|f| f.applied) { "turntable" } else { "registration" },
     });
-    if let Some(axis) = reg.estimated_axis() {
-        let est = TurntableAxis { axis_point_mm: axis.point.into(), axis_dir: axis.dir.into(), source: "estimated".into() };
+    // The axis fitted to every view when there is one, else the one estimated from the poses.
+    let axis = match (reg.refined_axis(), reg.estimated_axis()) {
+        (Some(f), _) => Some((f.point, f.dir, json!({"method": "refined", "sigma_deg": f.sigma_dir_deg, "point_sigma_mm": f.sigma_point_mm, "fit_rms_mm": f.rms_mm, "pairs": f.pairs}))),
+        (None, Some(a)) => Some((a.point, a.dir, json!({"method": "poses", "rms_axis_deg": a.rms_axis_deg, "rms_offset_mm": a.rms_offset, "views": a.views}))),
+        (None, None) => None,
+    };
+    if let Some((point, dir, mut about)) = axis {
+        let est = TurntableAxis { axis_point_mm: point.into(), axis_dir: dir.into(), source: "estimated".into() };
         let path = results.dir.join("turntable_estimated.yaml");
         io::write_atomic(&path, est.to_yaml().as_bytes()).map_err(|e| ResultsError::Output { path, what: e.to_string() })?;
-        section["axis"] = json!({"point_mm": est.axis_point_mm, "dir": est.axis_dir, "rms_axis_deg": axis.rms_axis_deg, "rms_offset_mm": axis.rms_offset, "views": axis.views});
+        about["point_mm"] = json!(est.axis_point_mm);
+        about["dir"] = json!(est.axis_dir);
+        section["axis"] = about;
     }
     if let Some(gt) = &inputs.gt_poses {
         score_registration(&mut section, results, &poses, gt, inputs.gt_mesh.as_deref(), &cloud.points)?;

@@ -56,47 +56,11 @@ use nalgebra::{Isometry3, Vector3};
 use super::axis::{estimate_axis, explained_degeneracy, AxisEstimate};
 use super::icp::{icp, IcpParams, IcpResult, Target};
 use super::posestore::{PoseStore, ViewPose};
+use super::refine::{AxisFit, RefineParams, RefineSet, RefineView};
 use super::voxel::VoxelModel;
-use super::{rotation_about_axis, scale_transform, subsample_indices, KdTree, RegisterError};
+pub use super::loops::{distribute_loop_error, distribute_loop_error_weighted, edge_variance, register_ring, RingEdge, RingResult};
+use super::{rotation_about_axis, subsample_indices, KdTree, RegisterError};
 use crate::cloud::PointCloud;
-
-/// Spreads a loop's disagreement over a chain. `chain[k]` = `first_from_view(k)` from
-/// sequential registration (`chain[0]` = identity); `measured` = `first_from_last` from
-/// registering the last view directly to the first. With N = `chain.len()` edges in the ring
-/// (N − 1 in the chain and the loop edge), view k is corrected by k/N of
-/// `E = measured · chain[last]⁻¹`.
-pub fn distribute_loop_error(chain: &[Isometry3<f64>], measured: &Isometry3<f64>) -> Vec<Isometry3<f64>> {
-    distribute_loop_error_weighted(chain, measured, &vec![1.0; chain.len()])
-}
-
-/// [`distribute_loop_error`] with an uncertainty per edge (`variances[k]` for the edge into
-/// view k, k = 1…N−1, and `variances[0]` for the closing edge): an edge takes a share of the
-/// correction in proportion to its variance, so a poor registration absorbs most of it.
-pub fn distribute_loop_error_weighted(chain: &[Isometry3<f64>], measured: &Isometry3<f64>, variances: &[f64]) -> Vec<Isometry3<f64>> {
-    let n = chain.len();
-    if n < 2 || variances.len() != n {
-        return chain.to_vec();
-    }
-    let var: Vec<f64> = variances.iter().map(|v| if v.is_finite() && *v > 0.0 { *v } else { 1.0 }).collect();
-    let total: f64 = var.iter().sum();
-    let e = measured * chain[n - 1].inverse();
-    let mut acc = 0.0;
-    chain
-        .iter()
-        .enumerate()
-        .map(|(k, p)| {
-            if k > 0 {
-                acc += var[k];
-            }
-            scale_transform(&e, acc / total) * p
-        })
-        .collect()
-}
-
-/// An ICP result's variance for weighting loop closure: RMSE² over the overlap.
-pub fn edge_variance(r: &IcpResult) -> f64 {
-    r.rmse * r.rmse / r.fitness.max(0.05)
-}
 
 /// Settings of sequence registration; distances in the clouds' units (mm for views).
 #[derive(Debug, Clone)]
@@ -129,6 +93,14 @@ pub struct RegistrationParams {
     pub axis_long_step_every: usize,
     /// A calibrated axis (point, unit up), when the recording has one.
     pub calibrated_axis: Option<(Vector3<f64>, Vector3<f64>)>,
+    /// The turntable refinement at the end of a scan without a calibrated axis
+    /// (`register::refine`): the axis fitted to every view at once.
+    pub refine: RefineParams,
+    /// Points of each view kept for the refinement.
+    pub refine_points: usize,
+    /// The turntable's poses replace the registered ones only when the refined axis's
+    /// direction is known to this many degrees (one standard deviation) or better.
+    pub max_axis_sigma_deg: f64,
 }
 
 impl Default for RegistrationParams {
@@ -155,6 +127,9 @@ impl Default for RegistrationParams {
             axis_baseline_deg: 24.0,
             axis_long_step_every: 2,
             calibrated_axis: None,
+            refine: RefineParams::default(),
+            refine_points: 1500,
+            max_axis_sigma_deg: 0.05,
         }
     }
 }
@@ -191,8 +166,15 @@ pub struct TurntableFit {
     pub worst_seq: u64,
     /// The predictions replaced the registered poses.
     pub applied: bool,
-    /// "calibrated" or "estimated".
+    /// "calibrated", or "refined" (fitted to every view at the end of the scan).
     pub axis_source: &'static str,
+    /// The refined axis's uncertainty and fit (None with a calibrated axis).
+    pub refined: Option<AxisFit>,
+    /// How well the refined axis's turntable poses and the registered poses put the views
+    /// onto each other, mm (lower is better): (turntable, registered).
+    pub scores: Option<(f64, f64)>,
+    /// Why the predictions were not applied (None when they were).
+    pub kept_because: Option<String>,
 }
 
 /// The outcome of loop closure.
@@ -239,12 +221,28 @@ pub struct Registrar {
     steps: Vec<Option<Isometry3<f64>>>,
     /// [`edge_variance`] of each view's step (first view: unused).
     step_variance: Vec<f64>,
+    /// Subsampled points of the views with a table angle, for the refinement: every
+    /// `kept_stride`-th view (the stride doubles when too many are kept, so memory stays
+    /// bounded on long scans).
+    kept: Vec<RefineView>,
+    kept_index: Vec<usize>,
+    kept_stride: usize,
+    /// The axis fitted to every view by [`Registrar::finish`], and the error of the fits
+    /// tried from every starting axis.
+    refined: Option<AxisFit>,
+    refine_errors: Vec<String>,
+    /// How well the refined axis's turntable poses and the registered poses put the views
+    /// onto each other ([`RefineSet::score`], mm): (turntable, registered).
+    refine_scores: Option<(f64, f64)>,
 }
+
+/// Most views kept for the refinement.
+const MAX_KEPT: usize = 360;
 
 impl Registrar {
     pub fn new(params: RegistrationParams, store: std::sync::Arc<PoseStore>) -> Registrar {
         let model = VoxelModel::new(params.model_voxel);
-        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, steps: Vec::new(), step_variance: Vec::new() }
+        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, steps: Vec::new(), step_variance: Vec::new(), kept: Vec::new(), kept_index: Vec::new(), kept_stride: 1, refined: None, refine_errors: Vec::new(), refine_scores: None }
     }
 
     /// The latest pose of every view.
@@ -260,6 +258,32 @@ impl Registrar {
     /// The axis estimated from the poses so far.
     pub fn estimated_axis(&self) -> Option<&AxisEstimate> {
         self.axis.as_ref()
+    }
+
+    /// The axis fitted to every view by [`Registrar::finish`] (no calibrated axis, table
+    /// angles recorded).
+    pub fn refined_axis(&self) -> Option<&AxisFit> {
+        self.refined.as_ref()
+    }
+
+    /// Keeps a subsample of view `k`'s points for the refinement.
+    fn keep_for_refinement(&mut self, k: usize, table_deg: Option<f64>, pts: &[[f32; 3]]) {
+        let Some(table_deg) = table_deg else { return };
+        if k % self.kept_stride != 0 {
+            return;
+        }
+        let points = subsample_indices(pts.len(), self.params.refine_points).into_iter().map(|i| pts[i]).collect();
+        self.kept.push(RefineView { table_deg, points });
+        self.kept_index.push(k);
+        if self.kept.len() > MAX_KEPT {
+            // Every other view: those at multiples of the doubled stride.
+            self.kept_stride *= 2;
+            let stride = self.kept_stride;
+            let keep: Vec<bool> = self.kept_index.iter().map(|&k| k % stride == 0).collect();
+            let mut it = keep.iter();
+            self.kept.retain(|_| *it.next().expect("one flag per view"));
+            self.kept_index.retain(|&k| k % stride == 0);
+        }
     }
 
     /// Degrees turned since the first view (from table angles when recorded, else summed
@@ -297,6 +321,7 @@ impl Registrar {
             self.step_variance.push(1.0);
             self.block.push((0, target.tree.points.clone()));
             self.remember(0, &target.tree.points);
+            self.keep_for_refinement(0, table_deg, &target.tree.points);
             if let Err(e) = self.long_step(0, table_deg, &target.tree.points) {
                 warnings.push(format!("view {seq}: long step for the axis: {e}"));
             }
@@ -373,6 +398,7 @@ impl Registrar {
         self.step_variance.push(if result.fitness >= self.params.min_fitness { edge_variance(&result) } else { 1e12 });
         self.block.push((self.poses.len() - 1, target.tree.points.clone()));
         self.remember(self.poses.len() - 1, &target.tree.points);
+        self.keep_for_refinement(self.poses.len() - 1, table_deg, &target.tree.points);
         if let Err(e) = self.long_step(self.poses.len() - 1, table_deg, &target.tree.points) {
             warnings.push(format!("view {seq}: long step for the axis: {e}"));
         }
@@ -530,6 +556,7 @@ impl Registrar {
             }
         };
         self.update_axis_from(true);
+        self.refine_axis();
         self.fit_turntable();
         self.store.publish(self.poses.clone());
         Ok(closure)
@@ -575,14 +602,56 @@ impl Registrar {
         Ok(Some(LoopClosure { views: n, error_deg: e.rotation.angle().to_degrees(), error_translation: e.translation.vector.norm(), icp: r }))
     }
 
-    /// Compares every pose with the turntable's prediction and uses the predictions when
-    /// they all agree.
+    /// Fits the axis to every view at once (`register::refine`), from each axis known so far
+    /// — the one estimated from the poses, the symmetry axis ICP found — keeping the fit with
+    /// the smallest residual. Not with a calibrated axis, nor without table angles.
+    fn refine_axis(&mut self) {
+        if !self.params.turntable_poses || self.params.calibrated_axis.is_some() || self.kept.len() < 3 {
+            return;
+        }
+        let set = match RefineSet::new(&self.kept, &self.params.refine) {
+            Ok(set) => set,
+            Err(e) => {
+                self.refine_errors.push(e.to_string());
+                return;
+            }
+        };
+        let mut starts: Vec<(Vector3<f64>, Vector3<f64>)> = self.axis.iter().map(|a| (a.point, a.dir)).collect();
+        starts.extend(self.symmetry_axis);
+        let mut best: Option<AxisFit> = None;
+        for start in starts {
+            match set.fit_axis(start, &self.params.refine) {
+                Ok(fit) if best.as_ref().is_none_or(|b| fit.rms_mm < b.rms_mm) => best = Some(fit),
+                Ok(_) => {}
+                Err(e) => self.refine_errors.push(e.to_string()),
+            }
+        }
+        if let Some(fit) = &best {
+            // The turntable's poses of the kept views against the registered ones, by one
+            // measure.
+            let first_deg = self.kept[0].table_deg;
+            let first_index = self.kept_index[0];
+            let base = self.poses[first_index].first_from_view;
+            let turned: Vec<Isometry3<f64>> = self.kept.iter().map(|v| rotation_about_axis(&fit.point, &fit.dir, -(v.table_deg - first_deg))).collect();
+            let registered: Vec<Isometry3<f64>> = self.kept_index.iter().map(|&k| base.inverse() * self.poses[k].first_from_view).collect();
+            self.refine_scores = Some((set.score(&turned, &self.params.refine), set.score(&registered, &self.params.refine)));
+        }
+        self.refined = best;
+    }
+
+    /// Compares every pose with the turntable's prediction and uses the predictions when the
+    /// axis is calibrated, or refined to within `max_axis_sigma_deg`, and every step agrees.
     fn fit_turntable(&mut self) {
         let Some(first_deg) = self.poses.first().and_then(|p| p.table_deg) else { return };
-        let (axis, source) = match (self.params.calibrated_axis, self.axis.as_ref()) {
+        let (axis, source) = match (self.params.calibrated_axis, self.refined.as_ref()) {
             (Some(a), _) => (a, "calibrated"),
-            (None, Some(e)) => ((e.point, e.dir), "estimated"),
-            (None, None) => return,
+            (None, Some(f)) => ((f.point, f.dir), "refined"),
+            (None, None) => {
+                if self.params.turntable_poses && !self.refine_errors.is_empty() {
+                    tracing::warn!("the turntable's axis could not be fitted to the views ({}): keeping the registered poses", self.refine_errors.join("; "));
+                }
+                return;
+            }
         };
         let predicted: Vec<Option<Isometry3<f64>>> = self.poses.iter().map(|p| p.table_deg.map(|d| rotation_about_axis(&axis.0, &axis.1, -(d - first_deg)))).collect();
         let mut devs = Vec::new();
@@ -597,7 +666,19 @@ impl Registrar {
         }
         let (worst_seq, max) = devs.iter().copied().fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
         let rms = (devs.iter().map(|d| d.1 * d.1).sum::<f64>() / devs.len() as f64).sqrt();
-        let applied = self.params.turntable_poses && max <= self.params.max_turntable_deviation_deg;
+        let refined = if source == "refined" { self.refined.clone() } else { None };
+        let kept_because = if !self.params.turntable_poses {
+            Some("turntable poses are off".to_string())
+        } else if let (Some(f), Some((turned, registered))) = (refined.as_ref().filter(|f| !(f.sigma_dir_deg <= self.params.max_axis_sigma_deg)), self.refine_scores.filter(|(t, r)| !(t < r))) {
+            Some(format!("the turntable's axis is known only to ±{:.3}° (more than {:.3}°), and its poses put the views onto each other no better than the registered ones ({turned:.3} against {registered:.3} mm)", f.sigma_dir_deg, self.params.max_axis_sigma_deg))
+        } else if source == "refined" && self.refine_scores.is_none() {
+            Some("the turntable's poses could not be scored against the registered ones".to_string())
+        } else if max > self.params.max_turntable_deviation_deg {
+            Some(format!("the step to view {worst_seq} is {max:.2}° from the turntable's prediction (more than {:.2}°): the object may have moved on the table, or the table angles are off", self.params.max_turntable_deviation_deg))
+        } else {
+            None
+        };
+        let applied = kept_because.is_none();
         if applied {
             for (p, pred) in self.poses.iter_mut().zip(predicted) {
                 if let Some(pred) = pred {
@@ -605,82 +686,9 @@ impl Registrar {
                 }
             }
         } else if self.params.turntable_poses {
-            tracing::warn!("the step to view {worst_seq} is {max:.2}° from the turntable's prediction (more than {:.2}°): the object may have moved on the table, or the table angles are off; keeping the registered poses", self.params.max_turntable_deviation_deg);
+            tracing::warn!("{}; keeping the registered poses", kept_because.as_deref().unwrap_or_default());
         }
-        self.turntable_fit = Some(TurntableFit { steps: devs.len(), rms_deviation_deg: rms, max_deviation_deg: max, worst_seq, applied, axis_source: source });
+        let scores = if source == "refined" { self.refine_scores } else { None };
+        self.turntable_fit = Some(TurntableFit { steps: devs.len(), rms_deviation_deg: rms, max_deviation_deg: max, worst_seq, applied, axis_source: source, refined, scores, kept_because });
     }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::register::{angle_deg, rotation_about_axis};
-
-    #[test]
-    fn loop_error_is_spread_evenly() {
-        let axis = Vector3::new(0.0, 1.0, 0.0);
-        let truth: Vec<Isometry3<f64>> = (0..10).map(|k| rotation_about_axis(&Vector3::zeros(), &axis, 36.0 * k as f64 * 0.97)).collect();
-        // A chain that over-rotates by 0.1° per edge.
-        let chain: Vec<Isometry3<f64>> = (0..10).map(|k| rotation_about_axis(&Vector3::zeros(), &axis, 36.0 * k as f64 * 0.97 + 0.1 * k as f64)).collect();
-        let closed = distribute_loop_error(&chain, &truth[9]);
-        assert_eq!(closed[0], Isometry3::identity());
-        for k in 0..10 {
-            let err = angle_deg(&(closed[k] * truth[k].inverse()));
-            // View k keeps 0.1·k − 0.9·k/10 of error: at most 0.09° (at k = 9).
-            assert!(err < 0.0901, "view {k}: {err}");
-        }
-    }
-}
-
-/// One registration of a ring: `source` onto `target` (indices of the scans).
-#[derive(Debug, Clone)]
-pub struct RingEdge {
-    pub source: usize,
-    pub target: usize,
-    pub icp: IcpResult,
-}
-
-/// A registered ring of scans.
-#[derive(Debug, Clone)]
-pub struct RingResult {
-    /// Pose of every scan in the frame of the first scan's initial pose.
-    pub world_from_scan: Vec<Isometry3<f64>>,
-    /// Scan k onto scan k − 1 for every k, then the last onto the first.
-    pub edges: Vec<RingEdge>,
-    /// Disagreement of the chain and the closing edge before it was spread.
-    pub loop_error_deg: f64,
-    pub loop_error_translation: f64,
-}
-
-/// Registers a ring of scans, each onto the one before it starting from their initial poses'
-/// relative motion, then the last onto the first, and spreads the loop's disagreement over
-/// the ring in proportion to each edge's [`edge_variance`]
-/// ([`distribute_loop_error_weighted`]). The first scan keeps its initial pose.
-pub fn register_ring(scans: &[Vec<[f32; 3]>], init_world: &[Isometry3<f64>], params: &IcpParams) -> Result<RingResult, RegisterError> {
-    let n = scans.len();
-    if n < 3 || init_world.len() != n {
-        return Err(RegisterError::Param(format!("a ring needs at least 3 scans with one initial pose each (got {n} scans, {} poses)", init_world.len())));
-    }
-    let targets: Vec<KdTree> = scans.iter().enumerate().map(|(k, s)| KdTree::build(s.clone(), &format!("scan {k}"))).collect::<Result<_, _>>()?;
-    let mut targets: Vec<Target> = targets.into_iter().map(|t| Target::new(t, params.normals)).collect();
-    let mut chain = vec![Isometry3::identity()];
-    let mut edges = Vec::new();
-    for k in 1..n {
-        let init = init_world[k - 1].inverse() * init_world[k];
-        let r = icp(&scans[k], &mut targets[k - 1], &init, params)?;
-        chain.push(chain[k - 1] * r.transform);
-        edges.push(RingEdge { source: k, target: k - 1, icp: r });
-    }
-    let r = icp(&scans[n - 1], &mut targets[0], &chain[n - 1], params)?;
-    let e = r.transform * chain[n - 1].inverse();
-    let mut variances = vec![edge_variance(&r)];
-    variances.extend(edges.iter().map(|e| edge_variance(&e.icp)));
-    let closed = distribute_loop_error_weighted(&chain, &r.transform, &variances);
-    edges.push(RingEdge { source: n - 1, target: 0, icp: r });
-    Ok(RingResult {
-        world_from_scan: closed.iter().map(|p| init_world[0] * p).collect(),
-        edges,
-        loop_error_deg: e.rotation.angle().to_degrees(),
-        loop_error_translation: e.translation.vector.norm(),
-    })
 }
