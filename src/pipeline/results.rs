@@ -401,6 +401,25 @@ fn score_registration(section: &mut Value, results: &mut ResultsWriter, poses: &
         let d = surface.distances(model);
         use crate::register::surface::quantile;
         section["gt_model_distance_mm"] = json!({"median": quantile(&d, 0.5), "p95": quantile(&d, 0.95), "points": d.len()});
+        // The views' own error: each view's points placed by its true pose (what the stereo
+        // gives, whatever the registration), read back one view at a time, at most
+        // VIEW_SAMPLE points each.
+        const VIEW_SAMPLE: usize = 5000;
+        let mut own = Vec::new();
+        for p in poses {
+            let Some(cam_from_obj) = truth(p.seq) else { continue };
+            let path = results.dir.join("views").join(format!("{:06}.ply", p.seq));
+            let view = io::ply::read_ply(&path).map_err(|e| ResultsError::Output { path: path.clone(), what: format!("cannot read the view back: {e}") })?;
+            let placed = first * cam_from_obj.inverse();
+            let pts: Vec<[f32; 3]> = crate::register::subsample_indices(view.cloud.len(), VIEW_SAMPLE).into_iter().map(|i| crate::register::apply(&placed, &view.cloud.points[i])).collect();
+            own.extend(surface.distances(&pts));
+        }
+        if !own.is_empty() {
+            let (median, p95) = (quantile(&own, 0.5), quantile(&own, 0.95));
+            let ratio = |m: Option<f64>, v: Option<f64>| m.zip(v).map(|(m, v)| m / v.max(1e-12));
+            section["gt_view_distance_mm"] = json!({"median": median, "p95": p95, "points": own.len()});
+            section["gt_model_to_view_ratio"] = json!({"median": ratio(quantile(&d, 0.5), median), "p95": ratio(quantile(&d, 0.95), p95)});
+        }
     }
     Ok(())
 }

@@ -51,10 +51,10 @@ pub struct RefineParams {
 }
 
 impl Default for RefineParams {
-    /// Pairs 30° apart and neighbours, 400 points a pair, reach 8 → 2 mm over 15 rounds, Huber
+    /// Pairs 60° apart and neighbours, 1000 points a pair, reach 8 → 2 mm over 15 rounds, Huber
     /// beyond 1 mm, normals from 20 neighbours within 10 mm.
     fn default() -> Self {
-        RefineParams { pair_deg: 30.0, source_points: 400, reach_mm: (8.0, 2.0), rounds: 15, huber_mm: 1.0, normals: NormalParams { radius: 10.0, max_nn: 20 } }
+        RefineParams { pair_deg: 60.0, source_points: 1000, reach_mm: (8.0, 2.0), rounds: 15, huber_mm: 1.0, normals: NormalParams { radius: 10.0, max_nn: 20 } }
     }
 }
 
