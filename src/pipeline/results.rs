@@ -275,6 +275,7 @@ pub fn register_view(reg: &mut Registrar, frame: &StereoFrame, cloud: &PointClou
     match reg.add_view(seq, frame.table_deg, cloud) {
         Ok(r) => {
             entry["register_ms"] = json!(r.register_ms);
+            entry["publish_ms"] = json!(r.publish_ms);
             entry["seed"] = json!(r.seed);
             if let Some(icp) = &r.icp {
                 entry["icp_fitness"] = json!(icp.fitness);

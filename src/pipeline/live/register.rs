@@ -76,7 +76,9 @@ fn register_all(
                     }
                 }
                 if entry.get("registered").is_none() {
-                    let lag = captured.elapsed().as_micros() as u64;
+                    // Capture → the pose published (before the long and block steps ran on).
+                    let after_publish = entry["register_ms"].as_f64().zip(entry["publish_ms"].as_f64()).map_or(0.0, |(r, p)| (r - p).max(0.0));
+                    let lag = (captured.elapsed().as_micros() as u64).saturating_sub((after_publish * 1e3) as u64);
                     entry["registration_lag_ms"] = json!(lag as f64 / 1e3);
                     c.lag_sum_us.fetch_add(lag, Ordering::Relaxed);
                     c.lag_max_us.fetch_max(lag, Ordering::Relaxed);

@@ -211,7 +211,7 @@ pub struct Counters {
     pub pose_deg_bits: AtomicU64,
     /// Table angle of the last captured pair, f64 bits.
     pub table_deg_bits: AtomicU64,
-    /// Sum and max of registration lag (capture → registered), µs.
+    /// Sum and max of registration lag (capture → the view's pose published), µs.
     pub lag_sum_us: AtomicU64,
     pub lag_max_us: AtomicU64,
     /// Pairs waiting for the matchers, and for the recorder.

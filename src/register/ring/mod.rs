@@ -56,11 +56,13 @@ use nalgebra::{Isometry3, Vector3};
 use super::axis::{estimate_axis, explained_degeneracy, AxisEstimate};
 use super::icp::{icp, IcpParams, IcpResult, Target};
 use super::posestore::{PoseStore, ViewPose};
-use super::refine::{AxisFit, RefineParams, RefineSet, RefineView};
+use super::refine::{AxisFit, RefineParams, RefineView};
 use super::voxel::VoxelModel;
 pub use super::loops::{distribute_loop_error, distribute_loop_error_weighted, edge_variance, register_ring, RingEdge, RingResult};
 use super::{rotation_about_axis, subsample_indices, KdTree, RegisterError};
 use crate::cloud::PointCloud;
+
+mod turntable;
 
 /// Settings of sequence registration; distances in the clouds' units (mm for views).
 #[derive(Debug, Clone)]
@@ -148,6 +150,9 @@ pub struct ViewRegistration {
     /// A block of m views ended here and was registered to the model.
     pub block: Option<IcpResult>,
     pub register_ms: f64,
+    /// From the call to the first publication of the view's pose (chained, before the long
+    /// and block steps refine it).
+    pub publish_ms: f64,
     /// Conditions that make the result doubtful.
     pub warnings: Vec<String>,
     /// Expected conditions of the set-up, handled (e.g. an object of revolution whose free
@@ -266,26 +271,6 @@ impl Registrar {
         self.refined.as_ref()
     }
 
-    /// Keeps a subsample of view `k`'s points for the refinement.
-    fn keep_for_refinement(&mut self, k: usize, table_deg: Option<f64>, pts: &[[f32; 3]]) {
-        let Some(table_deg) = table_deg else { return };
-        if k % self.kept_stride != 0 {
-            return;
-        }
-        let points = subsample_indices(pts.len(), self.params.refine_points).into_iter().map(|i| pts[i]).collect();
-        self.kept.push(RefineView { table_deg, points });
-        self.kept_index.push(k);
-        if self.kept.len() > MAX_KEPT {
-            // Every other view: those at multiples of the doubled stride.
-            self.kept_stride *= 2;
-            let stride = self.kept_stride;
-            let keep: Vec<bool> = self.kept_index.iter().map(|&k| k % stride == 0).collect();
-            let mut it = keep.iter();
-            self.kept.retain(|_| *it.next().expect("one flag per view"));
-            self.kept_index.retain(|&k| k % stride == 0);
-        }
-    }
-
     /// Degrees turned since the first view (from table angles when recorded, else summed
     /// from the registered motion).
     pub fn turned_deg(&self) -> f64 {
@@ -301,6 +286,7 @@ impl Registrar {
     fn seed_axis(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
         self.params.calibrated_axis.or(self.symmetry_axis).or_else(|| self.axis.as_ref().map(|a| (a.point, a.dir)))
     }
+
 
     /// Registers the next view (its cloud in its own LEFT raw camera frame).
     pub fn add_view(&mut self, seq: u64, table_deg: Option<f64>, cloud: &PointCloud) -> Result<ViewRegistration, RegisterError> {
@@ -328,7 +314,8 @@ impl Registrar {
             self.prev = Some(Stored { seq, table_deg, target });
             self.end_block_if_full(&mut warnings, &mut notes);
             self.store.publish(self.poses.clone());
-            return Ok(ViewRegistration { seq, first_from_view: Isometry3::identity(), icp: None, seed: "none", block: None, register_ms: started.elapsed().as_secs_f64() * 1e3, warnings, notes });
+            let register_ms = started.elapsed().as_secs_f64() * 1e3;
+            return Ok(ViewRegistration { seq, first_from_view: Isometry3::identity(), icp: None, seed: "none", block: None, register_ms, publish_ms: register_ms, warnings, notes });
         };
 
         let (seed, seed_kind) = match (self.seed_axis(), table_deg, prev.table_deg) {
@@ -399,6 +386,10 @@ impl Registrar {
         self.block.push((self.poses.len() - 1, target.tree.points.clone()));
         self.remember(self.poses.len() - 1, &target.tree.points);
         self.keep_for_refinement(self.poses.len() - 1, table_deg, &target.tree.points);
+        // The matchers get the pose as soon as the view is chained; the long step and the
+        // block step below refine the store afterwards.
+        self.store.publish(self.poses.clone());
+        let publish_ms = started.elapsed().as_secs_f64() * 1e3;
         if let Err(e) = self.long_step(self.poses.len() - 1, table_deg, &target.tree.points) {
             warnings.push(format!("view {seq}: long step for the axis: {e}"));
         }
@@ -413,6 +404,7 @@ impl Registrar {
             seed: seed_kind,
             block,
             register_ms: started.elapsed().as_secs_f64() * 1e3,
+            publish_ms,
             warnings,
             notes,
         })
@@ -600,95 +592,5 @@ impl Registrar {
         }
         self.update_axis();
         Ok(Some(LoopClosure { views: n, error_deg: e.rotation.angle().to_degrees(), error_translation: e.translation.vector.norm(), icp: r }))
-    }
-
-    /// Fits the axis to every view at once (`register::refine`), from each axis known so far
-    /// — the one estimated from the poses, the symmetry axis ICP found — keeping the fit with
-    /// the smallest residual. Not with a calibrated axis, nor without table angles.
-    fn refine_axis(&mut self) {
-        if !self.params.turntable_poses || self.params.calibrated_axis.is_some() || self.kept.len() < 3 {
-            return;
-        }
-        let set = match RefineSet::new(&self.kept, &self.params.refine) {
-            Ok(set) => set,
-            Err(e) => {
-                self.refine_errors.push(e.to_string());
-                return;
-            }
-        };
-        let mut starts: Vec<(Vector3<f64>, Vector3<f64>)> = self.axis.iter().map(|a| (a.point, a.dir)).collect();
-        starts.extend(self.symmetry_axis);
-        let mut best: Option<AxisFit> = None;
-        for start in starts {
-            match set.fit_axis(start, &self.params.refine) {
-                Ok(fit) if best.as_ref().is_none_or(|b| fit.rms_mm < b.rms_mm) => best = Some(fit),
-                Ok(_) => {}
-                Err(e) => self.refine_errors.push(e.to_string()),
-            }
-        }
-        if let Some(fit) = &best {
-            // The turntable's poses of the kept views against the registered ones, by one
-            // measure.
-            let first_deg = self.kept[0].table_deg;
-            let first_index = self.kept_index[0];
-            let base = self.poses[first_index].first_from_view;
-            let turned: Vec<Isometry3<f64>> = self.kept.iter().map(|v| rotation_about_axis(&fit.point, &fit.dir, -(v.table_deg - first_deg))).collect();
-            let registered: Vec<Isometry3<f64>> = self.kept_index.iter().map(|&k| base.inverse() * self.poses[k].first_from_view).collect();
-            self.refine_scores = Some((set.score(&turned, &self.params.refine), set.score(&registered, &self.params.refine)));
-        }
-        self.refined = best;
-    }
-
-    /// Compares every pose with the turntable's prediction and uses the predictions when the
-    /// axis is calibrated, or refined to within `max_axis_sigma_deg`, and every step agrees.
-    fn fit_turntable(&mut self) {
-        let Some(first_deg) = self.poses.first().and_then(|p| p.table_deg) else { return };
-        let (axis, source) = match (self.params.calibrated_axis, self.refined.as_ref()) {
-            (Some(a), _) => (a, "calibrated"),
-            (None, Some(f)) => ((f.point, f.dir), "refined"),
-            (None, None) => {
-                if self.params.turntable_poses && !self.refine_errors.is_empty() {
-                    tracing::warn!("the turntable's axis could not be fitted to the views ({}): keeping the registered poses", self.refine_errors.join("; "));
-                }
-                return;
-            }
-        };
-        let predicted: Vec<Option<Isometry3<f64>>> = self.poses.iter().map(|p| p.table_deg.map(|d| rotation_about_axis(&axis.0, &axis.1, -(d - first_deg)))).collect();
-        let mut devs = Vec::new();
-        for k in 1..self.poses.len() {
-            if let (Some(step), Some(a), Some(b)) = (self.steps[k], predicted[k - 1], predicted[k]) {
-                let predicted_step = a.inverse() * b;
-                devs.push((self.poses[k].seq, (predicted_step.inverse() * step).rotation.angle().to_degrees()));
-            }
-        }
-        if devs.len() < 3 {
-            return;
-        }
-        let (worst_seq, max) = devs.iter().copied().fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
-        let rms = (devs.iter().map(|d| d.1 * d.1).sum::<f64>() / devs.len() as f64).sqrt();
-        let refined = if source == "refined" { self.refined.clone() } else { None };
-        let kept_because = if !self.params.turntable_poses {
-            Some("turntable poses are off".to_string())
-        } else if let (Some(f), Some((turned, registered))) = (refined.as_ref().filter(|f| !(f.sigma_dir_deg <= self.params.max_axis_sigma_deg)), self.refine_scores.filter(|(t, r)| !(t < r))) {
-            Some(format!("the turntable's axis is known only to ±{:.3}° (more than {:.3}°), and its poses put the views onto each other no better than the registered ones ({turned:.3} against {registered:.3} mm)", f.sigma_dir_deg, self.params.max_axis_sigma_deg))
-        } else if source == "refined" && self.refine_scores.is_none() {
-            Some("the turntable's poses could not be scored against the registered ones".to_string())
-        } else if max > self.params.max_turntable_deviation_deg {
-            Some(format!("the step to view {worst_seq} is {max:.2}° from the turntable's prediction (more than {:.2}°): the object may have moved on the table, or the table angles are off", self.params.max_turntable_deviation_deg))
-        } else {
-            None
-        };
-        let applied = kept_because.is_none();
-        if applied {
-            for (p, pred) in self.poses.iter_mut().zip(predicted) {
-                if let Some(pred) = pred {
-                    p.first_from_view = pred;
-                }
-            }
-        } else if self.params.turntable_poses {
-            tracing::warn!("{}; keeping the registered poses", kept_because.as_deref().unwrap_or_default());
-        }
-        let scores = if source == "refined" { self.refine_scores } else { None };
-        self.turntable_fit = Some(TurntableFit { steps: devs.len(), rms_deviation_deg: rms, max_deviation_deg: max, worst_seq, applied, axis_source: source, refined, scores, kept_because });
     }
 }
