@@ -31,11 +31,13 @@ impl Registrar {
 
     /// Fits the axis to every view at once (`register::refine`), from each axis known so far
     /// — the one estimated from the poses, the symmetry axis ICP found — keeping the fit with
-    /// the smallest residual. Not with a calibrated axis, nor without table angles.
+    /// the smallest residual. Not with a calibrated axis, nor without table angles. (Also
+    /// with turntable poses off: the report still says how the poses compare.)
     pub(super) fn refine_axis(&mut self) {
-        if !self.params.turntable_poses || self.params.calibrated_axis.is_some() || self.kept.len() < 3 {
+        if self.params.calibrated_axis.is_some() || self.kept.len() < 3 {
             return;
         }
+        let started = std::time::Instant::now();
         let set = match RefineSet::new(&self.kept, &self.params.refine) {
             Ok(set) => set,
             Err(e) => {
@@ -62,12 +64,14 @@ impl Registrar {
             let turned: Vec<Isometry3<f64>> = self.kept.iter().map(|v| rotation_about_axis(&fit.point, &fit.dir, -(v.table_deg - first_deg))).collect();
             let registered: Vec<Isometry3<f64>> = self.kept_index.iter().map(|&k| base.inverse() * self.poses[k].first_from_view).collect();
             self.refine_scores = Some((set.score(&turned, &self.params.refine), set.score(&registered, &self.params.refine)));
+            tracing::info!("turntable refinement: the axis fitted to {} views in {:.1} s (direction ±{:.3}°, fit RMS {:.2} mm)", self.kept.len(), started.elapsed().as_secs_f64(), fit.sigma_dir_deg, fit.rms_mm);
         }
         self.refined = best;
     }
 
-    /// Compares every pose with the turntable's prediction and uses the predictions when the
-    /// axis is calibrated, or refined to within `max_axis_sigma_deg`, and every step agrees.
+    /// Compares every pose with the turntable's prediction and uses the predictions when every
+    /// step agrees and the axis is calibrated, or refined to within `max_axis_sigma_deg`, or
+    /// refined with poses that put the views onto each other better than the registered ones.
     pub(super) fn fit_turntable(&mut self) {
         let Some(first_deg) = self.poses.first().and_then(|p| p.table_deg) else { return };
         let (axis, source) = match (self.params.calibrated_axis, self.refined.as_ref()) {
