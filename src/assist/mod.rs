@@ -385,16 +385,19 @@ impl Assistant {
                 self.hi[y * w + region.x0..y * w + region.x1].fill(f32::NEG_INFINITY);
             }
         }
+        self.build_fastest(gap, mask, &mut plan);
+        plan.build_ms = t0.elapsed().as_secs_f64() * 1e3;
+        plan
+    }
+
+    /// [`Assistant::build`] in the widest vector code the CPU runs.
+    fn build_fastest(&mut self, gap: u64, mask: Option<&[u8]>, plan: &mut Plan) {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU has AVX2 (checked just above).
-            unsafe { self.build_avx2(gap, mask, &mut plan) };
-            plan.build_ms = t0.elapsed().as_secs_f64() * 1e3;
-            return plan;
+            return unsafe { self.build_avx2(gap, mask, plan) };
         }
-        self.build(gap, mask, &mut plan);
-        plan.build_ms = t0.elapsed().as_secs_f64() * 1e3;
-        plan
+        self.build(gap, mask, plan)
     }
 
     /// [`Assistant::build`] compiled for AVX2: its per-pixel passes are written branch-free

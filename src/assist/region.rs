@@ -86,10 +86,7 @@ impl Region {
             }
             let first = within.x0 + row.iter().position(|d| d.is_finite()).expect("one exists");
             let last = within.x0 + row.len() - row.iter().rev().position(|d| d.is_finite()).expect("one exists");
-            r = Some(match r {
-                None => Region { x0: first, x1: last, y0: y, y1: y + 1 },
-                Some(r) => Region { x0: r.x0.min(first), x1: r.x1.max(last), y0: r.y0, y1: y + 1 },
-            });
+            r = Some(Region::extended(r, first..last, y));
         }
         r.unwrap_or_default()
     }
@@ -106,12 +103,17 @@ impl Region {
             }
             let first = row.iter().position(|&v| v != 0).expect("one exists");
             let last = w - row.iter().rev().position(|&v| v != 0).expect("one exists");
-            r = Some(match r {
-                None => Region { x0: first, x1: last, y0: y, y1: y + 1 },
-                Some(r) => Region { x0: r.x0.min(first), x1: r.x1.max(last), y0: r.y0, y1: y + 1 },
-            });
+            r = Some(Region::extended(r, first..last, y));
         }
         r
+    }
+
+    /// A bounding box built row by row, top to bottom: `r` grown to hold `xs` of row `y`.
+    fn extended(r: Option<Region>, xs: std::ops::Range<usize>, y: usize) -> Region {
+        match r {
+            None => Region { x0: xs.start, x1: xs.end, y0: y, y1: y + 1 },
+            Some(r) => Region { x0: r.x0.min(xs.start), x1: r.x1.max(xs.end), y0: r.y0, y1: y + 1 },
+        }
     }
 
     pub(super) fn union(&self, o: &Region) -> Region {

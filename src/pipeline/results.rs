@@ -19,6 +19,7 @@ use crate::recording::TurntableAxis;
 use crate::register::denoise::{keep_mask, DenoiseParams};
 use crate::register::posestore::ViewPose;
 use crate::register::ring::{LoopClosure, Registrar};
+use crate::register::surface::{quantile, Surface};
 use crate::register::voxel::VoxelModel;
 use crate::stereo::DisparityMap;
 
@@ -318,10 +319,16 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
 
     let voxel = if opts.voxel_mm > 0.0 { opts.voxel_mm } else { 1.0 };
     let mut model = VoxelModel::new(voxel);
+    // Scored against the truth as the views are read back for the model (read once).
+    let truth = inputs.gt_poses.as_deref().and_then(|gt| Truth::new(gt, &poses, inputs.gt_mesh.as_deref()));
+    let mut own = Vec::new();
     for p in &poses {
         let path = results.dir.join("views").join(format!("{:06}.ply", p.seq));
         let view = io::ply::read_ply(&path).map_err(|e| ResultsError::Output { path: path.clone(), what: format!("cannot read the view back: {e}") })?;
         model.add(&view.cloud, &p.first_from_view);
+        if let Some(t) = &truth {
+            t.view_distances(p.seq, &view.cloud.points, &mut own);
+        }
     }
     let (mut cloud, _) = model.to_cloud();
     let voxels = cloud.len();
@@ -365,8 +372,8 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
         about["dir"] = json!(est.axis_dir);
         section["axis"] = about;
     }
-    if let Some(gt) = &inputs.gt_poses {
-        score_registration(&mut section, results, &poses, gt, inputs.gt_mesh.as_deref(), &cloud.points)?;
+    if let Some(t) = &truth {
+        score_registration(&mut section, results, &poses, t, &cloud.points, &own)?;
     }
     results.registration = Some(section.clone());
     Ok(section)
@@ -376,15 +383,52 @@ fn loop_json(c: &LoopClosure) -> Value {
     json!({"views": c.views, "error_deg": c.error_deg, "error_mm": c.error_translation, "fitness": c.icp.fitness, "rmse_mm": c.icp.rmse})
 }
 
-/// Pose error of every view against `gt/poses.jsonl`, and the model's distance to the placed
-/// `gt/mesh.ply`, into the report.
-fn score_registration(section: &mut Value, results: &mut ResultsWriter, poses: &[ViewPose], gt: &[(u64, Isometry3<f64>)], gt_mesh: Option<&Path>, model: &[[f32; 3]]) -> Result<(), ResultsError> {
-    let truth = |seq: u64| gt.iter().find(|g| g.0 == seq).map(|g| g.1);
-    let Some(first) = poses.first().and_then(|p| truth(p.seq)) else { return Ok(()) };
+/// The ground truth of a recording placed in the first view's frame: the true poses, and
+/// the true surface (when `gt/mesh.ply` is there; a mesh that cannot be read is an error
+/// when the scores are written, after the model).
+struct Truth<'a> {
+    gt: &'a [(u64, Isometry3<f64>)],
+    /// `cam_from_obj` of the first view.
+    first: Isometry3<f64>,
+    surface: Option<Result<Surface, ResultsError>>,
+}
+
+impl<'a> Truth<'a> {
+    /// None when the first view has no true pose.
+    fn new(gt: &'a [(u64, Isometry3<f64>)], poses: &[ViewPose], mesh: Option<&Path>) -> Option<Truth<'a>> {
+        let find = |seq: u64| gt.iter().find(|g| g.0 == seq).map(|g| g.1);
+        let first = poses.first().and_then(|p| find(p.seq))?;
+        let surface = mesh.map(|path| {
+            let mesh = io::ply::read_ply(path).map_err(|e| ResultsError::SideFile(format!("ground truth: {e}")))?;
+            Surface::new(&mesh, &first).map_err(|e| ResultsError::SideFile(format!("ground truth {}: {e}", path.display())))
+        });
+        Some(Truth { gt, first, surface })
+    }
+
+    fn cam_from_obj(&self, seq: u64) -> Option<Isometry3<f64>> {
+        self.gt.iter().find(|g| g.0 == seq).map(|g| g.1)
+    }
+
+    /// The views' own error: the distances to the true surface of (at most `VIEW_SAMPLE`
+    /// of) view `seq`'s points placed by its true pose — what the stereo gives, whatever the
+    /// registration.
+    fn view_distances(&self, seq: u64, points: &[[f32; 3]], out: &mut Vec<f64>) {
+        const VIEW_SAMPLE: usize = 5000;
+        let (Some(Ok(surface)), Some(cam_from_obj)) = (&self.surface, self.cam_from_obj(seq)) else { return };
+        let placed = self.first * cam_from_obj.inverse();
+        let pts: Vec<[f32; 3]> = crate::register::subsample_indices(points.len(), VIEW_SAMPLE).into_iter().map(|i| crate::register::apply(&placed, &points[i])).collect();
+        out.extend(surface.distances(&pts));
+    }
+}
+
+/// Pose error of every view against `gt/poses.jsonl`, and the model's and the views' own
+/// (`own`, from [`Truth::view_distances`]) distance to the placed `gt/mesh.ply`, into the
+/// report.
+fn score_registration(section: &mut Value, results: &mut ResultsWriter, poses: &[ViewPose], truth: &Truth, model: &[[f32; 3]], own: &[f64]) -> Result<(), ResultsError> {
     let mut last = None;
     for p in poses {
-        let Some(cam_from_obj) = truth(p.seq) else { continue };
-        let true_pose = first * cam_from_obj.inverse();
+        let Some(cam_from_obj) = truth.cam_from_obj(p.seq) else { continue };
+        let true_pose = truth.first * cam_from_obj.inverse();
         let err = p.first_from_view.inverse() * true_pose;
         let (deg, mm) = (err.rotation.angle().to_degrees(), (p.first_from_view.translation.vector - true_pose.translation.vector).norm());
         if let Some(f) = results.frames.iter_mut().find(|f| f["seq"] == json!(p.seq)) {
@@ -396,31 +440,20 @@ fn score_registration(section: &mut Value, results: &mut ResultsWriter, poses: &
     if let Some((seq, deg, mm)) = last {
         section["gt_last_view"] = json!({"seq": seq, "pose_err_deg": deg, "pose_err_mm": mm});
     }
-    if let Some(mesh_path) = gt_mesh {
-        let mesh = io::ply::read_ply(mesh_path).map_err(|e| ResultsError::SideFile(format!("ground truth: {e}")))?;
-        let surface = crate::register::surface::Surface::new(&mesh, &first).map_err(|e| ResultsError::SideFile(format!("ground truth {}: {e}", mesh_path.display())))?;
-        let d = surface.distances(model);
-        use crate::register::surface::quantile;
-        section["gt_model_distance_mm"] = json!({"median": quantile(&d, 0.5), "p95": quantile(&d, 0.95), "points": d.len()});
-        // The views' own error: each view's points placed by its true pose (what the stereo
-        // gives, whatever the registration), read back one view at a time, at most
-        // VIEW_SAMPLE points each.
-        const VIEW_SAMPLE: usize = 5000;
-        let mut own = Vec::new();
-        for p in poses {
-            let Some(cam_from_obj) = truth(p.seq) else { continue };
-            let path = results.dir.join("views").join(format!("{:06}.ply", p.seq));
-            let view = io::ply::read_ply(&path).map_err(|e| ResultsError::Output { path: path.clone(), what: format!("cannot read the view back: {e}") })?;
-            let placed = first * cam_from_obj.inverse();
-            let pts: Vec<[f32; 3]> = crate::register::subsample_indices(view.cloud.len(), VIEW_SAMPLE).into_iter().map(|i| crate::register::apply(&placed, &view.cloud.points[i])).collect();
-            own.extend(surface.distances(&pts));
+    match &truth.surface {
+        // (SideFile displays its message alone: the same words.)
+        Some(Err(e)) => return Err(ResultsError::SideFile(e.to_string())),
+        Some(Ok(surface)) => {
+            let d = surface.distances(model);
+            section["gt_model_distance_mm"] = json!({"median": quantile(&d, 0.5), "p95": quantile(&d, 0.95), "points": d.len()});
+            if !own.is_empty() {
+                let (median, p95) = (quantile(own, 0.5), quantile(own, 0.95));
+                let ratio = |m: Option<f64>, v: Option<f64>| m.zip(v).map(|(m, v)| m / v.max(1e-12));
+                section["gt_view_distance_mm"] = json!({"median": median, "p95": p95, "points": own.len()});
+                section["gt_model_to_view_ratio"] = json!({"median": ratio(quantile(&d, 0.5), median), "p95": ratio(quantile(&d, 0.95), p95)});
+            }
         }
-        if !own.is_empty() {
-            let (median, p95) = (quantile(&own, 0.5), quantile(&own, 0.95));
-            let ratio = |m: Option<f64>, v: Option<f64>| m.zip(v).map(|(m, v)| m / v.max(1e-12));
-            section["gt_view_distance_mm"] = json!({"median": median, "p95": p95, "points": own.len()});
-            section["gt_model_to_view_ratio"] = json!({"median": ratio(quantile(&d, 0.5), median), "p95": ratio(quantile(&d, 0.95), p95)});
-        }
+        None => {}
     }
     Ok(())
 }

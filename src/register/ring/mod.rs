@@ -36,18 +36,21 @@
 //! one view a side; more give ICP more surface but carry the chain's own errors within each
 //! side (on simulated scans they did not help).
 //!
-//! ## Turntable poses
+//! ## Turntable poses (`turntable.rs`)
 //! With table angles recorded, every view's pose is also predicted by the turntable: a turn
-//! of −(θ_k − θ_first) about the axis (calibrated, or estimated from all the closed poses).
-//! Stereo views register to each other only to about 0.1°–0.4° per pair on the simulated rig
-//! (the clouds' own errors: Open3D lands in the same place), and the chain wanders by up to a
-//! degree mid-ring, while the axis fitted to 100+ poses is good to a few hundredths of a
-//! degree. So when every pairwise registration agrees with the turntable's predicted step to
-//! within `max_turntable_deviation_deg` — nothing slipped, the angles are right —
-//! [`Registrar::finish`] replaces the poses with the predictions; otherwise it keeps the
-//! registered poses and says which view disagreed and by how much. (Steps, not whole poses,
-//! are compared: a slip shows as one step that disagrees, while the chain's slow wander
-//! would fail a whole-pose test on good data.)
+//! of −(θ_k − θ_first) about the axis — calibrated, or, without a calibration, fitted to every
+//! view at once at the end of the scan (`register::refine`, started from the axis estimated
+//! from the poses and from ICP's symmetry axis). Stereo views register to each other only to
+//! about 0.1°–0.4° per pair on the simulated rig (the clouds' own errors: Open3D lands in the
+//! same place), and the chain wanders by up to a degree mid-ring, while the refined axis is
+//! good to a few hundredths of a degree. So [`Registrar::finish`] replaces the poses with the
+//! predictions when every pairwise registration agrees with the turntable's predicted step to
+//! within `max_turntable_deviation_deg` — nothing slipped, the angles are right — and the
+//! axis is calibrated, or refined to within `max_axis_sigma_deg`, or refined with poses that
+//! put the views onto each other better than the registered ones; otherwise it keeps the
+//! registered poses and says why. (Steps, not whole poses, are compared: a slip shows as one
+//! step that disagrees, while the chain's slow wander would fail a whole-pose test on good
+//! data.)
 
 use std::time::Instant;
 
@@ -100,8 +103,9 @@ pub struct RegistrationParams {
     pub refine: RefineParams,
     /// Points of each view kept for the refinement.
     pub refine_points: usize,
-    /// The turntable's poses replace the registered ones only when the refined axis's
-    /// direction is known to this many degrees (one standard deviation) or better.
+    /// A refined axis whose direction is known to this many degrees (one standard deviation)
+    /// or better gives turntable poses; a less certain one only when its poses put the views
+    /// onto each other better than the registered ones (see the module docs).
     pub max_axis_sigma_deg: f64,
 }
 
