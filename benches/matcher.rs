@@ -18,6 +18,8 @@ struct Case {
     left: Vec<u8>,
     right: Vec<u8>,
     num_disparities: u32,
+    /// The object's pixels (simulated pairs only).
+    mask: Option<Vec<u8>>,
 }
 
 fn cases() -> Vec<Case> {
@@ -29,7 +31,7 @@ fn cases() -> Vec<Case> {
         ("reindeer", "reindeer/view1.png", "reindeer/view5.png", 128),
     ] {
         if let (Ok(li), Ok(ri)) = (load_image(&data.join(l)), load_image(&data.join(r))) {
-            out.push(Case { name: name.into(), width: li.width, height: li.height, left: li.gray, right: ri.gray, num_disparities: n });
+            out.push(Case { name: name.into(), width: li.width, height: li.height, left: li.gray, right: ri.gray, num_disparities: n, mask: None });
         }
     }
     let scene = hw_sim::SceneConfig::ideal(hw_sim::Mesh::builtin("egg", 100_000).unwrap());
@@ -41,6 +43,7 @@ fn cases() -> Vec<Case> {
         left: spinscan::io::rgb_to_gray(&pair.left_rgb),
         right: spinscan::io::rgb_to_gray(&pair.right_rgb),
         num_disparities: 128,
+        mask: Some(spinscan::segment::ChromaKey::default().segment(&pair.left_rgb, pair.width, pair.height, None).unwrap()),
     });
     out
 }
@@ -95,6 +98,22 @@ fn main() {
             // `bench table1`).
             let mid = case.num_disparities as i32 / 2;
             run(&mut m, pair, &DisparityIntervals::full(w, h, mid, mid), &format!("{} one disparity t{threads}", case.name), filter.as_deref());
+            // The object alone (the blue screen segmented away), as a scan matches it: full
+            // range, ±3 px around the full-range result, one disparity per pixel.
+            if let Some(mask) = &case.mask {
+                let fg = DisparityIntervals::within(w, h, Some(mask), 0, case.num_disparities as i32 - 1);
+                run(&mut m, pair, &fg, &format!("{} object full t{threads}", case.name), filter.as_deref());
+                m.compute(pair.0, pair.1, &fg, &mut out).unwrap();
+                let mut near = DisparityIntervals::empty(w, h);
+                for y in 0..h {
+                    for x in 0..w {
+                        near.set(x, y, out.get(x, y).map(|d| (d.round() as i32 - 3, d.round() as i32 + 3)));
+                    }
+                }
+                run(&mut m, pair, &near, &format!("{} object ±3px t{threads}", case.name), filter.as_deref());
+                let one = DisparityIntervals::within(w, h, Some(mask), mid, mid);
+                run(&mut m, pair, &one, &format!("{} object one disparity t{threads}", case.name), filter.as_deref());
+            }
         }
     }
 }

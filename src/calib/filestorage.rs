@@ -417,15 +417,24 @@ impl Entry {
                 .ok_or_else(|| self.value_err(key, "`data` must be a sequence of numbers"))?,
             _ => return Err(self.value_err(key, "`data` must be a sequence [ … ]")),
         };
-        if data.len() != rows * cols {
-            return Err(self.value_err(
-                key,
-                format!("`data` holds {} numbers but rows × cols = {rows} × {cols} = {}", data.len(), rows * cols),
-            ));
+        // Calibration matrices are small; a size beyond any of them is a broken file (and
+        // an empty matrix of 2⁶⁴ rows would still cost a loop over them).
+        if rows > MAX_DIM || cols > MAX_DIM {
+            return Err(self.value_err(key, format!("{rows} × {cols} is larger than any calibration matrix (at most {MAX_DIM} rows and columns)")));
+        }
+        match rows.checked_mul(cols) {
+            Some(n) if n == data.len() => {}
+            n => {
+                let product = n.map_or("more than any file holds".to_string(), |n| n.to_string());
+                return Err(self.value_err(key, format!("`data` holds {} numbers but rows × cols = {rows} × {cols} = {product}", data.len())));
+            }
         }
         Ok(DMatrix::from_row_slice(rows, cols, &data))
     }
 }
+
+/// Most rows or columns of a matrix read.
+const MAX_DIM: usize = 4096;
 
 /// Parses a number as OpenCV writes it (`0.`, `1.5e+02`, `.Inf`, `.NaN`).
 fn parse_number(s: &str) -> Option<f64> {

@@ -91,6 +91,13 @@ impl StereoCalib {
         Self::from_docs((&doc, path), (&doc, path))
     }
 
+    /// A calibration from the text of one `calib.yaml` (OpenCV FileStorage); `path` names
+    /// the source in errors.
+    pub fn parse(text: &str, path: &Path) -> Result<StereoCalib, CalibError> {
+        let doc = Document::parse(text).map_err(|source| CalibError::Format { path: path.to_path_buf(), source })?;
+        Self::from_docs((&doc, path), (&doc, path))
+    }
+
     /// Loads `intrinsics.yml` + `extrinsics.yml`.
     pub fn load_pair(intrinsics: &Path, extrinsics: &Path) -> Result<StereoCalib, CalibError> {
         let i = read_doc(intrinsics)?;

@@ -2,7 +2,7 @@
 //! faces) and writing (binary little-endian `x y z` float, `red green blue` uchar, optional
 //! normals — what Open3D and MeshLab read).
 
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 
 use crate::cloud::{Mesh, PointCloud};
@@ -113,9 +113,13 @@ enum Format {
 /// Reads a PLY file: its `vertex` element (x y z, optional colours and normals) and its
 /// `face` element if any; other elements are skipped.
 pub fn read_ply(path: &Path) -> Result<Mesh, PlyError> {
+    let file = std::fs::File::open(path).map_err(|source| PlyError::Io { path: path.to_path_buf(), source })?;
+    read_ply_from(BufReader::new(file), path)
+}
+
+/// [`read_ply`] from any reader; `path` names the source in errors.
+pub fn read_ply_from(mut reader: impl BufRead, path: &Path) -> Result<Mesh, PlyError> {
     let io = |source| PlyError::Io { path: path.to_path_buf(), source };
-    let file = std::fs::File::open(path).map_err(io)?;
-    let mut reader = BufReader::new(file);
     let header_err = |line: usize, what: String| PlyError::Header { path: path.to_path_buf(), line, what };
 
     let mut format = None;

@@ -182,13 +182,23 @@ fn first_error(captured: Result<(), ScanError>, recorded: Result<(), ScanError>,
     errors.into_iter().nth(cause)
 }
 
-/// `{"status": "failed", "reason": …}` merged into the manifest, rewritten in place (no
-/// temporary file: there may be no room for one).
+/// `{"status": "failed", "reason": …}` merged into the manifest, rewritten in place: no
+/// temporary file (there may be no room for one), and not truncated first (a file system
+/// may not hand freed blocks back at once), so the new text goes into the blocks the file
+/// already holds — a manifest is far smaller than one block.
 fn write_manifest_in_place(path: &Path, end: &ScanEnd) {
+    use std::io::Write;
     let mut m: serde_json::Value = std::fs::read_to_string(path).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_else(|| json!({"format": 1}));
     m["status"] = json!(end.status);
     m["reason"] = json!(end.reason);
-    if let Err(e) = std::fs::write(path, m.to_string()) {
+    let text = m.to_string();
+    let overwrite = || -> std::io::Result<()> {
+        let mut f = std::fs::OpenOptions::new().write(true).open(path)?;
+        f.write_all(text.as_bytes())?;
+        f.set_len(text.len() as u64)?;
+        f.sync_data()
+    };
+    if let Err(e) = overwrite().or_else(|_| std::fs::write(path, &text)) {
         tracing::error!("cannot mark {} {}: {e}", path.display(), end.status);
     }
 }
