@@ -646,3 +646,73 @@ fn a_disk_that_fills_up_ends_the_scan_failed_and_says_so_after_a_restart() {
     drop(d);
     drop(disk);
 }
+
+/// Hardening (issue 17), 7: connections without control rights cannot take the last slots —
+/// a process of another user (`nobody`, no control rights) opens more connections than
+/// `max_clients` and keeps them idle; root (who may control) still gets in and is answered.
+#[test]
+fn idle_readers_cannot_lock_out_a_controlling_peer() {
+    use std::os::unix::ffi::OsStrExt;
+    use std::os::unix::process::CommandExt;
+    // SAFETY: geteuid has no preconditions.
+    if unsafe { libc::geteuid() } != 0 {
+        eprintln!("SKIPPED: only root can start a process of another user here");
+        return;
+    }
+    let dir = support::temp_dir("daemon-reserved");
+    let text = std::fs::read_to_string(small_config(&dir, "")).unwrap().replace("group = \"\"", "group = \"\"\nsocket_mode = \"0666\"\nmax_clients = 8");
+    std::fs::write(dir.join("spinscand.toml"), text).unwrap();
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_spinscand"));
+    cmd.arg("--config").arg(dir.join("spinscand.toml")).stdout(Stdio::null()).stderr(Stdio::null());
+    let mut daemon = cmd.spawn().unwrap();
+    let socket = dir.join("s.sock");
+    let t0 = Instant::now();
+    while UnixStream::connect(&socket).is_err() {
+        assert!(t0.elapsed() < Duration::from_secs(30));
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // SAFETY: a zeroed sockaddr_un is valid; the path is copied in below, NUL-terminated.
+    let mut addr: libc::sockaddr_un = unsafe { std::mem::zeroed() };
+    addr.sun_family = libc::AF_UNIX as libc::sa_family_t;
+    let path = socket.as_os_str().as_bytes();
+    assert!(path.len() < addr.sun_path.len());
+    for (d, s) in addr.sun_path.iter_mut().zip(path) {
+        *d = *s as libc::c_char;
+    }
+    const HOGS: usize = 10;
+    let mut hog = Command::new("sleep");
+    hog.arg("60");
+    // SAFETY: between fork and exec the closure calls only async-signal-safe system calls
+    // (setgroups, setgid, setuid, socket, connect) on memory prepared before the fork.
+    unsafe {
+        hog.pre_exec(move || {
+            if libc::setgroups(0, std::ptr::null()) != 0 || libc::setgid(65534) != 0 || libc::setuid(65534) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            for _ in 0..HOGS {
+                let fd = libc::socket(libc::AF_UNIX, libc::SOCK_STREAM, 0);
+                if fd < 0 || libc::connect(fd, &addr as *const libc::sockaddr_un as *const libc::sockaddr, std::mem::size_of::<libc::sockaddr_un>() as libc::socklen_t) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+            }
+            Ok(())
+        });
+    }
+    let mut hog = hog.spawn().expect("a process of user nobody holding connections");
+    std::thread::sleep(Duration::from_millis(500));
+    // Both kept slots are root's; each connection is greeted and answered.
+    let (mut a, hello_a) = Client::connect(&socket);
+    let (mut b, hello_b) = Client::connect(&socket);
+    for (c, hello) in [(&mut a, hello_a), (&mut b, hello_b)] {
+        assert_eq!(hello["method"], "hello", "{hello}");
+        assert_eq!(hello["params"]["may_control"], true);
+        assert_eq!(c.ok("status", json!({}))["state"], "idle");
+    }
+    // And then the daemon is full, for root too.
+    let (_, refused) = Client::connect(&socket);
+    assert!(refused["error"]["message"].as_str().is_some_and(|m| m.contains("max_clients") || m.contains("clients")), "{refused}");
+    let _ = hog.kill();
+    let _ = hog.wait();
+    let _ = daemon.kill();
+    let _ = daemon.wait();
+}

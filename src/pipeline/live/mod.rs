@@ -84,6 +84,9 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
             std::thread::Builder::new()
                 .name("recorder".into())
                 .spawn(move || -> Result<(), ScanError> {
+                    // Bulk work that catches up (its queue holds every pair): it yields the
+                    // cores to capture and the control socket, as the matchers do.
+                    state::lower_priority(pool::MATCHER_NICE);
                     for frame in rec_rx {
                         sh.counters.recorder_backlog.fetch_sub(1, Ordering::Relaxed);
                         writer.append(&frame).map_err(|source| ScanError::Recording { seq: frame.seq, source })?;

@@ -7,11 +7,18 @@ use std::sync::Arc;
 
 use crossbeam_channel::{Receiver, Sender};
 
-use super::state::{Job, Note, PipelineSettings, ScanShared};
+use super::state::{lower_priority, Job, Note, PipelineSettings, ScanShared};
 use crate::pipeline::{Assist, Pipeline};
 use crate::register::posestore::PoseStore;
 
+/// Nice value of the matcher threads (and the recorder's): the scan's bulk work yields the
+/// cores to capture and to the control socket, which need little CPU but need it at once
+/// (`cargo bench --bench daemon -- status`, `docs/daemon.md`). Threads a matcher starts
+/// inherit it.
+pub(super) const MATCHER_NICE: i32 = 2;
+
 pub(super) fn matcher_loop(mut pipe: Pipeline, jobs: Receiver<Job>, notes: Sender<Note>, observed: Receiver<(u64, f64, f64)>, store: Arc<PoseStore>, shared: Arc<ScanShared>, settings: PipelineSettings) {
+    lower_priority(MATCHER_NICE);
     let mut assistant = match (&settings.assist, &settings.registration) {
         (Some(a), Some(_)) => Some(pipe.assistant(a.clone())),
         _ => None,

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use crossbeam_channel::{Receiver, Sender};
 use serde_json::json;
 
-use super::state::{Note, PipelineSettings, ScanError, ScanMode, ScanShared};
+use super::state::{lower_priority, Note, PipelineSettings, ScanError, ScanMode, ScanShared};
 use crate::pipeline::results::{finish_registration, register_view, ModelOptions, ResultsWriter};
 use crate::register::posestore::PoseStore;
 
@@ -28,8 +28,8 @@ pub(super) fn register_loop(
     // Registration yields the cores to the matchers: its thread and its own worker pool run
     // at a lower priority (nice +REGISTER_NICE), so a busy registration delays poses, not
     // views.
-    lower_priority();
-    let pool = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("register-{i}")).start_handler(|_| lower_priority()).build();
+    lower_priority(REGISTER_NICE);
+    let pool = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("register-{i}")).start_handler(|_| lower_priority(REGISTER_NICE)).build();
     let outcome = match pool {
         Ok(pool) => pool.install(|| register_all(&mut results, notes, views, observers, store, &shared, &settings)),
         Err(_) => register_all(&mut results, notes, views, observers, store, &shared, &settings),
@@ -145,15 +145,6 @@ fn register_all(
 /// about 4 MB at 640×480).
 pub(super) const VIEW_BACKLOG: usize = 4;
 
-/// Nice value of the registration threads (matchers and capture stay at the process's).
-const REGISTER_NICE: i32 = 5;
-
-/// Lowers the calling thread's priority (Linux: nice applies per thread).
-fn lower_priority() {
-    // SAFETY: gettid and setpriority have no memory preconditions.
-    unsafe {
-        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
-        let now = libc::getpriority(libc::PRIO_PROCESS, tid);
-        libc::setpriority(libc::PRIO_PROCESS, tid, (now + REGISTER_NICE).min(19));
-    }
-}
+/// Nice value of the registration threads, above the matchers' (capture and the control
+/// socket stay at the process's).
+const REGISTER_NICE: i32 = super::pool::MATCHER_NICE + 5;

@@ -360,3 +360,14 @@ mod tests {
         }
     }
 }
+
+/// Lowers the calling thread's priority by `by` nice steps (Linux: nice applies per thread,
+/// and threads it starts inherit it).
+pub(super) fn lower_priority(by: i32) {
+    // SAFETY: gettid, getpriority and setpriority have no memory preconditions.
+    unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        let now = libc::getpriority(libc::PRIO_PROCESS, tid);
+        libc::setpriority(libc::PRIO_PROCESS, tid, (now + by).min(19));
+    }
+}
