@@ -1,4 +1,4 @@
-//! `cargo bench --bench daemon [-- status|rss] [--clients N] [--scans N]`: the real
+//! `cargo bench --bench daemon [-- status|rss|peak] [--clients N] [--scans N]`: the real
 //! `spinscand` (release build, simulated lab at 640×480) measured as a service.
 //!
 //! - `status`: `status` round-trip latency (p50, p99, max) from N clients (default 50), every
@@ -6,6 +6,9 @@
 //! - `rss`: the daemon's resident memory after each of N repeated 45-view step scans
 //!   (default 20), idle between scans; prints the series and the last scan's RSS against the
 //!   second's (the service must stay flat over months of scans).
+//! - `peak`: the daemon's peak resident memory (`VmHWM`) through a 180-view step scan and
+//!   through a continuous 360° scan at 6°/s with the cameras at 15 fps in real time (≈ 900
+//!   pairs), each on a fresh daemon.
 //!
 //! Both start their own daemon on a temporary socket and state folder.
 
@@ -24,8 +27,8 @@ struct Daemon {
 }
 
 impl Daemon {
-    /// The simulated lab at 640×480 (the shipped `config/sim.toml`), not paced in real time.
-    fn start(dir: &Path) -> Daemon {
+    /// The simulated lab at 640×480 (the shipped `config/sim.toml`), paced in real time or not.
+    fn start(dir: &Path, realtime: bool) -> Daemon {
         let _ = std::fs::remove_dir_all(dir);
         std::fs::create_dir_all(dir).unwrap();
         let socket = dir.join("s.sock");
@@ -34,7 +37,7 @@ impl Daemon {
             .replace("socket = \"spinscan.sock\"", &format!("socket = {:?}", socket.display().to_string()))
             .replace("state_dir = \"scans\"", &format!("state_dir = {:?}", dir.join("scans").display().to_string()))
             .replace("max_clients = 32 ", "max_clients = 128 ")
-            .replace("realtime = true", "realtime = false")
+            .replace("realtime = true", &format!("realtime = {realtime}"))
             .replace("settle_ms = 100 ", "settle_ms = 5 ");
         let config = dir.join("spinscand.toml");
         std::fs::write(&config, text).unwrap();
@@ -54,8 +57,13 @@ impl Daemon {
     }
 
     fn rss_mib(&self) -> f64 {
+        self.memory_mib("VmRSS:")
+    }
+
+    /// A memory figure of `/proc/PID/status` (`VmRSS:`, `VmHWM:` …), MiB.
+    fn memory_mib(&self, key: &str) -> f64 {
         let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).unwrap();
-        let kb: f64 = status.lines().find_map(|l| l.strip_prefix("VmRSS:")).and_then(|v| v.split_whitespace().next()).and_then(|v| v.parse().ok()).unwrap();
+        let kb: f64 = status.lines().find_map(|l| l.strip_prefix(key)).and_then(|v| v.split_whitespace().next()).and_then(|v| v.parse().ok()).unwrap();
         kb / 1024.0
     }
 }
@@ -72,14 +80,14 @@ fn start_scan(c: &mut Client, name: &str, step_deg: f64) {
     c.scan_start(&params).unwrap_or_else(|e| panic!("scan.start {name}: {e}"));
 }
 
+fn start_continuous(c: &mut Client, name: &str, speed_deg_s: f64) {
+    let params = ScanStartParams { name: name.into(), mode: Some("continuous".into()), step_deg: None, total_deg: Some(360.0), speed_deg_s: Some(speed_deg_s), max_views: None };
+    c.scan_start(&params).unwrap_or_else(|e| panic!("scan.start {name}: {e}"));
+}
+
 /// Waits for `name` to end; returns its final status.
 fn wait_end(c: &mut Client, name: &str) -> String {
-    loop {
-        let n = c.next_notification().expect("events");
-        if n.method == "scan.state" && n.params["name"] == name && n.params["status"] != "running" {
-            return n.params["status"].as_str().unwrap_or("?").to_string();
-        }
-    }
+    wait_end_progress(c, name).0
 }
 
 fn quantile(sorted: &[f64], q: f64) -> f64 {
@@ -87,7 +95,7 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
 }
 
 fn status_latency(dir: &Path, clients: usize) {
-    let d = Daemon::start(dir);
+    let d = Daemon::start(dir, false);
     let mut ctl = Client::connect(&d.socket).unwrap();
     ctl.set_timeout(Some(Duration::from_secs(600))).unwrap();
     ctl.subscribe().unwrap();
@@ -126,7 +134,7 @@ fn status_latency(dir: &Path, clients: usize) {
 }
 
 fn repeated_scans(dir: &Path, scans: usize) {
-    let d = Daemon::start(dir);
+    let d = Daemon::start(dir, false);
     let mut c = Client::connect(&d.socket).unwrap();
     c.set_timeout(Some(Duration::from_secs(600))).unwrap();
     c.subscribe().unwrap();
@@ -150,10 +158,44 @@ fn repeated_scans(dir: &Path, scans: usize) {
     }
 }
 
+/// Waits for `name` to end; returns its final status and progress.
+fn wait_end_progress(c: &mut Client, name: &str) -> (String, serde_json::Value) {
+    loop {
+        let n = c.next_notification().expect("events");
+        if n.method == "scan.state" && n.params["name"] == name && n.params["status"] != "running" {
+            return (n.params["status"].as_str().unwrap_or("?").to_string(), n.params["progress"].clone());
+        }
+    }
+}
+
+fn peak_memory(dir: &Path) {
+    for (name, realtime) in [("step-2deg", false), ("continuous-15fps", true)] {
+        let d = Daemon::start(&dir.join(name), realtime);
+        let mut c = Client::connect(&d.socket).unwrap();
+        c.set_timeout(Some(Duration::from_secs(600))).unwrap();
+        c.subscribe().unwrap();
+        let t0 = Instant::now();
+        if realtime {
+            start_continuous(&mut c, name, 6.0);
+        } else {
+            start_scan(&mut c, name, 2.0);
+        }
+        let (end, progress) = wait_end_progress(&mut c, name);
+        println!(
+            "{name}: {end} in {:.0} s, views {}, drops {}; peak RSS {:.1} MiB, RSS after {:.1} MiB",
+            t0.elapsed().as_secs_f64(),
+            progress["views"],
+            progress["drops"],
+            d.memory_mib("VmHWM:"),
+            d.rss_mib()
+        );
+    }
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let value = |flag: &str, default: usize| args.iter().position(|a| a == flag).and_then(|i| args.get(i + 1)).map_or(default, |v| v.parse().expect("a number"));
-    let which: Vec<&str> = args.iter().map(String::as_str).filter(|a| *a == "status" || *a == "rss").collect();
+    let which: Vec<&str> = args.iter().map(String::as_str).filter(|a| ["status", "rss", "peak"].contains(a)).collect();
     let all = which.is_empty();
     let base = std::env::temp_dir().join(format!("spinscan-bench-daemon-{}", std::process::id()));
     if all || which.contains(&"status") {
@@ -161,6 +203,9 @@ fn main() {
     }
     if all || which.contains(&"rss") {
         repeated_scans(&base.join("rss"), value("--scans", 20));
+    }
+    if all || which.contains(&"peak") {
+        peak_memory(&base.join("peak"));
     }
     let _ = std::fs::remove_dir_all(&base);
 }

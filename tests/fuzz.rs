@@ -73,7 +73,7 @@ impl Rng {
 /// Tokens that broke readers before, or that sit at the edge of a type.
 const TOKENS: &[&str] = &[
     "0", "-1", "1e308", "-1e308", "1e-320", "NaN", "inf", "-inf", "18446744073709551615", "9999999999999999999999", "4294967296", "\"\"", "null", "[]", "{}", "\n", "\r\n", "\"name\":\"a\",\"name\":\"b\"",
-    "element vertex 4294967295\n", "element face 99999999999\n", "property list uchar int vertex_indices\n", "rows: 100000\n", "!!opencv-matrix", "%YAML:1.0", "\u{feff}", "é", "\\u0000",
+    "element vertex 4294967295\n", "element face 99999999999\n", "element vertex 1\nproperty float x\n", "property list uchar int vertex_indices\n", "rows: 100000\n", "!!opencv-matrix", "%YAML:1.0", "\u{feff}", "é", "\\u0000",
 ];
 
 fn mutate(rng: &mut Rng, seed: &[u8], other: &[u8]) -> Vec<u8> {

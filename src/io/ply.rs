@@ -154,6 +154,10 @@ pub fn read_ply_from(mut reader: impl BufRead, path: &Path) -> Result<Mesh, PlyE
             }
             ["element", name, count] => {
                 let count = count.parse().map_err(|_| header_err(line_no, format!("element count `{count}` is not a number")))?;
+                // Which one would hold the vertices (or faces)? Refused, not guessed.
+                if matches!(*name, "vertex" | "face") && elements.iter().any(|e| e.name == *name) {
+                    return Err(header_err(line_no, format!("a second `{name}` element (a PLY file has one)")));
+                }
                 elements.push(Element { name: name.to_string(), count, props: Vec::new() });
             }
             ["property", "list", ct, ty, name] => {
@@ -383,6 +387,15 @@ mod tests {
         write_mesh_ply(&p, &mesh).unwrap();
         assert_eq!(read_ply(&p).unwrap(), mesh);
         std::fs::remove_file(p).unwrap();
+    }
+
+    #[test]
+    fn a_second_vertex_element_is_refused() {
+        // Found by `cargo fuzz run ply`: the vertices' properties were looked up in the first
+        // `vertex` element and read from the second (an index out of bounds).
+        let text = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nelement vertex 1\nproperty float x\nend_header\n0 0 0\n1\n";
+        let err = read_ply_from(text.as_bytes(), Path::new("two.ply")).unwrap_err().to_string();
+        assert!(err.contains("two.ply") && err.contains("second `vertex` element"), "{err}");
     }
 
     #[test]
