@@ -107,5 +107,8 @@ pub fn ply(data: &[u8]) {
     }
 }
 
+/// A fuzz entry point: bytes in, a panic when a property breaks.
+pub type Target = fn(&[u8]);
+
 /// Every target by name, for the harnesses.
-pub const TARGETS: [(&str, fn(&[u8])); 5] = [("request", request), ("config", config), ("calibration", calibration), ("frames", frames), ("ply", ply)];
+pub const TARGETS: [(&str, Target); 5] = [("request", request), ("config", config), ("calibration", calibration), ("frames", frames), ("ply", ply)];

@@ -346,6 +346,17 @@ pub(super) enum Note {
     Skipped { seq: u64, why: String },
 }
 
+/// Lowers the calling thread's priority by `by` nice steps (Linux: nice applies per thread,
+/// and threads it starts inherit it).
+pub(super) fn lower_priority(by: i32) {
+    // SAFETY: gettid, getpriority and setpriority have no memory preconditions.
+    unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        let now = libc::getpriority(libc::PRIO_PROCESS, tid);
+        libc::setpriority(libc::PRIO_PROCESS, tid, (now + by).min(19));
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -358,16 +369,5 @@ mod tests {
         for bad in ["", "..", ".", "../etc", "a/b", "-rf", ".hidden", "a b", &"x".repeat(65)] {
             assert!(validate_name(bad).is_err(), "{bad:?}");
         }
-    }
-}
-
-/// Lowers the calling thread's priority by `by` nice steps (Linux: nice applies per thread,
-/// and threads it starts inherit it).
-pub(super) fn lower_priority(by: i32) {
-    // SAFETY: gettid, getpriority and setpriority have no memory preconditions.
-    unsafe {
-        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
-        let now = libc::getpriority(libc::PRIO_PROCESS, tid);
-        libc::setpriority(libc::PRIO_PROCESS, tid, (now + by).min(19));
     }
 }
