@@ -346,19 +346,42 @@ pub(super) enum Note {
     Skipped { seq: u64, why: String },
 }
 
-/// Lowers the calling thread's priority by `by` nice steps (Linux: nice applies per thread,
-/// and threads it starts inherit it).
+/// Sets the calling thread's nice value to `by` above the process's (its main thread's, e.g.
+/// systemd's `Nice=`). Linux keeps nice per thread and a new thread inherits its creator's,
+/// so this is absolute, not cumulative: a pool started from a lowered thread that lowers its
+/// workers again lands at the same value.
 pub(super) fn lower_priority(by: i32) {
-    // SAFETY: gettid, getpriority and setpriority have no memory preconditions.
+    // SAFETY: getpid, gettid, getpriority and setpriority have no memory preconditions.
     unsafe {
+        let base = libc::getpriority(libc::PRIO_PROCESS, libc::getpid() as libc::id_t);
         let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
-        let now = libc::getpriority(libc::PRIO_PROCESS, tid);
-        libc::setpriority(libc::PRIO_PROCESS, tid, (now + by).min(19));
+        libc::setpriority(libc::PRIO_PROCESS, tid, (base + by).min(19));
     }
 }
 
 #[cfg(test)]
 mod tests {
+    /// Nice steps are counted from the process's value, so lowering twice (a pool's worker
+    /// started by a lowered thread) lands where lowering once does.
+    #[test]
+    fn lowering_a_thread_twice_lands_where_once_does() {
+        // SAFETY (both): getpriority, getpid and gettid have no memory preconditions.
+        let nice_of_this_thread = || unsafe { libc::getpriority(libc::PRIO_PROCESS, libc::syscall(libc::SYS_gettid) as libc::id_t) };
+        let base = unsafe { libc::getpriority(libc::PRIO_PROCESS, libc::getpid() as libc::id_t) };
+        let got = std::thread::spawn(move || {
+            super::lower_priority(3);
+            std::thread::spawn(move || {
+                super::lower_priority(3);
+                nice_of_this_thread()
+            })
+            .join()
+            .unwrap()
+        })
+        .join()
+        .unwrap();
+        assert_eq!(got, (base + 3).min(19));
+    }
+
     use super::*;
 
     #[test]
