@@ -61,6 +61,17 @@ fn time(runs: usize, mut f: impl FnMut()) -> (f64, f64) {
     (t[0], t[t.len() / 2])
 }
 
+/// `±half` disparities around each matched pixel of `map`; unmatched pixels are not searched.
+fn around(map: &DisparityMap, half: i32) -> DisparityIntervals {
+    let mut iv = DisparityIntervals::empty(map.width, map.height);
+    for y in 0..map.height {
+        for x in 0..map.width {
+            iv.set(x, y, map.get(x, y).map(|d| (d.round() as i32 - half, d.round() as i32 + half)));
+        }
+    }
+    iv
+}
+
 /// Times the matcher on one set of intervals and prints a line, unless `filter` leaves it out.
 fn run(m: &mut StereoMatcher, (lv, rv): (GrayView, GrayView), iv: &DisparityIntervals, name: &str, filter: Option<&str>) {
     if filter.is_some_and(|f| !name.contains(f)) {
@@ -87,13 +98,7 @@ fn main() {
             // constraint gives them: the work must drop in proportion.
             let mut out = DisparityMap::new(w, h);
             m.compute(pair.0, pair.1, &full, &mut out).unwrap();
-            let mut narrow = DisparityIntervals::full(w, h, 0, case.num_disparities as i32 - 1);
-            for y in 0..h {
-                for x in 0..w {
-                    narrow.set(x, y, out.get(x, y).map(|d| (d.round() as i32 - 2, d.round() as i32 + 2)));
-                }
-            }
-            run(&mut m, pair, &narrow, &format!("{} ±2px t{threads}", case.name), filter.as_deref());
+            run(&mut m, pair, &around(&out, 2), &format!("{} ±2px t{threads}", case.name), filter.as_deref());
             // One disparity everywhere: the matcher's fixed per-pixel cost (the floor row of
             // `bench table1`).
             let mid = case.num_disparities as i32 / 2;
@@ -104,13 +109,7 @@ fn main() {
                 let fg = DisparityIntervals::within(w, h, Some(mask), 0, case.num_disparities as i32 - 1);
                 run(&mut m, pair, &fg, &format!("{} object full t{threads}", case.name), filter.as_deref());
                 m.compute(pair.0, pair.1, &fg, &mut out).unwrap();
-                let mut near = DisparityIntervals::empty(w, h);
-                for y in 0..h {
-                    for x in 0..w {
-                        near.set(x, y, out.get(x, y).map(|d| (d.round() as i32 - 3, d.round() as i32 + 3)));
-                    }
-                }
-                run(&mut m, pair, &near, &format!("{} object ±3px t{threads}", case.name), filter.as_deref());
+                run(&mut m, pair, &around(&out, 3), &format!("{} object ±3px t{threads}", case.name), filter.as_deref());
                 let one = DisparityIntervals::within(w, h, Some(mask), mid, mid);
                 run(&mut m, pair, &one, &format!("{} object one disparity t{threads}", case.name), filter.as_deref());
             }

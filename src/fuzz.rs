@@ -59,7 +59,7 @@ pub fn config(data: &[u8]) {
             let _ = c.assist();
             let _ = c.socket_mode();
         }
-        Err(e) => assert!(e.to_string().contains("fuzz.toml"), "the error does not name the file: {e}"),
+        Err(e) => names_the_file(&e, "fuzz.toml"),
     }
 }
 
@@ -74,7 +74,7 @@ pub fn calibration(data: &[u8]) {
             let back = StereoCalib::parse(&yaml, path).unwrap_or_else(|e| panic!("spinscan's own calib.yaml does not read back: {e}\n{yaml}"));
             assert_eq!(back.to_yaml(), yaml);
         }
-        Err(e) => assert!(e.to_string().contains("calib.yaml"), "the error does not name the file: {e}"),
+        Err(e) => names_the_file(&e, "calib.yaml"),
     }
 }
 
@@ -88,7 +88,7 @@ pub fn frames(data: &[u8]) {
             assert!(frames.len() <= lines, "{} frames from {lines} lines", frames.len());
             assert!(torn.is_none_or(|l| l == lines), "the torn line {torn:?} is not the last ({lines})");
         }
-        Err(e) => assert!(e.to_string().contains("frames.jsonl"), "the error does not name the file: {e}"),
+        Err(e) => names_the_file(&e, "frames.jsonl"),
     }
 }
 
@@ -103,8 +103,14 @@ pub fn ply(data: &[u8]) {
             assert!(mesh.cloud.normals.as_ref().is_none_or(|v| v.len() == n));
             assert!(mesh.triangles.iter().flatten().all(|&i| (i as usize) < n), "a face refers to a vertex outside 0…{n}");
         }
-        Err(e) => assert!(e.to_string().contains("in.ply"), "the error does not name the file: {e}"),
+        Err(e) => names_the_file(&e, "in.ply"),
     }
+}
+
+/// A refusal says which file it refused.
+fn names_the_file(e: &dyn std::fmt::Display, file: &str) {
+    let message = e.to_string();
+    assert!(message.contains(file), "the error does not name the file {file}: {message}");
 }
 
 /// A fuzz entry point: bytes in, a panic when a property breaks.

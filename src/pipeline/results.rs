@@ -396,8 +396,7 @@ struct Truth<'a> {
 impl<'a> Truth<'a> {
     /// None when the first view has no true pose.
     fn new(gt: &'a [(u64, Isometry3<f64>)], poses: &[ViewPose], mesh: Option<&Path>) -> Option<Truth<'a>> {
-        let find = |seq: u64| gt.iter().find(|g| g.0 == seq).map(|g| g.1);
-        let first = poses.first().and_then(|p| find(p.seq))?;
+        let first = poses.first().and_then(|p| true_pose(gt, p.seq))?;
         let surface = mesh.map(|path| {
             let mesh = io::ply::read_ply(path).map_err(|e| ResultsError::SideFile(format!("ground truth: {e}")))?;
             Surface::new(&mesh, &first).map_err(|e| ResultsError::SideFile(format!("ground truth {}: {e}", path.display())))
@@ -406,7 +405,7 @@ impl<'a> Truth<'a> {
     }
 
     fn cam_from_obj(&self, seq: u64) -> Option<Isometry3<f64>> {
-        self.gt.iter().find(|g| g.0 == seq).map(|g| g.1)
+        true_pose(self.gt, seq)
     }
 
     /// The views' own error: the distances to the true surface of (at most `VIEW_SAMPLE`
@@ -419,6 +418,11 @@ impl<'a> Truth<'a> {
         let pts: Vec<[f32; 3]> = crate::register::subsample_indices(points.len(), VIEW_SAMPLE).into_iter().map(|i| crate::register::apply(&placed, &points[i])).collect();
         out.extend(surface.distances(&pts));
     }
+}
+
+/// View `seq`'s `cam_from_obj` in `gt/poses.jsonl`.
+fn true_pose(gt: &[(u64, Isometry3<f64>)], seq: u64) -> Option<Isometry3<f64>> {
+    gt.iter().find(|g| g.0 == seq).map(|g| g.1)
 }
 
 /// Pose error of every view against `gt/poses.jsonl`, and the model's and the views' own

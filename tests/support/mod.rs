@@ -3,6 +3,8 @@
 
 use std::path::PathBuf;
 
+pub mod daemon;
+
 /// A data set under `../shared/data` (beside the repository; CI has it).
 pub fn shared_data(name: &str) -> PathBuf {
     let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data").join(name);
