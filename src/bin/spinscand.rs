@@ -59,17 +59,13 @@ fn load_config(args: &Args) -> Result<Config, ConfigError> {
 fn main() -> ExitCode {
     // Scans run on fresh threads; glibc gives threads arenas of their own and keeps them, so
     // a daemon that runs for months would grow with every scan. Two arenas, and a trim after
-    // each scan (see `Daemon::scan_finished`), keep it flat. And fixed thresholds: left
-    // dynamic, glibc raises its mmap threshold to 32 MiB after the first large buffer is
-    // freed (and its trim threshold to 64 MiB), so image-sized buffers then come from the
-    // heap and tens of MiB stay held after a scan (RSS after 45-view scans at 640×480 went
-    // 40, 41, 33, 79 MiB, `cargo bench --bench daemon -- rss`).
+    // each scan (see `Daemon::scan_finished`), keep it flat. (Fixed mmap and trim thresholds
+    // were tried: flat at 640×480, but a slow creep at 160×120 that failed
+    // `memory_stays_flat_across_repeated_scans` in 2 of 4 runs; not kept, docs/daemon.md.)
     #[cfg(target_env = "gnu")]
     // SAFETY: mallopt only changes the allocator's tuning; called before any thread starts.
     unsafe {
         libc::mallopt(libc::M_ARENA_MAX, 2);
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 20);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, 8 << 20);
     }
     let args = Args::parse();
     // Under systemd (JOURNAL_STREAM set) journald adds time and colour is noise.
