@@ -23,12 +23,15 @@ use crate::recording::{Recording, TurntableAxis};
 use crate::register::posestore::{PoseSnapshot, PoseStore};
 use crate::register::ring::{Registrar, RegistrationParams};
 use crate::register::surface::{quantile, Surface};
-use crate::stereo::DisparityMap;
+use crate::stereo::{DisparityMap, MatchParams, Method};
 
 /// What to run.
 #[derive(Debug, Clone)]
 pub struct Table1Options {
     pub pipeline: PipelineOptions,
+    /// The matchers compared: every row runs once per entry (`bench table1 --method
+    /// bm,sgm`); empty = `pipeline.matching` alone.
+    pub matchers: Vec<MatchParams>,
     /// The paper rows' weighting factors.
     pub weights: Vec<f64>,
     /// Also a row for the predicted mode.
@@ -51,6 +54,7 @@ impl Default for Table1Options {
     fn default() -> Self {
         Table1Options {
             pipeline: PipelineOptions::default(),
+            matchers: Vec::new(),
             weights: vec![0.6, 0.8, 1.0, 2.0],
             predicted: true,
             max_frames: None,
@@ -76,6 +80,7 @@ pub enum BenchError {
 /// One row of the table.
 #[derive(Debug, Clone)]
 pub struct Row {
+    pub method: Method,
     pub mode: AssistMode,
     pub frame_ms: Vec<f64>,
     pub interval_ms: Vec<f64>,
@@ -117,8 +122,9 @@ fn mean(v: &[f64]) -> Option<f64> {
 }
 
 impl Row {
-    fn new(mode: AssistMode) -> Row {
+    fn new(method: Method, mode: AssistMode) -> Row {
         Row {
+            method,
             mode,
             frame_ms: vec![],
             interval_ms: vec![],
@@ -178,6 +184,7 @@ impl Row {
 
     pub fn to_json(&self) -> Value {
         json!({
+            "method": self.method.name(),
             "mode": self.mode.name(),
             "w": self.mode.w(),
             "frame_ms": self.frame_ms,
@@ -218,8 +225,10 @@ pub struct Table1 {
     pub lag: u64,
     pub fig_frame: usize,
     pub fig_left: Vec<u8>,
-    /// Per frame: the matcher with one disparity at every foreground pixel, ms.
+    /// Per frame: the (first) matcher with one disparity at every foreground pixel, ms.
     pub floor_ms: Vec<f64>,
+    /// The same per matcher, in the order of `Table1Options::matchers`.
+    pub floor_ms_by_method: Vec<(Method, Vec<f64>)>,
 }
 
 struct Truth {
@@ -236,46 +245,56 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
     if n == 0 {
         return Err(BenchError::Recording(format!("{}: no frames to run", dir.display())));
     }
-    let mut pipe = Pipeline::new(&rec.calib, rec.image_size, opts.pipeline.clone()).map_err(|source| BenchError::Pipeline { seq: 0, source })?;
+    let matchers = if opts.matchers.is_empty() { vec![opts.pipeline.matching.clone()] } else { opts.matchers.clone() };
+    // One pipeline per matcher (they share the rectification and the prepared frames).
+    let mut pipes = Vec::new();
+    for m in &matchers {
+        let o = PipelineOptions { matching: m.clone(), ..opts.pipeline.clone() };
+        pipes.push(Pipeline::new(&rec.calib, rec.image_size, o).map_err(|source| BenchError::Pipeline { seq: 0, source })?);
+    }
     let size = (rec.image_size.0 as usize, rec.image_size.1 as usize);
-    let params = pipe.matcher().params().clone();
+    let params = pipes[0].matcher().params().clone();
     let range = (params.min_disparity, params.max_disparity());
 
     // Prepare every frame once: every row matches the same images and masks.
     let mut frames: Vec<(u64, Option<f64>, Prepared)> = Vec::with_capacity(n);
     for i in 0..n {
         let f = rec.load_frame(i).map_err(|e| BenchError::Recording(e.to_string()))?;
-        let p = pipe.prepare_frame(&f, true, None).map_err(|e| BenchError::Recording(format!("frame seq {}: {e}", f.seq)))?;
+        let p = pipes[0].prepare_frame(&f, true, None).map_err(|e| BenchError::Recording(format!("frame seq {}: {e}", f.seq)))?;
         frames.push((f.seq, f.table_deg, p));
         progress("prepare", i + 1, n);
     }
-    let truth = read_truth(&rec, &frames, pipe.rect.disparity_sign)?;
+    let truth = read_truth(&rec, &frames, pipes[0].rect.disparity_sign)?;
 
     let mut modes = vec![AssistMode::None];
     modes.extend(opts.weights.iter().map(|&w| AssistMode::Paper { w }));
     if opts.predicted {
         modes.push(AssistMode::Predicted);
     }
+    let rows: Vec<(usize, AssistMode)> = (0..pipes.len()).flat_map(|k| modes.iter().map(move |&m| (k, m))).collect();
     let fig_frame = opts.fig_frame.unwrap_or(4).min(n - 1);
     let calibrated = TurntableAxis::read_calibrated(dir).map_err(|e| BenchError::Recording(format!("calibrated turntable axis: {e}")))?;
     // Every row keeps its own assistant, pose store and registrar; the rows take turns frame
     // by frame (and run by run), so that a slow phase of a shared machine falls on all of
     // them alike instead of on whichever row it happened to be running.
     struct RowState {
+        /// Index of the row's matcher in `pipes`.
+        pipe: usize,
         row: Row,
         assistant: Assistant,
         store: Arc<PoseStore>,
         registrar: Option<Registrar>,
     }
-    let mut states: Vec<RowState> = modes
+    let mut states: Vec<RowState> = rows
         .into_iter()
-        .map(|mode| {
+        .map(|(k, mode)| {
             let store = Arc::new(PoseStore::new());
             let registrar = (mode != AssistMode::None).then(|| crate::pipeline::registrar(opts.registration.clone(), calibrated.as_ref(), store.clone()));
-            RowState { row: Row::new(mode), assistant: pipe.assistant(AssistParams { mode, ..opts.assist.clone() }), store, registrar }
+            let row = Row::new(matchers[k].method, mode);
+            RowState { pipe: k, row, assistant: pipes[k].assistant(AssistParams { mode, ..opts.assist.clone() }), store, registrar }
         })
         .collect();
-    let mut floor_ms = Vec::new();
+    let mut floor_ms = vec![Vec::new(); pipes.len()];
     for (i, (seq, table_deg, frame)) in frames.iter().enumerate() {
         let poses: Vec<PoseSnapshot> = states.iter().map(|st| visible_poses(&st.store.snapshot(), *seq, opts.lag)).collect();
         // Time the frame `repeat` times from the same state: planning is repeatable (it moves
@@ -287,23 +306,26 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         // counts.
         let mid = (range.0 + range.1) / 2;
         let floor_iv = crate::stereo::DisparityIntervals::within(size.0, size.1, frame.mask.as_deref(), mid, mid);
-        let mut floor_runs = Vec::new();
+        let mut floor_runs = vec![Vec::new(); pipes.len()];
         let mut extra = vec![Vec::new(); states.len()];
         for run in 0..opts.repeat.max(1) {
-            let (_, _, ms) = pipe.match_gray(&frame.left_gray, &frame.right_gray, &floor_iv).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
-            floor_runs.push(ms);
+            for (pipe, runs) in pipes.iter_mut().zip(floor_runs.iter_mut()) {
+                let (_, _, ms) = pipe.match_gray(&frame.left_gray, &frame.right_gray, &floor_iv).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
+                runs.push(ms);
+            }
             if run == 0 {
                 continue;
             }
             for (k, st) in states.iter_mut().enumerate() {
                 let plan = st.assistant.plan(*seq, frame.mask.as_deref(), &poses[k]);
-                let (_, _, ms) = pipe.match_gray(&frame.left_gray, &frame.right_gray, &plan.intervals).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
+                let (_, _, ms) = pipes[st.pipe].match_gray(&frame.left_gray, &frame.right_gray, &plan.intervals).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
                 extra[k].push(plan.build_ms + ms);
                 st.assistant.recycle(plan);
             }
         }
         for (k, st) in states.iter_mut().enumerate() {
             let label = row_label(&st.row);
+            let pipe = &mut pipes[st.pipe];
             let m = pipe.match_frame(*seq, frame, Some(Assist { assistant: &mut st.assistant, poses: &poses[k] })).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
             let o = &m.outcome;
             let total = o.interval_ms + o.match_ms;
@@ -339,7 +361,9 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
                 }
             }
         }
-        floor_ms.push(median(&floor_runs).expect("at least one run"));
+        for (f, runs) in floor_ms.iter_mut().zip(&floor_runs) {
+            f.push(median(runs).expect("at least one run"));
+        }
         progress("frames", i + 1, n);
     }
     let rows: Vec<Row> = states.into_iter().map(|st| st.row).collect();
@@ -354,7 +378,8 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         lag: opts.lag,
         fig_frame,
         fig_left: frames[fig_frame].2.left_rgb.clone(),
-        floor_ms,
+        floor_ms: floor_ms[0].clone(),
+        floor_ms_by_method: matchers.iter().map(|m| m.method).zip(floor_ms).collect(),
     })
 }
 
@@ -413,7 +438,6 @@ fn read_truth(rec: &Recording, frames: &[(u64, Option<f64>, Prepared)], sign: i3
 impl Table1 {
     /// The JSON of `--json`.
     pub fn to_json(&self) -> Value {
-        let none = self.rows.iter().find(|r| r.mode == AssistMode::None).map(Row::median_ms);
         json!({
             "recording": self.recording,
             "frames": self.frames,
@@ -425,13 +449,19 @@ impl Table1 {
             "fig_frame_seq": self.frames[self.fig_frame],
             "floor_ms": self.floor_ms,
             "median_floor_ms": median(&self.floor_ms),
+            "floor_ms_by_method": self.floor_ms_by_method.iter().map(|(m, f)| json!({"method": m.name(), "floor_ms": f, "median_floor_ms": median(f)})).collect::<Vec<_>>(),
             "fig_tiles": std::iter::once("left".to_string()).chain(self.rows.iter().map(row_label)).collect::<Vec<_>>(),
             "rows": self.rows.iter().map(|r| {
                 let mut j = r.to_json();
-                j["ratio_to_none"] = json!(none.map(|n| r.median_ms() / n));
+                j["ratio_to_none"] = json!(self.none_ms(r.method).map(|n| r.median_ms() / n));
                 j
             }).collect::<Vec<_>>(),
         })
+    }
+
+    /// The no-assistance row's median of a matcher: what its rows' ratios are taken against.
+    fn none_ms(&self, method: Method) -> Option<f64> {
+        self.rows.iter().find(|r| r.mode == AssistMode::None && r.method == method).map(Row::median_ms)
     }
 
     /// The paper's table (a column per frame, up to `max_cols` frames) and the accuracy table.
@@ -458,9 +488,11 @@ impl Table1 {
             }
             let _ = writeln!(s, "{:>9.2}", r.median_ms());
         }
-        let none = self.rows.iter().find(|r| r.mode == AssistMode::None).map(Row::median_ms);
-        if let Some(f) = median(&self.floor_ms) {
-            let _ = writeln!(s, "{:<16}{:>width$.2}   (matcher alone, one disparity per foreground pixel: the floor of any interval)", "floor", f, width = 7 * cols + if cols < self.frames.len() { 5 } else { 0 } + 9);
+        for (m, floor) in &self.floor_ms_by_method {
+            if let Some(f) = median(floor) {
+                let label = if self.floor_ms_by_method.len() > 1 { format!("{m} floor") } else { "floor".into() };
+                let _ = writeln!(s, "{:<16}{:>width$.2}   (matcher alone, one disparity per foreground pixel: the floor of any interval)", label, f, width = 7 * cols + if cols < self.frames.len() { 5 } else { 0 } + 9);
+            }
         }
         let _ = writeln!(s);
         let _ = writeln!(s, "{:<16}{:>8}{:>8}{:>8}{:>9}{:>9}{:>9}{:>10}{:>9}{:>9}{:>9}{:>7}", "mode", "median", "ratio", "bad2 %", "lr %", "err mm", "valid", "search px", "ivl ms", "lr ms", "ns/pair", "full");
@@ -471,7 +503,7 @@ impl Table1 {
                 "{:<16}{:>8.2}{:>8}{:>8}{:>9}{:>9}{:>9}{:>10}{:>9}{:>9}{:>9}{:>7}",
                 row_label(r),
                 r.median_ms(),
-                opt(none.map(|n| r.median_ms() / n), 3),
+                opt(self.none_ms(r.method).map(|n| r.median_ms() / n), 3),
                 opt(r.bad2(), 2),
                 opt(mean(&r.lr_consistency), 2),
                 opt(median(&r.err_mm), 3),
@@ -521,9 +553,14 @@ impl Table1 {
 }
 
 fn row_label(r: &Row) -> String {
-    match r.mode {
+    let mode = match r.mode {
         AssistMode::None => "without".into(),
         AssistMode::Paper { w } => format!("w = {w}"),
         AssistMode::Predicted => "predicted".into(),
+    };
+    // The default matcher keeps the labels it always had.
+    match r.method {
+        Method::Bm => mode,
+        m => format!("{m} {mode}"),
     }
 }

@@ -130,11 +130,20 @@ pub fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
     if a.fig_frame == 0 {
         return Err(input("--fig-frame counts from 1"));
     }
-    let mut matching = a.matching.params_with_default(128);
-    // One thread unless asked: steadier timings on a shared machine.
-    matching.threads = a.matching.threads.unwrap_or(1);
+    let mut methods = a.matching.method.clone();
+    methods.dedup();
+    let matchers: Vec<_> = methods
+        .iter()
+        .map(|&m| {
+            let mut p = a.matching.params_for(m, 128);
+            // One thread unless asked: steadier timings on a shared machine.
+            p.threads = a.matching.threads.unwrap_or(1);
+            p
+        })
+        .collect();
     let opts = spinscan::bench::Table1Options {
-        pipeline: PipelineOptions { min_disparity: a.matching.min_disparity, matching, ..Default::default() },
+        pipeline: PipelineOptions { min_disparity: a.matching.min_disparity, matching: matchers[0].clone(), ..Default::default() },
+        matchers,
         weights: a.weights.clone(),
         predicted: !a.no_predicted,
         max_frames: a.frames,

@@ -21,7 +21,7 @@ use spinscan::pipeline::replay::ReplayOptions;
 use spinscan::pipeline::PipelineOptions;
 use spinscan::register::IcpParams;
 use spinscan::segment::ChromaKey;
-use spinscan::stereo::MatchParams;
+use spinscan::stereo::{MatchParams, Method};
 
 /// Exit codes, so scripts and systemd can tell kinds of failure apart.
 pub mod exit {
@@ -79,6 +79,20 @@ pub fn median(mut v: Vec<f64>) -> f64 {
 /// Matcher knobs shared by the commands that match.
 #[derive(Args, Clone)]
 pub struct MatchArgs {
+    /// The matcher: `bm` (correlation, the default) or `sgm` (semi-global matching: slower at
+    /// full range, more accurate in weak texture and on slanted surfaces; docs/matcher.md).
+    /// `bench table1` takes a comma-separated list (`bm,sgm`) and runs every row for each.
+    #[arg(long, default_value = "bm", value_delimiter = ',')]
+    pub method: Vec<Method>,
+    /// SGM: penalty for a disparity change of one between neighbours (census bits).
+    #[arg(long, default_value_t = MatchParams::default().p1)]
+    pub p1: u16,
+    /// SGM: penalty for a larger disparity jump between neighbours.
+    #[arg(long, default_value_t = MatchParams::default().p2)]
+    pub p2: u16,
+    /// SGM: aggregation paths, 4 (rows and columns) or 8 (and the diagonals).
+    #[arg(long, default_value_t = MatchParams::default().sgm_paths)]
+    pub sgm_paths: u8,
     /// First disparity searched (may be negative). Default: 0, or −(N−1) on a calibrated rig
     /// whose rectified disparities are negative.
     #[arg(long, allow_hyphen_values = true)]
@@ -88,49 +102,64 @@ pub struct MatchArgs {
     /// span 0…127). `--max-disparity` is the older name of this same count.
     #[arg(long = "num-disparities", visible_alias = "max-disparity", value_name = "N")]
     pub num_disparities: Option<u32>,
-    /// Correlation window side (odd, 3…31).
+    /// Correlation window side (odd, 3…31; bm only).
     #[arg(long, default_value_t = MatchParams::default().block)]
     pub block: u32,
     /// Worker threads; default all cores.
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Uniqueness ratio in percent (0 disables).
-    #[arg(long, default_value_t = MatchParams::default().uniqueness_ratio)]
-    pub uniqueness: u32,
-    /// Texture threshold: minimum summed |x-gradient| in the window (0 disables).
-    #[arg(long, default_value_t = MatchParams::default().texture_threshold)]
-    pub texture_threshold: u32,
+    /// Uniqueness ratio in percent (0 disables). Default: 15 for bm, 0 for sgm.
+    #[arg(long)]
+    pub uniqueness: Option<u32>,
+    /// Texture threshold: minimum summed |x-gradient| in the window (0 disables; bm only).
+    /// Default: 10 for bm.
+    #[arg(long)]
+    pub texture_threshold: Option<u32>,
     /// Left–right check tolerance in pixels; a negative value disables the check.
     #[arg(long, default_value_t = 1, allow_hyphen_values = true)]
     pub lr_max_diff: i32,
     /// Speckle filter: largest blob (pixels) removed; 0 disables.
     #[arg(long, default_value_t = MatchParams::default().speckle_window)]
     pub speckle_window: u32,
-    /// Speckle filter: largest disparity step inside a blob, pixels.
-    #[arg(long, default_value_t = MatchParams::default().speckle_range_px)]
-    pub speckle_range: f32,
+    /// Speckle filter: largest disparity step inside a blob, pixels. Default: 0.5 for bm,
+    /// 2 for sgm.
+    #[arg(long)]
+    pub speckle_range: Option<f32>,
 }
 
 impl MatchArgs {
-    pub fn params(&self) -> MatchParams {
+    pub fn params(&self) -> Result<MatchParams, Failure> {
         self.params_with_default(64)
     }
 
-    /// The parameters, with `num_disparities` defaulting to `default_range`.
-    pub fn params_with_default(&self, default_range: u32) -> MatchParams {
+    /// The parameters, with `num_disparities` defaulting to `default_range`; one `--method`.
+    pub fn params_with_default(&self, default_range: u32) -> Result<MatchParams, Failure> {
+        match self.method.as_slice() {
+            [m] => Ok(self.params_for(*m, default_range)),
+            _ => Err(input(format!("--method {}: this command runs one matcher (bm or sgm); only `bench table1` takes a list", self.method.iter().map(|m| m.name()).collect::<Vec<_>>().join(",")))),
+        }
+    }
+
+    /// The parameters of matcher `method`: its defaults where a flag is not given.
+    pub fn params_for(&self, method: Method, default_range: u32) -> MatchParams {
+        let base = MatchParams::for_method(method);
         MatchParams {
+            p1: self.p1,
+            p2: self.p2,
+            sgm_paths: self.sgm_paths,
             min_disparity: self.min_disparity.unwrap_or(0),
             num_disparities: self.num_disparities.unwrap_or(default_range),
             block: self.block,
-            uniqueness_ratio: self.uniqueness,
-            texture_threshold: self.texture_threshold,
+            uniqueness_ratio: self.uniqueness.unwrap_or(base.uniqueness_ratio),
+            texture_threshold: self.texture_threshold.unwrap_or(base.texture_threshold),
             lr_max_diff: u32::try_from(self.lr_max_diff).ok(),
             speckle_window: self.speckle_window,
-            speckle_range_px: self.speckle_range,
+            speckle_range_px: self.speckle_range.unwrap_or(base.speckle_range_px),
             threads: self.threads.unwrap_or(0),
-            ..MatchParams::default()
+            ..base
         }
     }
+
 }
 
 /// A raw pair and its calibration (`rectify`, `points`).

@@ -60,7 +60,7 @@ pub fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
         ..a.reg.options(PipelineOptions {
             alpha: a.rect.alpha,
             min_disparity: a.matching.min_disparity,
-            matching: a.matching.params_with_default(128),
+            matching: a.matching.params_with_default(128)?,
             chroma: a.key.chroma(),
         })?
     };

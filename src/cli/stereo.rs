@@ -101,7 +101,7 @@ pub fn cmd_disparity(a: DisparityArgs) -> Result<(), Failure> {
             let opts = PipelineOptions {
                 alpha: a.rect.alpha,
                 min_disparity: a.matching.min_disparity,
-                matching: a.matching.params(),
+                matching: a.matching.params()?,
                 ..Default::default()
             };
             let pipe = Pipeline::new(&calib, (w as u32, h as u32), opts).map_err(input)?;
@@ -110,7 +110,7 @@ pub fn cmd_disparity(a: DisparityArgs) -> Result<(), Failure> {
             (io::rgb_to_gray(&lr), io::rgb_to_gray(&rr), params, pipe.rect.disparity_sign)
         }
         None => {
-            let params = a.matching.params();
+            let params = a.matching.params()?;
             let sign = if params.min_disparity + params.num_disparities as i32 - 1 <= 0 { -1 } else { 1 };
             (l.gray, r.gray, params, sign)
         }
@@ -138,6 +138,7 @@ pub fn cmd_disparity(a: DisparityArgs) -> Result<(), Failure> {
     write_disparity_outputs(&disp, &a.out, a.pfm.as_deref(), a.color.as_deref(), range)?;
     let report = json!({
         "match_ms": median(times),
+        "method": params.method.name(),
         "valid_fraction": stats.valid_fraction(),
         "disparity_sign": sign,
         "width": w,
@@ -183,7 +184,7 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
     let opts = PipelineOptions {
         alpha: a.rect.alpha,
         min_disparity: a.matching.min_disparity,
-        matching: a.matching.params(),
+        matching: a.matching.params()?,
         chroma: a.key.chroma(),
     };
     let mut pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts).map_err(input)?;

@@ -264,8 +264,14 @@ impl Default for ScanSection {
 #[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct MatchingSection {
+    /// The matcher: "bm" (correlation) or "sgm" (semi-global).
+    pub method: crate::stereo::Method,
     pub num_disparities: u32,
     pub block: u32,
+    /// SGM's penalties and paths (method "sgm").
+    pub p1: u16,
+    pub p2: u16,
+    pub sgm_paths: u8,
     /// "predicted", "paper" or "none".
     pub assist: String,
     /// The paper's weighting factor w (mode "paper").
@@ -278,7 +284,8 @@ impl Default for MatchingSection {
     fn default() -> Self {
         // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
         // about 330 mm on.
-        MatchingSection { num_disparities: 128, block: crate::stereo::MatchParams::default().block, assist: "predicted".into(), assist_w: 0.8, segment: true }
+        let m = crate::stereo::MatchParams::default();
+        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, assist: "predicted".into(), assist_w: 0.8, segment: true }
     }
 }
 
@@ -397,6 +404,9 @@ impl Config {
             let key = match e.name {
                 "num_disparities" => "matching.num_disparities",
                 "block" => "matching.block",
+                "p1" => "matching.p1",
+                "p2" => "matching.p2",
+                "sgm_paths" => "matching.sgm_paths",
                 _ => "matching",
             };
             return bad(key, format!("{}, got {}", e.expected, e.value));
@@ -414,8 +424,8 @@ impl Config {
     pub fn pipeline_settings(&self) -> PipelineSettings {
         let config = self;
         let mut pipeline = crate::pipeline::PipelineOptions::default();
-        pipeline.matching.num_disparities = config.matching.num_disparities;
-        pipeline.matching.block = config.matching.block;
+        let m = &config.matching;
+        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, ..crate::stereo::MatchParams::for_method(m.method) };
         // Parallelism comes from the pool: one thread per matcher.
         pipeline.matching.threads = 1;
         let registration = config.scan.register.then(|| {
@@ -496,7 +506,7 @@ mod tests {
     #[test]
     fn matcher_parameters_follow_the_matchers_rules_and_every_accepted_value_builds() {
         let p = Path::new("x.toml");
-        for (text, key) in [("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities")] {
+        for (text, key) in [("p1 = 0", "matching.p1"), ("p2 = 9000", "matching.p2"), ("sgm_paths = 5", "matching.sgm_paths"), ("method = \"census\"", "expected `bm` or `sgm`"), ("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities")] {
             let e = Config::parse(p, &format!("[matching]\n{text}\n")).unwrap_err().to_string();
             assert!(e.contains(key), "{text}: {e}");
         }
@@ -507,6 +517,9 @@ mod tests {
             let settings = c.pipeline_settings();
             crate::pipeline::Pipeline::new(&calib, (64, 48), settings.pipeline).unwrap_or_else(|e| panic!("block {block}, {n} disparities: {e}"));
         }
+        let c = Config::parse(p, "[matching]\nmethod = \"sgm\"\np1 = 7\np2 = 2000\nsgm_paths = 8\n").unwrap();
+        let m = c.pipeline_settings().pipeline.matching;
+        assert_eq!((m.method, m.p1, m.p2, m.sgm_paths, m.uniqueness_ratio), (crate::stereo::Method::Sgm, 7, 2000, 8, 0));
     }
 
     #[test]

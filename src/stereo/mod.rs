@@ -6,10 +6,11 @@ mod kernels;
 pub mod matcher;
 pub mod params;
 pub mod rectify;
+mod sgm;
 pub mod speckle;
 pub mod triangulate;
 
 pub use disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
 pub use matcher::{MatchError, StereoMatcher};
-pub use params::{MatchParams, ParamError, ValidMatchParams};
+pub use params::{MatchParams, Method, ParamError, ValidMatchParams};
 pub use rectify::{Rectification, RectifyError, RemapTable};

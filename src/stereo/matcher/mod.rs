@@ -42,7 +42,7 @@ use std::ops::Range;
 
 use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
 use super::kernels;
-use super::params::ValidMatchParams;
+use super::params::{Method, ValidMatchParams};
 use super::speckle::SpeckleFilter;
 use rows::{column_bands, left_right_check, row_intervals, select_row, texture_row, tile_bands, update_column_sums, update_texture};
 use scratch::{searched_span, Geometry, StripeInput, StripeScratch, TileSums, TILE_H, TILE_W};
@@ -74,6 +74,8 @@ pub struct StereoMatcher {
     right_pf_rev: Vec<u8>,
     stripes: Vec<StripeScratch>,
     speckle: SpeckleFilter,
+    /// The semi-global matcher's buffers (`--method sgm`).
+    sgm: super::sgm::Sgm,
     /// The cropped inputs and output (see [`Crop`]), reused.
     crop_left: Vec<u8>,
     crop_right: Vec<u8>,
@@ -137,6 +139,7 @@ impl StereoMatcher {
             right_pf_rev: Vec::new(),
             stripes: Vec::new(),
             speckle: SpeckleFilter::default(),
+            sgm: Default::default(),
             crop_left: Vec::new(),
             crop_right: Vec::new(),
             crop_intervals: DisparityIntervals::empty(0, 0),
@@ -221,6 +224,11 @@ impl StereoMatcher {
 
     /// [`StereoMatcher::compute`] over the whole of checked inputs.
     fn compute_whole(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
+        if self.params.method == Method::Sgm {
+            let mut totals = self.sgm.compute(&self.params, left, right, intervals, out);
+            self.speckle_filter(out, &mut totals);
+            return totals;
+        }
         let (w, h) = (left.width, left.height);
         let geo = Geometry::new(&self.params, w, h);
 
@@ -263,13 +271,19 @@ impl StereoMatcher {
             totals.lr_candidates += s.lr_candidates;
             totals.lr_passed += s.lr_passed;
         }
+        self.speckle_filter(out, &mut totals);
+        totals
+    }
+
+    /// The speckle filter over a finished map, and the count of what is left.
+    fn speckle_filter(&mut self, out: &mut DisparityMap, totals: &mut MatchStats) {
+        let params = &self.params;
         if params.speckle_window > 0 {
             let t0 = std::time::Instant::now();
             self.speckle.apply(out, params.speckle_window as usize, params.speckle_range_px);
             totals.speckle_ns = t0.elapsed().as_nanos() as u64;
         }
         totals.matched = out.valid_count();
-        totals
     }
 }
 

@@ -1,0 +1,355 @@
+//! Semi-global matching (Hirschmüller 2008) over per-pixel disparity intervals.
+//!
+//! # The method
+//! The cost of a (pixel, disparity) pair is the Hamming distance of the two pixels' census
+//! words (`census.rs`). Along each of eight directions r it is aggregated by the recurrence
+//!
+//! `L_r(p, d) = C(p, d) + min(L_r(q, d), L_r(q, d ± 1) + P1, min_k L_r(q, k) + P2) − min_k L_r(q, k)`
+//!
+//! with q = p − r the previous pixel of the path: a change of one disparity costs P1, a larger
+//! jump P2. The eight sums `S(p, d) = Σ_r L_r(p, d)` are the aggregated cost; the winner is
+//! their minimum within the pixel's interval, with the uniqueness test, parabola sub-pixel
+//! fit, left–right check and speckle filter of the correlation matcher.
+//!
+//! # Intervals, and the work they save
+//! Every pixel aggregates only over its own interval rounded out to whole blocks of
+//! [`LANES`] disparities (one SIMD register of 16-bit sums), so the work — eight path
+//! updates per pair — is proportional to the pairs searched, up to that rounding; the full
+//! range is the special case. The winner is looked for inside the interval itself.
+//! `S` is stored packed: pixel p's blocks at `off[p] …`, nothing for the blocks it does not
+//! search. Where the previous pixel of a path searched other blocks than p, the path carries
+//! across: disparities q did not search count as unreachable except through the jump term,
+//! `min_k L_r(q, k) + P2` — a path entering a new band pays P2 at most, as at an edge. A path
+//! starts afresh (`L_r = C`) after a pixel that searched nothing (the background).
+//! Disparities of a block whose right pixel lies outside the image compare with the image's
+//! border column (the census row is padded by replication), and never win.
+//!
+//! # Passes
+//! Pass one goes down the image, left to right, with the paths from the left, upper left,
+//! above and upper right; pass two goes up, right to left, with the other four and then
+//! selects each row as soon as its sums are complete.
+
+use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
+use super::params::ValidMatchParams;
+
+mod census;
+mod select;
+#[cfg(target_arch = "x86_64")]
+mod simd;
+#[cfg(test)]
+mod tests;
+
+/// Disparities per block: sixteen 16-bit lanes, one AVX2 register.
+pub(super) const LANES: usize = 16;
+type Block = [u16; LANES];
+
+/// A disparity no path reached: above any reachable path cost (at most 62 + P2 ≤ 2062), and
+/// low enough that adding P1 stays inside `u16`.
+const UNREACHED: u16 = 0x7000;
+
+/// One row of a path's values: a slot of `n + 2` per pixel (`n` the padded range) —
+/// disparity index k at slot offset k + 1, `UNREACHED` at both ends and wherever the slot's
+/// pixel did not search — the band each slot holds, and each slot's minimum.
+#[derive(Default)]
+struct PathRow {
+    vals: Vec<u16>,
+    band: Vec<(u16, u16)>,
+    min: Vec<u16>,
+}
+
+impl PathRow {
+    fn reset(&mut self, slots: usize, n: usize) {
+        self.vals.clear();
+        self.vals.resize(slots * (n + 2), UNREACHED);
+        self.band.clear();
+        self.band.resize(slots, (0, 0));
+        self.min.clear();
+        self.min.resize(slots, 0);
+    }
+
+    /// Slot `i` made ready for band `a … a + m`: what an earlier band left outside it becomes
+    /// `UNREACHED` again (nothing to do when the bands repeat, as at full range).
+    #[inline(always)]
+    fn prepare(&mut self, i: usize, n: usize, a: usize, m: usize) {
+        let (oa, om) = self.band[i];
+        let (oa, om) = (oa as usize, om as usize);
+        if (oa, om) != (a, m) && om > 0 {
+            let slot = &mut self.vals[i * (n + 2) + 1..][..n];
+            let end = (oa + om).min(a);
+            if oa < end {
+                slot[oa..end].fill(UNREACHED);
+            }
+            let start = oa.max(a + m);
+            if start < oa + om {
+                slot[start..oa + om].fill(UNREACHED);
+            }
+        }
+        self.band[i] = (a as u16, m as u16);
+    }
+
+    /// Slot `i` over disparity indices `a − 1 … a + m`.
+    #[inline(always)]
+    fn around(&self, i: usize, n: usize, a: usize, m: usize) -> &[u16] {
+        &self.vals[i * (n + 2) + a..][..m + 2]
+    }
+
+    /// Slot `i` over disparity indices `a … a + m − 1`.
+    #[inline(always)]
+    fn band_mut(&mut self, i: usize, n: usize, a: usize, m: usize) -> &mut [u16] {
+        &mut self.vals[i * (n + 2) + 1 + a..][..m]
+    }
+}
+
+/// Where a path comes from at one pixel: the previous pixel's values around the band
+/// (`around`), its minimum, and the jump term `min + P2`. A path that starts here reads an
+/// `UNREACHED` slot with `min = jump = 0`, which makes `L = C`.
+#[derive(Clone, Copy)]
+struct From<'a> {
+    around: &'a [u16],
+    min: u16,
+    jump: u16,
+}
+
+/// Reusable buffers of the semi-global matcher.
+#[derive(Default)]
+pub(super) struct Sgm {
+    census_l: Vec<u64>,
+    /// The right census, each row padded by replication so that every disparity of every
+    /// block has a right pixel.
+    census_r: Vec<u64>,
+    /// Per pixel: the aggregated band (first disparity index, multiple of [`LANES`], and
+    /// count, a multiple of it; 0 = not searched), and the interval searched inside it.
+    band_a: Vec<u16>,
+    band_m: Vec<u16>,
+    lo: Vec<u16>,
+    hi: Vec<u16>,
+    /// Per pixel: offset of its costs and sums in `cost` and `sum`; one more entry at the end.
+    off: Vec<usize>,
+    /// Census costs and aggregated costs, packed.
+    cost: Vec<u8>,
+    sum: Vec<u16>,
+    /// The vertical and diagonal paths (from x − 1, x, x + 1 of the previous row): the
+    /// previous and the current row.
+    vert_prev: [PathRow; 3],
+    vert_cur: [PathRow; 3],
+    /// The horizontal path at the previous and the current pixel.
+    h_prev: PathRow,
+    h_cur: PathRow,
+    /// An `UNREACHED` slot: where a path starts.
+    fresh: Vec<u16>,
+    /// Per right pixel of the row: its cheapest winning splat as `sum << 32 | x`.
+    right_best: Vec<u64>,
+}
+
+/// The geometry of one call: image size, the padded range and the right rows' padding.
+#[derive(Clone, Copy)]
+struct Geo {
+    w: usize,
+    h: usize,
+    /// Disparity indices `0 … n` (the range rounded up to blocks).
+    n: usize,
+    dmin: i32,
+    /// Columns of replicated padding left of each right census row.
+    pad_l: usize,
+    /// Padded right row length.
+    wr: usize,
+}
+
+/// The `N` paths of one pass at one pixel (two or four): writes each path's values and adds
+/// (or, on the first pass, writes) their sum; returns each path's minimum.
+#[inline(always)]
+fn step<const AVX2: bool, const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut [u16]; N], sum: &mut [u16], add: bool) -> [u16; N] {
+    #[cfg(target_arch = "x86_64")]
+    if AVX2 {
+        // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU.
+        return unsafe { simd::step(c, from, p1, out, sum, add) };
+    }
+    step_portable(c, from, p1, out, sum, add)
+}
+
+/// Portable [`step`], in whole blocks.
+#[inline(always)]
+fn step_portable<const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut [u16]; N], sum: &mut [u16], add: bool) -> [u16; N] {
+    let m = c.len();
+    let mut mn: [Block; N] = [[u16::MAX; LANES]; N];
+    for b in (0..m).step_by(LANES) {
+        let cc: &[u8; LANES] = c[b..b + LANES].try_into().unwrap();
+        let s: &mut Block = (&mut sum[b..b + LANES]).try_into().unwrap();
+        let mut acc: Block = if add { *s } else { [0; LANES] };
+        for j in 0..N {
+            let f = from[j];
+            let l: &Block = f.around[b..b + LANES].try_into().unwrap();
+            let mid: &Block = f.around[b + 1..b + 1 + LANES].try_into().unwrap();
+            let r: &Block = f.around[b + 2..b + 2 + LANES].try_into().unwrap();
+            let o: &mut Block = (&mut out[j][b..b + LANES]).try_into().unwrap();
+            for k in 0..LANES {
+                let v = cc[k] as u16 + mid[k].min(l[k] + p1).min(r[k] + p1).min(f.jump) - f.min;
+                o[k] = v;
+                mn[j][k] = mn[j][k].min(v);
+                acc[k] += v;
+            }
+        }
+        *s = acc;
+    }
+    mn.map(|v| v.into_iter().fold(u16::MAX, u16::min))
+}
+
+impl Sgm {
+    /// Matches checked inputs (same size, at least 2 × 1) over `intervals`; the speckle
+    /// filter is the caller's.
+    pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("popcnt") {
+            // SAFETY: the CPU supports AVX2 and POPCNT, checked just above.
+            return unsafe { self.compute_avx2(p, left, right, intervals, out) };
+        }
+        self.compute_impl::<false>(p, left, right, intervals, out)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,popcnt")]
+    unsafe fn compute_avx2(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
+        self.compute_impl::<true>(p, left, right, intervals, out)
+    }
+
+    /// The whole matcher; inlined into each SIMD-level wrapper so the loops vectorise for it.
+    #[inline(always)]
+    fn compute_impl<const AVX2: bool>(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
+        let (w, h) = (left.width, left.height);
+        let n = (p.num_disparities as usize).div_ceil(LANES) * LANES;
+        let dmin = p.min_disparity;
+        // Right pixels x − d for d in dmin … dmin + n − 1 and x in 0 … w − 1.
+        let pad_l = (dmin + n as i32 - 1).max(0) as usize;
+        let pad_r = (-dmin).max(0) as usize;
+        let g = Geo { w, h, n, dmin, pad_l, wr: pad_l + w + pad_r };
+        let t0 = std::time::Instant::now();
+        census::transform(left.data, w, h, (0, 0), &mut self.census_l);
+        census::transform(right.data, w, h, (pad_l, pad_r), &mut self.census_r);
+        let mut stats = MatchStats { prefilter_ns: t0.elapsed().as_nanos() as u64, ..MatchStats::default() };
+        self.bands(p, g, intervals, &mut stats);
+        let total = self.off[w * h];
+        // Pass one writes every cost and sum before anything reads them: no clearing.
+        self.cost.resize(total, 0);
+        self.sum.resize(total, 0);
+        self.fresh.clear();
+        self.fresh.resize(n + 2, UNREACHED);
+        self.right_best.resize(w, 0);
+        let vals = out.values_mut();
+        vals.fill(f32::NAN);
+        self.pass::<AVX2>(p, g, false, vals, &mut stats);
+        self.pass::<AVX2>(p, g, true, vals, &mut stats);
+        stats
+    }
+
+    /// Each pixel's interval clipped to the range and to right pixels inside the image, the
+    /// band of whole blocks around it, and the packed offsets.
+    #[inline(always)]
+    fn bands(&mut self, p: &ValidMatchParams, g: Geo, iv: &DisparityIntervals, stats: &mut MatchStats) {
+        let Geo { w, h, dmin, .. } = g;
+        let dmax = p.max_disparity();
+        for v in [&mut self.band_a, &mut self.band_m, &mut self.lo, &mut self.hi] {
+            v.resize(w * h, 0);
+        }
+        self.off.resize(w * h + 1, 0);
+        let mut total = 0usize;
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                let lo = (iv.lo[i] as i32).max(dmin).max(x as i32 - w as i32 + 1);
+                let hi = (iv.hi[i] as i32).min(dmax).min(x as i32);
+                self.off[i] = total;
+                if lo > hi {
+                    self.band_m[i] = 0;
+                    continue;
+                }
+                let (klo, khi) = ((lo - dmin) as usize, (hi - dmin) as usize);
+                let a = klo / LANES * LANES;
+                let m = (khi / LANES + 1) * LANES - a;
+                (self.band_a[i], self.band_m[i], self.lo[i], self.hi[i]) = (a as u16, m as u16, klo as u16, khi as u16);
+                total += m;
+                stats.searched += 1;
+            }
+        }
+        self.off[w * h] = total;
+        stats.evaluated = total as u64;
+    }
+
+    /// One pass: down the image left to right (`up = false`: census costs, and the sums of
+    /// four paths), or up right to left (adding the other four, then selecting each row).
+    #[inline(always)]
+    fn pass<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, up: bool, out: &mut [f32], stats: &mut MatchStats) {
+        let Geo { w, h, n, .. } = g;
+        let (p1, p2) = (p.p1, p.p2);
+        for r in self.vert_prev.iter_mut().chain(self.vert_cur.iter_mut()) {
+            r.reset(w, n);
+        }
+        self.h_prev.reset(1, n);
+        self.h_cur.reset(1, n);
+        for step_y in 0..h {
+            let y = if up { h - 1 - step_y } else { step_y };
+            if !up {
+                let cl = &self.census_l[y * w..][..w];
+                let cr = &self.census_r[y * g.wr..][..g.wr];
+                for x in 0..w {
+                    let i = y * w + x;
+                    let m = self.band_m[i] as usize;
+                    if m > 0 {
+                        // Right pixel of disparity index k: x − dmin − k, at x − dmin − k + pad_l
+                        // in the padded row.
+                        let d0 = g.dmin + self.band_a[i] as i32;
+                        census::costs(cl[x], cr, (x as i32 + g.pad_l as i32 - d0) as usize, &mut self.cost[self.off[i]..][..m]);
+                    }
+                }
+            }
+            // The previous row of the vertical paths (none at the first row of the pass).
+            let py = if up { y + 1 } else { y.wrapping_sub(1) };
+            let has_prev_row = py < h;
+            let mut h_live = false;
+            for step_x in 0..w {
+                let x = if up { w - 1 - step_x } else { step_x };
+                let i = y * w + x;
+                let m = self.band_m[i] as usize;
+                if m == 0 {
+                    h_live = false;
+                    continue;
+                }
+                let a = self.band_a[i] as usize;
+                let fresh = From { around: &self.fresh[a..a + m + 2], min: 0, jump: 0 };
+                let hf = if h_live { From { around: self.h_prev.around(0, n, a, m), min: self.h_prev.min[0], jump: self.h_prev.min[0] + p2 } } else { fresh };
+                // Eight paths: all three from the previous row; four: only the one above
+                // (below).
+                let eight = p.sgm_paths == 8;
+                let mut vf = [fresh; 3];
+                for (j, f) in vf.iter_mut().enumerate() {
+                    let qx = (x + j).wrapping_sub(1);
+                    if (eight || j == 1) && has_prev_row && qx < w && self.band_m[py * w + qx] > 0 {
+                        let row = &self.vert_prev[j];
+                        *f = From { around: row.around(qx, n, a, m), min: row.min[qx], jump: row.min[qx] + p2 };
+                    }
+                }
+                self.h_cur.prepare(0, n, a, m);
+                let c = &self.cost[self.off[i]..][..m];
+                let s = &mut self.sum[self.off[i]..][..m];
+                let [v0, v1, v2] = &mut self.vert_cur;
+                v1.prepare(x, n, a, m);
+                if eight {
+                    v0.prepare(x, n, a, m);
+                    v2.prepare(x, n, a, m);
+                    let outs = [v0.band_mut(x, n, a, m), v1.band_mut(x, n, a, m), v2.band_mut(x, n, a, m), self.h_cur.band_mut(0, n, a, m)];
+                    let [m0, m1, m2, mh] = step::<AVX2, 4>(c, [vf[0], vf[1], vf[2], hf], p1, outs, s, up);
+                    (v0.min[x], v1.min[x], v2.min[x], self.h_cur.min[0]) = (m0, m1, m2, mh);
+                } else {
+                    let outs = [v1.band_mut(x, n, a, m), self.h_cur.band_mut(0, n, a, m)];
+                    let [m1, mh] = step::<AVX2, 2>(c, [vf[1], hf], p1, outs, s, up);
+                    (v1.min[x], self.h_cur.min[0]) = (m1, mh);
+                }
+                std::mem::swap(&mut self.h_prev, &mut self.h_cur);
+                h_live = true;
+            }
+            std::mem::swap(&mut self.vert_prev, &mut self.vert_cur);
+            if up {
+                self.select_row::<AVX2>(p, g, y, &mut out[y * w..][..w], stats);
+            }
+        }
+    }
+}

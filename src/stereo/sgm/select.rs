@@ -1,0 +1,135 @@
+//! The winner of each pixel from its complete sums: the minimum inside the pixel's interval,
+//! the uniqueness test, the sub-pixel fit, and SGBM's left–right check.
+
+use super::super::disparity::MatchStats;
+use super::super::params::ValidMatchParams;
+use super::{Block, Geo, Sgm, LANES};
+
+/// The smallest sum over disparity indices `lo ..= hi` outside `skip` (absolute indices,
+/// none when `skip.0 > skip.1`; `s` covers `a …`), in whole blocks.
+#[inline(always)]
+fn min_of<const AVX2: bool>(s: &[u16], a: usize, lo: usize, hi: usize, skip: (usize, usize)) -> u16 {
+    #[cfg(target_arch = "x86_64")]
+    if AVX2 {
+        // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU.
+        return unsafe { super::simd::masked_min(s, a, lo, hi, skip) };
+    }
+    masked_min(s, a, lo, hi, skip)
+}
+
+/// The first disparity index in `lo ..= hi` whose sum is `best`.
+#[inline(always)]
+fn position_of<const AVX2: bool>(s: &[u16], a: usize, lo: usize, hi: usize, best: u16) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    if AVX2 {
+        // SAFETY: as in `min_of`.
+        return unsafe { super::simd::first_at(s, a, lo, hi, best) };
+    }
+    first_at(s, a, lo, hi, best)
+}
+
+/// Portable [`min_of`].
+#[inline(always)]
+fn masked_min(s: &[u16], a: usize, lo: usize, hi: usize, skip: (usize, usize)) -> u16 {
+    let mut mn: Block = [u16::MAX; LANES];
+    for b in (0..s.len()).step_by(LANES) {
+        let blk: &Block = s[b..b + LANES].try_into().unwrap();
+        for j in 0..LANES {
+            let k = a + b + j;
+            let inside = k >= lo && k <= hi && !(skip.0 <= k && k <= skip.1);
+            mn[j] = mn[j].min(if inside { blk[j] } else { u16::MAX });
+        }
+    }
+    mn.into_iter().fold(u16::MAX, u16::min)
+}
+
+/// Portable [`position_of`].
+#[inline(always)]
+fn first_at(s: &[u16], a: usize, lo: usize, hi: usize, best: u16) -> usize {
+    for b in (0..s.len()).step_by(LANES) {
+        let blk: &Block = s[b..b + LANES].try_into().unwrap();
+        let mut mask = 0u32;
+        for j in 0..LANES {
+            let k = a + b + j;
+            mask |= ((blk[j] == best && k >= lo && k <= hi) as u32) << j;
+        }
+        if mask != 0 {
+            return a + b + mask.trailing_zeros() as usize;
+        }
+    }
+    lo
+}
+
+impl Sgm {
+    /// Winner, uniqueness, sub-pixel fit and left–right check of row `y`, whose sums are
+    /// complete.
+    ///
+    /// The left–right check is SGBM's: each left pixel that keeps a match splats it onto its
+    /// right pixel, where the cheapest splat wins; a match fails when its right pixel's winner
+    /// (at both the floor and the ceiling of the sub-pixel disparity) differs by more than
+    /// `lr_max_diff`. The classic check — every pair on the right pixel's diagonal competing —
+    /// was tried first: it compares aggregated sums of different left pixels, whose levels
+    /// differ, and rejected 5–7 % of correct matches on Tsukuba (docs/matcher.md).
+    #[inline(always)]
+    pub(super) fn select_row<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, y: usize, out: &mut [f32], stats: &mut MatchStats) {
+        let Geo { w, dmin, .. } = g;
+        let uniq = p.uniqueness_ratio;
+        self.right_best.fill(u64::MAX);
+        for x in 0..w {
+            let i = y * w + x;
+            let m = self.band_m[i] as usize;
+            if m == 0 {
+                continue;
+            }
+            let (a, lo, hi) = (self.band_a[i] as usize, self.lo[i] as usize, self.hi[i] as usize);
+            let s = &self.sum[self.off[i]..][..m];
+            let best = min_of::<AVX2>(s, a, lo, hi, (1, 0));
+            let bk = position_of::<AVX2>(s, a, lo, hi, best);
+            if uniq > 0 {
+                let rival = min_of::<AVX2>(s, a, lo, hi, (bk.saturating_sub(1), bk + 1));
+                if (rival as u32) * (100 - uniq) < best as u32 * 100 {
+                    continue;
+                }
+            }
+            let di = dmin + bk as i32;
+            let xr = (x as i32 - di) as usize;
+            // The cheapest splat wins; ties go to the smaller x, i.e. the smaller disparity.
+            self.right_best[xr] = self.right_best[xr].min((best as u64) << 32 | x as u64);
+            let mut d = di as f32;
+            if p.subpixel && bk > lo && bk < hi {
+                // Equiangular (V-shaped) fit: census sums rise about linearly away from the
+                // minimum (docs/matcher.md: the parabola and a correlation-cost fit measured).
+                let (s0, s2) = (s[bk - 1 - a] as i32, s[bk + 1 - a] as i32);
+                let rise = (s0.max(s2) - best as i32).max(1);
+                d += (s0 - s2) as f32 / (2 * rise) as f32;
+            }
+            out[x] = d;
+        }
+        let t0 = std::time::Instant::now();
+        for x in 0..w {
+            let d = out[x];
+            if d.is_nan() {
+                continue;
+            }
+            stats.lr_candidates += 1;
+            if let Some(tol) = p.lr_max_diff {
+                let fails = |di: i32| {
+                    let xr = x as i32 - di;
+                    // As SGBM: a right pixel outside the image or without a splat says nothing.
+                    if xr < 0 || xr >= w as i32 || self.right_best[xr as usize] == u64::MAX {
+                        return false;
+                    }
+                    let d_right = (self.right_best[xr as usize] as u32) as i32 - xr;
+                    (d_right - di).unsigned_abs() > tol
+                };
+                if fails(d.floor() as i32) && fails(d.ceil() as i32) {
+                    out[x] = f32::NAN;
+                    continue;
+                }
+            }
+            stats.lr_passed += 1;
+        }
+        stats.lr_check_ns += t0.elapsed().as_nanos() as u64;
+    }
+}
+

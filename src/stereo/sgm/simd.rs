@@ -1,0 +1,114 @@
+//! AVX2 copies of the hot loops (the path step, the masked minimum and its position): sixteen
+//! 16-bit lanes per instruction, the same integer arithmetic as the portable versions, so
+//! both give the same map (`the_portable_build_gives_the_same_map`).
+
+use std::arch::x86_64::*;
+
+use super::{From, LANES};
+
+/// [`super::step`] on AVX2.
+///
+/// # Safety
+/// The CPU supports AVX2. Lengths are checked: `c.len()` a multiple of [`LANES`], every
+/// `from[j].around` at least `c.len() + 2` long, every `out[j]` and `sum` at least `c.len()`.
+#[target_feature(enable = "avx2")]
+#[inline]
+pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut [u16]; N], sum: &mut [u16], add: bool) -> [u16; N] {
+    let m = c.len();
+    assert!(m % LANES == 0 && sum.len() >= m);
+    for j in 0..N {
+        assert!(from[j].around.len() >= m + 2 && out[j].len() >= m);
+    }
+    let p1v = _mm256_set1_epi16(p1 as i16);
+    let jump = from.map(|f| _mm256_set1_epi16(f.jump as i16));
+    let base = from.map(|f| _mm256_set1_epi16(f.min as i16));
+    let src = from.map(|f| f.around.as_ptr());
+    let dst = out.map(|o| o.as_mut_ptr());
+    let mut mn = [_mm256_set1_epi16(-1); N];
+    let mut b = 0;
+    while b < m {
+        // SAFETY: b + LANES ≤ m and the lengths asserted above.
+        unsafe {
+            let cc = _mm256_cvtepu8_epi16(_mm_loadu_si128(c.as_ptr().add(b) as *const __m128i));
+            let sp = sum.as_mut_ptr().add(b) as *mut __m256i;
+            let mut acc = if add { _mm256_loadu_si256(sp) } else { _mm256_setzero_si256() };
+            for j in 0..N {
+                let q = src[j].add(b);
+                let l = _mm256_loadu_si256(q as *const __m256i);
+                let mid = _mm256_loadu_si256(q.add(1) as *const __m256i);
+                let r = _mm256_loadu_si256(q.add(2) as *const __m256i);
+                let best = _mm256_min_epu16(_mm256_min_epu16(mid, _mm256_add_epi16(l, p1v)), _mm256_min_epu16(_mm256_add_epi16(r, p1v), jump[j]));
+                let v = _mm256_sub_epi16(_mm256_add_epi16(cc, best), base[j]);
+                _mm256_storeu_si256(dst[j].add(b) as *mut __m256i, v);
+                mn[j] = _mm256_min_epu16(mn[j], v);
+                acc = _mm256_add_epi16(acc, v);
+            }
+            _mm256_storeu_si256(sp, acc);
+        }
+        b += LANES;
+    }
+    mn.map(|v| hmin(v))
+}
+
+/// The smallest of sixteen unsigned 16-bit lanes.
+#[target_feature(enable = "avx2")]
+#[inline]
+fn hmin(v: __m256i) -> u16 {
+    let half = _mm_min_epu16(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
+    _mm_extract_epi16::<0>(_mm_minpos_epu16(half)) as u16
+}
+
+/// Lanes of the block at absolute disparity index `k0` that lie in `lo ..= hi` and outside
+/// `skip` (all as i16 lane masks).
+#[target_feature(enable = "avx2")]
+#[inline]
+fn inside(k0: usize, lo: usize, hi: usize, skip: (usize, usize)) -> __m256i {
+    let k = _mm256_add_epi16(_mm256_set1_epi16(k0 as i16), _mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15));
+    let ge_lo = _mm256_cmpgt_epi16(k, _mm256_set1_epi16(lo as i16 - 1));
+    let le_hi = _mm256_cmpgt_epi16(_mm256_set1_epi16(hi as i16 + 1), k);
+    let mut m = _mm256_and_si256(ge_lo, le_hi);
+    if skip.0 <= skip.1 {
+        let in_skip = _mm256_and_si256(_mm256_cmpgt_epi16(k, _mm256_set1_epi16(skip.0 as i16 - 1)), _mm256_cmpgt_epi16(_mm256_set1_epi16(skip.1 as i16 + 1), k));
+        m = _mm256_andnot_si256(in_skip, m);
+    }
+    m
+}
+
+/// [`super::select::masked_min`] on AVX2.
+///
+/// # Safety
+/// The CPU supports AVX2; `s.len()` is a multiple of [`LANES`] and indices fit `i16`.
+#[target_feature(enable = "avx2")]
+#[inline]
+pub(super) unsafe fn masked_min(s: &[u16], a: usize, lo: usize, hi: usize, skip: (usize, usize)) -> u16 {
+    assert!(s.len() % LANES == 0);
+    let mut mn = _mm256_set1_epi16(-1);
+    for (b, blk) in s.chunks_exact(LANES).enumerate() {
+        // SAFETY: a block of LANES u16.
+        let v = unsafe { _mm256_loadu_si256(blk.as_ptr() as *const __m256i) };
+        let keep = inside(a + b * LANES, lo, hi, skip);
+        mn = _mm256_min_epu16(mn, _mm256_or_si256(_mm256_and_si256(keep, v), _mm256_andnot_si256(keep, _mm256_set1_epi16(-1))));
+    }
+    hmin(mn)
+}
+
+/// [`super::select::first_at`] on AVX2.
+///
+/// # Safety
+/// As [`masked_min`].
+#[target_feature(enable = "avx2")]
+#[inline]
+pub(super) unsafe fn first_at(s: &[u16], a: usize, lo: usize, hi: usize, best: u16) -> usize {
+    assert!(s.len() % LANES == 0);
+    let target = _mm256_set1_epi16(best as i16);
+    for (b, blk) in s.chunks_exact(LANES).enumerate() {
+        // SAFETY: a block of LANES u16.
+        let v = unsafe { _mm256_loadu_si256(blk.as_ptr() as *const __m256i) };
+        let hit = _mm256_and_si256(_mm256_cmpeq_epi16(v, target), inside(a + b * LANES, lo, hi, (1, 0)));
+        let bits = _mm256_movemask_epi8(hit) as u32;
+        if bits != 0 {
+            return a + b * LANES + (bits.trailing_zeros() / 2) as usize;
+        }
+    }
+    lo
+}

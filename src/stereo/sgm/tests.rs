@@ -1,0 +1,132 @@
+use super::*;
+use crate::stereo::params::{MatchParams, Method};
+
+/// A random texture (left) and the same texture seen with disparity `disp(x, y)` at each
+/// right pixel (right): right pixel x shows left pixel x + disp(x).
+fn pair(w: usize, h: usize, disp: impl Fn(usize, usize) -> f32) -> (Vec<u8>, Vec<u8>) {
+    let mut state = 0x2545F4914F6CDD1Du64;
+    let mut noise = || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 40) as f32 / (1u64 << 24) as f32
+    };
+    // Random values on a grid of 3 px, interpolated bilinearly: a texture without plateaus,
+    // which a fractional shift changes.
+    let (gw, gh) = ((w + 80) / 3 + 2, h / 3 + 2);
+    let grid: Vec<f32> = (0..gw * gh).map(|_| noise()).collect();
+    let tex = |x: f32, y: usize| -> u8 {
+        let (gx, gy) = (x / 3.0, y as f32 / 3.0);
+        let (ix, iy) = (gx.floor() as usize, gy.floor() as usize);
+        let (fx, fy) = (gx - ix as f32, gy - iy as f32);
+        let at = |i: usize, j: usize| grid[j * gw + i];
+        let v = at(ix, iy) * (1.0 - fx) * (1.0 - fy) + at(ix + 1, iy) * fx * (1.0 - fy) + at(ix, iy + 1) * (1.0 - fx) * fy + at(ix + 1, iy + 1) * fx * fy;
+        (20.0 + 215.0 * v) as u8
+    };
+    let mut left = vec![0u8; w * h];
+    let mut right = vec![0u8; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            left[y * w + x] = tex(x as f32 + 40.0, y);
+            right[y * w + x] = tex(x as f32 + 40.0 + disp(x, y), y);
+        }
+    }
+    (left, right)
+}
+
+fn params(n: u32) -> ValidMatchParams {
+    MatchParams { method: Method::Sgm, num_disparities: n, speckle_window: 0, threads: 1, ..MatchParams::default() }.validate().unwrap()
+}
+
+fn run(p: &ValidMatchParams, l: &[u8], r: &[u8], w: usize, h: usize, iv: &DisparityIntervals) -> (DisparityMap, MatchStats) {
+    let mut out = DisparityMap::new(w, h);
+    let stats = Sgm::default().compute(p, GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), iv, &mut out);
+    (out, stats)
+}
+
+#[test]
+fn recovers_a_slanted_texture() {
+    let (w, h) = (120, 60);
+    let (l, r) = pair(w, h, |x, _| 6.0 + x as f32 * 0.05);
+    // Right pixel x_r shows left pixel x_r + d(x_r): left pixel x has d = (6 + 0.05 x) / 1.05.
+    let truth = |x: usize, _y: usize| (6.0 + x as f32 * 0.05) / 1.05;
+    let p = params(32);
+    let (out, stats) = run(&p, &l, &r, w, h, &DisparityIntervals::full(w, h, 0, 31));
+    let (mut good, mut total) = (0, 0);
+    for y in 4..h - 4 {
+        for x in 30..w - 5 {
+            total += 1;
+            let d = out.values()[y * w + x];
+            good += (!d.is_nan() && (d - truth(x, y)).abs() <= 0.5) as usize;
+        }
+    }
+    assert!(good * 100 >= total * 95, "{good} of {total} within 0.5 px");
+    assert_eq!(stats.searched, w * h);
+}
+
+#[test]
+fn the_portable_build_gives_the_same_map() {
+    let (w, h) = (90, 40);
+    let (l, r) = pair(w, h, |x, y| 4.0 + ((x / 20 + y / 10) % 3) as f32 * 5.0);
+    let iv = DisparityIntervals::full(w, h, 0, 39);
+    for paths in [4, 8] {
+        let p = MatchParams { sgm_paths: paths, ..(*params(40)).clone() }.validate().unwrap();
+        let (fast, _) = run(&p, &l, &r, w, h, &iv);
+        let mut portable = DisparityMap::new(w, h);
+        Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut portable);
+        let same = fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits());
+        assert!(same, "{paths} paths");
+        assert!(fast.valid_count() * 2 > w * h, "{paths} paths: {} matched", fast.valid_count());
+    }
+}
+
+#[test]
+fn narrow_intervals_are_searched_and_nothing_else() {
+    let (w, h) = (100, 50);
+    // Two bands of rows at different depths: the same disparity for left and right pixels.
+    let truth = |_x: usize, y: usize| if y < 25 { 9.0 } else { 27.0 };
+    let (l, r) = pair(w, h, truth);
+    let p = params(64);
+    let mut iv = DisparityIntervals::empty(w, h);
+    for y in 0..h {
+        for x in 0..w {
+            // A hole in the middle searches nothing; elsewhere ±3 around the truth.
+            if !(40..60).contains(&x) {
+                let t = truth(x, y) as i16;
+                iv.lo[y * w + x] = t - 3;
+                iv.hi[y * w + x] = t + 3;
+            }
+        }
+    }
+    let (out, stats) = run(&p, &l, &r, w, h, &iv);
+    let (full, full_stats) = run(&p, &l, &r, w, h, &DisparityIntervals::full(w, h, 0, 63));
+    let (mut good, mut good_full, mut total) = (0, 0, 0);
+    for y in 0..h {
+        for x in 0..w {
+            let d = out.values()[y * w + x];
+            let t = truth(x, y);
+            if (40..60).contains(&x) {
+                assert!(d.is_nan(), "({x}, {y}) searched nothing but got {d}");
+                continue;
+            }
+            if !d.is_nan() {
+                assert!((t - 3.5..=t + 3.5).contains(&d), "({x}, {y}): {d} outside its interval around {t}");
+            }
+            if x >= 30 {
+                total += 1;
+                good += ((d - t).abs() <= 1.0) as usize;
+                good_full += ((full.values()[y * w + x] - t).abs() <= 1.0) as usize;
+            }
+        }
+    }
+    // Narrow intervals around the truth match at least as well as the full range.
+    assert!(good * 10 >= total * 9 && good >= good_full, "within 1 px: {good} narrow, {good_full} full, of {total}");
+    // Work in whole blocks of 16 around each interval: at most two blocks per pixel here,
+    // against four at the full range.
+    // Searched: outside the hole, where some disparity of the interval has a right pixel.
+    let reachable = (0..h).map(|y| (0..w).filter(|&x| !(40..60).contains(&x) && x as f32 >= truth(x, y) - 3.0).count()).sum::<usize>();
+    assert_eq!(stats.searched, reachable);
+    assert!(stats.evaluated <= (stats.searched * 2 * LANES) as u64);
+    assert_eq!(stats.evaluated % LANES as u64, 0);
+    assert!(stats.evaluated * 2 <= full_stats.evaluated);
+}
