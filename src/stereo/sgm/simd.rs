@@ -25,6 +25,15 @@ pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, ou
     let src = from.map(|f| f.around.as_ptr());
     let dst = out.map(|o| o.as_mut_ptr());
     let mut mn = [_mm256_set1_epi16(-1); N];
+    // The last path is the horizontal one: its previous pixel's values were stored a moment
+    // ago, and a load straddling two of those stores (at ±1 lane) waits for them to reach
+    // the cache. It loads whole stored blocks only and shifts lanes in registers: `hp`, `hm`,
+    // `hn` the previous, this and the next block of values, the ends from the slot's
+    // sentinels.
+    let h = from[N - 1].around;
+    let mut hp = _mm256_set1_epi16(h[0] as i16);
+    // SAFETY: around holds m + 2 ≥ LANES + 2 values.
+    let mut hm = unsafe { _mm256_loadu_si256(h.as_ptr().add(1) as *const __m256i) };
     let mut b = 0;
     while b < m {
         // SAFETY: b + LANES ≤ m and the lengths asserted above.
@@ -32,11 +41,17 @@ pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, ou
             let cc = _mm256_cvtepu8_epi16(_mm_loadu_si128(c.as_ptr().add(b) as *const __m128i));
             let sp = sum.as_mut_ptr().add(b) as *mut __m256i;
             let mut acc = if add { _mm256_loadu_si256(sp) } else { _mm256_setzero_si256() };
+            let hn = if b + LANES < m { _mm256_loadu_si256(h.as_ptr().add(1 + b + LANES) as *const __m256i) } else { _mm256_set1_epi16(h[m + 1] as i16) };
             for j in 0..N {
-                let q = src[j].add(b);
-                let l = _mm256_loadu_si256(q as *const __m256i);
-                let mid = _mm256_loadu_si256(q.add(1) as *const __m256i);
-                let r = _mm256_loadu_si256(q.add(2) as *const __m256i);
+                let (l, mid, r) = if j == N - 1 {
+                    // l[i] = hm[i − 1] (hp[15] at i = 0), r[i] = hm[i + 1] (hn[0] at i = 15).
+                    let l = _mm256_alignr_epi8::<14>(hm, _mm256_permute2x128_si256::<0x21>(hp, hm));
+                    let r = _mm256_alignr_epi8::<2>(_mm256_permute2x128_si256::<0x21>(hm, hn), hm);
+                    (l, hm, r)
+                } else {
+                    let q = src[j].add(b);
+                    (_mm256_loadu_si256(q as *const __m256i), _mm256_loadu_si256(q.add(1) as *const __m256i), _mm256_loadu_si256(q.add(2) as *const __m256i))
+                };
                 let best = _mm256_min_epu16(_mm256_min_epu16(mid, _mm256_add_epi16(l, p1v)), _mm256_min_epu16(_mm256_add_epi16(r, p1v), jump[j]));
                 let v = _mm256_sub_epi16(_mm256_add_epi16(cc, best), base[j]);
                 _mm256_storeu_si256(dst[j].add(b) as *mut __m256i, v);
@@ -44,6 +59,7 @@ pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, ou
                 acc = _mm256_add_epi16(acc, v);
             }
             _mm256_storeu_si256(sp, acc);
+            (hp, hm) = (hm, hn);
         }
         b += LANES;
     }
