@@ -297,7 +297,14 @@ impl Sgm {
                         // Right pixel of disparity index k: x − dmin − k, at x − dmin − k + pad_l
                         // in the padded row.
                         let d0 = g.dmin + self.band_a[i] as i32;
-                        census::costs(cl[x], cr, (x as i32 + g.pad_l as i32 - d0) as usize, &mut self.cost[self.off[i]..][..m]);
+                        let (start, out) = ((x as i32 + g.pad_l as i32 - d0) as usize, &mut self.cost[self.off[i]..][..m]);
+                        #[cfg(target_arch = "x86_64")]
+                        if AVX2 {
+                            // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU.
+                            unsafe { simd::costs(cl[x], cr, start, out) };
+                            continue;
+                        }
+                        census::costs(cl[x], cr, start, out);
                     }
                 }
             }

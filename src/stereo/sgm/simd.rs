@@ -128,3 +128,57 @@ pub(super) unsafe fn first_at(s: &[u16], a: usize, lo: usize, hi: usize, best: u
     }
     lo
 }
+
+/// [`super::census::costs`] on AVX2 for a whole number of blocks: sixteen Hamming distances
+/// per step (nibble table popcount, summed per word), written as bytes.
+///
+/// # Safety
+/// The CPU supports AVX2; `out.len()` is a multiple of [`LANES`] and `cr_row[start + 1 −
+/// out.len() ..= start]` exists.
+#[target_feature(enable = "avx2")]
+#[inline]
+pub(super) unsafe fn costs(cl: u64, cr_row: &[u64], start: usize, out: &mut [u8]) {
+    let m = out.len();
+    assert!(m % LANES == 0 && start < cr_row.len() && start + 1 >= m);
+    let left = _mm256_set1_epi64x(cl as i64);
+    let nibble = _mm256_setr_epi8(0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4, 0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4);
+    let low = _mm256_set1_epi8(0x0f);
+    let count = |v: __m256i| -> __m256i {
+        let x = _mm256_xor_si256(v, left);
+        let lo = _mm256_shuffle_epi8(nibble, _mm256_and_si256(x, low));
+        let hi = _mm256_shuffle_epi8(nibble, _mm256_and_si256(_mm256_srli_epi16::<4>(x), low));
+        _mm256_sad_epu8(_mm256_add_epi8(lo, hi), _mm256_setzero_si256())
+    };
+    // After the packs below, the low 128 bits hold the counts of disparities (k = 15, 14, 11,
+    // 10, 7, 6, 3, 2, 13, 12, 9, 8, 5, 4, 1, 0) of the block (k = 0 the word at `top`): this
+    // puts them back in order.
+    let order = _mm_setr_epi8(15, 14, 7, 6, 13, 12, 5, 4, 11, 10, 3, 2, 9, 8, 1, 0);
+    let mut b = 0;
+    while b < m {
+        // Words top − 15 … top hold disparities b + 15 … b (the right pixel moves left).
+        let top = start - b;
+        let base = cr_row.as_ptr().add(top - 15);
+        // SAFETY: top − 15 ≥ start + 1 − m ≥ 0 and top ≤ start, asserted above.
+        let (w0, w1, w2, w3) = unsafe {
+            (
+                _mm256_loadu_si256(base as *const __m256i),
+                _mm256_loadu_si256(base.add(4) as *const __m256i),
+                _mm256_loadu_si256(base.add(8) as *const __m256i),
+                _mm256_loadu_si256(base.add(12) as *const __m256i),
+            )
+        };
+        // Counts per 64-bit lane: w0 = words top − 15 … top − 12, i.e. k = 15 … 12.
+        let (c0, c1, c2, c3) = (count(w0), count(w1), count(w2), count(w3));
+        let p01 = _mm256_packus_epi32(c0, c1);
+        let p23 = _mm256_packus_epi32(c2, c3);
+        let bytes = _mm256_packus_epi16(p01, p23);
+        // Per 128-bit half the useful bytes are 0, 2, 4, 6, 8, 10, 12, 14; gather them into
+        // the low 8 bytes of each half, then both halves into the low 128 bits.
+        let even = _mm256_shuffle_epi8(bytes, _mm256_setr_epi8(0, 2, 4, 6, 8, 10, 12, 14, -1, -1, -1, -1, -1, -1, -1, -1, 0, 2, 4, 6, 8, 10, 12, 14, -1, -1, -1, -1, -1, -1, -1, -1));
+        let joined = _mm256_castsi256_si128(_mm256_permute4x64_epi64::<0b1000>(even));
+        let res = _mm_shuffle_epi8(joined, order);
+        // SAFETY: b + LANES ≤ m.
+        unsafe { _mm_storeu_si128(out.as_mut_ptr().add(b) as *mut __m128i, res) };
+        b += LANES;
+    }
+}
