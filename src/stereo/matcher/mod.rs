@@ -67,6 +67,11 @@ pub enum MatchError {
 }
 
 
+/// Rows each semi-global stripe adds above and below its own: where its vertical paths start.
+const SGM_OVERLAP: usize = 32;
+/// Fewest rows per semi-global stripe (smaller images run as one).
+const SGM_MIN_ROWS: usize = 96;
+
 /// A reusable matcher: holds the validated parameters and every scratch buffer.
 pub struct StereoMatcher {
     params: ValidMatchParams,
@@ -74,8 +79,8 @@ pub struct StereoMatcher {
     right_pf_rev: Vec<u8>,
     stripes: Vec<StripeScratch>,
     speckle: SpeckleFilter,
-    /// The semi-global matcher's buffers (`--method sgm`).
-    sgm: super::sgm::Sgm,
+    /// The semi-global matcher's buffers (`--method sgm`), one per stripe.
+    sgm: Vec<super::sgm::Sgm>,
     /// The cropped inputs and output (see [`Crop`]), reused.
     crop_left: Vec<u8>,
     crop_right: Vec<u8>,
@@ -139,7 +144,7 @@ impl StereoMatcher {
             right_pf_rev: Vec::new(),
             stripes: Vec::new(),
             speckle: SpeckleFilter::default(),
-            sgm: Default::default(),
+            sgm: Vec::new(),
             crop_left: Vec::new(),
             crop_right: Vec::new(),
             crop_intervals: DisparityIntervals::empty(0, 0),
@@ -225,7 +230,7 @@ impl StereoMatcher {
     /// [`StereoMatcher::compute`] over the whole of checked inputs.
     fn compute_whole(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
         if self.params.method == Method::Sgm {
-            let mut totals = self.sgm.compute(&self.params, left, right, intervals, out);
+            let mut totals = self.compute_sgm(left, right, intervals, out);
             self.speckle_filter(out, &mut totals);
             return totals;
         }
@@ -272,6 +277,58 @@ impl StereoMatcher {
             totals.lr_passed += s.lr_passed;
         }
         self.speckle_filter(out, &mut totals);
+        totals
+    }
+
+    /// Semi-global matching, in stripes of rows on `threads` threads. Each stripe runs the
+    /// whole method over its rows and [`SGM_OVERLAP`] more above and below, and keeps its own
+    /// rows: the vertical paths start that far outside the rows they decide (one thread: no
+    /// stripes, and exactly the single-stripe map).
+    fn compute_sgm(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
+        let (w, h) = (left.width, left.height);
+        let stripes = self.params.thread_count().min(h / SGM_MIN_ROWS).max(1);
+        if stripes == 1 {
+            self.sgm.resize_with(1, Default::default);
+            return self.sgm[0].compute(&self.params, left, right, intervals, 0..h, out);
+        }
+        self.sgm.resize_with(stripes, Default::default);
+        let rows_per = h.div_ceil(stripes);
+        let params = &self.params;
+        let results: Vec<(Range<usize>, Range<usize>, DisparityMap, MatchStats)> = std::thread::scope(|scope| {
+            let handles: Vec<_> = self
+                .sgm
+                .iter_mut()
+                .enumerate()
+                .map(|(i, sgm)| {
+                    let rows = i * rows_per..((i + 1) * rows_per).min(h);
+                    let ext = rows.start.saturating_sub(SGM_OVERLAP)..(rows.end + SGM_OVERLAP).min(h);
+                    std::thread::Builder::new()
+                        .name(format!("sgm-{i}"))
+                        .spawn_scoped(scope, move || {
+                            let n = ext.len();
+                            let (l, r) = (&left.data[ext.start * w..ext.end * w], &right.data[ext.start * w..ext.end * w]);
+                            let iv = DisparityIntervals { width: w, height: n, lo: intervals.lo[ext.start * w..ext.end * w].to_vec(), hi: intervals.hi[ext.start * w..ext.end * w].to_vec() };
+                            let mut part = DisparityMap::new(w, n);
+                            let keep = rows.start - ext.start..rows.end - ext.start;
+                            let stats = sgm.compute(params, GrayView { width: w, height: n, data: l }, GrayView { width: w, height: n, data: r }, &iv, keep, &mut part);
+                            (rows, ext, part, stats)
+                        })
+                        .expect("spawning a matcher thread")
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().expect("matcher thread panicked")).collect()
+        });
+        let mut totals = MatchStats::default();
+        for (rows, ext, part, s) in results {
+            let src = &part.values()[(rows.start - ext.start) * w..(rows.end - ext.start) * w];
+            out.values_mut()[rows.start * w..rows.end * w].copy_from_slice(src);
+            totals.searched += s.searched;
+            totals.evaluated += s.evaluated;
+            totals.prefilter_ns = totals.prefilter_ns.max(s.prefilter_ns);
+            totals.lr_check_ns += s.lr_check_ns;
+            totals.lr_candidates += s.lr_candidates;
+            totals.lr_passed += s.lr_passed;
+        }
         totals
     }
 

@@ -30,6 +30,8 @@
 //! selects each row as soon as its sums are complete.
 
 use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
+use std::ops::Range;
+
 use super::params::ValidMatchParams;
 
 mod census;
@@ -195,26 +197,27 @@ fn step_portable<const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut 
 }
 
 impl Sgm {
-    /// Matches checked inputs (same size, at least 2 × 1) over `intervals`; the speckle
-    /// filter is the caller's.
-    pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
+    /// Matches checked inputs (same size, at least 2 × 1) over `intervals`, and keeps (writes
+    /// and counts) the rows `keep` — the others only feed the paths; the speckle filter is the
+    /// caller's.
+    pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("popcnt") {
             // SAFETY: the CPU supports AVX2 and POPCNT, checked just above.
-            return unsafe { self.compute_avx2(p, left, right, intervals, out) };
+            return unsafe { self.compute_avx2(p, left, right, intervals, keep, out) };
         }
-        self.compute_impl::<false>(p, left, right, intervals, out)
+        self.compute_impl::<false>(p, left, right, intervals, keep, out)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,popcnt")]
-    unsafe fn compute_avx2(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
-        self.compute_impl::<true>(p, left, right, intervals, out)
+    unsafe fn compute_avx2(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
+        self.compute_impl::<true>(p, left, right, intervals, keep, out)
     }
 
     /// The whole matcher; inlined into each SIMD-level wrapper so the loops vectorise for it.
     #[inline(always)]
-    fn compute_impl<const AVX2: bool>(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
+    fn compute_impl<const AVX2: bool>(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
         let (w, h) = (left.width, left.height);
         let n = (p.num_disparities as usize).div_ceil(LANES) * LANES;
         let dmin = p.min_disparity;
@@ -226,7 +229,7 @@ impl Sgm {
         census::transform(left.data, w, h, (0, 0), &mut self.census_l);
         census::transform(right.data, w, h, (pad_l, pad_r), &mut self.census_r);
         let mut stats = MatchStats { prefilter_ns: t0.elapsed().as_nanos() as u64, ..MatchStats::default() };
-        self.bands(p, g, intervals, &mut stats);
+        self.bands(p, g, intervals, keep.clone(), &mut stats);
         let total = self.off[w * h];
         // Pass one writes every cost and sum before anything reads them: no clearing.
         self.cost.resize(total, 0);
@@ -236,15 +239,15 @@ impl Sgm {
         self.right_best.resize(w, 0);
         let vals = out.values_mut();
         vals.fill(f32::NAN);
-        self.pass::<AVX2>(p, g, false, vals, &mut stats);
-        self.pass::<AVX2>(p, g, true, vals, &mut stats);
+        self.pass::<AVX2>(p, g, false, keep.clone(), vals, &mut stats);
+        self.pass::<AVX2>(p, g, true, keep, vals, &mut stats);
         stats
     }
 
     /// Each pixel's interval clipped to the range and to right pixels inside the image, the
     /// band of whole blocks around it, and the packed offsets.
     #[inline(always)]
-    fn bands(&mut self, p: &ValidMatchParams, g: Geo, iv: &DisparityIntervals, stats: &mut MatchStats) {
+    fn bands(&mut self, p: &ValidMatchParams, g: Geo, iv: &DisparityIntervals, keep: Range<usize>, stats: &mut MatchStats) {
         let Geo { w, h, dmin, .. } = g;
         let dmax = p.max_disparity();
         for v in [&mut self.band_a, &mut self.band_m, &mut self.lo, &mut self.hi] {
@@ -267,17 +270,19 @@ impl Sgm {
                 let m = (khi / LANES + 1) * LANES - a;
                 (self.band_a[i], self.band_m[i], self.lo[i], self.hi[i]) = (a as u16, m as u16, klo as u16, khi as u16);
                 total += m;
-                stats.searched += 1;
+                if keep.contains(&y) {
+                    stats.searched += 1;
+                    stats.evaluated += m as u64;
+                }
             }
         }
         self.off[w * h] = total;
-        stats.evaluated = total as u64;
     }
 
     /// One pass: down the image left to right (`up = false`: census costs, and the sums of
     /// four paths), or up right to left (adding the other four, then selecting each row).
     #[inline(always)]
-    fn pass<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, up: bool, out: &mut [f32], stats: &mut MatchStats) {
+    fn pass<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, up: bool, keep: Range<usize>, out: &mut [f32], stats: &mut MatchStats) {
         let Geo { w, h, n, .. } = g;
         let (p1, p2) = (p.p1, p.p2);
         for r in self.vert_prev.iter_mut().chain(self.vert_cur.iter_mut()) {
@@ -354,7 +359,7 @@ impl Sgm {
                 h_live = true;
             }
             std::mem::swap(&mut self.vert_prev, &mut self.vert_cur);
-            if up {
+            if up && keep.contains(&y) {
                 self.select_row::<AVX2>(p, g, y, &mut out[y * w..][..w], stats);
             }
         }

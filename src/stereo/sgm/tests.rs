@@ -40,7 +40,7 @@ fn params(n: u32) -> ValidMatchParams {
 
 fn run(p: &ValidMatchParams, l: &[u8], r: &[u8], w: usize, h: usize, iv: &DisparityIntervals) -> (DisparityMap, MatchStats) {
     let mut out = DisparityMap::new(w, h);
-    let stats = Sgm::default().compute(p, GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), iv, &mut out);
+    let stats = Sgm::default().compute(p, GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), iv, 0..h, &mut out);
     (out, stats)
 }
 
@@ -73,7 +73,7 @@ fn the_portable_build_gives_the_same_map() {
         let p = MatchParams { sgm_paths: paths, ..(*params(40)).clone() }.validate().unwrap();
         let (fast, _) = run(&p, &l, &r, w, h, &iv);
         let mut portable = DisparityMap::new(w, h);
-        Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut portable);
+        Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, 0..h, &mut portable);
         let same = fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits());
         assert!(same, "{paths} paths");
         assert!(fast.valid_count() * 2 > w * h, "{paths} paths: {} matched", fast.valid_count());
@@ -129,4 +129,24 @@ fn narrow_intervals_are_searched_and_nothing_else() {
     assert!(stats.evaluated <= (stats.searched * 2 * LANES) as u64);
     assert_eq!(stats.evaluated % LANES as u64, 0);
     assert!(stats.evaluated * 2 <= full_stats.evaluated);
+}
+
+#[test]
+fn stripes_on_threads_give_the_one_thread_map_but_at_their_seams() {
+    let (w, h) = (80, 300);
+    let (l, r) = pair(w, h, |x, y| 5.0 + (x + y) as f32 * 0.02);
+    let run_with = |threads: usize| {
+        let p = MatchParams { threads, ..(*params(32)).clone() }.validate().unwrap();
+        let mut m = crate::stereo::StereoMatcher::new(p);
+        let iv = m.full_intervals(w, h, None);
+        let mut out = DisparityMap::new(w, h);
+        let stats = m.compute(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut out).unwrap();
+        (out, stats)
+    };
+    let (one, s1) = run_with(1);
+    let (three, s3) = run_with(3);
+    assert_eq!((s1.searched, s1.evaluated), (s3.searched, s3.evaluated));
+    let same = one.values().iter().zip(three.values()).filter(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())).count();
+    assert!(same * 100 >= w * h * 97, "{same} of {} pixels as with one thread", w * h);
+    assert!(three.valid_count() * 10 >= w * h * 9);
 }
