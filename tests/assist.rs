@@ -82,6 +82,33 @@ fn table1_prints_the_table_and_writes_its_json_and_figure() {
 }
 
 #[test]
+fn table1_runs_every_row_for_each_listed_method() {
+    let dir = support::temp_dir("assist-table1-methods");
+    let rec = small_turn(&dir, 5, true);
+    let (o, t) = table1(&rec, &dir, &["--weights", "0.8", "--method", "bm,sgm"]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("sgm w = 0.8") && stdout.contains("sgm floor") && stdout.contains("bm floor"), "{stdout}");
+    let rows = t["rows"].as_array().unwrap();
+    let keys: Vec<(&str, &str)> = rows.iter().map(|r| (r["method"].as_str().unwrap(), r["mode"].as_str().unwrap())).collect();
+    assert_eq!(keys, [("bm", "none"), ("bm", "paper"), ("bm", "predicted"), ("sgm", "none"), ("sgm", "paper"), ("sgm", "predicted")]);
+    // Each method's ratios are taken against its own no-assistance row.
+    assert_eq!(rows[0]["ratio_to_none"].as_f64(), Some(1.0));
+    assert_eq!(rows[3]["ratio_to_none"].as_f64(), Some(1.0));
+    let bad2 = |i: usize| rows[i]["bad2"].as_f64().unwrap();
+    assert!(bad2(3) < bad2(0), "sgm {} against bm {} without assistance", bad2(3), bad2(0));
+    for i in 4..6 {
+        assert!(bad2(i) <= bad2(3) + 0.5, "sgm row {i}: bad2 {} vs {} without assistance", bad2(i), bad2(3));
+        assert!(rows[i]["mean_search_px"].as_f64().unwrap() < rows[3]["mean_search_px"].as_f64().unwrap());
+    }
+    let floors = t["floor_ms_by_method"].as_array().unwrap();
+    assert_eq!(floors.iter().map(|f| f["method"].as_str().unwrap()).collect::<Vec<_>>(), ["bm", "sgm"]);
+    // One matcher per command elsewhere.
+    let o = spinscan(&["replay", rec.to_str().unwrap(), "-o", dir.join("r").to_str().unwrap(), "--method", "bm,sgm"]);
+    assert_eq!(o.status.code(), Some(3));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("only `bench table1` takes a list"));
+}
+
+#[test]
 fn table1_without_ground_truth_disparity_reports_bad2_as_null() {
     let dir = support::temp_dir("assist-table1-real");
     let rec = small_turn(&dir, 4, false);

@@ -130,8 +130,12 @@ pub fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
     if a.fig_frame == 0 {
         return Err(input("--fig-frame counts from 1"));
     }
-    let mut methods = a.matching.method.clone();
-    methods.dedup();
+    let mut methods = Vec::new();
+    for m in &a.matching.method {
+        if !methods.contains(m) {
+            methods.push(*m);
+        }
+    }
     let matchers: Vec<_> = methods
         .iter()
         .map(|&m| {

@@ -88,7 +88,7 @@ pub enum Method {
     /// Correlation along rows: SAD of prefiltered images over a square window (`matcher/`).
     #[default]
     Bm,
-    /// Semi-global matching over eight paths on census costs (`sgm/`).
+    /// Semi-global matching over four or eight paths on census costs (`sgm/`).
     Sgm,
 }
 

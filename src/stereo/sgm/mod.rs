@@ -2,19 +2,20 @@
 //!
 //! # The method
 //! The cost of a (pixel, disparity) pair is the Hamming distance of the two pixels' census
-//! words (`census.rs`). Along each of eight directions r it is aggregated by the recurrence
+//! words (`census.rs`). Along each of four directions r (rows and columns, both ways; eight
+//! with the diagonals, `sgm_paths`) it is aggregated by the recurrence
 //!
 //! `L_r(p, d) = C(p, d) + min(L_r(q, d), L_r(q, d ± 1) + P1, min_k L_r(q, k) + P2) − min_k L_r(q, k)`
 //!
 //! with q = p − r the previous pixel of the path: a change of one disparity costs P1, a larger
-//! jump P2. The eight sums `S(p, d) = Σ_r L_r(p, d)` are the aggregated cost; the winner is
-//! their minimum within the pixel's interval, with the uniqueness test, parabola sub-pixel
-//! fit, left–right check and speckle filter of the correlation matcher.
+//! jump P2. The sums `S(p, d) = Σ_r L_r(p, d)` are the aggregated cost; the winner is their
+//! minimum within the pixel's interval, with the correlation matcher's uniqueness test and
+//! speckle filter, an equiangular sub-pixel fit and SGBM's left–right check (`select.rs`).
 //!
 //! # Intervals, and the work they save
 //! Every pixel aggregates only over its own interval rounded out to whole blocks of
-//! [`LANES`] disparities (one SIMD register of 16-bit sums), so the work — eight path
-//! updates per pair — is proportional to the pairs searched, up to that rounding; the full
+//! [`LANES`] disparities (one SIMD register of 16-bit sums), so the work — a path update
+//! per path and pair — is proportional to the pairs searched, up to that rounding; the full
 //! range is the special case. The winner is looked for inside the interval itself.
 //! `S` is stored packed: pixel p's blocks at `off[p] …`, nothing for the blocks it does not
 //! search. Where the previous pixel of a path searched other blocks than p, the path carries
@@ -25,13 +26,13 @@
 //! border column (the census row is padded by replication), and never win.
 //!
 //! # Passes
-//! Pass one goes down the image, left to right, with the paths from the left, upper left,
-//! above and upper right; pass two goes up, right to left, with the other four and then
-//! selects each row as soon as its sums are complete.
+//! Pass one goes down the image, left to right, with the paths from the left and above
+//! (and the upper left and upper right); pass two goes up, right to left, with the others,
+//! and selects each row as soon as its sums are complete.
 
-use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
 use std::ops::Range;
 
+use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
 use super::params::ValidMatchParams;
 
 mod census;
