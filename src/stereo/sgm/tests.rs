@@ -150,3 +150,17 @@ fn stripes_on_threads_give_the_one_thread_map_but_at_their_seams() {
     assert!(same * 100 >= w * h * 97, "{same} of {} pixels as with one thread", w * h);
     assert!(three.valid_count() * 10 >= w * h * 9);
 }
+
+#[test]
+fn negative_disparities_are_found_too() {
+    // A rig whose right camera ends up left of the left one: left pixel x is right pixel x + 8.
+    let (w, h) = (100, 40);
+    let (l, r) = pair(w, h, |_, _| -8.0);
+    let p = MatchParams { min_disparity: -31, ..(*params(32)).clone() }.validate().unwrap();
+    let (out, stats) = run(&p, &l, &r, w, h, &DisparityIntervals::full(w, h, -31, 0));
+    let good = (4..h - 4).flat_map(|y| (0..w - 12).map(move |x| (x, y))).filter(|&(x, y)| (out.values()[y * w + x] + 8.0).abs() <= 0.5).count();
+    assert!(good * 100 >= (w - 12) * (h - 8) * 95, "{good} within 0.5 px of −8");
+    // Every pixel has a right pixel at d = 0; near the right border fewer disparities.
+    assert_eq!(stats.searched, w * h);
+    assert!(stats.evaluated < (w * h * 32) as u64);
+}
