@@ -34,13 +34,12 @@ pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), out
             dst[..rx].fill(first);
             dst[rx + w..].fill(last);
         }
-        let rows: Vec<&[u8]> = padded.chunks(wp).collect();
-        let centre = &rows[ry][rx..rx + w];
+        let centre = &padded[ry * wp + rx..][..w];
         // Comparison t goes to bit t: built as eight byte planes (32 pixels per AVX2
         // instruction), then interleaved into words.
         planes.fill(0);
         let mut t = 0;
-        for (j, src) in rows.iter().enumerate() {
+        for (j, src) in padded.chunks(wp).enumerate() {
             for i in 0..CENSUS_W {
                 if i == rx && j == ry {
                     continue;

@@ -286,6 +286,8 @@ impl Sgm {
     fn pass<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, up: bool, keep: Range<usize>, out: &mut [f32], stats: &mut MatchStats) {
         let Geo { w, h, n, .. } = g;
         let (p1, p2) = (p.p1, p.p2);
+        // Eight paths: all three from the previous row; four: only the one above (below).
+        let eight = p.sgm_paths == 8;
         for r in self.vert_prev.iter_mut().chain(self.vert_cur.iter_mut()) {
             r.reset(w, n);
         }
@@ -329,9 +331,6 @@ impl Sgm {
                 let a = self.band_a[i] as usize;
                 let fresh = From { around: &self.fresh[a..a + m + 2], min: 0, jump: 0 };
                 let hf = if h_live { From { around: self.h_prev.around(0, n, a, m), min: self.h_prev.min[0], jump: self.h_prev.min[0] + p2 } } else { fresh };
-                // Eight paths: all three from the previous row; four: only the one above
-                // (below).
-                let eight = p.sgm_paths == 8;
                 let mut vf = [fresh; 3];
                 for (j, f) in vf.iter_mut().enumerate() {
                     let qx = (x + j).wrapping_sub(1);
