@@ -254,6 +254,18 @@ fn a_simulated_turn_replays_into_poses_model_and_axis() {
     assert!(frames[1]["register_ms"].as_f64().unwrap() > 0.0);
     assert!(frames[1]["icp_fitness"].as_f64().unwrap() > 0.5);
     assert!(frames.iter().skip(3).any(|f| f["seed"] == "turntable"), "later views are seeded by the estimated axis");
+    // … where its time went, and the pose the matchers read when it was registered, scored
+    // against the truth beside the final one.
+    let split = &frames[5]["register_split_ms"];
+    for stage in ["prepare_ms", "chain_ms", "long_ms", "block_ms"] {
+        assert!(split[stage].as_f64().is_some_and(|v| v >= 0.0), "{stage}: {split}");
+    }
+    assert!(frames[5]["gt_live_pose_err_deg"].as_f64().is_some(), "{}", frames[5]);
+    for when in ["live", "final"] {
+        assert_eq!(reg["gt_pose_err_deg"][when]["views"], 45, "{reg}");
+    }
+    let live = reg["gt_pose_err_deg"]["live"]["median"].as_f64().unwrap();
+    assert!(live < 2.0, "live poses a median {live:.2}° from the truth: {reg}");
 }
 
 #[test]

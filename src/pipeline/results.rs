@@ -277,6 +277,10 @@ pub fn register_view(reg: &mut Registrar, frame: &StereoFrame, cloud: &PointClou
         Ok(r) => {
             entry["register_ms"] = json!(r.register_ms);
             entry["publish_ms"] = json!(r.publish_ms);
+            entry["register_split_ms"] = json!(r.split);
+            // The pose as published when the view was registered (what the matchers read);
+            // poses.jsonl has the final one.
+            entry["live_first_from_view"] = json!(crate::register::to_rows(&r.first_from_view));
             entry["seed"] = json!(r.seed);
             if let Some(icp) = &r.icp {
                 entry["icp_fitness"] = json!(icp.fitness);
@@ -430,20 +434,32 @@ fn true_pose(gt: &[(u64, Isometry3<f64>)], seq: u64) -> Option<Isometry3<f64>> {
 /// report.
 fn score_registration(section: &mut Value, results: &mut ResultsWriter, poses: &[ViewPose], truth: &Truth, model: &[[f32; 3]], own: &[f64]) -> Result<(), ResultsError> {
     let mut last = None;
+    let (mut live, mut refined) = (Vec::new(), Vec::new());
+    let error = |pose: &Isometry3<f64>, true_pose: &Isometry3<f64>| ((pose.inverse() * true_pose).rotation.angle().to_degrees(), (pose.translation.vector - true_pose.translation.vector).norm());
     for p in poses {
         let Some(cam_from_obj) = truth.cam_from_obj(p.seq) else { continue };
         let true_pose = truth.first * cam_from_obj.inverse();
-        let err = p.first_from_view.inverse() * true_pose;
-        let (deg, mm) = (err.rotation.angle().to_degrees(), (p.first_from_view.translation.vector - true_pose.translation.vector).norm());
+        let (deg, mm) = error(&p.first_from_view, &true_pose);
+        refined.push(deg);
         if let Some(f) = results.frames.iter_mut().find(|f| f["seq"] == json!(p.seq)) {
             f["gt_pose_err_deg"] = json!(deg);
             f["gt_pose_err_mm"] = json!(mm);
+            let published = serde_json::from_value::<crate::register::Rows4>(f["live_first_from_view"].clone()).ok().and_then(|rows| crate::register::from_rows(&rows, 1e-6).ok());
+            if let Some(pose) = published {
+                let (deg, mm) = error(&pose, &true_pose);
+                f["gt_live_pose_err_deg"] = json!(deg);
+                f["gt_live_pose_err_mm"] = json!(mm);
+                live.push(deg);
+            }
         }
         last = Some((p.seq, deg, mm));
     }
     if let Some((seq, deg, mm)) = last {
         section["gt_last_view"] = json!({"seq": seq, "pose_err_deg": deg, "pose_err_mm": mm});
     }
+    // Every view's rotation error: as published while views came (`live`), and final.
+    let summary = |v: &[f64]| (!v.is_empty()).then(|| json!({"median": quantile(v, 0.5), "max": v.iter().cloned().fold(0.0, f64::max), "views": v.len()}));
+    section["gt_pose_err_deg"] = json!({"live": summary(&live), "final": summary(&refined)});
     match &truth.surface {
         // (SideFile displays its message alone: the same words.)
         Some(Err(e)) => return Err(ResultsError::SideFile(e.to_string())),

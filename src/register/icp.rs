@@ -26,8 +26,9 @@
 use nalgebra::{Isometry3, Matrix3, Matrix6, Point3, SymmetricEigen, Translation3, UnitQuaternion, Vector3, Vector6};
 use rayon::prelude::*;
 
-use super::normals::{normal_at, NormalParams};
-use super::{KdTree, RegisterError};
+use super::normals::NormalParams;
+pub use super::target::Target;
+use super::RegisterError;
 
 /// Which error ICP minimises.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -218,47 +219,6 @@ impl IcpResult {
     }
 }
 
-/// The target side, prepared once and reusable across ICP runs: its k-d tree and normals
-/// computed on demand (only where correspondences land).
-pub struct Target {
-    pub tree: KdTree,
-    normals: Vec<[f32; 3]>,
-    /// 0 = not computed, 1 = valid, 2 = too few neighbours.
-    state: Vec<u8>,
-    params: NormalParams,
-}
-
-impl Target {
-    pub fn new(tree: KdTree, params: NormalParams) -> Target {
-        let n = tree.len();
-        Target { tree, normals: vec![[0.0; 3]; n], state: vec![0; n], params }
-    }
-
-    /// Computes the normals of `indices` not computed yet, in parallel.
-    fn ensure_normals(&mut self, indices: impl Iterator<Item = usize>) {
-        let mut todo: Vec<usize> = indices.filter(|&i| self.state[i] == 0).collect();
-        todo.sort_unstable();
-        todo.dedup();
-        let tree = &self.tree;
-        let params = self.params;
-        let found: Vec<Option<[f32; 3]>> = todo.par_iter().map(|&i| normal_at(tree, &tree.points[i], params).map(|(n, _)| n)).collect();
-        for (i, n) in todo.into_iter().zip(found) {
-            match n {
-                Some(n) => {
-                    self.normals[i] = n;
-                    self.state[i] = 1;
-                }
-                None => self.state[i] = 2,
-            }
-        }
-    }
-
-    #[inline]
-    fn normal(&self, i: usize) -> Option<[f32; 3]> {
-        (self.state[i] == 1).then(|| self.normals[i])
-    }
-}
-
 struct Pair {
     src: usize,
     tgt: usize,
@@ -285,7 +245,7 @@ pub fn icp(source: &[[f32; 3]], target: &mut Target, init: &Isometry3<f64>, para
     let mut degenerate = Vec::new();
     let mut last_pairs;
     loop {
-        let pairs = correspondences(&src, &target.tree, &t, params);
+        let pairs = correspondences(&src, target, &t, params);
         let (fitness, rmse) = stats(&pairs, src.len());
         last_pairs = pairs;
         if converged || iterations >= params.max_iterations {
@@ -305,7 +265,7 @@ pub fn icp(source: &[[f32; 3]], target: &mut Target, init: &Isometry3<f64>, para
         }
         iterations += 1;
         let step = match params.method {
-            IcpMethod::PointToPoint => point_to_point_step(&src, &target.tree, &t, &last_pairs, params),
+            IcpMethod::PointToPoint => point_to_point_step(&src, target, &t, &last_pairs, params),
             IcpMethod::PointToPlane => {
                 target.ensure_normals(last_pairs.iter().map(|p| p.tgt));
                 let (step, deg) = point_to_plane_step(&src, target, &t, &last_pairs, params, scale);
@@ -333,7 +293,7 @@ pub fn icp(source: &[[f32; 3]], target: &mut Target, init: &Isometry3<f64>, para
         if !found.free.is_empty() {
             degenerate = found.free.iter().map(|(v, ratio)| as_degeneracy(v, *ratio, &found.centroid, scale)).collect();
             t = remove_motion_along(&t, init, &found.free, &found.centroid, scale);
-            last_pairs = correspondences(&src, &target.tree, &t, params);
+            last_pairs = correspondences(&src, target, &t, params);
         } else if params.method == IcpMethod::PointToPoint {
             degenerate.clear();
         }
@@ -342,15 +302,22 @@ pub fn icp(source: &[[f32; 3]], target: &mut Target, init: &Isometry3<f64>, para
     Ok(IcpResult { transform: t, fitness, rmse, iterations, converged, correspondences: last_pairs.len(), degenerate, conditioning, weakest })
 }
 
-fn correspondences(src: &[[f32; 3]], tree: &KdTree, t: &Isometry3<f64>, params: &IcpParams) -> Vec<Pair> {
+fn correspondences(src: &[[f32; 3]], target: &Target, t: &Isometry3<f64>, params: &IcpParams) -> Vec<Pair> {
     let max2 = (params.max_distance * params.max_distance) as f32;
+    // In single precision: the pairing only needs the moved point to a fraction of the
+    // clouds' spacing, and f32 keeps four lanes of the transform in a register.
+    let m = t.to_homogeneous().cast::<f32>();
     let mut pairs: Vec<Pair> = src
         .par_iter()
         .enumerate()
-        .with_min_len(512)
+        .with_min_len(1024)
         .filter_map(|(i, p)| {
-            let q = super::apply(t, p);
-            let (j, d2) = tree.nearest(&q);
+            let q = [
+                m[(0, 0)] * p[0] + m[(0, 1)] * p[1] + m[(0, 2)] * p[2] + m[(0, 3)],
+                m[(1, 0)] * p[0] + m[(1, 1)] * p[1] + m[(1, 2)] * p[2] + m[(1, 3)],
+                m[(2, 0)] * p[0] + m[(2, 1)] * p[1] + m[(2, 2)] * p[2] + m[(2, 3)],
+            ];
+            let (j, d2) = target.nearest(&q)?;
             (d2 <= max2).then_some(Pair { src: i, tgt: j, d2 })
         })
         .collect();
@@ -370,12 +337,12 @@ fn stats(pairs: &[Pair], n: usize) -> (f64, f64) {
     (pairs.len() as f64 / n.max(1) as f64, mse.sqrt())
 }
 
-fn point_to_point_step(src: &[[f32; 3]], tree: &KdTree, t: &Isometry3<f64>, pairs: &[Pair], params: &IcpParams) -> Option<Isometry3<f64>> {
+fn point_to_point_step(src: &[[f32; 3]], target: &Target, t: &Isometry3<f64>, pairs: &[Pair], params: &IcpParams) -> Option<Isometry3<f64>> {
     let moved: Vec<(Vector3<f64>, Vector3<f64>, f64)> = pairs
         .iter()
         .map(|p| {
             let a = (t * Point3::from(v3(&src[p.src]))).coords;
-            let b = v3(&tree.points[p.tgt]);
+            let b = v3(&target.points()[p.tgt]);
             (a, b, params.kernel.weight((p.d2 as f64).sqrt()))
         })
         .collect();
@@ -415,7 +382,7 @@ fn plane_system(src: &[[f32; 3]], target: &Target, t: &Isometry3<f64>, pairs: &[
             |(mut h, mut b), (p, a)| {
                 if let Some(n) = target.normal(p.tgt) {
                     let n = v3(&n);
-                    let q = v3(&target.tree.points[p.tgt]);
+                    let q = v3(&target.points()[p.tgt]);
                     let r = n.dot(&(a - q));
                     let w = params.kernel.weight(r);
                     let rc = (a - c).cross(&n) / scale;
@@ -436,7 +403,7 @@ fn plane_rms(src: &[[f32; 3]], target: &Target, t: &Isometry3<f64>, pairs: &[Pai
     for p in pairs {
         if let Some(nrm) = target.normal(p.tgt) {
             let a = (t * Point3::from(v3(&src[p.src]))).coords;
-            sum += v3(&nrm).dot(&(a - v3(&target.tree.points[p.tgt]))).powi(2);
+            sum += v3(&nrm).dot(&(a - v3(&target.points()[p.tgt]))).powi(2);
             n += 1;
         }
     }
@@ -491,7 +458,7 @@ fn constraints(src: &[[f32; 3]], target: &mut Target, t: &Isometry3<f64>, pairs:
             .iter()
             .map(|sign| {
                 let tt = twist_to_step(&(v * (10.0 * base * sign)), &c, scale) * t;
-                let pp = correspondences(src, &target.tree, &tt, params);
+                let pp = correspondences(src, target, &tt, params);
                 if (pp.len() as f64) < 0.9 * fitness as f64 {
                     return f64::INFINITY;
                 }
@@ -586,7 +553,7 @@ fn remove_motion_along(t: &Isometry3<f64>, init: &Isometry3<f64>, dirs: &[(Vecto
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::register::rotation_about_axis;
+    use crate::register::{rotation_about_axis, KdTree};
 
     /// A bumpy, asymmetric height field 100 × 100 mm seen from 400 mm, `n`² points.
     fn bumpy(n: usize) -> Vec<[f32; 3]> {

@@ -12,6 +12,7 @@
 
 pub mod axis;
 pub mod denoise;
+pub mod grid;
 pub mod icp;
 pub mod kdtree;
 pub mod loops;
@@ -20,6 +21,7 @@ pub mod posestore;
 pub mod refine;
 pub mod ring;
 pub mod surface;
+pub mod target;
 pub mod voxel;
 
 use nalgebra::{Isometry3, Matrix3, Matrix4, Rotation3, Translation3, UnitQuaternion, Vector3};
@@ -78,7 +80,10 @@ pub fn from_rows(rows: &Rows4, tol: f64) -> Result<Isometry3<f64>, TransformErro
     if err > tol || r.determinant() < 0.0 {
         return Err(TransformError::NotRotation { err, det: r.determinant() });
     }
-    let rot = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&r));
+    // Shepperd's conversion of the (checked) matrix, then normalised. Not
+    // `Rotation3::from_matrix`: its iteration starts from the identity and stalls on a
+    // half-turn (a view at 180° came back nearly unrotated).
+    let rot = UnitQuaternion::new_normalize(*UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(r)).quaternion());
     Ok(Isometry3::from_parts(Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]), rot))
 }
 
@@ -145,6 +150,25 @@ mod tests {
         let mut rows = to_rows(&t);
         rows[3][3] = 2.0;
         assert!(from_rows(&rows, 1e-6).unwrap_err().to_string().contains("last row"));
+    }
+
+    /// Guards the reading of half-turns: a pose at 180° used to come back nearly unrotated.
+    #[test]
+    fn a_half_turn_reads_back_as_a_half_turn() {
+        for axis in [Vector3::new(0.0, 1.0, 0.0), Vector3::new(0.0, -0.978, -0.208).normalize(), Vector3::new(1.0, 0.0, 0.0)] {
+            for deg in [180.0, 179.9, 90.0, -135.0] {
+                let t = rotation_about_axis(&Vector3::new(3.0, -4.0, 450.0), &axis, deg);
+                let back = from_rows(&to_rows(&t), 1e-6).unwrap();
+                let err = back.inverse() * t;
+                assert!(err.rotation.angle() < 1e-9 && err.translation.vector.norm() < 1e-9, "{deg}° about {axis:?}: {:.4}°", err.rotation.angle().to_degrees());
+            }
+        }
+        // A simulated recording's camera pose at table angle 180° (gt/poses.jsonl).
+        let rows = [[-1.0, 0.0, 1.2246467991473532e-16, 0.0], [-2.5461838666528314e-17, -0.9781476007338057, -0.20791169081775934, 83.14254606237347], [1.1978853283323184e-16, -0.20791169081775934, 0.9781476007338057, 467.67249371950953], [0.0, 0.0, 0.0, 1.0]];
+        let t = from_rows(&rows, 1e-6).unwrap();
+        let back = to_rows(&t);
+        let diff = (0..3).flat_map(|r| (0..4).map(move |c| (r, c))).map(|(r, c)| (back[r][c] - rows[r][c]).abs()).fold(0.0, f64::max);
+        assert!(diff < 1e-9, "{back:?}");
     }
 
     #[test]

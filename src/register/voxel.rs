@@ -2,6 +2,7 @@
 //! model's size follows the object's surface, not the number of views.
 
 use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
 
 use nalgebra::Isometry3;
 
@@ -14,18 +15,51 @@ struct Cell {
     count: u32,
 }
 
+/// A multiplicative hash of voxel keys (FxHash's mixing): the std SipHash is built to resist
+/// chosen keys, which voxel coordinates are not, and cost most of a model update.
+#[derive(Default)]
+struct VoxelHasher(u64);
+
+impl Hasher for VoxelHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(b as u64);
+        }
+    }
+
+    fn write_u32(&mut self, v: u32) {
+        self.write_u64(v as u64);
+    }
+
+    fn write_i32(&mut self, v: i32) {
+        self.write_u64(v as u32 as u64);
+    }
+
+    fn write_u64(&mut self, v: u64) {
+        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+
+    fn write_usize(&mut self, v: usize) {
+        self.write_u64(v as u64);
+    }
+}
+
 /// Points averaged per cubic voxel of side `size`.
 #[derive(Debug, Clone)]
 pub struct VoxelModel {
     size: f64,
-    cells: HashMap<[i32; 3], Cell>,
+    cells: HashMap<[i32; 3], Cell, BuildHasherDefault<VoxelHasher>>,
 }
 
 impl VoxelModel {
     /// An empty model; `size` must be positive (checked by callers' parameter parsing).
     pub fn new(size: f64) -> VoxelModel {
         assert!(size > 0.0 && size.is_finite(), "voxel size must be positive");
-        VoxelModel { size, cells: HashMap::new() }
+        VoxelModel { size, cells: HashMap::default() }
     }
 
     /// Occupied voxels.

@@ -57,11 +57,13 @@ fn register_all(
         match note {
             Note::View { frame_meta, view, captured } => {
                 let mut entry = results.write_view(&frame_meta, &view, settings.assist.as_ref())?;
-                if registrar.is_some() && newest_only && behind {
-                    // A continuous scan sees the object at 15 fps: when newer views wait,
-                    // this one is kept (views/, disparity/) but only the newest is registered.
+                if registrar.is_some() && newest_only && behind && captured.elapsed() > SKIP_AFTER {
+                    // A continuous scan sees the object at 15 fps: when newer views wait and
+                    // this one is already late, it is kept (views/, disparity/) but not
+                    // registered, so that the poses stay fresh. A short backlog (a block
+                    // step's longer view) is worked off instead.
                     entry["registered"] = json!(false);
-                    entry["register_skipped"] = json!("newer views were waiting (registration is behind; the newest view is registered)");
+                    entry["register_skipped"] = json!(format!("newer views were waiting and this one was captured more than {} ms ago (registration is behind; the newest view is registered)", SKIP_AFTER.as_millis()));
                     c.register_skipped.fetch_add(1, Ordering::Relaxed);
                 } else if let Some(reg) = registrar.as_mut() {
                     if let Some((fitness, rmse)) = register_view(reg, &frame_meta, &view.cloud, &mut entry) {
@@ -144,6 +146,12 @@ fn register_all(
 /// Finished views waiting for the registration thread before the matchers wait (a view is
 /// about 4 MB at 640×480).
 pub(super) const VIEW_BACKLOG: usize = 4;
+
+/// When registering only the newest view when behind (continuous scans), a view waits at most
+/// this long after its capture before newer views make it skip registration: longer than a
+/// frame period, so that one slow view does not cost the next its pose, and well inside the
+/// 200 ms the matchers can wait for a fresh pose.
+const SKIP_AFTER: Duration = Duration::from_millis(120);
 
 /// Nice value of the registration threads, above the matchers' (capture and the control
 /// socket stay at the process's).

@@ -62,6 +62,7 @@ use super::posestore::{PoseStore, ViewPose};
 use super::refine::{AxisFit, RefineParams, RefineView};
 use super::voxel::VoxelModel;
 pub use super::loops::{distribute_loop_error, distribute_loop_error_weighted, edge_variance, register_ring, RingEdge, RingResult};
+use super::grid::RangeGrid;
 use super::{rotation_about_axis, subsample_indices, KdTree, RegisterError};
 use crate::cloud::PointCloud;
 
@@ -107,18 +108,31 @@ pub struct RegistrationParams {
     /// or better gives turntable poses; a less certain one only when its poses put the views
     /// onto each other better than the registered ones (see the module docs).
     pub max_axis_sigma_deg: f64,
+    /// Per-view targets (the chain, the long steps, the block step) are range grids paired
+    /// by projection ([`super::grid`]): a few distance computations per query and no tree to
+    /// build per view. False: k-d trees (exact nearest neighbours; loop closure and the
+    /// refinement always use them).
+    pub projective: bool,
 }
 
 impl Default for RegistrationParams {
     /// For spinscan's millimetre views: point-to-plane ICP with pairs up to 8 mm apart,
-    /// 8000 source points per view, 40 000 target points, Huber weights beyond 1 mm; blocks of
+    /// 4000 source points per view and at most 20 iterations, 40 000 target points, Huber weights beyond 1 mm; blocks of
     /// m = 5; a 2 mm running model; loop closure on, one view a side; turntable poses when every step agrees to 1.5°; fitness below 0.3 distrusted; the axis
     /// estimated after 9° of turn.
     fn default() -> Self {
         let mut icp = IcpParams::new(8.0);
-        icp.max_source_points = 8000;
+        icp.max_source_points = 4000;
         icp.kernel = super::Kernel::Huber(1.0);
-        icp.max_iterations = 50;
+        // A smooth, nearly symmetric object (the egg) never converges: its clouds' camera-fixed
+        // errors drag the turn towards "no motion" a little every iteration. 20 iterations
+        // bound that drift and the time; well-shaped views converge in 8–15.
+        icp.max_iterations = 20;
+        // Converged once a step moves less than 0.006° and 1e-4 of the view's size (≈ 4 µm):
+        // the live poses are refined at the end of the scan anyway.
+        icp.min_step_rad = 1e-4;
+        icp.min_step_rel = 1e-4;
+
         RegistrationParams {
             icp,
             block: 5,
@@ -136,6 +150,7 @@ impl Default for RegistrationParams {
             refine: RefineParams::default(),
             refine_points: 1500,
             max_axis_sigma_deg: 0.05,
+            projective: true,
         }
     }
 }
@@ -157,11 +172,24 @@ pub struct ViewRegistration {
     /// From the call to the first publication of the view's pose (chained, before the long
     /// and block steps refine it).
     pub publish_ms: f64,
+    /// Where the time went, ms.
+    pub split: RegisterSplit,
     /// Conditions that make the result doubtful.
     pub warnings: Vec<String>,
     /// Expected conditions of the set-up, handled (e.g. an object of revolution whose free
     /// turn the guess supplies): worth a line in the report, not a warning.
     pub notes: Vec<String>,
+}
+
+/// The time of one view's registration by stage, ms: indexing the view as a target, ICP
+/// onto the previous view (with any second try from the turntable's step), the long step for
+/// the axis, and the block step onto the model. The pose is published after `chain_ms`.
+#[derive(Debug, Clone, Copy, Default, serde::Serialize)]
+pub struct RegisterSplit {
+    pub prepare_ms: f64,
+    pub chain_ms: f64,
+    pub long_ms: f64,
+    pub block_ms: f64,
 }
 
 /// How well the registered poses agree with the turntable's predictions.
@@ -243,7 +271,19 @@ pub struct Registrar {
     /// How well the refined axis's turntable poses and the registered poses put the views
     /// onto each other ([`RefineSet::score`], mm): (turntable, registered).
     refine_scores: Option<(f64, f64)>,
+    /// Steps whose free rotation was looked at with a k-d tree so far.
+    symmetry_tests: usize,
 }
+
+/// `t` with its rotation renormalised: chained products drift from unit length (by ≈ 1e-8 a
+/// view here), and a pose whose matrix is not orthonormal to 1e-6 is refused when read back.
+fn unit(mut t: Isometry3<f64>) -> Isometry3<f64> {
+    t.rotation = nalgebra::UnitQuaternion::new_normalize(t.rotation.into_inner());
+    t
+}
+
+/// Steps whose free rotation is looked at again with a k-d tree (see [`Registrar::add_view`]).
+const MAX_SYMMETRY_TESTS: usize = 2;
 
 /// Most views kept for the refinement.
 const MAX_KEPT: usize = 360;
@@ -251,7 +291,7 @@ const MAX_KEPT: usize = 360;
 impl Registrar {
     pub fn new(params: RegistrationParams, store: std::sync::Arc<PoseStore>) -> Registrar {
         let model = VoxelModel::new(params.model_voxel);
-        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, steps: Vec::new(), step_variance: Vec::new(), kept: Vec::new(), kept_index: Vec::new(), kept_stride: 1, refined: None, refine_errors: Vec::new(), refine_scores: None }
+        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, steps: Vec::new(), step_variance: Vec::new(), kept: Vec::new(), kept_index: Vec::new(), kept_stride: 1, refined: None, refine_errors: Vec::new(), refine_scores: None, symmetry_tests: 0 }
     }
 
     /// The latest pose of every view.
@@ -284,7 +324,17 @@ impl Registrar {
     fn prepare(&self, cloud: &PointCloud, what: &str) -> Result<Target, RegisterError> {
         let idx = subsample_indices(cloud.len(), self.params.max_target_points);
         let pts: Vec<[f32; 3]> = idx.iter().map(|&i| cloud.points[i]).collect();
-        Ok(Target::new(KdTree::build(pts, what)?, self.params.icp.normals))
+        self.target_of(pts, what)
+    }
+
+    /// An ICP target of points in the frame of the camera that saw them: a range grid
+    /// (`projective`), else a k-d tree.
+    fn target_of(&self, pts: Vec<[f32; 3]>, what: &str) -> Result<Target, RegisterError> {
+        Ok(if self.params.projective {
+            Target::grid(RangeGrid::build(pts, what)?, self.params.icp.normals)
+        } else {
+            Target::new(KdTree::build(pts, what)?, self.params.icp.normals)
+        })
     }
 
     fn seed_axis(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
@@ -300,6 +350,8 @@ impl Registrar {
             return Err(RegisterError::TooFew { what, got: cloud.len(), need: 10, purpose: "registration".into() });
         }
         let target = self.prepare(cloud, &what)?;
+        let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
+        let mut split = RegisterSplit { prepare_ms: ms(started), ..Default::default() };
         let mut warnings = Vec::new();
         let mut notes = Vec::new();
         let Some(prev) = self.prev.take() else {
@@ -309,17 +361,21 @@ impl Registrar {
             self.poses.push(ViewPose { seq, first_from_view: Isometry3::identity(), table_deg });
             self.steps.push(None);
             self.step_variance.push(1.0);
-            self.block.push((0, target.tree.points.clone()));
-            self.remember(0, &target.tree.points);
-            self.keep_for_refinement(0, table_deg, &target.tree.points);
-            if let Err(e) = self.long_step(0, table_deg, &target.tree.points) {
+            self.block.push((0, target.points().to_vec()));
+            self.remember(0, target.points());
+            self.keep_for_refinement(0, table_deg, target.points());
+            self.store.publish(self.poses.clone());
+            let publish_ms = ms(started);
+            let t = Instant::now();
+            if let Err(e) = self.long_step(0, table_deg, target.points()) {
                 warnings.push(format!("view {seq}: long step for the axis: {e}"));
             }
+            split.long_ms = ms(t);
             self.prev = Some(Stored { seq, table_deg, target });
+            let t = Instant::now();
             self.end_block_if_full(&mut warnings, &mut notes);
-            self.store.publish(self.poses.clone());
-            let register_ms = started.elapsed().as_secs_f64() * 1e3;
-            return Ok(ViewRegistration { seq, first_from_view: Isometry3::identity(), icp: None, seed: "none", block: None, register_ms, publish_ms: register_ms, warnings, notes });
+            split.block_ms = ms(t);
+            return Ok(ViewRegistration { seq, first_from_view: Isometry3::identity(), icp: None, seed: "none", block: None, register_ms: ms(started), publish_ms, split, warnings, notes });
         };
 
         let (seed, seed_kind) = match (self.seed_axis(), table_deg, prev.table_deg) {
@@ -327,7 +383,7 @@ impl Registrar {
             _ => (Isometry3::identity(), "identity"),
         };
         let mut prev_target = prev.target;
-        let mut result = match icp(&target.tree.points, &mut prev_target, &seed, &self.params.icp) {
+        let mut result = match icp(target.points(), &mut prev_target, &seed, &self.params.icp) {
             Ok(r) => r,
             Err(e) => {
                 // Keep the previous view, so the next one registers to it.
@@ -347,16 +403,37 @@ impl Registrar {
         // 5 %): ICP from the identity would settle on "no turn" there.
         let upright = |d: &super::icp::Degeneracy| d.axis.filter(|(_, dir)| dir[1].abs() > std::f64::consts::FRAC_1_SQRT_2);
         if let (None, Some(now), Some(before)) = (self.seed_axis(), table_deg, prev.table_deg) {
-            let free = result.degenerate.iter().find_map(upright);
-            let weak = result.weakest.as_ref().filter(|_| result.conditioning < self.params.icp.degeneracy_probe_ratio).and_then(upright);
+            let weak_or_free = |r: &IcpResult| {
+                let free = r.degenerate.iter().find_map(upright);
+                let weak = r.weakest.as_ref().filter(|_| r.conditioning < self.params.icp.degeneracy_probe_ratio).and_then(upright);
+                (free, weak)
+            };
+            let (mut free, mut weak) = weak_or_free(&result);
+            // The axis of that free rotation needs exact nearest neighbours: with projective
+            // pairs a nearly symmetric egg's came out 30° off the table's axis (the clouds'
+            // camera-fixed errors pull pairs made along the line of sight towards "no
+            // motion"), and every step seeded about it turned the views about the wrong line.
+            // So this test looks again with a k-d tree — only while no axis is known, and on at
+            // most the first `MAX_SYMMETRY_TESTS` steps that ask (≈ 100 ms each).
+            let mut exact = None;
+            if (free.is_some() || weak.is_some()) && self.params.projective && self.symmetry_tests < MAX_SYMMETRY_TESTS {
+                self.symmetry_tests += 1;
+                let mut tree = Target::new(KdTree::build(prev_target.points().to_vec(), &format!("view {}", prev.seq))?, self.params.icp.normals);
+                let again = icp(target.points(), &mut tree, &seed, &self.params.icp)?;
+                (free, weak) = weak_or_free(&again);
+                exact = Some((tree, again.rmse));
+            }
             if let Some((point, dir)) = free.or(weak) {
                 let mut up = Vector3::from(dir);
                 if up.y > 0.0 {
                     up = -up;
                 }
                 let table_seed = rotation_about_axis(&Vector3::from(point), &up, -(now - before));
-                let retry = icp(&target.tree.points, &mut prev_target, &table_seed, &self.params.icp);
-                if let Some(retry) = retry.ok().filter(|r| free.is_some() || r.rmse <= 1.05 * result.rmse) {
+                let (retry, base_rmse) = match exact.as_mut() {
+                    Some((tree, rmse)) => (icp(target.points(), tree, &table_seed, &self.params.icp), *rmse),
+                    None => (icp(target.points(), &mut prev_target, &table_seed, &self.params.icp), result.rmse),
+                };
+                if let Some(retry) = retry.ok().filter(|r| free.is_some() || r.rmse <= 1.05 * base_rmse) {
                     self.symmetry_axis = Some((Vector3::from(point), up));
                     seed = table_seed;
                     seed_kind = "turntable";
@@ -378,7 +455,7 @@ impl Registrar {
             }
         }
         let prev_pose = self.poses.last().map(|p| p.first_from_view).unwrap_or_else(Isometry3::identity);
-        let pose = prev_pose * prev_from_view;
+        let pose = unit(prev_pose * prev_from_view);
         self.turned_deg = match (table_deg, self.poses.first().and_then(|p| p.table_deg)) {
             (Some(now), Some(first)) => (now - first).abs(),
             _ => self.turned_deg + prev_from_view.rotation.angle().to_degrees(),
@@ -387,18 +464,23 @@ impl Registrar {
         self.steps.push((result.fitness >= self.params.min_fitness).then_some(result.transform));
         // A distrusted step kept its seed: it takes (nearly) all of any loop correction.
         self.step_variance.push(if result.fitness >= self.params.min_fitness { edge_variance(&result) } else { 1e12 });
-        self.block.push((self.poses.len() - 1, target.tree.points.clone()));
-        self.remember(self.poses.len() - 1, &target.tree.points);
-        self.keep_for_refinement(self.poses.len() - 1, table_deg, &target.tree.points);
+        self.block.push((self.poses.len() - 1, target.points().to_vec()));
+        self.remember(self.poses.len() - 1, target.points());
+        self.keep_for_refinement(self.poses.len() - 1, table_deg, target.points());
         // The matchers get the pose as soon as the view is chained; the long step and the
         // block step below refine the store afterwards.
         self.store.publish(self.poses.clone());
-        let publish_ms = started.elapsed().as_secs_f64() * 1e3;
-        if let Err(e) = self.long_step(self.poses.len() - 1, table_deg, &target.tree.points) {
+        let publish_ms = ms(started);
+        split.chain_ms = publish_ms - split.prepare_ms;
+        let t = Instant::now();
+        if let Err(e) = self.long_step(self.poses.len() - 1, table_deg, target.points()) {
             warnings.push(format!("view {seq}: long step for the axis: {e}"));
         }
+        split.long_ms = ms(t);
         self.prev = Some(Stored { seq, table_deg, target });
+        let t = Instant::now();
         let block = self.end_block_if_full(&mut warnings, &mut notes);
+        split.block_ms = ms(t);
         self.update_axis();
         self.store.publish(self.poses.clone());
         Ok(ViewRegistration {
@@ -407,8 +489,9 @@ impl Registrar {
             icp: Some(result),
             seed: seed_kind,
             block,
-            register_ms: started.elapsed().as_secs_f64() * 1e3,
+            register_ms: ms(started),
             publish_ms,
+            split,
             warnings,
             notes,
         })
@@ -486,7 +569,7 @@ impl Registrar {
             }
         }
         let keep = subsample_indices(pts.len(), 20_000).into_iter().map(|i| pts[i]).collect();
-        self.history.push_back((k, table_deg, Target::new(KdTree::build(keep, "view")?, self.params.icp.normals)));
+        self.history.push_back((k, table_deg, self.target_of(keep, "view")?));
         while self.history.len() > MAX_BACK {
             self.history.pop_front();
         }
@@ -506,31 +589,23 @@ impl Registrar {
         let block = std::mem::take(&mut self.block);
         let mut outcome = None;
         if !self.model.is_empty() {
-            let union: Vec<[f32; 3]> = block.iter().flat_map(|(k, pts)| pts.iter().map(|p| super::apply(&self.poses[*k].first_from_view, p)).collect::<Vec<_>>()).collect();
-            let (model_cloud, _) = self.model.to_cloud();
-            match KdTree::build(model_cloud.points, "model") {
-                Ok(tree) => {
-                    let mut target = Target::new(tree, self.params.icp.normals);
-                    match icp(&union, &mut target, &Isometry3::identity(), &self.params.icp) {
-                        Ok(r) if r.fitness >= self.params.min_fitness => {
-                            for (k, _) in &block {
-                                self.poses[*k].first_from_view = r.transform * self.poses[*k].first_from_view;
-                            }
-                            if let Some(w) = r.degeneracy_warning() {
-                                let line = format!("block ending at view {}: {w}", self.poses.last().unwrap().seq);
-                                if let Some(why) = self.degeneracy_expected(&r.degenerate, "chained") {
-                                    notes.push(format!("{line} (expected: {why})"));
-                                } else {
-                                    warnings.push(line);
-                                }
-                            }
-                            outcome = Some(r);
-                        }
-                        Ok(r) => warnings.push(format!("block ending at view {}: too little overlap with the model (fitness {:.2}); not corrected", self.poses.last().unwrap().seq, r.fitness)),
-                        Err(e) => warnings.push(format!("block ending at view {}: {e}", self.poses.last().unwrap().seq)),
+            match self.block_icp(&block) {
+                Ok(r) if r.fitness >= self.params.min_fitness => {
+                    for (k, _) in &block {
+                        self.poses[*k].first_from_view = unit(r.transform * self.poses[*k].first_from_view);
                     }
+                    if let Some(w) = r.degeneracy_warning() {
+                        let line = format!("block ending at view {}: {w}", self.poses.last().unwrap().seq);
+                        if let Some(why) = self.degeneracy_expected(&r.degenerate, "chained") {
+                            notes.push(format!("{line} (expected: {why})"));
+                        } else {
+                            warnings.push(line);
+                        }
+                    }
+                    outcome = Some(r);
                 }
-                Err(e) => warnings.push(e.to_string()),
+                Ok(r) => warnings.push(format!("block ending at view {}: too little overlap with the model (fitness {:.2}); not corrected", self.poses.last().unwrap().seq, r.fitness)),
+                Err(e) => warnings.push(format!("block ending at view {}: {e}", self.poses.last().unwrap().seq)),
             }
         }
         for (k, pts) in &block {
@@ -538,6 +613,27 @@ impl Registrar {
             self.model.add(&cloud, &self.poses[*k].first_from_view);
         }
         outcome
+    }
+
+    /// ICP of a block's union onto the model; the result's transform is the correction in the
+    /// first view's frame (`first_from_first`). With `projective`, both are moved into the
+    /// frame of the block's last view, where the model is a range image the way that camera
+    /// would see it (its nearest surface), and the correction is carried back.
+    fn block_icp(&self, block: &[(usize, Vec<[f32; 3]>)]) -> Result<IcpResult, RegisterError> {
+        let (model_cloud, _) = self.model.to_cloud();
+        let last = block.last().map_or(0, |(k, _)| *k);
+        let into = if self.params.projective { self.poses[last].first_from_view.inverse() } else { Isometry3::identity() };
+        let union: Vec<[f32; 3]> = block.iter().flat_map(|(k, pts)| pts.iter().map(|p| super::apply(&(into * self.poses[*k].first_from_view), p)).collect::<Vec<_>>()).collect();
+        let mut r = if self.params.projective {
+            let seen: Vec<[f32; 3]> = model_cloud.points.iter().map(|p| super::apply(&into, p)).filter(|p| p[2] > 0.0).collect();
+            let mut target = Target::grid(RangeGrid::build(seen, "model")?, self.params.icp.normals);
+            icp(&union, &mut target, &Isometry3::identity(), &self.params.icp)?
+        } else {
+            let mut target = Target::new(KdTree::build(model_cloud.points, "model")?, self.params.icp.normals);
+            icp(&union, &mut target, &Isometry3::identity(), &self.params.icp)?
+        };
+        r.transform = into.inverse() * r.transform * into;
+        Ok(r)
     }
 
     /// Ends the sequence: closes the loop when the views complete a turn (and loop closure is

@@ -1,0 +1,94 @@
+//! The target side of ICP, prepared once and reused across runs: its points, an index that
+//! pairs a query with a nearby target point, and normals computed on demand (only where
+//! correspondences land).
+
+use rayon::prelude::*;
+
+use super::grid::RangeGrid;
+use super::normals::{normal_at, NormalParams};
+use super::KdTree;
+
+/// How a target pairs a query point with one of its own.
+pub enum Index {
+    /// The exact nearest point (any cloud).
+    Tree(KdTree),
+    /// The nearest point near the query's line of sight (a view's cloud in its own camera
+    /// frame; see [`super::grid`]).
+    Grid(RangeGrid),
+}
+
+/// A point set ICP registers onto.
+pub struct Target {
+    index: Index,
+    normals: Vec<[f32; 3]>,
+    /// 0 = not computed, 1 = valid, 2 = too few neighbours.
+    state: Vec<u8>,
+    params: NormalParams,
+}
+
+impl Target {
+    /// Exact nearest neighbours; normals from up to `params.max_nn` neighbours within
+    /// `params.radius`.
+    pub fn new(tree: KdTree, params: NormalParams) -> Target {
+        Target::with(Index::Tree(tree), params)
+    }
+
+    /// Projective pairing on a view's range grid; normals from the grid's 5 × 5 cell
+    /// neighbourhood within `params.radius`.
+    pub fn grid(grid: RangeGrid, params: NormalParams) -> Target {
+        Target::with(Index::Grid(grid), params)
+    }
+
+    fn with(index: Index, params: NormalParams) -> Target {
+        let n = match &index {
+            Index::Tree(t) => t.len(),
+            Index::Grid(g) => g.len(),
+        };
+        Target { index, normals: vec![[0.0; 3]; n], state: vec![0; n], params }
+    }
+
+    /// The target's points; pairs and normals index into them.
+    pub fn points(&self) -> &[[f32; 3]] {
+        match &self.index {
+            Index::Tree(t) => &t.points,
+            Index::Grid(g) => &g.points,
+        }
+    }
+
+    /// The point paired with `p`: `(index, squared distance)`; None when the index has none
+    /// near it (a grid, away from every point's line of sight).
+    #[inline]
+    pub fn nearest(&self, p: &[f32; 3]) -> Option<(usize, f32)> {
+        match &self.index {
+            Index::Tree(t) => Some(t.nearest(p)),
+            Index::Grid(g) => g.nearest(p),
+        }
+    }
+
+    /// Computes the normals of `indices` not computed yet, in parallel.
+    pub(super) fn ensure_normals(&mut self, indices: impl Iterator<Item = usize>) {
+        let mut todo: Vec<usize> = indices.filter(|&i| self.state[i] == 0).collect();
+        todo.sort_unstable();
+        todo.dedup();
+        let params = self.params;
+        let found: Vec<Option<[f32; 3]>> = match &self.index {
+            Index::Tree(tree) => todo.par_iter().with_min_len(256).map(|&i| normal_at(tree, &tree.points[i], params).map(|(n, _)| n)).collect(),
+            Index::Grid(grid) => todo.par_iter().with_min_len(1024).map(|&i| grid.normal_at(i, params.radius)).collect(),
+        };
+        for (i, n) in todo.into_iter().zip(found) {
+            match n {
+                Some(n) => {
+                    self.normals[i] = n;
+                    self.state[i] = 1;
+                }
+                None => self.state[i] = 2,
+            }
+        }
+    }
+
+    /// The normal of point `i`, when [`Target::ensure_normals`] found one.
+    #[inline]
+    pub(super) fn normal(&self, i: usize) -> Option<[f32; 3]> {
+        (self.state[i] == 1).then(|| self.normals[i])
+    }
+}
