@@ -37,7 +37,8 @@ pub struct RefineView {
 /// Settings of [`fit_axis`]; distances in the views' units (mm).
 #[derive(Debug, Clone)]
 pub struct RefineParams {
-    /// Each view is also paired with the view about this many degrees further round.
+    /// Each view is also paired with the view about this many degrees further round (the
+    /// registrar takes half the arc instead when the views span less than twice this).
     pub pair_deg: f64,
     /// Source points per pair of views.
     pub source_points: usize,
