@@ -156,7 +156,7 @@ impl Default for RegistrationParams {
             min_fitness: 0.3,
             axis_min_span_deg: 9.0,
             axis_baseline_deg: 24.0,
-            axis_long_step_every: 2,
+            axis_long_step_every: 4,
             calibrated_axis: None,
             refine: RefineParams::default(),
             refine_points: 1500,
