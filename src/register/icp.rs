@@ -3,7 +3,8 @@
 //! kernels, convergence on relative change, and a degeneracy check.
 //!
 //! Each iteration pairs every (sub-sampled) source point, moved by the current estimate,
-//! with its nearest target point; pairs farther apart than `max_distance` are dropped, and
+//! with its nearest target point (exact, from a k-d tree, or the nearest near its line of
+//! sight, from a view's range grid: [`Target`]); pairs farther apart than `max_distance` are dropped, and
 //! with `trim < 1` only that fraction of the closest pairs is kept. Point-to-point solves
 //! the weighted absolute-orientation problem in closed form (SVD of the cross-covariance);
 //! point-to-plane solves the linearised 6×6 normal equations for a small rotation about the

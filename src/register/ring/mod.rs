@@ -434,10 +434,15 @@ impl Registrar {
             let mut exact = None;
             if (free.is_some() || weak.is_some()) && self.params.projective && self.symmetry_tests < MAX_SYMMETRY_TESTS {
                 self.symmetry_tests += 1;
-                let mut tree = Target::new(KdTree::build(prev_target.points().to_vec(), &format!("view {}", prev.seq))?, self.params.icp.normals);
-                let again = icp(&own, &mut tree, &seed, &self.params.icp)?;
-                (free, weak) = weak_or_free(&again);
-                exact = Some((tree, again.rmse));
+                // (Should the tree fail, the projective result stands: the previous view must
+                // stay for the next one.)
+                let tree = KdTree::build(prev_target.points().to_vec(), &format!("view {}", prev.seq)).map(|t| Target::new(t, self.params.icp.normals));
+                if let Ok(mut tree) = tree {
+                    if let Ok(again) = icp(&own, &mut tree, &seed, &self.params.icp) {
+                        (free, weak) = weak_or_free(&again);
+                        exact = Some((tree, again.rmse));
+                    }
+                }
             }
             if let Some((point, dir)) = free.or(weak) {
                 let mut up = Vector3::from(dir);
