@@ -76,6 +76,8 @@ use super::{rotation_about_axis, subsample_indices, KdTree, RegisterError};
 use crate::cloud::PointCloud;
 
 mod closing;
+#[cfg(test)]
+mod tests;
 mod turntable;
 
 /// Settings of sequence registration; distances in the clouds' units (mm for views).
