@@ -51,6 +51,9 @@ impl RangeGrid {
     /// names the set in errors.
     pub fn build(points: Vec<[f32; 3]>, what: &str) -> Result<RangeGrid, RegisterError> {
         check_points(&points, what)?;
+        if points.len() >= u32::MAX as usize {
+            return Err(RegisterError::Param(format!("{what}: {} points; a range grid holds fewer than 2³² − 1", points.len())));
+        }
         let behind = points.iter().filter(|p| !(p[2] > 0.0)).count();
         if behind > 0 {
             return Err(RegisterError::Param(format!("{what}: {behind} of {} points are not in front of the camera (z ≤ 0); a range grid needs a cloud in the frame of the camera that saw it", points.len())));
@@ -72,9 +75,6 @@ impl RangeGrid {
         let inv_pitch = 1.0 / pitch;
         let width = ((span[0] * inv_pitch) as usize + 1).min(MAX_SIDE);
         let height = ((span[1] * inv_pitch) as usize + 1).min(MAX_SIDE);
-        if points.len() >= u32::MAX as usize {
-            return Err(RegisterError::Param(format!("{what}: {} points; a range grid holds fewer than 2³² − 1", points.len())));
-        }
         // A counting sort by cell.
         let cell: Vec<u32> = points.iter().map(|p| cell_of(p, lo, inv_pitch, width, height) as u32).collect();
         let mut starts = vec![0u32; width * height + 1];

@@ -379,20 +379,7 @@ impl Registrar {
             self.poses.push(ViewPose { seq, first_from_view: Isometry3::identity(), table_deg });
             self.steps.push(None);
             self.step_variance.push(1.0);
-            self.block.push((0, own.clone()));
-            self.remember(0, &own);
-            self.keep_for_refinement(0, table_deg, &own);
-            self.store.publish(self.poses.clone());
-            let publish_ms = ms(started);
-            let t = Instant::now();
-            if let Err(e) = self.long_step(0, table_deg, &own) {
-                warnings.push(format!("view {seq}: long step for the axis: {e}"));
-            }
-            split.long_ms = ms(t);
-            self.prev = Some(Stored { seq, table_deg, target });
-            let t = Instant::now();
-            self.end_block_if_full(&mut warnings, &mut notes);
-            split.block_ms = ms(t);
+            let (publish_ms, _) = self.publish_and_refine(seq, table_deg, own, target, started, &mut split, &mut warnings, &mut notes);
             return Ok(ViewRegistration { seq, first_from_view: Isometry3::identity(), icp: None, seed: "none", block: None, register_ms: ms(started), publish_ms, split, warnings, notes });
         };
 
@@ -487,23 +474,8 @@ impl Registrar {
         self.steps.push((result.fitness >= self.params.min_fitness).then_some(result.transform));
         // A distrusted step kept its seed: it takes (nearly) all of any loop correction.
         self.step_variance.push(if result.fitness >= self.params.min_fitness { edge_variance(&result) } else { 1e12 });
-        self.block.push((self.poses.len() - 1, own.clone()));
-        self.remember(self.poses.len() - 1, &own);
-        self.keep_for_refinement(self.poses.len() - 1, table_deg, &own);
-        // The matchers get the pose as soon as the view is chained; the long step and the
-        // block step below refine the store afterwards.
-        self.store.publish(self.poses.clone());
-        let publish_ms = ms(started);
+        let (publish_ms, block) = self.publish_and_refine(seq, table_deg, own, target, started, &mut split, &mut warnings, &mut notes);
         split.chain_ms = publish_ms - split.prepare_ms;
-        let t = Instant::now();
-        if let Err(e) = self.long_step(self.poses.len() - 1, table_deg, &own) {
-            warnings.push(format!("view {seq}: long step for the axis: {e}"));
-        }
-        split.long_ms = ms(t);
-        self.prev = Some(Stored { seq, table_deg, target });
-        let t = Instant::now();
-        let block = self.end_block_if_full(&mut warnings, &mut notes);
-        split.block_ms = ms(t);
         self.update_axis();
         self.store.publish(self.poses.clone());
         Ok(ViewRegistration {
@@ -518,6 +490,32 @@ impl Registrar {
             warnings,
             notes,
         })
+    }
+
+    /// After the newest view's pose is in `self.poses`: keeps the view (its scan-order points
+    /// `own`) for the loop and the refinement, publishes the poses — the matchers get the pose
+    /// as soon as the view is chained —, then runs the long step and makes the view the next
+    /// one's target, and ends the block when it is full (both refine the store afterwards).
+    /// Returns the time from `started` to the publication and the block step's result.
+    #[allow(clippy::too_many_arguments)]
+    fn publish_and_refine(&mut self, seq: u64, table_deg: Option<f64>, own: Vec<[f32; 3]>, target: Target, started: Instant, split: &mut RegisterSplit, warnings: &mut Vec<String>, notes: &mut Vec<String>) -> (f64, Option<IcpResult>) {
+        let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
+        let k = self.poses.len() - 1;
+        self.remember(k, &own);
+        self.keep_for_refinement(k, table_deg, &own);
+        self.store.publish(self.poses.clone());
+        let publish_ms = ms(started);
+        let t = Instant::now();
+        if let Err(e) = self.long_step(k, table_deg, &own) {
+            warnings.push(format!("view {seq}: long step for the axis: {e}"));
+        }
+        split.long_ms = ms(t);
+        self.prev = Some(Stored { seq, table_deg, target });
+        let t = Instant::now();
+        self.block.push((k, own));
+        let block = self.end_block_if_full(warnings, notes);
+        split.block_ms = ms(t);
+        (publish_ms, block)
     }
 
     /// Why ICP's free directions are expected here ([`explained_degeneracy`]), with the
