@@ -44,7 +44,6 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, lpf: &[u8], rre
     use std::arch::x86_64::*;
     let Geometry { w, h, r, wp, n, .. } = g;
     let wr = g.wr();
-    let b = 2 * r + 1;
     let cols = TILE_W + 2 * r;
     let y_new = clamp_row(y as isize + r as isize, h);
     let y_old = clamp_row(y as isize - r as isize - 1, h);
@@ -62,8 +61,6 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, lpf: &[u8], rre
         s.tile_right[c * stride + right_range.start..c * stride + right_range.end].fill(u16::MAX);
     }
     let right_copies = s.tile_right.as_mut_ptr();
-    let iota = _mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-    let ones = _mm256_set1_epi16(-1);
     s.best[span.clone()].fill(None);
     for t in span.start / TILE_W..=(span.end - 1) / TILE_W {
         let (lo, hi) = (s.tile_lo[t], s.tile_hi[t]);
@@ -119,80 +116,16 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, lpf: &[u8], rre
                 }
             }
         }
-        // Window sums along the row, then each searched pixel's own interval.
-        let mut lanes = [_mm256_setzero_si256(); MAX_BLOCKS];
-        let mut masked = [ones; MAX_BLOCKS];
-        for x in xa..=xb {
-            let c = x - x0;
-            let row = sad.add(x * n + k0);
-            if x == xa {
-                for j in 0..nb {
-                    let mut acc = _mm256_load_si256(cs.add(c * n + k0 + 16 * j) as *const __m256i);
-                    for cc in c + 1..c + b {
-                        acc = _mm256_add_epi16(acc, _mm256_load_si256(cs.add(cc * n + k0 + 16 * j) as *const __m256i));
-                    }
-                    lanes[j] = acc;
-                }
-            } else {
-                for j in 0..nb {
-                    let add = _mm256_load_si256(cs.add((c + b - 1) * n + k0 + 16 * j) as *const __m256i);
-                    let sub = _mm256_load_si256(cs.add((c - 1) * n + k0 + 16 * j) as *const __m256i);
-                    lanes[j] = _mm256_sub_epi16(_mm256_add_epi16(lanes[j], add), sub);
-                }
-            }
-            for j in 0..nb {
-                _mm256_store_si256(row.add(16 * j) as *mut __m256i, lanes[j]);
-            }
-            let (t0, t1) = (*s.tlo.get_unchecked(x), *s.thi.get_unchecked(x));
-            if t0 > t1 {
-                continue;
-            }
-            let tex = if p.texture_threshold > 0 { *s.tex_row.get_unchecked(x) } else { 0 };
-            // Lanes outside the pixel's interval read as u16::MAX.
-            let (a, bb) = (_mm256_set1_epi16((t0 - lo) as i16), _mm256_set1_epi16((t1 - lo) as i16));
-            let mut minv = ones;
-            let j0 = (t0 - lo) as usize / 16;
-            let j1 = (t1 - lo) as usize / 16;
-            for j in j0..=j1 {
-                let k = _mm256_add_epi16(iota, _mm256_set1_epi16(16 * j as i16));
-                let out = _mm256_or_si256(_mm256_cmpgt_epi16(a, k), _mm256_cmpgt_epi16(k, bb));
-                let m = _mm256_or_si256(lanes[j], out);
-                masked[j] = m;
-                minv = _mm256_min_epu16(minv, m);
-                let rm = right_copies.add((x % RIGHT_COPIES) * stride + w - 1 - x + k0 + 16 * j) as *mut __m256i;
-                _mm256_storeu_si256(rm, _mm256_min_epu16(_mm256_loadu_si256(rm), m));
-            }
-            let min = hmin(minv);
-            let target = _mm256_set1_epi16(min as i16);
-            let mut best = 0;
-            for j in j0..=j1 {
-                let bits = _mm256_movemask_epi8(_mm256_cmpeq_epi16(masked[j], target)) as u32;
-                if bits != 0 {
-                    best = 16 * j + bits.trailing_zeros() as usize / 2;
-                    break;
-                }
-            }
-            let rival = if p.uniqueness_ratio == 0 {
-                u16::MAX
-            } else {
-                let (below, above) = (_mm256_set1_epi16(best as i16 - 2), _mm256_set1_epi16(best as i16 + 2));
-                let mut rv = ones;
-                for j in j0..=j1 {
-                    let k = _mm256_add_epi16(iota, _mm256_set1_epi16(16 * j as i16));
-                    let near = _mm256_and_si256(_mm256_cmpgt_epi16(k, below), _mm256_cmpgt_epi16(above, k));
-                    rv = _mm256_min_epu16(rv, _mm256_or_si256(masked[j], near));
-                }
-                hmin(rv)
-            };
-            let i0 = (t0 - lo) as usize;
-            let costs = std::slice::from_raw_parts(row.add(i0), (t1 - t0 + 1) as usize);
-            // A `match`, not `Option::map`: the closure was not inlined into this AVX2 function.
-            #[allow(clippy::manual_map)]
-            let chosen = match decide_at(p, costs, min, best - i0, rival, tex) {
-                Some((bi, frac)) => Some(((t0 as usize + bi) as u16, frac)),
-                None => None,
-            };
-            *s.best.get_unchecked_mut(x) = chosen;
+        // Window sums along the row, then each searched pixel's own interval: the band's
+        // lanes in registers where it has at most four blocks (nearly always when this path
+        // is taken), through memory otherwise.
+        let px = TilePixels { p, g, cs, sad, right_copies, stride, lo, k0, xs: (xa, xb), x0 };
+        match nb {
+            1 => tile_pixels::<1>(px, s, 1),
+            2 => tile_pixels::<2>(px, s, 2),
+            3 => tile_pixels::<3>(px, s, 3),
+            4 => tile_pixels::<4>(px, s, 4),
+            _ => tile_pixels::<MAX_BLOCKS>(px, s, nb),
         }
     }
     let (copies, merged) = (&s.tile_right, &mut s.right_min[right_range.clone()]);
@@ -203,9 +136,129 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, lpf: &[u8], rre
         }
     }
 
-    #[inline(always)]
-    unsafe fn hmin(v: __m256i) -> u16 {
-        let x = _mm_min_epu16(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
-        _mm_extract_epi16::<0>(_mm_minpos_epu16(x)) as u16
+}
+
+/// What [`tile_pixels`] needs of its tile: the column sums `cs` (band from `k0`), the
+/// row's window sums `sad`, the right-row copies, the band's first disparity index `lo` and
+/// the tile's first and last searched pixel `xs`, the tile's first column `x0`.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+struct TilePixels<'a> {
+    p: &'a ValidMatchParams,
+    g: Geometry,
+    cs: *const u16,
+    sad: *mut u16,
+    right_copies: *mut u16,
+    stride: usize,
+    lo: i32,
+    k0: usize,
+    xs: (usize, usize),
+    x0: usize,
+}
+
+/// The pixels `xs` of one tile in one row: window sums slid along the row over the band's
+/// `nb` blocks (`NB` of them in registers; `NB` = [`MAX_BLOCKS`] runs through the first `nb`),
+/// each pixel's own interval masked inside them, its winner, rival and decision, and its
+/// pairs splatted onto the right row.
+///
+/// # Safety
+/// AVX2 must be available; `px` must describe a tile of [`tile_row`] with `nb ≤ NB` blocks
+/// in its band.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn tile_pixels<const NB: usize>(px: TilePixels, s: &mut StripeScratch, nb: usize) {
+    use std::arch::x86_64::*;
+    let TilePixels { p, g, cs, sad, right_copies, stride, lo, k0, xs: (xa, xb), x0 } = px;
+    let (w, n, b) = (g.w, g.n, 2 * g.r + 1);
+    let nb = if NB <= 4 { NB } else { nb };
+    let ones = _mm256_set1_epi16(-1);
+    let mut kv = [_mm256_setzero_si256(); NB];
+    for (j, k) in kv.iter_mut().enumerate().take(nb) {
+        *k = _mm256_add_epi16(_mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15), _mm256_set1_epi16(16 * j as i16));
     }
+    let mut lanes = [_mm256_setzero_si256(); NB];
+    let mut masked = [ones; NB];
+    let check_texture = p.texture_threshold > 0;
+    for x in xa..=xb {
+        let c = x - x0;
+        let row = sad.add(x * n + k0);
+        if x == xa {
+            for (j, lane) in lanes.iter_mut().enumerate().take(nb) {
+                let mut acc = _mm256_load_si256(cs.add(c * n + k0 + 16 * j) as *const __m256i);
+                for cc in c + 1..c + b {
+                    acc = _mm256_add_epi16(acc, _mm256_load_si256(cs.add(cc * n + k0 + 16 * j) as *const __m256i));
+                }
+                *lane = acc;
+            }
+        } else {
+            let (add, sub) = (cs.add((c + b - 1) * n + k0), cs.add((c - 1) * n + k0));
+            for (j, lane) in lanes.iter_mut().enumerate().take(nb) {
+                let a = _mm256_load_si256(add.add(16 * j) as *const __m256i);
+                let o = _mm256_load_si256(sub.add(16 * j) as *const __m256i);
+                *lane = _mm256_sub_epi16(_mm256_add_epi16(*lane, a), o);
+            }
+        }
+        for (j, lane) in lanes.iter().enumerate().take(nb) {
+            _mm256_store_si256(row.add(16 * j) as *mut __m256i, *lane);
+        }
+        let (t0, t1) = (*s.tlo.get_unchecked(x), *s.thi.get_unchecked(x));
+        if t0 > t1 {
+            continue;
+        }
+        let tex = if check_texture { *s.tex_row.get_unchecked(x) } else { 0 };
+        // Lanes outside the pixel's interval read as u16::MAX (whole blocks outside it too:
+        // their splat leaves the right row as it is).
+        let (a, bb) = (_mm256_set1_epi16((t0 - lo) as i16), _mm256_set1_epi16((t1 - lo) as i16));
+        let mut minv = ones;
+        let rm = right_copies.add((x % RIGHT_COPIES) * stride + w - 1 - x + k0);
+        for j in 0..nb {
+            let out = _mm256_or_si256(_mm256_cmpgt_epi16(a, kv[j]), _mm256_cmpgt_epi16(kv[j], bb));
+            let m = _mm256_or_si256(lanes[j], out);
+            masked[j] = m;
+            minv = _mm256_min_epu16(minv, m);
+            let rmj = rm.add(16 * j) as *mut __m256i;
+            _mm256_storeu_si256(rmj, _mm256_min_epu16(_mm256_loadu_si256(rmj), m));
+        }
+        let min = hmin(minv);
+        let target = _mm256_set1_epi16(min as i16);
+        let mut best = 0;
+        for (j, m) in masked.iter().enumerate().take(nb) {
+            let bits = _mm256_movemask_epi8(_mm256_cmpeq_epi16(*m, target)) as u32;
+            if bits != 0 {
+                best = 16 * j + bits.trailing_zeros() as usize / 2;
+                break;
+            }
+        }
+        let rival = if p.uniqueness_ratio == 0 {
+            u16::MAX
+        } else {
+            let (below, above) = (_mm256_set1_epi16(best as i16 - 2), _mm256_set1_epi16(best as i16 + 2));
+            let mut rv = ones;
+            for j in 0..nb {
+                let near = _mm256_and_si256(_mm256_cmpgt_epi16(kv[j], below), _mm256_cmpgt_epi16(above, kv[j]));
+                rv = _mm256_min_epu16(rv, _mm256_or_si256(masked[j], near));
+            }
+            hmin(rv)
+        };
+        let i0 = (t0 - lo) as usize;
+        let costs = std::slice::from_raw_parts(row.add(i0), (t1 - t0 + 1) as usize);
+        // A `match`, not `Option::map`: the closure was not inlined into this AVX2 function.
+        #[allow(clippy::manual_map)]
+        let chosen = match decide_at(p, costs, min, best - i0, rival, tex) {
+            Some((bi, frac)) => Some(((t0 as usize + bi) as u16, frac)),
+            None => None,
+        };
+        *s.best.get_unchecked_mut(x) = chosen;
+    }
+}
+
+/// The smallest of sixteen `u16` lanes.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn hmin(v: std::arch::x86_64::__m256i) -> u16 {
+    use std::arch::x86_64::*;
+    let x = _mm_min_epu16(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
+    _mm_extract_epi16::<0>(_mm_minpos_epu16(x)) as u16
 }
