@@ -528,7 +528,13 @@ impl Assistant {
         match &mut self.prev {
             Some(p) if (p.disparity.width, p.disparity.height) == (disparity.width, disparity.height) => {
                 p.seq = seq;
-                p.disparity.values_mut().copy_from_slice(disparity.values());
+                // Both maps are NaN outside their bounding boxes: copying the hull of the two
+                // boxes makes the kept map equal to the new one everywhere.
+                let hull = if p.region.x1 == 0 { region } else { p.region.union(&region) };
+                let w = disparity.width;
+                for y in hull.ys() {
+                    p.disparity.values_mut()[y * w + hull.x0..y * w + hull.x1].copy_from_slice(&disparity.values()[y * w + hull.x0..y * w + hull.x1]);
+                }
                 match (&mut p.mask, mask) {
                     (Some(old), Some(new)) if old.len() == new.len() => old.copy_from_slice(new),
                     (slot, new) => *slot = new.map(<[u8]>::to_vec),

@@ -319,3 +319,32 @@ fn the_working_region_follows_the_object_and_does_not_creep() {
         }
     }
 }
+
+#[test]
+fn the_kept_frame_is_the_accepted_map_wherever_the_object_moves() {
+    // Only the hull of the old and new disparities' boxes is copied into the kept frame: it
+    // must still equal the accepted map everywhere, as the object jumps around the image and
+    // a frame comes out empty.
+    let scene = Scene::new();
+    let mut a = assistant(&scene, AssistMode::Paper { w: 0.8 }, 3);
+    let base = scene.disparity(3.0);
+    let (w, h) = (base.width, base.height);
+    for (k, shift) in [(3u64, 0isize), (4, 40), (5, -60), (6, 0), (7, 25)] {
+        let mut d = DisparityMap::new(w, h);
+        if k != 6 {
+            for y in 0..h {
+                for x in 0..w {
+                    let xs = x as isize - shift;
+                    if (0..w as isize).contains(&xs) {
+                        d.values_mut()[y * w + x] = base.values()[y * w + xs as usize];
+                    }
+                }
+            }
+        }
+        let plan = a.plan(k, None, &scene.poses(0..k));
+        assert!(a.accept(k, &plan, &d, None, &stats(0.9)).is_none());
+        let kept = &a.prev.as_ref().expect("a kept frame").disparity;
+        assert!(kept.values().iter().zip(d.values()).all(|(a, b)| a.to_bits() == b.to_bits()), "frame {k}");
+        a.recycle(plan);
+    }
+}

@@ -53,14 +53,15 @@ impl DisparityIntervals {
 
     /// Pixels where `mask` is non-zero search `min_d ..= max_d`, the others nothing.
     pub fn masked(width: usize, height: usize, mask: &[u8], min_d: i32, max_d: i32) -> Self {
-        let mut iv = Self::full(width, height, min_d, max_d);
-        for (i, &m) in mask.iter().enumerate().take(width * height) {
-            if m == 0 {
-                iv.lo[i] = 1;
-                iv.hi[i] = 0;
-            }
-        }
-        iv
+        let n = width * height;
+        // (A short mask leaves the pixels past its end searching the full range.)
+        let m = &mask[..mask.len().min(n)];
+        // Branch-free, so that it vectorises (it runs for every full-range frame).
+        let mut lo: Vec<i16> = m.iter().map(|&m| if m != 0 { min_d as i16 } else { 1 }).collect();
+        let mut hi: Vec<i16> = m.iter().map(|&m| if m != 0 { max_d as i16 } else { 0 }).collect();
+        lo.resize(n, min_d as i16);
+        hi.resize(n, max_d as i16);
+        DisparityIntervals { width, height, lo, hi }
     }
 
     pub fn width(&self) -> usize {

@@ -484,7 +484,8 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         }
         // Only the row's searched span is worked on: rows and columns of background cost
         // (almost) nothing.
-        let Some(span) = row_intervals(g, (&s.clip_lo[(y - y0) % TILE_H * w..], &s.clip_hi[(y - y0) % TILE_H * w..]), &mut s.tlo, &mut s.thi, &mut s.ilo, &mut s.ihi, &mut stats) else {
+        let blocks = (!narrow).then_some((&mut s.ilo[..], &mut s.ihi[..]));
+        let Some(span) = row_intervals(g, (&s.clip_lo[(y - y0) % TILE_H * w..], &s.clip_hi[(y - y0) % TILE_H * w..]), &mut s.tlo, &mut s.thi, blocks, &mut stats) else {
             out_row.fill(f32::NAN);
             continue;
         };

@@ -84,30 +84,38 @@ pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize
 }
 
 /// This row's clipped intervals (`lo`/`hi`, from [`tile_bands`]) into `tlo..=thi`, what is
-/// searched, and the block-aligned ranges the row path computes sums over (`ilo..=ihi`, see
-/// [`BLOCK`]); counts searched pixels and pairs. Returns the span from the first to the last
-/// searched pixel (None: nothing searched).
+/// searched, and — when `blocks` is given (the row path; the narrow-band path has no use for
+/// them) — the block-aligned ranges the row path computes sums over (`ilo..=ihi`, see
+/// [`BLOCK`]); counts searched pixels and pairs. Returns the span from
+/// the first to the last searched pixel (None: nothing searched).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn row_intervals(g: Geometry, clipped: (&[i32], &[i32]), tlo: &mut [i32], thi: &mut [i32], ilo: &mut [i32], ihi: &mut [i32], stats: &mut MatchStats) -> Option<Range<usize>> {
+pub(super) fn row_intervals(g: Geometry, clipped: (&[i32], &[i32]), tlo: &mut [i32], thi: &mut [i32], blocks: Option<(&mut [i32], &mut [i32])>, stats: &mut MatchStats) -> Option<Range<usize>> {
     let Geometry { w, n, .. } = g;
     let (lo, hi) = (&clipped.0[..w], &clipped.1[..w]);
     let (first, last) = searched_span(lo, hi)?;
     tlo[..w].copy_from_slice(lo);
     thi[..w].copy_from_slice(hi);
     let (mut searched, mut evaluated) = (0u64, 0u64);
-    let block = BLOCK as i32;
-    for x in 0..w {
-        let (a, b) = (lo[x], hi[x]);
+    let span = first..last + 1;
+    for (&a, &b) in lo[span.clone()].iter().zip(&hi[span.clone()]) {
         let ok = a <= b;
         searched += ok as u64;
         evaluated += if ok { (b - a + 1) as u64 } else { 0 };
-        // Whole blocks, so that neighbours with slightly different intervals share one
-        // range and slide instead of recomputing; not clipped to the image (the right rows
-        // are padded for that), so border pixels share their neighbours' blocks.
-        // (Clipped indices are ≥ 0: rounding down to a block is a mask, which vectorises.)
-        ilo[x] = if ok { a & !(block - 1) } else { 1 };
-        ihi[x] = if ok { ((b & !(block - 1)) + block - 1).min(n as i32 - 1) } else { 0 };
+    }
+    if let Some((ilo, ihi)) = blocks {
+        let block = BLOCK as i32;
+        for x in 0..w {
+            let (a, b) = (lo[x], hi[x]);
+            let ok = a <= b;
+            // Whole blocks, so that neighbours with slightly different intervals share one
+            // range and slide instead of recomputing; not clipped to the image (the right
+            // rows are padded for that), so border pixels share their neighbours' blocks.
+            // (Clipped indices are ≥ 0: rounding down to a block is a mask, which
+            // vectorises.)
+            ilo[x] = if ok { a & !(block - 1) } else { 1 };
+            ihi[x] = if ok { ((b & !(block - 1)) + block - 1).min(n as i32 - 1) } else { 0 };
+        }
     }
     stats.searched += searched as usize;
     stats.evaluated += evaluated;
