@@ -53,38 +53,45 @@ impl SpeckleFilter {
         let data = map.values_mut();
         for y in 0..h {
             let row = &data[y * w..(y + 1) * w];
-            // Runs of this row.
-            let mut current = u32::MAX;
-            for x in 0..w {
-                let d = row[x];
-                if !d.is_finite() {
-                    self.run_cur[x] = u32::MAX;
-                    current = u32::MAX;
+            self.run_cur.fill(u32::MAX);
+            // Runs of this row (a run's pixels are counted when it ends). A NaN or infinite
+            // pixel never continues a run: its difference to the previous one is not ≤ range.
+            let first_run = self.parent.len();
+            let mut x = 0;
+            while x < w {
+                if !row[x].is_finite() {
+                    x += 1;
                     continue;
                 }
-                if current == u32::MAX || (d - row[x - 1]).abs() > range_px {
-                    current = self.parent.len() as u32;
-                    self.parent.push(current);
-                    self.size.push(0);
-                    self.span.push((y as u32, x as u32, x as u32));
+                let id = self.parent.len() as u32;
+                let start = x;
+                self.run_cur[x] = id;
+                x += 1;
+                while x < w && (row[x] - row[x - 1]).abs() <= range_px {
+                    self.run_cur[x] = id;
+                    x += 1;
                 }
-                self.size[current as usize] += 1;
-                self.span[current as usize].2 = x as u32;
-                self.run_cur[x] = current;
+                self.parent.push(id);
+                self.size.push((x - start) as u32);
+                self.span.push((y as u32, start as u32, (x - 1) as u32));
             }
-            // Join with the runs above.
+            // Join with the runs above, visiting this row's runs only.
             if y > 0 {
                 let above = &data[(y - 1) * w..y * w];
-                let mut last = (u32::MAX, u32::MAX);
-                for x in 0..w {
-                    let (a, b) = (self.run_cur[x], self.run_prev[x]);
-                    if a == u32::MAX || b == u32::MAX || (a, b) == last {
-                        continue;
-                    }
-                    // NaN never gets here: both pixels belong to runs.
-                    if (data[y * w + x] - above[x]).abs() <= range_px {
-                        self.union(a, b);
-                        last = (a, b);
+                let here = &data[y * w..(y + 1) * w];
+                for run in first_run..self.parent.len() {
+                    let (_, x0, x1) = self.span[run];
+                    let mut last = u32::MAX;
+                    for x in x0 as usize..=x1 as usize {
+                        let b = self.run_prev[x];
+                        if b == u32::MAX || b == last {
+                            continue;
+                        }
+                        // NaN never gets here: both pixels belong to runs.
+                        if (here[x] - above[x]).abs() <= range_px {
+                            self.union(run as u32, b);
+                            last = b;
+                        }
                     }
                 }
             }
@@ -149,5 +156,59 @@ mod tests {
         let mut map = DisparityMap::from_values(w, h, vals);
         SpeckleFilter::default().apply(&mut map, 24, 1.0);
         assert_eq!(map.valid_count(), 0, "two regions of 24 pixels, both removed");
+    }
+
+    #[test]
+    fn agrees_with_a_flood_fill_on_random_maps() {
+        // Random maps of a few disparity levels, holes and noise: the runs-and-union filter
+        // must remove exactly the 4-connected regions (within the range) a flood fill finds
+        // of at most the size limit.
+        let mut state = 7u32;
+        let mut rand = move |m: u32| {
+            state = state.wrapping_mul(1664525).wrapping_add(1013904223);
+            (state >> 8) % m
+        };
+        for (w, h, max_size, range) in [(23, 17, 6, 0.5f32), (40, 9, 20, 1.0), (1, 30, 3, 0.5), (30, 1, 3, 0.5)] {
+            let vals: Vec<f32> = (0..w * h)
+                .map(|_| match rand(10) {
+                    0 | 1 => f32::NAN,
+                    k => (k / 3) as f32 * 2.0 + rand(3) as f32 * 0.3,
+                })
+                .collect();
+            let mut map = DisparityMap::from_values(w, h, vals.clone());
+            SpeckleFilter::default().apply(&mut map, max_size, range);
+            // The reference: flood fill from every pixel.
+            let mut label = vec![usize::MAX; w * h];
+            let mut expected = vals.clone();
+            for seed in 0..w * h {
+                if !vals[seed].is_finite() || label[seed] != usize::MAX {
+                    continue;
+                }
+                let (mut stack, mut members) = (vec![seed], Vec::new());
+                label[seed] = seed;
+                while let Some(i) = stack.pop() {
+                    members.push(i);
+                    let (x, y) = (i % w, i / w);
+                    let mut near = Vec::new();
+                    if x > 0 { near.push(i - 1) }
+                    if x + 1 < w { near.push(i + 1) }
+                    if y > 0 { near.push(i - w) }
+                    if y + 1 < h { near.push(i + w) }
+                    for j in near {
+                        if vals[j].is_finite() && label[j] == usize::MAX && (vals[j] - vals[i]).abs() <= range {
+                            label[j] = seed;
+                            stack.push(j);
+                        }
+                    }
+                }
+                if members.len() <= max_size {
+                    for i in members {
+                        expected[i] = f32::NAN;
+                    }
+                }
+            }
+            let got = map.values();
+            assert!(got.iter().zip(&expected).all(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())), "{w}×{h}");
+        }
     }
 }
