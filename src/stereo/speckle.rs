@@ -3,8 +3,9 @@
 //!
 //! A run is a maximal horizontal stretch of valid pixels whose neighbours differ by at most
 //! the range. Runs of adjacent rows are joined (union–find) wherever two vertically adjacent
-//! pixels are within the range. Each pixel is compared twice (left, above) and written once,
-//! instead of the four neighbour visits and stack traffic of a flood fill.
+//! pixels are within the range. Each valid pixel is compared twice (left, above) and written
+//! once, invalid pixels are only skipped, and a run's size is counted when it ends — instead
+//! of the four neighbour visits and stack traffic of a flood fill.
 
 use super::disparity::DisparityMap;
 
