@@ -425,7 +425,6 @@ impl Assistant {
     /// (the disparity of a surface continues across a small gap); the rest the full range.
     #[inline(always)]
     fn intervals(&mut self, mask: Option<&[u8]>, plan: &mut Plan) -> DisparityIntervals {
-        const MARGIN: f32 = 2.0;
         let (w, h) = self.size;
         let (lo, hi, range, region) = (&self.lo, &self.hi, self.range, self.region);
         let mut iv = match self.spare.take() {
@@ -471,25 +470,35 @@ impl Assistant {
                 for_each_set(hole_row, |k| holes.push((xs.start + k, y)));
             }
         }
-        for (x, y) in holes {
-            let (mut a, mut b) = (f32::INFINITY, f32::NEG_INFINITY);
-            let xs = x.saturating_sub(FILL).max(region.x0)..(x + FILL + 1).min(region.x1);
+        // Per row holding holes: the bounds' extremes down each column of the FILL rows
+        // around it (element-wise over the holes' columns, so that it vectorises), then per
+        // hole across the FILL columns around it. (The bounds are never NaN.)
+        let (mut col_lo, mut col_hi) = (Vec::new(), Vec::new());
+        let mut start = 0;
+        while start < holes.len() {
+            let y = holes[start].1;
+            let end = start + holes[start..].iter().take_while(|h| h.1 == y).count();
+            let cols = holes[start].0.saturating_sub(FILL).max(region.x0)..(holes[end - 1].0 + FILL + 1).min(region.x1);
+            col_lo.clear();
+            col_lo.resize(cols.len(), f32::INFINITY);
+            col_hi.clear();
+            col_hi.resize(cols.len(), f32::NEG_INFINITY);
             for yy in y.saturating_sub(FILL).max(region.y0)..(y + FILL + 1).min(region.y1) {
                 let row = yy * w;
-                // (The bounds are never NaN.)
-                a = lo[row + xs.start..row + xs.end].iter().fold(a, |m, &v| if v < m { v } else { m });
-                b = hi[row + xs.start..row + xs.end].iter().fold(b, |m, &v| if v > m { v } else { m });
-            }
-            match (a <= b).then(|| interval(range, a - MARGIN, b + MARGIN)).flatten() {
-                Some(r) => {
-                    iv.set(x, y, Some(r));
-                    plan.filled_px += 1;
+                for (m, &v) in col_lo.iter_mut().zip(&lo[row + cols.start..row + cols.end]) {
+                    *m = if v < *m { v } else { *m };
                 }
-                None => {
-                    iv.set(x, y, Some(range));
-                    plan.uncovered_px += 1;
+                for (m, &v) in col_hi.iter_mut().zip(&hi[row + cols.start..row + cols.end]) {
+                    *m = if v > *m { v } else { *m };
                 }
             }
+            for &(x, _) in &holes[start..end] {
+                let xs = x.saturating_sub(FILL).max(region.x0) - cols.start..(x + FILL + 1).min(region.x1) - cols.start;
+                let a = col_lo[xs.clone()].iter().fold(f32::INFINITY, |m, &v| if v < m { v } else { m });
+                let b = col_hi[xs].iter().fold(f32::NEG_INFINITY, |m, &v| if v > m { v } else { m });
+                fill_hole(&mut iv, plan, range, (x, y), a, b);
+            }
+            start = end;
         }
         iv
     }
@@ -544,6 +553,22 @@ impl Assistant {
             slot => *slot = Some(PrevFrame { seq, disparity: disparity.clone(), mask: mask.map(<[u8]>::to_vec), region }),
         }
         None
+    }
+}
+
+/// A hole's interval: the hull `a..=b` of the bounds around it widened by `MARGIN`, or the
+/// full range where there are none (counted in the plan).
+fn fill_hole(iv: &mut DisparityIntervals, plan: &mut Plan, range: (i32, i32), (x, y): (usize, usize), a: f32, b: f32) {
+    const MARGIN: f32 = 2.0;
+    match (a <= b).then(|| interval(range, a - MARGIN, b + MARGIN)).flatten() {
+        Some(r) => {
+            iv.set(x, y, Some(r));
+            plan.filled_px += 1;
+        }
+        None => {
+            iv.set(x, y, Some(range));
+            plan.uncovered_px += 1;
+        }
     }
 }
 

@@ -216,10 +216,14 @@ impl Assistant {
         let (ifx, ify, inv_mtx) = (1.0 / fx, 1.0 / fy, -1.0 / tx);
         let u_col = region.column_rays(cx, ifx);
         let n = u_col.len();
+        assert!(w * self.size.1 <= i32::MAX as usize, "an image of {w}×{} pixels is too large to index in i32", self.size.1);
         // Per row: the projections and bounds of every point, branch-free so that it
         // vectorises (NaN where there is no point or it moves behind the camera), then the
         // splats.
-        let (mut pxs, mut pys, mut los, mut his) = (vec![0f32; n], vec![0f32; n], vec![0f32; n], vec![0f32; n]);
+        let (mut idx, mut los, mut his) = (vec![0i32; n], vec![0f32; n], vec![0f32; n]);
+        // A prediction splats onto the 2 × 2 pixels from (⌊px⌋, ⌊py⌋): they lie inside the
+        // region exactly when x0 ≤ px < x1 − 1 and y0 ≤ py < y1 − 1 (NaN fails).
+        let (rx0, rx1, ry0, ry1) = (region.x0 as f32, (region.x1 - 1) as f32, region.y0 as f32, (region.y1 - 1) as f32);
         let (r00, r10, r20) = (rot[(0, 0)], rot[(1, 0)], rot[(2, 0)]);
         for y in region.ys() {
             let v = (y as f32 - cy) * ify;
@@ -241,22 +245,22 @@ impl Assistant {
                 let half = (k_sigma * (var_d + s2).sqrt()).max(min_half);
                 // NaN (no disparity), points behind the camera and points moved behind it fail.
                 let ok = iz > 0.0 && qz > 0.0;
-                pxs[k] = if ok { px } else { f32::NAN };
-                pys[k] = py;
+                let inside = ok & (px >= rx0) & (px < rx1) & (py >= ry0) & (py < ry1);
+                // Non-negative and inside the image once selected: truncation is the floor,
+                // and the plain conversion is exact (it vectorises, unlike `as`).
+                let (px, py) = (if inside { px } else { 0.0 }, if inside { py } else { 0.0 });
+                // SAFETY: px and py lie in [0, w) and [0, h), far inside i32.
+                let (x0, y0) = unsafe { (px.to_int_unchecked::<i32>(), py.to_int_unchecked::<i32>()) };
+                idx[k] = if inside { y0 * w as i32 + x0 } else { -1 };
                 los[k] = pd - half;
                 his[k] = pd + half;
             }
             for k in 0..n {
-                let (px, py) = (pxs[k], pys[k]);
-                if px.is_nan() {
-                    continue;
-                }
-                let (x0, y0) = (floor(px) as i64, floor(py) as i64);
-                if x0 < region.x0 as i64 || y0 < region.y0 as i64 || x0 + 1 >= region.x1 as i64 || y0 + 1 >= region.y1 as i64 {
+                if idx[k] < 0 {
                     continue;
                 }
                 let (a, b) = (los[k], his[k]);
-                let i = y0 as usize * w + x0 as usize;
+                let i = idx[k] as usize;
                 for j in [i, i + 1, i + w, i + w + 1] {
                     lo[j] = lo[j].min(a);
                     hi[j] = hi[j].max(b);
