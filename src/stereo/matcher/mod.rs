@@ -479,7 +479,7 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         std::mem::swap(&mut s.ihi, &mut s.prev_ihi);
         let out_row = &mut out[(y - y0) * w..][..w];
         if (y - y0) % TILE_H == 0 {
-            let mean_band = tile_bands(g, intervals, y..(y + TILE_H).min(y_end), &mut s.clip_lo, &mut s.clip_hi, &mut s.tile_lo, &mut s.tile_hi, &mut s.tile_px);
+            let mean_band = tile_bands(g, intervals, y..(y + TILE_H).min(y_end), &mut s.clip_lo, &mut s.clip_hi, &mut s.tile_lo, &mut s.tile_hi, &mut s.tile_px, &mut s.tile_cols);
             narrow = tile_path_ok && mean_band <= (n / 2) as f64;
         }
         // Only the row's searched span is worked on: rows and columns of background cost

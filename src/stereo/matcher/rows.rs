@@ -35,7 +35,7 @@ pub(super) fn clip_row(g: Geometry, iv: &DisparityIntervals, y: usize, lo: &mut 
 /// over the searched pixels (0: none).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize>, clip_lo: &mut Vec<i32>, clip_hi: &mut Vec<i32>, tile_lo: &mut Vec<i32>, tile_hi: &mut Vec<i32>, tile_px: &mut Vec<u32>) -> f64 {
+pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize>, clip_lo: &mut Vec<i32>, clip_hi: &mut Vec<i32>, tile_lo: &mut Vec<i32>, tile_hi: &mut Vec<i32>, tile_px: &mut Vec<u32>, cols: &mut Vec<i32>) -> f64 {
     let Geometry { w, n, .. } = g;
     let tiles = w.div_ceil(TILE_W);
     tile_lo.clear();
@@ -46,22 +46,29 @@ pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize
     tile_px.resize(tiles, 0);
     clip_lo.resize(rows.len() * w, 1);
     clip_hi.resize(rows.len() * w, 0);
+    // Per column over the tile row first (element-wise, branch-free: it vectorises), then
+    // per tile once: min, max and count of the searched pixels.
+    cols.clear();
+    cols.resize(3 * w, 0);
+    let (col_lo, rest) = cols.split_at_mut(w);
+    let (col_hi, col_n) = rest.split_at_mut(w);
+    col_lo.fill(i32::MAX);
+    col_hi.fill(i32::MIN);
     for (i, y) in rows.enumerate() {
         let (lo, hi) = (&mut clip_lo[i * w..][..w], &mut clip_hi[i * w..][..w]);
         clip_row(g, iv, y, lo, hi);
-        for (t, (lo, hi)) in lo.chunks(TILE_W).zip(hi.chunks(TILE_W)).enumerate() {
-            // Branch-free min, max and count over the tile's searched pixels.
-            let (mut a, mut b, mut c) = (i32::MAX, i32::MIN, 0u32);
-            for (&l, &h) in lo.iter().zip(hi) {
-                let ok = l <= h;
-                a = a.min(if ok { l } else { i32::MAX });
-                b = b.max(if ok { h } else { i32::MIN });
-                c += ok as u32;
-            }
-            tile_lo[t] = tile_lo[t].min(a);
-            tile_hi[t] = tile_hi[t].max(b);
-            tile_px[t] += c;
+        for x in 0..w {
+            let (l, h) = (lo[x], hi[x]);
+            let ok = l <= h;
+            col_lo[x] = col_lo[x].min(if ok { l } else { i32::MAX });
+            col_hi[x] = col_hi[x].max(if ok { h } else { i32::MIN });
+            col_n[x] += ok as i32;
         }
+    }
+    for (t, ((a, b), c)) in col_lo.chunks(TILE_W).zip(col_hi.chunks(TILE_W)).zip(col_n.chunks(TILE_W)).enumerate() {
+        tile_lo[t] = a.iter().fold(tile_lo[t], |m, &v| m.min(v));
+        tile_hi[t] = b.iter().fold(tile_hi[t], |m, &v| m.max(v));
+        tile_px[t] += c.iter().sum::<i32>() as u32;
     }
     let block = BLOCK as i32;
     let (mut pairs, mut pixels) = (0u64, 0u64);

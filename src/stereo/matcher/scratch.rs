@@ -155,6 +155,9 @@ pub(super) struct StripeScratch {
     pub(super) clip_hi: Vec<i32>,
     /// Searched pixels per tile of the current tile row.
     pub(super) tile_px: Vec<u32>,
+    /// Per column of a tile row: the min, max and count of its searched intervals (three
+    /// rows of `w`).
+    pub(super) tile_cols: Vec<i32>,
     /// The narrow-band path's vertical window sums: per tile, its columns and their halo
     /// (`TILE_W + 2r`), `n` entries each (only the tile's band is used).
     pub(super) tile_cs: AlignedBuf,
