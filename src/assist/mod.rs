@@ -483,14 +483,21 @@ impl Assistant {
             col_lo.resize(cols.len(), f32::INFINITY);
             col_hi.clear();
             col_hi.resize(cols.len(), f32::NEG_INFINITY);
-            for yy in y.saturating_sub(FILL).max(region.y0)..(y + FILL + 1).min(region.y1) {
-                let row = yy * w;
-                for (m, &v) in col_lo.iter_mut().zip(&lo[row + cols.start..row + cols.end]) {
-                    *m = if v < *m { v } else { *m };
+            let rows = y.saturating_sub(FILL).max(region.y0)..(y + FILL + 1).min(region.y1);
+            // Only the columns some hole's window covers (holes of a row are often far apart).
+            let mut done = cols.start;
+            for &(x, _) in &holes[start..end] {
+                let need = x.saturating_sub(FILL).max(done)..(x + FILL + 1).min(region.x1);
+                for yy in rows.clone() {
+                    let row = yy * w;
+                    for (m, &v) in col_lo[need.start - cols.start..need.end - cols.start].iter_mut().zip(&lo[row + need.start..row + need.end]) {
+                        *m = if v < *m { v } else { *m };
+                    }
+                    for (m, &v) in col_hi[need.start - cols.start..need.end - cols.start].iter_mut().zip(&hi[row + need.start..row + need.end]) {
+                        *m = if v > *m { v } else { *m };
+                    }
                 }
-                for (m, &v) in col_hi.iter_mut().zip(&hi[row + cols.start..row + cols.end]) {
-                    *m = if v > *m { v } else { *m };
-                }
+                done = done.max(need.end);
             }
             for &(x, _) in &holes[start..end] {
                 let xs = x.saturating_sub(FILL).max(region.x0) - cols.start..(x + FILL + 1).min(region.x1) - cols.start;

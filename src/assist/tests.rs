@@ -348,3 +348,66 @@ fn the_kept_frame_is_the_accepted_map_wherever_the_object_moves() {
         a.recycle(plan);
     }
 }
+
+#[test]
+fn holes_take_the_hull_of_the_bounds_around_them() {
+    // Foreground pixels no splat reached (the predicted mode's forward warp leaves many):
+    // each takes the hull of the bounds within FILL pixels, widened by 2 px, rounded outwards
+    // and clipped — or the full range where there are none. Written out directly here, over
+    // the 13 × 13 window of every hole, against what the plan built.
+    let scene = Scene::new();
+    let truth = scene.disparity(4.0);
+    let (w, h) = (truth.width, truth.height);
+    // The object's mask grown by 4 px on both sides (new foreground beside it: filled), and a
+    // patch far from it (nothing around: the full range).
+    let mut mask = Scene::mask(&truth);
+    for y in 0..h {
+        if let (Some(first), Some(last)) = ((0..w).find(|&x| mask[y * w + x] != 0), (0..w).rev().find(|&x| mask[y * w + x] != 0)) {
+            for x in first.saturating_sub(4)..first {
+                mask[y * w + x] = 255;
+            }
+            for x in last + 1..(last + 5).min(w) {
+                mask[y * w + x] = 255;
+            }
+        }
+    }
+    for y in 2..5 {
+        for x in 2..5 {
+            mask[y * w + x] = 255;
+        }
+    }
+    let mut a = assistant(&scene, AssistMode::Predicted, 4);
+    let plan = a.plan(4, Some(&mask), &scene.poses(0..4));
+    assert!(plan.assisted());
+    let (r0, r1) = (0.0f32, 127.0f32);
+    let region = a.region;
+    let (mut filled, mut uncovered) = (0, 0);
+    for y in region.ys() {
+        for x in region.xs() {
+            let (l, u) = (a.lo[y * w + x].max(r0), a.hi[y * w + x].min(r1));
+            if mask[y * w + x] == 0 || l <= u {
+                continue;
+            }
+            let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+            for yy in y.saturating_sub(FILL).max(region.y0)..(y + FILL + 1).min(region.y1) {
+                for xx in x.saturating_sub(FILL).max(region.x0)..(x + FILL + 1).min(region.x1) {
+                    lo = lo.min(a.lo[yy * w + xx]);
+                    hi = hi.max(a.hi[yy * w + xx]);
+                }
+            }
+            let expected = match (lo <= hi).then(|| interval((0, 127), lo - 2.0, hi + 2.0)).flatten() {
+                Some(r) => {
+                    filled += 1;
+                    r
+                }
+                None => {
+                    uncovered += 1;
+                    (0, 127)
+                }
+            };
+            assert_eq!(plan.intervals.get(x, y), Some(expected), "hole ({x}, {y})");
+        }
+    }
+    assert!(filled > 20 && uncovered > 0, "{filled} holes filled, {uncovered} uncovered");
+    assert_eq!((filled, uncovered), (plan.filled_px, plan.uncovered_px));
+}
