@@ -484,20 +484,27 @@ impl Assistant {
             col_hi.clear();
             col_hi.resize(cols.len(), f32::NEG_INFINITY);
             let rows = y.saturating_sub(FILL).max(region.y0)..(y + FILL + 1).min(region.y1);
-            // Only the columns some hole's window covers (holes of a row are often far apart).
-            let mut done = cols.start;
-            for &(x, _) in &holes[start..end] {
-                let need = x.saturating_sub(FILL).max(done)..(x + FILL + 1).min(region.x1);
+            // Only the columns some hole's window covers (holes of a row are often far apart),
+            // as runs of overlapping windows.
+            let mut k = start;
+            while k < end {
+                let seg_start = holes[k].0.saturating_sub(FILL).max(region.x0);
+                let mut seg_end = (holes[k].0 + FILL + 1).min(region.x1);
+                k += 1;
+                while k < end && holes[k].0.saturating_sub(FILL) <= seg_end {
+                    seg_end = (holes[k].0 + FILL + 1).min(region.x1);
+                    k += 1;
+                }
+                let (ca, cb) = (seg_start - cols.start, seg_end - cols.start);
                 for yy in rows.clone() {
                     let row = yy * w;
-                    for (m, &v) in col_lo[need.start - cols.start..need.end - cols.start].iter_mut().zip(&lo[row + need.start..row + need.end]) {
+                    for (m, &v) in col_lo[ca..cb].iter_mut().zip(&lo[row + seg_start..row + seg_end]) {
                         *m = if v < *m { v } else { *m };
                     }
-                    for (m, &v) in col_hi[need.start - cols.start..need.end - cols.start].iter_mut().zip(&hi[row + need.start..row + need.end]) {
+                    for (m, &v) in col_hi[ca..cb].iter_mut().zip(&hi[row + seg_start..row + seg_end]) {
                         *m = if v > *m { v } else { *m };
                     }
                 }
-                done = done.max(need.end);
             }
             for &(x, _) in &holes[start..end] {
                 let xs = x.saturating_sub(FILL).max(region.x0) - cols.start..(x + FILL + 1).min(region.x1) - cols.start;
