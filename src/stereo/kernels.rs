@@ -166,8 +166,11 @@ pub mod avx2 {
     }
 
     /// Horizontal minimum of 16 lanes.
+    ///
+    /// # Safety
+    /// AVX2 must be available.
     #[inline(always)]
-    unsafe fn hmin(v: __m256i) -> u16 {
+    pub unsafe fn hmin(v: __m256i) -> u16 {
         let x = _mm_min_epu16(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
         _mm_extract_epi16::<0>(_mm_minpos_epu16(x)) as u16
     }

@@ -93,8 +93,8 @@ pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize
 /// This row's clipped intervals (`lo`/`hi`, from [`tile_bands`]) into `tlo..=thi`, what is
 /// searched, and — when `blocks` is given (the row path; the narrow-band path has no use for
 /// them) — the block-aligned ranges the row path computes sums over (`ilo..=ihi`, see
-/// [`BLOCK`]); counts searched pixels and pairs. Returns the span from
-/// the first to the last searched pixel (None: nothing searched).
+/// [`BLOCK`]); counts searched pixels and pairs. Returns the span from the first to the last
+/// searched pixel (None: nothing searched).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 pub(super) fn row_intervals(g: Geometry, clipped: (&[i32], &[i32]), tlo: &mut [i32], thi: &mut [i32], blocks: Option<(&mut [i32], &mut [i32])>, stats: &mut MatchStats) -> Option<Range<usize>> {

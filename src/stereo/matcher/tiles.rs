@@ -168,6 +168,7 @@ struct TilePixels<'a> {
 #[target_feature(enable = "avx2")]
 #[inline]
 unsafe fn tile_pixels<const NB: usize>(px: TilePixels, s: &mut StripeScratch, nb: usize) {
+    use crate::stereo::kernels::avx2::hmin;
     use std::arch::x86_64::*;
     let TilePixels { p, g, cs, sad, right_copies, stride, lo, k0, xs: (xa, xb), x0 } = px;
     let (w, n, b) = (g.w, g.n, 2 * g.r + 1);
@@ -253,12 +254,3 @@ unsafe fn tile_pixels<const NB: usize>(px: TilePixels, s: &mut StripeScratch, nb
     }
 }
 
-/// The smallest of sixteen `u16` lanes.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-#[inline]
-unsafe fn hmin(v: std::arch::x86_64::__m256i) -> u16 {
-    use std::arch::x86_64::*;
-    let x = _mm_min_epu16(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
-    _mm_extract_epi16::<0>(_mm_minpos_epu16(x)) as u16
-}
