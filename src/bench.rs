@@ -16,7 +16,7 @@ use std::sync::Arc;
 use nalgebra::{Isometry3, Point3};
 use serde_json::{json, Value};
 
-use crate::assist::{AssistMode, AssistParams, Assistant};
+use crate::assist::{AssistMode, AssistParams, Assistant, Granularity};
 use crate::io;
 use crate::pipeline::{Assist, Pipeline, PipelineError, PipelineOptions, Prepared};
 use crate::recording::{Recording, TurntableAxis};
@@ -45,6 +45,9 @@ pub struct Table1Options {
     pub lag: u64,
     /// Knobs of the assisted modes (the mode itself is set per row).
     pub assist: AssistParams,
+    /// The assisted rows run once per granularity listed (`--assist-granularity
+    /// pixel,tile`); empty = `assist.granularity` alone.
+    pub granularities: Vec<Granularity>,
     pub registration: RegistrationParams,
     /// Frame (index) shown in the figure.
     pub fig_frame: Option<usize>,
@@ -61,6 +64,7 @@ impl Default for Table1Options {
             repeat: 3,
             lag: 0,
             assist: AssistParams::default(),
+            granularities: Vec::new(),
             registration: RegistrationParams::default(),
             fig_frame: None,
         }
@@ -82,8 +86,12 @@ pub enum BenchError {
 pub struct Row {
     pub method: Method,
     pub mode: AssistMode,
+    /// How finely the assisted rows set their ranges (None: no assistance).
+    pub granularity: Option<Granularity>,
     pub frame_ms: Vec<f64>,
     pub interval_ms: Vec<f64>,
+    /// The part of `interval_ms` spent checking and keeping the frame for the next.
+    pub accept_ms: Vec<f64>,
     pub match_ms: Vec<f64>,
     pub lr_check_ms: Vec<f64>,
     pub prefilter_ms: Vec<f64>,
@@ -122,12 +130,14 @@ fn mean(v: &[f64]) -> Option<f64> {
 }
 
 impl Row {
-    fn new(method: Method, mode: AssistMode) -> Row {
+    fn new(method: Method, mode: AssistMode, granularity: Granularity) -> Row {
         Row {
             method,
             mode,
+            granularity: (mode != AssistMode::None).then_some(granularity.resolve(mode)),
             frame_ms: vec![],
             interval_ms: vec![],
+            accept_ms: vec![],
             match_ms: vec![],
             lr_check_ms: vec![],
             prefilter_ms: vec![],
@@ -154,6 +164,7 @@ impl Row {
         self.filled_px.push(o.filled_px);
         self.uncovered_px.push(o.uncovered_px);
         self.interval_ms.push(o.interval_ms);
+        self.accept_ms.push(o.accept_ms);
         self.match_ms.push(o.match_ms);
         let (mut evaluated, mut searched, mut fixed_ns, mut lr_ns) = (0u64, 0usize, 0u64, 0u64);
         for s in [Some(m.stats), o.rejected].into_iter().flatten() {
@@ -187,6 +198,7 @@ impl Row {
             "method": self.method.name(),
             "mode": self.mode.name(),
             "w": self.mode.w(),
+            "granularity": self.granularity.map(|g| g.name()),
             "frame_ms": self.frame_ms,
             "median_ms": self.median_ms(),
             "bad2": self.bad2(),
@@ -199,6 +211,8 @@ impl Row {
             "lr_check_ms": self.lr_check_ms,
             "prefilter_ms": self.prefilter_ms,
             "median_interval_ms": median(&self.interval_ms),
+            "accept_ms": self.accept_ms,
+            "median_accept_ms": median(&self.accept_ms),
             "median_lr_check_ms": median(&self.lr_check_ms),
             "median_prefilter_ms": median(&self.prefilter_ms),
             "median_ns_per_pair": median(&self.ns_per_pair),
@@ -266,12 +280,21 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
     }
     let truth = read_truth(&rec, &frames, pipes[0].rect.disparity_sign)?;
 
-    let mut modes = vec![AssistMode::None];
-    modes.extend(opts.weights.iter().map(|&w| AssistMode::Paper { w }));
+    let mut assisted: Vec<AssistMode> = opts.weights.iter().map(|&w| AssistMode::Paper { w }).collect();
     if opts.predicted {
-        modes.push(AssistMode::Predicted);
+        assisted.push(AssistMode::Predicted);
     }
-    let rows: Vec<(usize, AssistMode)> = (0..pipes.len()).flat_map(|k| modes.iter().map(move |&m| (k, m))).collect();
+    let grains = if opts.granularities.is_empty() { vec![opts.assist.granularity] } else { opts.granularities.clone() };
+    let mut modes = vec![(AssistMode::None, opts.assist.granularity)];
+    for &g in &grains {
+        for &m in &assisted {
+            // (`auto` and the granularity it means for the mode are the same row.)
+            if !modes.iter().any(|&(m2, g2)| m2 == m && g2.resolve(m2) == g.resolve(m)) {
+                modes.push((m, g));
+            }
+        }
+    }
+    let rows: Vec<(usize, (AssistMode, Granularity))> = (0..pipes.len()).flat_map(|k| modes.iter().map(move |&m| (k, m))).collect();
     let fig_frame = opts.fig_frame.unwrap_or(4).min(n - 1);
     let calibrated = TurntableAxis::read_calibrated(dir).map_err(|e| BenchError::Recording(format!("calibrated turntable axis: {e}")))?;
     // Every row keeps its own assistant, pose store and registrar; the rows take turns frame
@@ -287,11 +310,11 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
     }
     let mut states: Vec<RowState> = rows
         .into_iter()
-        .map(|(k, mode)| {
+        .map(|(k, (mode, granularity))| {
             let store = Arc::new(PoseStore::new());
             let registrar = (mode != AssistMode::None).then(|| crate::pipeline::registrar(opts.registration.clone(), calibrated.as_ref(), store.clone()));
-            let row = Row::new(matchers[k].method, mode);
-            RowState { pipe: k, row, assistant: pipes[k].assistant(AssistParams { mode, ..opts.assist.clone() }), store, registrar }
+            let row = Row::new(matchers[k].method, mode, granularity);
+            RowState { pipe: k, row, assistant: pipes[k].assistant(AssistParams { mode, granularity, ..opts.assist.clone() }), store, registrar }
         })
         .collect();
     let mut floor_ms = vec![Vec::new(); pipes.len()];
@@ -557,6 +580,11 @@ fn row_label(r: &Row) -> String {
         AssistMode::None => "without".into(),
         AssistMode::Paper { w } => format!("w = {w}"),
         AssistMode::Predicted => "predicted".into(),
+    };
+    // A row at its mode's default granularity keeps the label it always had.
+    let mode = match r.granularity {
+        Some(g) if g != Granularity::Auto.resolve(r.mode) => format!("{mode} {}", g.name()),
+        _ => mode,
     };
     // The default matcher keeps the labels it always had.
     match r.method {

@@ -42,6 +42,7 @@
 pub mod motion;
 mod region;
 mod splat;
+mod tiles;
 
 use std::collections::VecDeque;
 use std::time::Instant;
@@ -52,6 +53,7 @@ use crate::register::posestore::PoseSnapshot;
 use crate::stereo::{DisparityIntervals, DisparityMap, MatchStats, Rectification};
 use motion::{MotionFilter, MotionNoise};
 use region::{for_each_set, interval, MaskRows, Region, FILL};
+pub use tiles::Granularity;
 
 /// How the search range of a frame is chosen.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -101,12 +103,17 @@ pub enum AssistModeError {
     Weight(f64),
     #[error("assist mode `{0}`: expected none, paper or predicted")]
     Mode(String),
+    #[error("assist granularity `{0}`: expected auto, pixel or tile")]
+    Granularity(String),
 }
 
 /// Knobs of the assisted matcher; see `docs/assisted-matching.md`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct AssistParams {
     pub mode: AssistMode,
+    /// One interval per pixel, or per matcher tile (the hull of its pixels'; tiles.rs), or
+    /// whichever measured faster for the mode (`Auto`).
+    pub granularity: Granularity,
     /// Smallest half-width of an interval, pixels (the sub-pixel fit needs a neighbour on
     /// each side of the best disparity).
     pub min_half_width_px: f64,
@@ -134,6 +141,7 @@ impl Default for AssistParams {
     fn default() -> Self {
         AssistParams {
             mode: AssistMode::Predicted,
+            granularity: Granularity::default(),
             min_half_width_px: 1.0,
             max_radius_px: 32.0,
             predicted_sigma_px: 0.5,
@@ -265,11 +273,14 @@ pub struct Assistant {
     union_needed: Vec<u8>,
     /// An interval buffer handed back, with the region it was written in.
     spare: Option<(DisparityIntervals, Region)>,
+    /// Tile granularity: the hull of each tile's bounds.
+    tiles: tiles::TileBounds,
 }
 
 impl Assistant {
     /// `range`: the matcher's full disparity range, inclusive.
     pub fn new(params: AssistParams, rect: &Rectification, range: (i32, i32)) -> Assistant {
+        let params = AssistParams { granularity: params.granularity.resolve(params.mode), ..params };
         let size = (rect.size.0 as usize, rect.size.1 as usize);
         Assistant {
             filter: MotionFilter::new(params.motion_noise),
@@ -290,6 +301,7 @@ impl Assistant {
             rho: Vec::new(),
             union_needed: Vec::new(),
             spare: None,
+            tiles: tiles::TileBounds::default(),
         }
     }
 
@@ -370,7 +382,10 @@ impl Assistant {
         // Work only where the object is: this frame's foreground and the previous frame's
         // disparities, with room for the largest sphere and the hole fill.
         // (Spheres and predictions that land outside it land outside the foreground.)
-        let Some(region) = Region::of(mask, w, h).map(|r| r.union(&prev.region).grow(FILL + 1, w, h)) else {
+        // (Tiles fill no holes per pixel: one pixel of room, for the 2 × 2 splats that
+        // straddle the foreground's edge.)
+        let fill_room = if self.params.granularity == Granularity::Tile { 1 } else { FILL + 1 };
+        let Some(region) = Region::of(mask, w, h).map(|r| r.union(&prev.region).grow(fill_room, w, h)) else {
             plan.intervals = DisparityIntervals::empty(w, h);
             plan.build_ms = t0.elapsed().as_secs_f64() * 1e3;
             return plan;
@@ -378,8 +393,9 @@ impl Assistant {
         self.region = region;
         self.lo.resize(w * h, f32::INFINITY);
         self.hi.resize(w * h, f32::NEG_INFINITY);
-        if self.params.mode == AssistMode::Predicted {
-            // (`paper` writes every pixel of the region itself.)
+        self.tiles.reset(w, h);
+        if self.params.mode == AssistMode::Predicted && self.params.granularity == Granularity::Pixel {
+            // (`paper` writes every pixel of the region itself; tiles need no per-pixel map.)
             for y in region.ys() {
                 self.lo[y * w + region.x0..y * w + region.x1].fill(f32::INFINITY);
                 self.hi[y * w + region.x0..y * w + region.x1].fill(f32::NEG_INFINITY);
@@ -417,7 +433,46 @@ impl Assistant {
             AssistMode::Predicted => self.splat_predicted(gap, plan.lag, mask, plan),
             AssistMode::None => unreachable!("handled by plan"),
         }
-        plan.intervals = self.intervals(mask, plan);
+        plan.intervals = match self.params.granularity {
+            Granularity::Tile => self.tile_intervals(mask, plan),
+            // (`Auto` was resolved by `new`.)
+            Granularity::Pixel | Granularity::Auto => self.intervals(mask, plan),
+        };
+    }
+
+    /// Tile granularity: the tiles' hulls (the predicted splat filled them; the paper's
+    /// per-pixel bounds are reduced here) into every foreground pixel (tiles.rs).
+    #[inline(always)]
+    fn tile_intervals(&mut self, mask: Option<&[u8]>, plan: &mut Plan) -> DisparityIntervals {
+        let w = self.size.0;
+        let region = self.region;
+        let masks = MaskRows::new(mask, w, &region);
+        match self.params.mode {
+            AssistMode::Paper { .. } => self.tiles.reduce(&self.lo, &self.hi, &masks, w, &region),
+            _ => self.tiles.count(&masks, &region),
+        }
+        let mut iv = self.spare_intervals();
+        self.tiles.intervals(&mut iv, &masks, &region, self.range, plan);
+        if self.params.mode == AssistMode::Predicted {
+            // At tile resolution every foreground pixel of a tile a prediction reached counts
+            // as predicted.
+            let fg = self.tiles.fg_total(&region);
+            plan.single_px = fg - plan.filled_px - plan.uncovered_px;
+        }
+        iv
+    }
+
+    /// A cleared full-size interval buffer: the one handed back by `recycle` (only its old
+    /// region holds intervals) or a new one.
+    fn spare_intervals(&mut self) -> DisparityIntervals {
+        let (w, h) = self.size;
+        match self.spare.take() {
+            Some((mut iv, old)) if (iv.width(), iv.height()) == (w, h) => {
+                iv.clear_rect(old.xs(), old.ys());
+                iv
+            }
+            _ => DisparityIntervals::empty(w, h),
+        }
     }
 
     /// The intervals from the splatted bounds: foreground pixels with bounds search them;
@@ -425,16 +480,9 @@ impl Assistant {
     /// (the disparity of a surface continues across a small gap); the rest the full range.
     #[inline(always)]
     fn intervals(&mut self, mask: Option<&[u8]>, plan: &mut Plan) -> DisparityIntervals {
-        let (w, h) = self.size;
+        let w = self.size.0;
+        let mut iv = self.spare_intervals();
         let (lo, hi, range, region) = (&self.lo, &self.hi, self.range, self.region);
-        let mut iv = match self.spare.take() {
-            // A buffer handed back by `recycle`: only its old region holds intervals.
-            Some((mut iv, old)) if (iv.width(), iv.height()) == (w, h) => {
-                iv.clear_rect(old.xs(), old.ys());
-                iv
-            }
-            _ => DisparityIntervals::empty(w, h),
-        };
         let (r0, r1) = (range.0 as f32, range.1 as f32);
         let mut holes = Vec::new();
         let mut hole_flags = vec![0u8; region.x1 - region.x0];

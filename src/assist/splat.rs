@@ -6,6 +6,7 @@ use nalgebra::{Matrix3, Vector3};
 
 use super::motion;
 use super::region::{ceil, floor, for_each_set, MaskRows};
+use super::tiles::{self, Granularity};
 use super::{Assistant, Plan};
 
 /// Columns of spheres one union pixel gathers from at a time (eight `f32` lanes).
@@ -220,7 +221,9 @@ impl Assistant {
         // Per row: the projections and bounds of every point, branch-free so that it
         // vectorises (NaN where there is no point or it moves behind the camera), then the
         // splats.
-        let (mut idx, mut los, mut his) = (vec![0i32; n], vec![0f32; n], vec![0f32; n]);
+        let (mut xs, mut ys, mut los, mut his) = (vec![0i32; n], vec![-1i32; n], vec![0f32; n], vec![0f32; n]);
+        let tiled = self.params.granularity == Granularity::Tile;
+        let tiles = &mut self.tiles;
         // A prediction splats onto the 2 × 2 pixels from (⌊px⌋, ⌊py⌋): they lie inside the
         // region exactly when x0 ≤ px < x1 − 1 and y0 ≤ py < y1 − 1 (NaN fails).
         let (rx0, rx1, ry0, ry1) = (region.x0 as f32, (region.x1 - 1) as f32, region.y0 as f32, (region.y1 - 1) as f32);
@@ -251,21 +254,32 @@ impl Assistant {
                 let (px, py) = (if inside { px } else { 0.0 }, if inside { py } else { 0.0 });
                 // SAFETY: px and py lie in [0, w) and [0, h), far inside i32.
                 let (x0, y0) = unsafe { (px.to_int_unchecked::<i32>(), py.to_int_unchecked::<i32>()) };
-                idx[k] = if inside { y0 * w as i32 + x0 } else { -1 };
+                (xs[k], ys[k]) = (x0, if inside { y0 } else { -1 });
                 los[k] = pd - half;
                 his[k] = pd + half;
             }
             for k in 0..n {
-                if idx[k] < 0 {
+                if ys[k] < 0 {
                     continue;
                 }
                 let (a, b) = (los[k], his[k]);
-                let i = idx[k] as usize;
+                let (x0, y0) = (xs[k] as usize, ys[k] as usize);
+                if tiled {
+                    // Straight into the tiles: no per-pixel map (tiles.rs).
+                    let (t, right, down) = tiles::splat_tile(x0, y0, tiles.cols());
+                    tiles.add_splat(t, right, down, a, b);
+                    continue;
+                }
+                let i = y0 * w + x0;
                 for j in [i, i + 1, i + w, i + w + 1] {
                     lo[j] = lo[j].min(a);
                     hi[j] = hi[j].max(b);
                 }
             }
+        }
+        if tiled {
+            // Counted per tile (tiles.rs).
+            return;
         }
         let masks = MaskRows::new(mask, w, &region);
         let mut singles = 0;

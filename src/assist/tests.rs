@@ -76,8 +76,13 @@ fn containment(plan: &Plan, truth: &DisparityMap) -> (f64, f64, usize) {
     (inside as f64 / n as f64, width / n as f64, n)
 }
 
+/// An assistant at the pixel granularity (the rules as written) that has seen `frames` frames.
 fn assistant(scene: &Scene, mode: AssistMode, frames: u64) -> Assistant {
-    let mut a = Assistant::new(AssistParams { mode, ..Default::default() }, &scene.rect, (0, 127));
+    assistant_at(scene, mode, Granularity::Pixel, frames)
+}
+
+fn assistant_at(scene: &Scene, mode: AssistMode, granularity: Granularity, frames: u64) -> Assistant {
+    let mut a = Assistant::new(AssistParams { mode, granularity, ..Default::default() }, &scene.rect, (0, 127));
     for k in 0..frames {
         let d = scene.disparity(k as f64);
         let plan = a.plan(k, Some(&Scene::mask(&d)), &scene.poses(0..k));
@@ -189,14 +194,17 @@ fn predicted_intervals_hold_the_true_disparity_and_are_narrow() {
     let scene = Scene::new();
     let truth = scene.disparity(4.0);
     let mask = Scene::mask(&truth);
-    let mut p = assistant(&scene, AssistMode::Predicted, 4);
-    let plan = p.plan(4, Some(&mask), &scene.poses(0..4));
-    assert!(plan.assisted());
-    let (inside, width, _) = containment(&plan, &truth);
-    assert!(inside > 0.99, "{inside}");
-    // ±(3 × 0.5 px) around the prediction, rounded outwards, hull of 2 × 2 splats.
-    assert!(width < 7.0, "{width}");
-    assert!(plan.single_px > 0 && plan.uncovered_px * 50 < plan.single_px, "{} single, {} uncovered", plan.single_px, plan.uncovered_px);
+    // ±(3 × 0.5 px) around the prediction, rounded outwards, hull of 2 × 2 splats; per tile,
+    // the hull over 32 × 16 pixels of the sphere's slanting surface.
+    for (granularity, narrow) in [(Granularity::Pixel, 7.0), (Granularity::Tile, 12.0)] {
+        let mut p = assistant_at(&scene, AssistMode::Predicted, granularity, 4);
+        let plan = p.plan(4, Some(&mask), &scene.poses(0..4));
+        assert!(plan.assisted());
+        let (inside, width, _) = containment(&plan, &truth);
+        assert!(inside > 0.99, "{granularity:?}: {inside}");
+        assert!(width < narrow, "{granularity:?}: {width}");
+        assert!(plan.single_px > 0 && plan.uncovered_px * 50 < plan.single_px, "{granularity:?}: {} single, {} uncovered", plan.single_px, plan.uncovered_px);
+    }
 }
 
 #[test]
@@ -302,8 +310,9 @@ fn the_working_region_follows_the_object_and_does_not_creep() {
     // grown by the fill distance: over many frames of an object that stays put in the image,
     // it stays as large as that (it once grew by the fill distance at every frame).
     let scene = Scene::new();
-    for mode in [AssistMode::Paper { w: 0.8 }, AssistMode::Predicted] {
-        let mut a = assistant(&scene, mode, 3);
+    // (Tiles keep one pixel of room, for splats straddling the foreground's edge.)
+    for (mode, granularity, room) in [(AssistMode::Paper { w: 0.8 }, Granularity::Pixel, FILL + 1), (AssistMode::Predicted, Granularity::Pixel, FILL + 1), (AssistMode::Predicted, Granularity::Tile, 1)] {
+        let mut a = assistant_at(&scene, mode, granularity, 3);
         for k in 3..20u64 {
             let d = scene.disparity(k as f64);
             let mask = Scene::mask(&d);
@@ -312,7 +321,7 @@ fn the_working_region_follows_the_object_and_does_not_creep() {
             assert!(plan.assisted(), "{mode:?} frame {k}: {:?}", plan.full_range);
             let (w, h) = (d.width, d.height);
             let full = Region { x0: 0, x1: w, y0: 0, y1: h };
-            let bound = Region::of(Some(&mask), w, h).unwrap().union(&Region::of_disparity(&prev, full)).grow(FILL + 1, w, h);
+            let bound = Region::of(Some(&mask), w, h).unwrap().union(&Region::of_disparity(&prev, full)).grow(room, w, h);
             assert_eq!(a.region, bound, "{mode:?} frame {k}");
             assert!(a.accept(k, &plan, &d, Some(&mask), &stats(0.9)).is_none());
             a.recycle(plan);
@@ -410,4 +419,63 @@ fn holes_take_the_hull_of_the_bounds_around_them() {
     }
     assert!(filled > 20 && uncovered > 0, "{filled} holes filled, {uncovered} uncovered");
     assert_eq!((filled, uncovered), (plan.filled_px, plan.uncovered_px));
+}
+
+/// Pixel and tile granularity on the same frames: the tile's interval is the hull of the
+/// pixel rule's bounds over the tile — exactly over its foreground pixels (`paper`, reduced
+/// from the per-pixel bounds), or between that and the hull over all its pixels
+/// (`predicted`, whose splats go straight into the tiles, foreground or not).
+#[test]
+fn tile_intervals_are_the_hull_of_the_pixel_rule_over_each_tile() {
+    use crate::stereo::BAND_TILE;
+    let scene = Scene::new();
+    let truth = scene.disparity(4.0);
+    let mask = Scene::mask(&truth);
+    let (w, h) = (truth.width, truth.height);
+    for mode in [AssistMode::Predicted, AssistMode::Paper { w: 0.8 }] {
+        let with = |granularity| {
+            let mut a = Assistant::new(AssistParams { mode, granularity, ..Default::default() }, &scene.rect, (0, 127));
+            for k in 0..4 {
+                let d = scene.disparity(k as f64);
+                let plan = a.plan(k, Some(&Scene::mask(&d)), &scene.poses(0..k));
+                assert!(a.accept(k, &plan, &d, Some(&Scene::mask(&d)), &stats(0.9)).is_none());
+            }
+            let plan = a.plan(4, Some(&mask), &scene.poses(0..4));
+            assert!(plan.assisted());
+            (a, plan)
+        };
+        let (px, _) = with(Granularity::Pixel);
+        let (_, tiled) = with(Granularity::Tile);
+        let (mut checked, mut fg_px) = (0, 0);
+        for ty in 0..h.div_ceil(BAND_TILE.1) {
+            for tx in 0..w.div_ceil(BAND_TILE.0) {
+                let pixels: Vec<(usize, usize)> = (ty * BAND_TILE.1..((ty + 1) * BAND_TILE.1).min(h)).flat_map(|y| (tx * BAND_TILE.0..((tx + 1) * BAND_TILE.0).min(w)).map(move |x| (x, y))).collect();
+                let hull = |only_fg: bool| {
+                    let inside = |&&(x, y): &&(usize, usize)| (!only_fg || mask[y * w + x] != 0) && px.region.xs().contains(&x) && px.region.ys().contains(&y);
+                    let a = pixels.iter().filter(inside).map(|&(x, y)| px.lo[y * w + x]).fold(f32::INFINITY, f32::min);
+                    let b = pixels.iter().filter(inside).map(|&(x, y)| px.hi[y * w + x]).fold(f32::NEG_INFINITY, f32::max);
+                    interval((0, 127), a, b)
+                };
+                let fg: Vec<_> = pixels.iter().filter(|&&(x, y)| mask[y * w + x] != 0).collect();
+                let Some(&&(x0, y0)) = fg.first() else {
+                    assert!(pixels.iter().all(|&(x, y)| tiled.intervals.get(x, y).is_none()), "{mode:?}: background searched in tile ({tx}, {ty})");
+                    continue;
+                };
+                let band = tiled.intervals.get(x0, y0);
+                assert!(fg.iter().all(|&&(x, y)| tiled.intervals.get(x, y) == band), "{mode:?}: tile ({tx}, {ty}) is not one interval");
+                fg_px += fg.len();
+                let Some(exact) = hull(true) else { continue };
+                let band = band.expect("a tile with bounds is searched");
+                match mode {
+                    AssistMode::Paper { .. } => assert_eq!(band, exact, "{mode:?}: tile ({tx}, {ty})"),
+                    _ => {
+                        let all = hull(false).expect("holds the foreground's");
+                        assert!(all.0 <= band.0 && band.0 <= exact.0 && exact.1 <= band.1 && band.1 <= all.1, "{mode:?}: tile ({tx}, {ty}): {band:?} not between {exact:?} and {all:?}");
+                    }
+                }
+                checked += 1;
+            }
+        }
+        assert!(checked > 20 && fg_px == mask.iter().filter(|&&m| m != 0).count(), "{mode:?}: {checked} tiles");
+    }
 }

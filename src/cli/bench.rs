@@ -7,7 +7,7 @@ use clap::{Args, Subcommand};
 use serde_json::json;
 
 use super::{input, output, progress, AssistArgs, Failure, MatchArgs};
-use spinscan::assist::AssistMode;
+use spinscan::assist::{AssistMode, Granularity};
 use spinscan::io;
 use spinscan::pipeline::PipelineOptions;
 
@@ -53,6 +53,11 @@ pub struct Table1Args {
     /// Leave out the predicted row.
     #[arg(long)]
     pub no_predicted: bool,
+    /// How finely the assisted rows set their search ranges: `pixel` (each pixel its own
+    /// interval), `tile` (one per matcher tile) or `auto` (tiles for predicted, pixels for
+    /// paper); a list (e.g. `pixel,tile`) runs the assisted rows once per entry, side by side.
+    #[arg(long, default_value = "auto", value_delimiter = ',')]
+    pub assist_granularity: Vec<String>,
     #[command(flatten)]
     pub assist: AssistArgs,
     #[command(flatten)]
@@ -88,6 +93,9 @@ pub struct LiveArgs {
     /// Assistance: predicted, paper or none.
     #[arg(long, default_value = "predicted")]
     pub assist: String,
+    /// How finely the assisted search range is set: auto, pixel or tile.
+    #[arg(long, default_value = "auto")]
+    pub assist_granularity: String,
     /// Write the runs as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -101,6 +109,7 @@ pub fn cmd_bench_live(a: LiveArgs) -> Result<(), Failure> {
     config.scan.register_max_points = a.register_max_points;
     config.matching.num_disparities = a.num_disparities;
     config.matching.assist = a.assist.clone();
+    config.matching.assist_granularity = a.assist_granularity.clone();
     config.validate(Path::new("bench live flags")).map_err(input)?;
     if a.pairs == 0 || a.pace.iter().any(|p| p.is_nan() || *p <= 0.0) {
         return Err(input("--pairs must be at least 1 and every --pace positive"));
@@ -111,10 +120,10 @@ pub fn cmd_bench_live(a: LiveArgs) -> Result<(), Failure> {
     let _ = std::fs::remove_dir_all(&work);
     let runs = runs?;
     let threads = if a.matcher_threads == 0 { std::thread::available_parallelism().map_or(2, |n| n.get()) } else { a.matcher_threads };
-    println!("live pipeline: {} matcher threads, queue {}, {} disparities, assist {}, registration ≤ {} points/view", threads, a.queue_depth, a.num_disparities, a.assist, a.register_max_points);
+    println!("live pipeline: {} matcher threads, queue {}, {} disparities, assist {} ({}), registration ≤ {} points/view", threads, a.queue_depth, a.num_disparities, a.assist, a.assist_granularity, a.register_max_points);
     print!("{}", spinscan::daemon::throughput::render(&runs));
     if let Some(path) = &a.json {
-        let v = json!({"matcher_threads": threads, "queue_depth": a.queue_depth, "num_disparities": a.num_disparities, "assist": a.assist, "runs": runs.iter().map(|r| r.to_json()).collect::<Vec<_>>()});
+        let v = json!({"matcher_threads": threads, "queue_depth": a.queue_depth, "num_disparities": a.num_disparities, "assist": a.assist, "assist_granularity": a.assist_granularity, "runs": runs.iter().map(|r| r.to_json()).collect::<Vec<_>>()});
         io::write_atomic(path, serde_json::to_string_pretty(&v).unwrap().as_bytes()).map_err(|e| output(format!("cannot write {}: {e}", path.display())))?;
     }
     Ok(())
@@ -145,6 +154,13 @@ pub fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
             p
         })
         .collect();
+    let mut granularities = Vec::new();
+    for g in &a.assist_granularity {
+        let g = Granularity::parse(g).map_err(|e| input(format!("--assist-granularity: {e}")))?;
+        if !granularities.contains(&g) {
+            granularities.push(g);
+        }
+    }
     let opts = spinscan::bench::Table1Options {
         pipeline: PipelineOptions { min_disparity: a.matching.min_disparity, matching: matchers[0].clone(), ..Default::default() },
         matchers,
@@ -154,6 +170,7 @@ pub fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
         repeat: a.repeat,
         lag: a.lag,
         assist: a.assist.params(AssistMode::Predicted)?,
+        granularities,
         fig_frame: Some(a.fig_frame - 1),
         ..Default::default()
     };

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use clap::Args;
 
-use spinscan::assist::{AssistMode, AssistParams};
+use spinscan::assist::{AssistMode, AssistParams, Granularity};
 use spinscan::io::{self, LoadedImage};
 use spinscan::pipeline::replay::ReplayOptions;
 use spinscan::pipeline::PipelineOptions;
@@ -256,6 +256,11 @@ pub struct AssistModeArgs {
     /// The paper's weighting factor w (with --assist paper).
     #[arg(long, default_value_t = 0.8)]
     pub assist_w: f64,
+    /// How finely the search range is set: `pixel` (each pixel its own interval), `tile`
+    /// (one interval per 32 × 16 matcher tile, the hull of its pixels'), or `auto` (tiles
+    /// for predicted, pixels for paper: what measured faster for each).
+    #[arg(long, default_value = "auto")]
+    pub assist_granularity: String,
     #[command(flatten)]
     pub knobs: AssistArgs,
 }
@@ -266,7 +271,10 @@ impl AssistModeArgs {
         let mode = AssistMode::parse(self.assist.as_deref().unwrap_or("predicted"), self.assist_w).map_err(|e| input(format!("--assist: {e}")))?;
         match (mode, registering) {
             (AssistMode::None, _) => Ok(None),
-            (_, true) => Ok(Some(self.knobs.params(mode)?)),
+            (_, true) => {
+                let granularity = Granularity::parse(&self.assist_granularity).map_err(|e| input(format!("--assist-granularity: {e}")))?;
+                Ok(Some(AssistParams { granularity, ..self.knobs.params(mode)? }))
+            }
             (_, false) if self.assist.is_some() => Err(input(format!("--assist {} uses the registered motion, which --no-register turns off", mode.name()))),
             (_, false) => Ok(None),
         }

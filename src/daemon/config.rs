@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
-use crate::assist::{AssistMode, AssistModeError, AssistParams};
+use crate::assist::{AssistMode, AssistModeError, AssistParams, Granularity};
 use crate::hw::sim::SimSection;
 use crate::hw::DriverConfig;
 use crate::pipeline::live::{check_step_deg, check_total_deg, PipelineSettings, SpecError, MAX_MATCHER_THREADS, MAX_QUEUE_DEPTH};
@@ -276,6 +276,9 @@ pub struct MatchingSection {
     pub assist: String,
     /// The paper's weighting factor w (mode "paper").
     pub assist_w: f64,
+    /// "auto" (tiles for "predicted", pixels for "paper"), "pixel" (each pixel its own
+    /// search interval) or "tile" (one per matcher tile).
+    pub assist_granularity: String,
     /// Segment the blue screen.
     pub segment: bool,
 }
@@ -285,7 +288,7 @@ impl Default for MatchingSection {
         // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
         // about 330 mm on.
         let m = crate::stereo::MatchParams::default();
-        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, assist: "predicted".into(), assist_w: 0.8, segment: true }
+        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true }
     }
 }
 
@@ -412,7 +415,8 @@ impl Config {
             return bad(key, format!("{}, got {}", e.expected, e.value));
         }
         if let Err(e) = self.assist() {
-            return bad("matching.assist", e.to_string());
+            let key = if matches!(e, AssistModeError::Granularity(_)) { "matching.assist_granularity" } else { "matching.assist" };
+            return bad(key, e.to_string());
         }
         if let Err(e) = crate::hw::sim::check_object(&self.sim.object) {
             return bad("sim.object", e.to_string());
@@ -459,7 +463,8 @@ impl Config {
     /// Registration-assisted matching settings (None: full range every frame).
     pub fn assist(&self) -> Result<Option<AssistParams>, AssistModeError> {
         let mode = AssistMode::parse(&self.matching.assist, self.matching.assist_w)?;
-        Ok((!matches!(mode, AssistMode::None)).then(|| AssistParams { mode, ..AssistParams::default() }))
+        let granularity = Granularity::parse(&self.matching.assist_granularity)?;
+        Ok((!matches!(mode, AssistMode::None)).then(|| AssistParams { mode, granularity, ..AssistParams::default() }))
     }
 }
 
@@ -501,6 +506,8 @@ mod tests {
         assert!(e.contains("backend.replay"), "{e}");
         let e = Config::parse(p, "[matching]\nassist = \"sometimes\"\n").unwrap_err().to_string();
         assert!(e.contains("matching.assist"), "{e}");
+        let e = Config::parse(p, "[matching]\nassist_granularity = \"block\"\n").unwrap_err().to_string();
+        assert!(e.contains("matching.assist_granularity") && e.contains("expected auto, pixel or tile"), "{e}");
     }
 
     #[test]

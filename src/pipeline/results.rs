@@ -164,6 +164,7 @@ impl ResultsWriter {
             entry["assist"] = json!({
                 "mode": assist.map(|p| p.mode.name()),
                 "w": assist.and_then(|p| p.mode.w()),
+                "granularity": assist.map(|p| p.granularity.resolve(p.mode).name()),
                 "full_range_reason": a.full_range,
                 "fallback_reason": a.fallback,
                 "interval_ms": a.interval_ms,

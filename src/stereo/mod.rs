@@ -11,6 +11,6 @@ pub mod speckle;
 pub mod triangulate;
 
 pub use disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
-pub use matcher::{MatchError, StereoMatcher};
+pub use matcher::{MatchError, StereoMatcher, BAND_TILE};
 pub use params::{MatchParams, Method, ParamError, ValidMatchParams};
 pub use rectify::{Rectification, RectifyError, RemapTable};

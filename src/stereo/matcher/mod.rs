@@ -67,6 +67,11 @@ pub enum MatchError {
 }
 
 
+/// The matcher's tiles, `(width, height)` in pixels, counted from the image's top-left corner
+/// (the crop and the threads' stripes start on tile boundaries): a caller that gives every
+/// pixel of a tile the same interval gives the narrow-band path one band per tile.
+pub const BAND_TILE: (usize, usize) = (TILE_W, TILE_H);
+
 /// Rows each semi-global stripe adds above and below its own: where its vertical paths start.
 const SGM_OVERLAP: usize = 32;
 /// Fewest rows per semi-global stripe (smaller images run as one).
@@ -127,6 +132,9 @@ impl Crop {
         let left = (x0 as i64 - m - dhi.max(0) as i64).max(0) as usize;
         let right = ((x1 as i64 + m - dlo.min(0) as i64) as usize).min(w - 1);
         let top = y0.saturating_sub(m as usize);
+        // Started on a tile boundary, so that the narrow-band path's tiles are the image's
+        // (a few more columns and rows of prefilter; the results are the same).
+        let (left, top) = (left / TILE_W * TILE_W, top / TILE_H * TILE_H);
         let bottom = (y1 + m as usize).min(h - 1);
         // Too narrow a crop to hold a window: match the whole image.
         if right - left + 1 < 2 {
@@ -244,7 +252,8 @@ impl StereoMatcher {
 
         let threads = self.params.thread_count().min(h).max(1);
         self.stripes.resize_with(threads, StripeScratch::default);
-        let rows_per = h.div_ceil(threads);
+        // Stripes start on tile rows (see `BAND_TILE`).
+        let rows_per = h.div_ceil(threads).next_multiple_of(TILE_H);
         let params = &self.params;
         let input = StripeInput { p: params, g: geo, lpf: &self.left_pf, rrev: &self.right_pf_rev, intervals };
         let mut totals = MatchStats { prefilter_ns, ..MatchStats::default() };

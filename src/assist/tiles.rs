@@ -1,0 +1,281 @@
+//! Tile granularity (`--assist-granularity tile`): one search interval per tile of the
+//! matcher ([`BAND_TILE`], 32 × 16 pixels, counted from the image's corner), the hull of the
+//! intervals the mode's rule gives the tile's pixels.
+//!
+//! The matcher's narrow-band path sums costs over a tile's band anyway (the union of its
+//! pixels' intervals, in whole blocks of 16 disparities); what a per-pixel interval adds is
+//! the masking of each pixel inside that band — and a per-pixel map to build. At tile
+//! resolution the predicted mode needs no per-pixel map at all: every previous point's
+//! prediction goes straight into the hull of the tile (or tiles) its 2 × 2 splat lands on,
+//! O(points). The paper mode splats its two cases per pixel as before (the union of case 2
+//! is taken per pixel, exactly) and reduces them per tile.
+//!
+//! Every foreground pixel of a tile searches the tile's hull, clipped and rounded outwards
+//! (so a pixel no interval reached searches what its tile's other pixels search). A tile with
+//! foreground but no interval at all takes the hull of its eight neighbours' hulls widened by
+//! 2 px; only where those are empty too, the full range.
+
+use super::region::{interval, MaskRows, Region};
+use super::{AssistMode, AssistModeError, Plan};
+use crate::stereo::{DisparityIntervals, BAND_TILE};
+
+const TW: usize = BAND_TILE.0;
+const TH: usize = BAND_TILE.1;
+/// A tile filled from its neighbours takes their hull widened by this much, pixels (as a
+/// pixel's hole fill does).
+const MARGIN: f32 = 2.0;
+
+/// How finely the assisted search range is set.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Granularity {
+    /// What measured fastest for the mode: tiles for `predicted` (no per-pixel map to
+    /// build), pixels for `paper` (its union of spheres is taken per pixel either way).
+    #[default]
+    Auto,
+    /// Every pixel its own interval (the rule as written).
+    Pixel,
+    /// One interval per matcher tile: the hull of its pixels' intervals.
+    Tile,
+}
+
+impl Granularity {
+    pub fn name(&self) -> &'static str {
+        match self {
+            Granularity::Auto => "auto",
+            Granularity::Pixel => "pixel",
+            Granularity::Tile => "tile",
+        }
+    }
+
+    pub fn parse(name: &str) -> Result<Granularity, AssistModeError> {
+        match name {
+            "auto" => Ok(Granularity::Auto),
+            "pixel" => Ok(Granularity::Pixel),
+            "tile" => Ok(Granularity::Tile),
+            other => Err(AssistModeError::Granularity(other.to_string())),
+        }
+    }
+
+    /// `Pixel` or `Tile`: what `Auto` means for `mode`.
+    pub fn resolve(self, mode: AssistMode) -> Granularity {
+        match (self, mode) {
+            (Granularity::Auto, AssistMode::Predicted) => Granularity::Tile,
+            (Granularity::Auto, _) => Granularity::Pixel,
+            (g, _) => g,
+        }
+    }
+}
+
+/// Per tile of the image: the hull `lo..=hi` of the bounds splatted into it, and how many
+/// of its pixels are foreground.
+#[derive(Clone, Default)]
+pub(super) struct TileBounds {
+    cols: usize,
+    rows: usize,
+    lo: Vec<f32>,
+    hi: Vec<f32>,
+    fg: Vec<u32>,
+}
+
+impl TileBounds {
+    /// Empties every tile of a `w × h` image.
+    pub(super) fn reset(&mut self, w: usize, h: usize) {
+        (self.cols, self.rows) = (w.div_ceil(TW), h.div_ceil(TH));
+        let n = self.cols * self.rows;
+        for (v, fill) in [(&mut self.lo, f32::INFINITY), (&mut self.hi, f32::NEG_INFINITY)] {
+            v.clear();
+            v.resize(n, fill);
+        }
+        self.fg.clear();
+        self.fg.resize(n, 0);
+    }
+
+    pub(super) fn cols(&self) -> usize {
+        self.cols
+    }
+
+    /// Foreground pixels counted in the tiles over `region`.
+    pub(super) fn fg_total(&self, region: &Region) -> usize {
+        let (tx, ty) = (region.x0 / TW..region.x1.div_ceil(TW), region.y0 / TH..region.y1.div_ceil(TH));
+        ty.flat_map(|y| tx.clone().map(move |x| (x, y))).map(|(x, y)| self.fg[y * self.cols + x] as usize).sum()
+    }
+
+    /// Widens tile `t`'s hull to hold `a..=b`.
+    #[inline(always)]
+    pub(super) fn add(&mut self, t: usize, a: f32, b: f32) {
+        self.lo[t] = self.lo[t].min(a);
+        self.hi[t] = self.hi[t].max(b);
+    }
+
+    /// The tiles of the 2 × 2 pixels from `(x, y)`, given as the tile of `(x, y)` and whether
+    /// the pixels cross into the next tile column and row: widened to hold `a..=b`.
+    #[inline(always)]
+    pub(super) fn add_splat(&mut self, t: usize, right: bool, down: bool, a: f32, b: f32) {
+        self.add(t, a, b);
+        if right {
+            self.add(t + 1, a, b);
+        }
+        if down {
+            self.add(t + self.cols, a, b);
+            if right {
+                self.add(t + self.cols + 1, a, b);
+            }
+        }
+    }
+
+    /// Widens each tile over `region` to hold the per-pixel bounds `lo`/`hi` (row-major,
+    /// `w` wide) of its foreground pixels, and counts them.
+    pub(super) fn reduce(&mut self, lo: &[f32], hi: &[f32], masks: &MaskRows, w: usize, region: &Region) {
+        for y in region.ys() {
+            let m_row = masks.row(y);
+            let trow = y / TH * self.cols;
+            for (xs, t) in segments(region) {
+                let (m, k) = (&m_row[xs.start - region.x0..xs.end - region.x0], y * w + xs.start..y * w + xs.end);
+                // Branch-free, so that it vectorises.
+                let (mut a, mut b, mut count) = (f32::INFINITY, f32::NEG_INFINITY, 0u32);
+                for ((&m, &l), &u) in m.iter().zip(&lo[k.clone()]).zip(&hi[k]) {
+                    let here = m != 0;
+                    a = a.min(if here { l } else { f32::INFINITY });
+                    b = b.max(if here { u } else { f32::NEG_INFINITY });
+                    count += here as u32;
+                }
+                self.add(trow + t, a, b);
+                self.fg[trow + t] += count;
+            }
+        }
+    }
+
+    /// Counts the foreground pixels of each tile over `region`.
+    pub(super) fn count(&mut self, masks: &MaskRows, region: &Region) {
+        for y in region.ys() {
+            let m_row = masks.row(y);
+            let trow = y / TH * self.cols;
+            for (xs, t) in segments(region) {
+                let m = &m_row[xs.start - region.x0..xs.end - region.x0];
+                self.fg[trow + t] += m.iter().fold(0u32, |c, &m| c + (m != 0) as u32);
+            }
+        }
+    }
+
+    /// The intervals: every foreground pixel of `region` its tile's hull (see the module
+    /// docs), written into `iv`; counts filled and full-range pixels into the plan.
+    pub(super) fn intervals(&self, iv: &mut DisparityIntervals, masks: &MaskRows, region: &Region, range: (i32, i32), plan: &mut Plan) {
+        let n = self.cols * self.rows;
+        // Per tile: its clipped hull, or its neighbours' widened, or the full range.
+        let mut bands = vec![(1i16, 0i16); n];
+        let (ty0, ty1) = (region.y0 / TH, region.y1.div_ceil(TH));
+        let (tx0, tx1) = (region.x0 / TW, region.x1.div_ceil(TW));
+        for ty in ty0..ty1 {
+            for tx in tx0..tx1 {
+                let t = ty * self.cols + tx;
+                if self.fg[t] == 0 {
+                    continue;
+                }
+                let own = interval(range, self.lo[t], self.hi[t]);
+                let band = own.or_else(|| {
+                    let (mut a, mut b) = (f32::INFINITY, f32::NEG_INFINITY);
+                    for ny in ty.saturating_sub(1)..(ty + 2).min(self.rows) {
+                        for nx in tx.saturating_sub(1)..(tx + 2).min(self.cols) {
+                            let u = ny * self.cols + nx;
+                            if interval(range, self.lo[u], self.hi[u]).is_some() {
+                                (a, b) = (a.min(self.lo[u]), b.max(self.hi[u]));
+                            }
+                        }
+                    }
+                    let filled = (a <= b).then(|| interval(range, a - MARGIN, b + MARGIN)).flatten();
+                    match filled {
+                        Some(_) => plan.filled_px += self.fg[t] as usize,
+                        None => plan.uncovered_px += self.fg[t] as usize,
+                    }
+                    Some(filled.unwrap_or(range))
+                });
+                let (a, b) = band.expect("always set");
+                bands[t] = (a as i16, b as i16);
+            }
+        }
+        for y in region.ys() {
+            let m_row = masks.row(y);
+            let trow = y / TH * self.cols;
+            let (out_lo, out_hi) = iv.row_mut(y);
+            for (xs, t) in segments(region) {
+                let (a, b) = bands[trow + t];
+                let m = &m_row[xs.start - region.x0..xs.end - region.x0];
+                // Branch-free, so that it vectorises.
+                for ((&m, l), u) in m.iter().zip(&mut out_lo[xs.clone()]).zip(&mut out_hi[xs.clone()]) {
+                    (*l, *u) = if m != 0 { (a, b) } else { (1, 0) };
+                }
+            }
+        }
+    }
+}
+
+/// The columns of `region` cut at tile boundaries, with each piece's tile column.
+fn segments(region: &Region) -> impl Iterator<Item = (std::ops::Range<usize>, usize)> + '_ {
+    (region.x0 / TW..region.x1.div_ceil(TW)).map(move |t| ((t * TW).max(region.x0)..((t + 1) * TW).min(region.x1), t))
+}
+
+/// The tile of pixel `(x, y)` in a grid `cols` tiles wide, and whether the 2 × 2 pixels from
+/// it cross into the next tile column and row.
+#[inline(always)]
+pub(super) fn splat_tile(x: usize, y: usize, cols: usize) -> (usize, bool, bool) {
+    (y / TH * cols + x / TW, x % TW == TW - 1, y % TH == TH - 1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_tile_searches_the_hull_of_its_pixels_and_empty_tiles_take_their_neighbours() {
+        let (w, h) = (96, 48);
+        let region = Region { x0: 0, x1: w, y0: 0, y1: h };
+        let mut mask = vec![0u8; w * h];
+        // Foreground: columns 10..70 of rows 5..40.
+        for y in 5..40 {
+            mask[y * w + 10..y * w + 70].fill(1);
+        }
+        let (mut lo, mut hi) = (vec![f32::INFINITY; w * h], vec![f32::NEG_INFINITY; w * h]);
+        // Tile (0, 0): two pixels with bounds; one background pixel whose bounds must not count.
+        (lo[6 * w + 12], hi[6 * w + 12]) = (20.3, 24.6);
+        (lo[9 * w + 30], hi[9 * w + 30]) = (18.5, 21.0);
+        (lo[2 * w + 3], hi[2 * w + 3]) = (0.0, 100.0);
+        // Tile (1, 0): one pixel.
+        (lo[7 * w + 40], hi[7 * w + 40]) = (50.0, 52.0);
+        let masks = MaskRows::new(Some(&mask), w, &region);
+        let mut t = TileBounds::default();
+        t.reset(w, h);
+        t.reduce(&lo, &hi, &masks, w, &region);
+        let mut iv = DisparityIntervals::empty(w, h);
+        let mut plan = Plan { intervals: DisparityIntervals::empty(0, 0), full_range: None, single_px: 0, union_px: 0, filled_px: 0, uncovered_px: 0, lag: 0, build_ms: 0.0 };
+        t.intervals(&mut iv, &masks, &region, (0, 127), &mut plan);
+        // Every foreground pixel of tile (0, 0) searches 18..=25; background nothing.
+        assert_eq!(iv.get(12, 6), Some((18, 25)));
+        assert_eq!(iv.get(31, 15), Some((18, 25)));
+        assert_eq!(iv.get(3, 2), None);
+        assert_eq!(iv.get(40, 7), Some((50, 52)));
+        // Tile (2, 0) (columns 64..96) has foreground and no bounds: its neighbours' hull
+        // (tile (1, 0) and tiles (1, 1), (2, 1) — empty) widened by 2.
+        assert_eq!(iv.get(65, 7), Some((48, 54)));
+        // Tile (0, 1) (rows 16..32): neighbours (0, 0) and (1, 0): 18.5..52 → 16..=54.
+        assert_eq!(iv.get(12, 20), Some((16, 54)));
+        // Tile (0, 2) (rows 32..48): its neighbours are tiles of row 1, all empty: full range.
+        assert_eq!(iv.get(12, 35), Some((0, 127)));
+        let fg_tile = |tx: usize, ty: usize| (ty * TH..(ty + 1) * TH).flat_map(|y| (tx * TW..(tx + 1) * TW).map(move |x| (x, y))).filter(|&(x, y)| mask[y * w + x] != 0).count();
+        assert_eq!(plan.uncovered_px, fg_tile(0, 2) + fg_tile(1, 2) + fg_tile(2, 2));
+        assert_eq!(plan.filled_px, fg_tile(2, 0) + fg_tile(0, 1) + fg_tile(1, 1) + fg_tile(2, 1));
+    }
+
+    #[test]
+    fn splats_on_tile_corners_reach_every_tile_they_touch() {
+        let mut t = TileBounds::default();
+        t.reset(96, 48);
+        let (tile, right, down) = splat_tile(31, 15, t.cols());
+        assert_eq!((tile, right, down), (0, true, true));
+        t.add_splat(tile, right, down, 10.0, 12.0);
+        for u in [0, 1, 3, 4] {
+            assert_eq!((t.lo[u], t.hi[u]), (10.0, 12.0), "tile {u}");
+        }
+        assert_eq!(t.lo[2], f32::INFINITY);
+        assert_eq!(splat_tile(40, 20, 3), (4, false, false));
+    }
+}
