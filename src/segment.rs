@@ -65,15 +65,21 @@ impl ChromaKey {
         let key = chromaticity(&self.key_rgb).unwrap_or((0.0, 0.0));
         let tol2 = self.tolerance * self.tolerance;
         let mut mask = vec![0u8; width * height];
-        for (i, m) in mask.iter_mut().enumerate() {
-            let px = &rgb[i * 3..i * 3 + 3];
-            let bright = px.iter().map(|&v| v as u16).sum::<u16>() >= self.dark_level;
-            let keyed = bright
-                && chromaticity(px).is_some_and(|(r, g)| (r - key.0).powi(2) + (g - key.1).powi(2) <= tol2);
-            let plated = plate.is_some_and(|p| {
-                px.iter().zip(&p[i * 3..i * 3 + 3]).all(|(&a, &b)| a.abs_diff(b) <= self.plate_tolerance)
-            });
-            *m = if keyed || plated { 0 } else { 255 };
+        // Branch-free per pixel, so that it vectorises: a pixel of sum 0 has no chromaticity
+        // (its ratios are NaN, which fails the test).
+        for (m, px) in mask.iter_mut().zip(rgb.chunks_exact(3)) {
+            let (r, g, b) = (px[0] as f32, px[1] as f32, px[2] as f32);
+            let s = r + g + b;
+            let bright = px[0] as u16 + px[1] as u16 + px[2] as u16 >= self.dark_level;
+            let (dr, dg) = (r / s - key.0, g / s - key.1);
+            let keyed = bright & (s > 0.0) & (dr * dr + dg * dg <= tol2);
+            *m = if keyed { 0 } else { 255 };
+        }
+        if let Some(p) = plate {
+            for ((m, px), pl) in mask.iter_mut().zip(rgb.chunks_exact(3)).zip(p.chunks_exact(3)) {
+                let plated = px.iter().zip(pl).all(|(&a, &b)| a.abs_diff(b) <= self.plate_tolerance);
+                *m = if plated { 0 } else { *m };
+            }
         }
         if self.open_radius > 0 {
             morph(&mut mask, width, height, self.open_radius, false);
@@ -87,50 +93,41 @@ impl ChromaKey {
     }
 }
 
-/// Square dilation (`dilate = true`) or erosion of a 0/255 mask, separable, with running
-/// counts so the cost does not grow with the radius. Only pixels inside the image count, so
-/// an object touching the border is not eaten by the erosion.
+/// Square dilation (`dilate = true`) or erosion of a 0/255 mask, separable: the OR (AND) of
+/// the 2·radius + 1 pixels along each row, then down each column. Only pixels inside the image
+/// count, so an object touching the border is not eaten by the erosion. Each step combines
+/// whole shifted rows element-wise — 32 pixels per AVX2 instruction, O(radius) per pixel,
+/// which for the radii used here (1–2) beats a running count, whose loop does not vectorise.
 fn morph(mask: &mut [u8], w: usize, h: usize, radius: usize, dilate: bool) {
     if w == 0 || h == 0 {
         return;
     }
-    let decide = |count: u32, window: u32| if (dilate && count > 0) || (!dilate && count == window) { 255u8 } else { 0 };
-    // Along each row: a running count of the set pixels in the window.
-    let mut tmp = vec![0u8; w * h];
-    for (src, dst) in mask.chunks_exact(w).zip(tmp.chunks_exact_mut(w)) {
-        let mut count = src[..radius.min(w)].iter().map(|&v| (v != 0) as u32).sum::<u32>();
-        for i in 0..w {
-            if i + radius < w {
-                count += (src[i + radius] != 0) as u32;
-            }
-            if i > radius {
-                count -= (src[i - radius - 1] != 0) as u32;
-            }
-            let window = ((i + radius).min(w - 1) + 1 - i.saturating_sub(radius)) as u32;
-            dst[i] = decide(count, window);
-        }
-    }
-    // Down the columns: one running count per column, moved a whole row at a time
-    // (element-wise over the row, so that it vectorises; the image is read row by row).
-    let mut count = vec![0u32; w];
-    let add = |count: &mut [u32], row: &[u8], sign: u32| {
-        for (c, &v) in count.iter_mut().zip(row) {
-            *c = c.wrapping_add(sign.wrapping_mul((v != 0) as u32));
+    // Outside the image: unset for a dilation, set for an erosion (neither changes the result).
+    let neutral = if dilate { 0u8 } else { 255 };
+    let combine = |acc: &mut [u8], other: &[u8]| {
+        if dilate {
+            acc.iter_mut().zip(other).for_each(|(a, &b)| *a |= b);
+        } else {
+            acc.iter_mut().zip(other).for_each(|(a, &b)| *a &= b);
         }
     };
-    for y in 0..radius.min(h) {
-        add(&mut count, &tmp[y * w..(y + 1) * w], 1);
+    // Set pixels as 255, whatever non-zero value marked them.
+    mask.iter_mut().for_each(|v| *v = if *v != 0 { 255 } else { 0 });
+    let mut tmp = vec![0u8; w * h];
+    let mut padded = vec![neutral; w + 2 * radius];
+    for (src, dst) in mask.chunks_exact(w).zip(tmp.chunks_exact_mut(w)) {
+        padded[radius..radius + w].copy_from_slice(src);
+        dst.copy_from_slice(&padded[..w]);
+        for k in 1..=2 * radius {
+            combine(dst, &padded[k..k + w]);
+        }
     }
     for y in 0..h {
-        if y + radius < h {
-            add(&mut count, &tmp[(y + radius) * w..(y + radius + 1) * w], 1);
-        }
-        if y > radius {
-            add(&mut count, &tmp[(y - radius - 1) * w..(y - radius) * w], u32::MAX);
-        }
-        let window = ((y + radius).min(h - 1) + 1 - y.saturating_sub(radius)) as u32;
-        for (m, &c) in mask[y * w..(y + 1) * w].iter_mut().zip(&count) {
-            *m = decide(c, window);
+        let rows = y.saturating_sub(radius)..(y + radius + 1).min(h);
+        let out = &mut mask[y * w..(y + 1) * w];
+        out.copy_from_slice(&tmp[rows.start * w..(rows.start + 1) * w]);
+        for yy in rows.start + 1..rows.end {
+            combine(out, &tmp[yy * w..(yy + 1) * w]);
         }
     }
 }
