@@ -453,11 +453,14 @@ impl Assistant {
         }
         let mut iv = self.spare_intervals();
         self.tiles.intervals(&mut iv, &masks, &region, self.range, plan);
-        if self.params.mode == AssistMode::Predicted {
+        let fg = self.tiles.fg_total(&region);
+        let rest = fg.saturating_sub(plan.filled_px + plan.uncovered_px);
+        match self.params.mode {
             // At tile resolution every foreground pixel of a tile a prediction reached counts
             // as predicted.
-            let fg = self.tiles.fg_total(&region);
-            plan.single_px = fg - plan.filled_px - plan.uncovered_px;
+            AssistMode::Predicted => plan.single_px = rest,
+            // Pixels the paper's cases did not reach search their tile's interval: filled.
+            _ => plan.filled_px += rest.saturating_sub(plan.single_px + plan.union_px),
         }
         iv
     }

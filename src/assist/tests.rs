@@ -479,3 +479,20 @@ fn tile_intervals_are_the_hull_of_the_pixel_rule_over_each_tile() {
         assert!(checked > 20 && fg_px == mask.iter().filter(|&&m| m != 0).count(), "{mode:?}: {checked} tiles");
     }
 }
+
+/// At tile granularity the plan's counts still add up to the foreground: every foreground
+/// pixel is counted once, as predicted (or single, or union), filled or full range.
+#[test]
+fn tile_plans_count_every_foreground_pixel_once() {
+    let scene = Scene::new();
+    let truth = scene.disparity(4.0);
+    let mask = Scene::mask(&truth);
+    let fg = mask.iter().filter(|&&m| m != 0).count();
+    for mode in [AssistMode::Predicted, AssistMode::Paper { w: 0.8 }] {
+        let mut a = assistant_at(&scene, mode, Granularity::Tile, 4);
+        let plan = a.plan(4, Some(&mask), &scene.poses(0..4));
+        assert!(plan.assisted());
+        assert_eq!(plan.single_px + plan.union_px + plan.filled_px + plan.uncovered_px, fg, "{mode:?}: {} + {} + {} + {}", plan.single_px, plan.union_px, plan.filled_px, plan.uncovered_px);
+        assert!(plan.single_px > fg / 2, "{mode:?}");
+    }
+}
