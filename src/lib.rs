@@ -38,3 +38,5 @@ pub mod recording;
 pub mod register;
 pub mod segment;
 pub mod stereo;
+#[cfg(test)]
+mod testing;

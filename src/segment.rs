@@ -111,8 +111,7 @@ fn morph(mask: &mut [u8], w: usize, h: usize, radius: usize, dilate: bool) {
             acc.iter_mut().zip(other).for_each(|(a, &b)| *a &= b);
         }
     };
-    // Set pixels as 255, whatever non-zero value marked them.
-    mask.iter_mut().for_each(|v| *v = if *v != 0 { 255 } else { 0 });
+    debug_assert!(mask.iter().all(|&v| v == 0 || v == 255), "morph takes a 0/255 mask");
     let mut tmp = vec![0u8; w * h];
     let mut padded = vec![neutral; w + 2 * radius];
     for (src, dst) in mask.chunks_exact(w).zip(tmp.chunks_exact_mut(w)) {
@@ -193,13 +192,7 @@ mod tests {
     /// image, is set — on random masks, radii 0–3, sizes down to one pixel.
     #[test]
     fn morph_is_the_square_window_rule() {
-        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed
-        };
+        let mut next = crate::testing::xorshift(0x9e37_79b9_7f4a_7c15);
         for (w, h) in [(1, 1), (1, 7), (9, 1), (13, 11), (40, 23)] {
             for radius in 0..4 {
                 for dilate in [false, true] {

@@ -393,7 +393,9 @@ impl Assistant {
         self.region = region;
         self.lo.resize(w * h, f32::INFINITY);
         self.hi.resize(w * h, f32::NEG_INFINITY);
-        self.tiles.reset(w, h);
+        if self.params.granularity == Granularity::Tile {
+            self.tiles.reset(w, h);
+        }
         if self.params.mode == AssistMode::Predicted && self.params.granularity == Granularity::Pixel {
             // (`paper` writes every pixel of the region itself; tiles need no per-pixel map.)
             for y in region.ys() {

@@ -189,13 +189,7 @@ mod tests {
     /// that are and are not multiples of the chunk sizes.
     #[test]
     fn bounding_boxes_agree_with_a_plain_scan() {
-        let mut seed = 12345u64;
-        let mut rand = move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed
-        };
+        let mut rand = crate::testing::xorshift(12345);
         for (w, h) in [(37, 11), (64, 9), (8, 3), (5, 7), (100, 20)] {
             for density in [0u64, 1, 3, 50] {
                 let mask: Vec<u8> = (0..w * h).map(|_| if rand() % 100 < density { 1 + (rand() % 255) as u8 } else { 0 }).collect();

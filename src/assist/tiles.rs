@@ -171,25 +171,30 @@ impl TileBounds {
                 if self.fg[t] == 0 {
                     continue;
                 }
-                let own = interval(range, self.lo[t], self.hi[t]);
-                let band = own.or_else(|| {
-                    let (mut a, mut b) = (f32::INFINITY, f32::NEG_INFINITY);
-                    for ny in ty.saturating_sub(1)..(ty + 2).min(self.rows) {
-                        for nx in tx.saturating_sub(1)..(tx + 2).min(self.cols) {
-                            let u = ny * self.cols + nx;
-                            if interval(range, self.lo[u], self.hi[u]).is_some() {
-                                (a, b) = (a.min(self.lo[u]), b.max(self.hi[u]));
+                let (a, b) = match interval(range, self.lo[t], self.hi[t]) {
+                    Some(own) => own,
+                    None => {
+                        let (mut a, mut b) = (f32::INFINITY, f32::NEG_INFINITY);
+                        for ny in ty.saturating_sub(1)..(ty + 2).min(self.rows) {
+                            for nx in tx.saturating_sub(1)..(tx + 2).min(self.cols) {
+                                let u = ny * self.cols + nx;
+                                if interval(range, self.lo[u], self.hi[u]).is_some() {
+                                    (a, b) = (a.min(self.lo[u]), b.max(self.hi[u]));
+                                }
+                            }
+                        }
+                        match (a <= b).then(|| interval(range, a - MARGIN, b + MARGIN)).flatten() {
+                            Some(filled) => {
+                                plan.filled_px += self.fg[t] as usize;
+                                filled
+                            }
+                            None => {
+                                plan.uncovered_px += self.fg[t] as usize;
+                                range
                             }
                         }
                     }
-                    let filled = (a <= b).then(|| interval(range, a - MARGIN, b + MARGIN)).flatten();
-                    match filled {
-                        Some(_) => plan.filled_px += self.fg[t] as usize,
-                        None => plan.uncovered_px += self.fg[t] as usize,
-                    }
-                    Some(filled.unwrap_or(range))
-                });
-                let (a, b) = band.expect("always set");
+                };
                 bands[t] = (a as i16, b as i16);
             }
         }

@@ -74,13 +74,8 @@ mod tests {
     #[test]
     fn nearest_matches_brute_force() {
         // A small xorshift: uniform points in the unit cube, the same every run.
-        let mut state = 0x9E37_79B9_7F4A_7C15u64;
-        let mut unit = move || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = crate::testing::xorshift(0x9E37_79B9_7F4A_7C15);
+        let mut unit = move || (next() >> 11) as f64 / (1u64 << 53) as f64;
         let pts: Vec<[f32; 3]> = (0..2000).map(|_| [unit() as f32, unit() as f32, unit() as f32]).collect();
         let tree = KdTree::build(pts.clone(), "cloud").unwrap();
         for _ in 0..200 {
