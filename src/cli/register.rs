@@ -67,6 +67,7 @@ pub fn icp_params_of(a: &RegisterArgs, max_distance: f64) -> Result<IcpParams, F
     p.max_iterations = a.max_iterations;
     p.max_source_points = a.max_source_points;
     p.trim = a.trim;
+    p.check().map_err(input)?;
     Ok(p)
 }
 
@@ -99,8 +100,7 @@ pub fn cmd_register(a: RegisterArgs) -> Result<(), Failure> {
     let mut result = None;
     for _ in 0..a.repeat {
         let t0 = Instant::now();
-        let tree = register::KdTree::build(target.clone(), &target_path.display().to_string()).map_err(input)?;
-        let mut tgt = register::icp::Target::new(tree, params.normals);
+        let mut tgt = register::icp::Target::cells(target.clone(), params.cell_size(), params.normals, &target_path.display().to_string()).map_err(input)?;
         let r = register::icp(&source, &mut tgt, &init, &params).map_err(input)?;
         times.push(t0.elapsed().as_secs_f64() * 1e3);
         result = Some(r);

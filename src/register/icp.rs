@@ -139,7 +139,15 @@ impl IcpParams {
         }
     }
 
-    fn check(&self) -> Result<(), RegisterError> {
+    /// The cells' side for a [`Target::cells`] target: half the correspondence distance, so
+    /// that a query near the surface is answered from its own cell's 3 × 3 × 3 block
+    /// (measured on the bunny pairs: a third, a quarter or two thirds were slower).
+    pub fn cell_size(&self) -> f32 {
+        (self.max_distance / 2.0) as f32
+    }
+
+    /// Refuses settings ICP cannot run with, naming the bad one.
+    pub fn check(&self) -> Result<(), RegisterError> {
         let bad = |s: String| Err(RegisterError::Param(s));
         if !(self.max_distance.is_finite() && self.max_distance > 0.0) {
             return bad(format!("max distance must be a positive number, got {}", self.max_distance));
@@ -235,7 +243,14 @@ pub fn icp(source: &[[f32; 3]], target: &mut Target, init: &Isometry3<f64>, para
     params.check()?;
     super::check_points(source, "source")?;
     let idx = super::subsample_indices(source.len(), params.max_source_points);
-    let src: Vec<[f32; 3]> = idx.iter().map(|&i| source[i]).collect();
+    let mut src: Vec<[f32; 3]> = idx.iter().map(|&i| source[i]).collect();
+    // Queried in space order (cells of the correspondence distance, z then y then x, as a
+    // cell target stores its points), neighbouring queries read the same target memory.
+    let inv = (1.0 / params.max_distance) as f32;
+    src.sort_by_cached_key(|p| {
+        let k = |v: f32| ((v * inv).floor() as i64 + (1 << 20)).clamp(0, (1 << 21) - 1) as u64;
+        (k(p[2]) << 42) | (k(p[1]) << 21) | k(p[0])
+    });
     let centroid = src.iter().map(v3).sum::<Vector3<f64>>() / src.len() as f64;
     let scale = (src.iter().map(|p| (v3(p) - centroid).norm_squared()).sum::<f64>() / src.len() as f64).sqrt().max(1e-12);
 
@@ -318,8 +333,8 @@ fn correspondences(src: &[[f32; 3]], target: &Target, t: &Isometry3<f64>, params
                 m[(1, 0)] * p[0] + m[(1, 1)] * p[1] + m[(1, 2)] * p[2] + m[(1, 3)],
                 m[(2, 0)] * p[0] + m[(2, 1)] * p[1] + m[(2, 2)] * p[2] + m[(2, 3)],
             ];
-            let (j, d2) = target.nearest(&q)?;
-            (d2 <= max2).then_some(Pair { src: i, tgt: j, d2 })
+            let (j, d2) = target.nearest_within(&q, max2)?;
+            Some(Pair { src: i, tgt: j, d2 })
         })
         .collect();
     if params.trim < 1.0 && pairs.len() > 8 {

@@ -4,7 +4,7 @@
 use nalgebra::Isometry3;
 
 use super::icp::{icp, IcpParams, IcpResult, Target};
-use super::{scale_transform, KdTree, RegisterError};
+use super::{scale_transform, RegisterError};
 
 /// Spreads a loop's disagreement over a chain. `chain[k]` = `first_from_view(k)` from
 /// sequential registration (`chain[0]` = identity); `measured` = `first_from_last` from
@@ -73,8 +73,7 @@ pub fn register_ring(scans: &[Vec<[f32; 3]>], init_world: &[Isometry3<f64>], par
     if n < 3 || init_world.len() != n {
         return Err(RegisterError::Param(format!("a ring needs at least 3 scans with one initial pose each (got {n} scans, {} poses)", init_world.len())));
     }
-    let targets: Vec<KdTree> = scans.iter().enumerate().map(|(k, s)| KdTree::build(s.clone(), &format!("scan {k}"))).collect::<Result<_, _>>()?;
-    let mut targets: Vec<Target> = targets.into_iter().map(|t| Target::new(t, params.normals)).collect();
+    let mut targets: Vec<Target> = scans.iter().enumerate().map(|(k, s)| Target::cells(s.clone(), params.cell_size(), params.normals, &format!("scan {k}"))).collect::<Result<_, _>>()?;
     let mut chain = vec![Isometry3::identity()];
     let mut edges = Vec::new();
     for k in 1..n {

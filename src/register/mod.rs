@@ -11,6 +11,7 @@
 //! view's. Units are the caller's (spinscan's own clouds are millimetres).
 
 pub mod axis;
+pub mod cells;
 pub mod denoise;
 pub mod grid;
 pub mod icp;

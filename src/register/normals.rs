@@ -17,19 +17,21 @@ pub struct NormalParams {
 /// three neighbours are in reach. The sign is arbitrary.
 pub fn normal_at(tree: &KdTree, p: &[f32; 3], params: NormalParams) -> Option<([f32; 3], f32)> {
     let nn = tree.knn_within(p, params.max_nn, params.radius);
-    if nn.len() < 3 {
+    normal_of(nn.iter().map(|&(i, _)| &tree.points[i]))
+}
+
+/// The normal of a neighbourhood and its surface variation (as [`normal_at`]); `None` under
+/// three points or when they span no plane.
+pub fn normal_of<'a>(points: impl Iterator<Item = &'a [f32; 3]> + Clone) -> Option<([f32; 3], f32)> {
+    let v = |q: &[f32; 3]| Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64);
+    let n = points.clone().count();
+    if n < 3 {
         return None;
     }
-    let mut mean = Vector3::zeros();
-    for &(i, _) in &nn {
-        let q = tree.points[i];
-        mean += Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64);
-    }
-    mean /= nn.len() as f64;
+    let mean = points.clone().map(v).sum::<Vector3<f64>>() / n as f64;
     let mut cov = Matrix3::zeros();
-    for &(i, _) in &nn {
-        let q = tree.points[i];
-        let d = Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64) - mean;
+    for q in points {
+        let d = v(q) - mean;
         cov += d * d.transpose();
     }
     let eig = SymmetricEigen::new(cov);

@@ -4,14 +4,17 @@
 
 use rayon::prelude::*;
 
+use super::cells::CellIndex;
 use super::grid::RangeGrid;
-use super::normals::{normal_at, NormalParams};
+use super::normals::{normal_at, normal_of, NormalParams};
 use super::KdTree;
 
 /// How a target pairs a query point with one of its own.
 pub enum Index {
     /// The exact nearest point (any cloud).
     Tree(KdTree),
+    /// The exact nearest point within a bounded distance (any cloud; see [`super::cells`]).
+    Cells(CellIndex),
     /// The nearest point near the query's line of sight (a view's cloud in its own camera
     /// frame; see [`super::grid`]).
     Grid(RangeGrid),
@@ -33,6 +36,13 @@ impl Target {
         Target::with(Index::Tree(tree), params)
     }
 
+    /// Exact nearest neighbours on a grid of cubic cells: the same pairs and normals as
+    /// [`Target::new`] (ties aside), faster when ICP's correspondence distance bounds every
+    /// query. `cell` is the cells' side (a third of the correspondence distance suits).
+    pub fn cells(points: Vec<[f32; 3]>, cell: f32, params: NormalParams, what: &str) -> Result<Target, super::RegisterError> {
+        Ok(Target::with(Index::Cells(CellIndex::build(points, cell, what)?), params))
+    }
+
     /// Projective pairing on a view's range grid; normals from the grid's 5 × 5 cell
     /// neighbourhood within `params.radius`.
     pub fn grid(grid: RangeGrid, params: NormalParams) -> Target {
@@ -42,6 +52,7 @@ impl Target {
     fn with(index: Index, params: NormalParams) -> Target {
         let n = match &index {
             Index::Tree(t) => t.len(),
+            Index::Cells(c) => c.len(),
             Index::Grid(g) => g.len(),
         };
         Target { index, normals: vec![[0.0; 3]; n], state: vec![0; n], params }
@@ -51,17 +62,20 @@ impl Target {
     pub fn points(&self) -> &[[f32; 3]] {
         match &self.index {
             Index::Tree(t) => &t.points,
+            Index::Cells(c) => &c.points,
             Index::Grid(g) => &g.points,
         }
     }
 
-    /// The point paired with `p`: `(index, squared distance)`; None when the index has none
-    /// near it (a grid, away from every point's line of sight).
+    /// The point paired with `p` within `max_d2` (squared distance): `(index, squared
+    /// distance)`; None when the index has none there (for a range grid, also away from every
+    /// point's line of sight).
     #[inline]
-    pub fn nearest(&self, p: &[f32; 3]) -> Option<(usize, f32)> {
+    pub fn nearest_within(&self, p: &[f32; 3], max_d2: f32) -> Option<(usize, f32)> {
         match &self.index {
-            Index::Tree(t) => Some(t.nearest(p)),
-            Index::Grid(g) => g.nearest(p),
+            Index::Tree(t) => t.nearest_within(p, max_d2),
+            Index::Cells(c) => c.nearest_within(p, max_d2),
+            Index::Grid(g) => g.nearest(p).filter(|&(_, d2)| d2 <= max_d2),
         }
     }
 
@@ -70,9 +84,18 @@ impl Target {
         let mut todo: Vec<usize> = indices.filter(|&i| self.state[i] == 0).collect();
         todo.sort_unstable();
         todo.dedup();
+
         let params = self.params;
         let found: Vec<Option<[f32; 3]>> = match &self.index {
             Index::Tree(tree) => todo.par_iter().with_min_len(256).map(|&i| normal_at(tree, &tree.points[i], params).map(|(n, _)| n)).collect(),
+            Index::Cells(cells) => todo
+                .par_iter()
+                .with_min_len(256)
+                .map_init(Vec::new, |nn, &i| {
+                    cells.knn_within_unordered(&cells.points[i], params.max_nn, params.radius, nn);
+                    normal_of(nn.iter().map(|&j| &cells.points[j])).map(|(n, _)| n)
+                })
+                .collect(),
             Index::Grid(grid) => todo.par_iter().with_min_len(1024).map(|&i| grid.normal_at(i, params.radius)).collect(),
         };
         for (i, n) in todo.into_iter().zip(found) {
