@@ -40,7 +40,7 @@ pub struct RegisterArgs {
     pub repeat: usize,
     /// At most this many source points take part, evenly spread (0 = all). The target keeps
     /// every point.
-    #[arg(long, default_value_t = 5_000)]
+    #[arg(long, default_value_t = 2_000)]
     pub max_source_points: usize,
     /// ICP iterations at most.
     #[arg(long, default_value_t = 60)]

@@ -221,13 +221,11 @@ impl CellIndex {
         found.into_iter().map(|key| ((key & 0xffff_ffff) as usize, f32::from_bits((key >> 32) as u32))).collect()
     }
 
-    /// The indices of [`CellIndex::knn_within`]'s points, in no particular order (what a
-    /// normal needs), into `out`.
-    pub fn knn_within_unordered(&self, p: &[f32; 3], k: usize, radius: f32, out: &mut Vec<usize>) {
-        let mut found = Vec::new();
-        self.k_nearest_keys(p, k, radius, &mut found);
-        out.clear();
-        out.extend(found.iter().map(|&key| (key & 0xffff_ffff) as usize));
+    /// [`CellIndex::knn_within`]'s points in no particular order (what a normal needs);
+    /// `scratch` is reused across calls.
+    pub fn knn_within_unordered<'a>(&'a self, p: &[f32; 3], k: usize, radius: f32, scratch: &'a mut Vec<u64>) -> impl Iterator<Item = &'a [f32; 3]> + Clone + 'a {
+        self.k_nearest_keys(p, k, radius, scratch);
+        scratch.iter().map(|&key| &self.points[(key & 0xffff_ffff) as usize])
     }
 
     /// The `k` nearest within `radius` as keys `d²'s bits << 32 | index`: a non-negative

@@ -238,6 +238,10 @@ fn v3(p: &[f32; 3]) -> Vector3<f64> {
     Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)
 }
 
+/// How many past iterations a repeat of the pairs' fitness and RMSE is looked for in (1 would
+/// be the plain "no change" test; on the bunny pairs 2000 source points fell into 2-cycles).
+const CYCLE: usize = 4;
+
 /// Registers `source` onto the target starting from `init`.
 pub fn icp(source: &[[f32; 3]], target: &mut Target, init: &Isometry3<f64>, params: &IcpParams) -> Result<IcpResult, RegisterError> {
     params.check()?;
@@ -255,7 +259,9 @@ pub fn icp(source: &[[f32; 3]], target: &mut Target, init: &Isometry3<f64>, para
     let scale = (src.iter().map(|p| (v3(p) - centroid).norm_squared()).sum::<f64>() / src.len() as f64).sqrt().max(1e-12);
 
     let mut t = *init;
-    let mut prev: Option<(f64, f64)> = None;
+    // The last few iterations' (fitness, RMSE): when the pairs come back to a set seen a few
+    // steps ago, ICP is cycling and will not get any closer.
+    let mut seen: std::collections::VecDeque<(f64, f64)> = std::collections::VecDeque::with_capacity(CYCLE + 1);
     let mut iterations = 0;
     let mut converged = false;
     let mut degenerate = Vec::new();
@@ -267,15 +273,15 @@ pub fn icp(source: &[[f32; 3]], target: &mut Target, init: &Isometry3<f64>, para
         if converged || iterations >= params.max_iterations {
             break;
         }
-        if let Some((pf, pr)) = prev {
-            let df = (fitness - pf).abs() / pf.max(1e-12);
-            let dr = (rmse - pr).abs() / pr.max(1e-300);
-            if df < params.rel_change && dr < params.rel_change {
-                converged = true;
-                break;
-            }
+        let same = |&(pf, pr): &(f64, f64)| (fitness - pf).abs() / pf.max(1e-12) < params.rel_change && (rmse - pr).abs() / pr.max(1e-300) < params.rel_change;
+        if seen.iter().any(same) {
+            converged = true;
+            break;
         }
-        prev = Some((fitness, rmse));
+        if seen.len() == CYCLE {
+            seen.pop_front();
+        }
+        seen.push_back((fitness, rmse));
         if last_pairs.len() < 6 {
             break;
         }

@@ -91,10 +91,7 @@ impl Target {
             Index::Cells(cells) => todo
                 .par_iter()
                 .with_min_len(256)
-                .map_init(Vec::new, |nn, &i| {
-                    cells.knn_within_unordered(&cells.points[i], params.max_nn, params.radius, nn);
-                    normal_of(nn.iter().map(|&j| &cells.points[j])).map(|(n, _)| n)
-                })
+                .map_init(Vec::new, |scratch, &i| normal_of(cells.knn_within_unordered(&cells.points[i], params.max_nn, params.radius, scratch)).map(|(n, _)| n))
                 .collect(),
             Index::Grid(grid) => todo.par_iter().with_min_len(1024).map(|&i| grid.normal_at(i, params.radius)).collect(),
         };
