@@ -5,7 +5,7 @@ use nalgebra::Isometry3;
 
 use super::{distribute_loop_error_weighted, edge_variance, LoopClosure, Registrar};
 use crate::register::icp::{icp, Target};
-use crate::register::{KdTree, RegisterError};
+use crate::register::RegisterError;
 
 /// ICP iterations of loop closure.
 const LOOP_ITERATIONS: usize = 60;
@@ -31,7 +31,7 @@ impl Registrar {
         if source.is_empty() {
             return Err(RegisterError::Empty { what: format!("closing views of the ring (last view {last_seq})") });
         }
-        let mut first = Target::new(KdTree::build(target, "opening views of the ring")?, self.params.icp.normals);
+        let mut first = Target::cells(target, self.params.icp.cell_size(), self.params.icp.normals, "opening views of the ring")?;
         // Once per scan, from a chain that may have wandered a few degrees: the full
         // iteration budget of a pairwise registration, not the per-view one.
         let mut params = self.params.icp.clone();

@@ -32,7 +32,8 @@
 //! pass, instead of a k-d tree per view; ICP takes 4000 source points and at most 12
 //! iterations. The pose is published after the chain step; the long and block steps refine
 //! it afterwards. Loop closure and the turntable refinement run once, at the end, on exact
-//! nearest neighbours. `RegistrationParams::projective = false` restores k-d trees.
+//! nearest neighbours. `RegistrationParams::projective = false` restores exact search
+//! (`register::cells`) for the per-view targets too.
 //!
 //! ## Loop closure
 //! When the views complete a turn (the last view within 1.5 steps of 360° from the first),
@@ -72,7 +73,7 @@ use super::refine::{AxisFit, RefineParams, RefineView};
 use super::voxel::VoxelModel;
 pub use super::loops::{distribute_loop_error, distribute_loop_error_weighted, edge_variance, register_ring, RingEdge, RingResult};
 use super::grid::RangeGrid;
-use super::{rotation_about_axis, subsample_indices, KdTree, RegisterError};
+use super::{rotation_about_axis, subsample_indices, RegisterError};
 use crate::cloud::PointCloud;
 
 mod closing;
@@ -122,8 +123,8 @@ pub struct RegistrationParams {
     pub max_axis_sigma_deg: f64,
     /// Per-view targets (the chain, the long steps, the block step) are range grids paired
     /// by projection ([`super::grid`]): a few distance computations per query and no tree to
-    /// build per view. False: k-d trees (exact nearest neighbours; loop closure and the
-    /// refinement always use them).
+    /// build per view. False: exact nearest neighbours on a cell grid (loop closure and the
+    /// symmetry test always use those, the refinement a k-d tree).
     pub projective: bool,
 }
 
@@ -284,7 +285,7 @@ pub struct Registrar {
     /// How well the refined axis's turntable poses and the registered poses put the views
     /// onto each other ([`RefineSet::score`], mm): (turntable, registered).
     refine_scores: Option<(f64, f64)>,
-    /// Steps whose free rotation was looked at with a k-d tree so far.
+    /// Steps whose free rotation was looked at with exact pairs so far.
     symmetry_tests: usize,
 }
 
@@ -295,7 +296,7 @@ fn unit(mut t: Isometry3<f64>) -> Isometry3<f64> {
     t
 }
 
-/// Steps whose free rotation is looked at again with a k-d tree (see [`Registrar::add_view`]).
+/// Steps whose free rotation is looked at again with exact pairs (see [`Registrar::add_view`]).
 const MAX_SYMMETRY_TESTS: usize = 2;
 
 /// Most views kept for the refinement.
@@ -351,7 +352,7 @@ impl Registrar {
         Ok(if self.params.projective {
             Target::grid(RangeGrid::build(pts, what)?, self.params.icp.normals)
         } else {
-            Target::new(KdTree::build(pts, what)?, self.params.icp.normals)
+            Target::cells(pts, self.params.icp.cell_size(), self.params.icp.normals, what)?
         })
     }
 
@@ -418,14 +419,14 @@ impl Registrar {
             // pairs a nearly symmetric egg's came out 30° off the table's axis (the clouds'
             // camera-fixed errors pull pairs made along the line of sight towards "no
             // motion"), and every step seeded about it turned the views about the wrong line.
-            // So this test looks again with a k-d tree — only while no axis is known, and on at
-            // most the first `MAX_SYMMETRY_TESTS` steps that ask (≈ 100 ms each).
+            // So this test looks again with exact pairs (a cell grid) — only while no axis is
+            // known, and on at most the first `MAX_SYMMETRY_TESTS` steps that ask.
             let mut exact = None;
             if (free.is_some() || weak.is_some()) && self.params.projective && self.symmetry_tests < MAX_SYMMETRY_TESTS {
                 self.symmetry_tests += 1;
                 // (Should the tree fail, the projective result stands: the previous view must
                 // stay for the next one.)
-                let tree = KdTree::build(prev_target.points().to_vec(), &format!("view {}", prev.seq)).map(|t| Target::new(t, self.params.icp.normals));
+                let tree = Target::cells(prev_target.points().to_vec(), self.params.icp.cell_size(), self.params.icp.normals, &format!("view {}", prev.seq));
                 if let Ok(mut tree) = tree {
                     if let Ok(again) = icp(&own, &mut tree, &seed, &self.params.icp) {
                         (free, weak) = weak_or_free(&again);
@@ -650,7 +651,7 @@ impl Registrar {
             let mut target = Target::grid(RangeGrid::build(seen, "model")?, self.params.icp.normals);
             icp(&union, &mut target, &Isometry3::identity(), &self.params.icp)?
         } else {
-            let mut target = Target::new(KdTree::build(model_cloud.points, "model")?, self.params.icp.normals);
+            let mut target = Target::cells(model_cloud.points, self.params.icp.cell_size(), self.params.icp.normals, "model")?;
             icp(&union, &mut target, &Isometry3::identity(), &self.params.icp)?
         };
         r.transform = into.inverse() * r.transform * into;

@@ -25,7 +25,7 @@ fn view(deg: f64, axis: (Vector3<f64>, Vector3<f64>)) -> PointCloud {
     PointCloud { colors: vec![[128; 3]; points.len()], points, normals: None }
 }
 
-/// Guards the per-view targets: range grids (the default) and k-d trees both follow a turn
+/// Guards the per-view targets: range grids (the default) and exact cell grids both follow a turn
 /// of 3° steps, seeded from the identity and then by the table about the estimated axis.
 #[test]
 fn both_kinds_of_target_follow_the_turn() {
