@@ -82,7 +82,8 @@ impl CellIndex {
         }
         let mut cell = cell;
         let dims = loop {
-            let dims: [usize; 3] = std::array::from_fn(|a| ((hi[a] - lo[a]) / cell) as usize + 1);
+            // In f64: the extent of finite f32 coordinates may overflow f32.
+            let dims: [usize; 3] = std::array::from_fn(|a| ((hi[a] as f64 - lo[a] as f64) / cell as f64).min(1e12) as usize + 1);
             if dims.iter().try_fold(1usize, |n, &d| n.checked_mul(d)).is_some_and(|n| n <= MAX_CELLS) {
                 break dims;
             }
@@ -120,7 +121,7 @@ impl CellIndex {
 
     /// The cell of a point inside the grid's box.
     fn cell_of(&self, p: &[f32; 3]) -> usize {
-        let c: [usize; 3] = std::array::from_fn(|a| (((p[a] - self.origin[a]) * self.inv_cell) as usize).min(self.dims[a] - 1));
+        let c: [usize; 3] = std::array::from_fn(|a| (((p[a] as f64 - self.origin[a] as f64) * self.inv_cell as f64) as usize).min(self.dims[a] - 1));
         (c[2] * self.dims[1] + c[1]) * self.dims[0] + c[0]
     }
 
@@ -170,10 +171,12 @@ impl CellIndex {
         let mut cell = [0i64; 3];
         let mut frac = [0f32; 3];
         for a in 0..3 {
-            let u = (p[a] - self.origin[a]) * self.inv_cell;
+            // In f64 (differences of f32 coordinates may overflow f32), and clamped: a query
+            // far outside the grid only needs to be known as far outside.
+            let u = ((p[a] as f64 - self.origin[a] as f64) * self.inv_cell as f64).clamp(-1e9, 1e9);
             let f = u.floor();
             cell[a] = f as i64;
-            frac[a] = u - f;
+            frac[a] = (u - f) as f32;
         }
         Located { cell, frac, side: self.cell }
     }
@@ -319,6 +322,10 @@ mod tests {
         assert!(cells.dims.iter().product::<usize>() <= MAX_CELLS);
         assert_eq!(cells.nearest_within(&[0.9, 0.0, 0.0], 1.0).map(|r| r.0), Some(2));
         assert!(cells.nearest_within(&[5e5, 5e5, 5e5], 1.0).is_none());
+        // Extremes of f32: neither the box nor a far query overflows.
+        let wide = CellIndex::build(vec![[-3e38, 0.0, 0.0], [3e38, 0.0, 0.0]], 1.0, "wide").unwrap();
+        assert_eq!(wide.nearest_within(&[3e38, 0.0, 0.0], 1.0).map(|r| r.0), Some(1));
+        assert!(cells.nearest_within(&[-3e38, f32::MAX, 0.0], 1.0).is_none());
         assert!(CellIndex::build(vec![[0.0; 3]], 0.0, "zero").is_err());
         assert!(CellIndex::build(vec![[f32::NAN, 0.0, 0.0]], 1.0, "nan").is_err());
     }
