@@ -63,7 +63,7 @@ impl std::fmt::Debug for CellIndex {
 
 impl CellIndex {
     /// Buckets `points` into cells of side `cell` (enlarged when the cloud's box would need more
-    /// than [`MAX_CELLS`]). `what` names the point set in errors.
+    /// than `MAX_CELLS`, 4 M). `what` names the point set in errors.
     pub fn build(points: Vec<[f32; 3]>, cell: f32, what: &str) -> Result<CellIndex, RegisterError> {
         check_points(&points, what)?;
         if !(cell.is_finite() && cell > 0.0) {

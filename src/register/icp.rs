@@ -3,15 +3,16 @@
 //! kernels, convergence on relative change, and a degeneracy check.
 //!
 //! Each iteration pairs every (sub-sampled) source point, moved by the current estimate,
-//! with its nearest target point (exact, from a k-d tree, or the nearest near its line of
-//! sight, from a view's range grid: [`Target`]); pairs farther apart than `max_distance` are dropped, and
+//! with its nearest target point within `max_distance` (exact, from a grid of cubic cells, or
+//! the nearest near its line of sight, from a view's range grid: [`Target`]), and
 //! with `trim < 1` only that fraction of the closest pairs is kept. Point-to-point solves
 //! the weighted absolute-orientation problem in closed form (SVD of the cross-covariance);
 //! point-to-plane solves the linearised 6×6 normal equations for a small rotation about the
 //! moved source's centroid and a translation. The iteration stops when the update is tiny
 //! (rotation below `min_step_rad`, translation below `min_step_rel` × the source's size;
 //! 100× smaller for point-to-point, which creeps), or
-//! when fitness and RMSE change by less than `rel_change` relative, or after
+//! when fitness and RMSE come back to within `rel_change` (relative) of one of the last
+//! four iterations' (no change, or a cycle among a few pair sets), or after
 //! `max_iterations`.
 //!
 //! **Degeneracy.** Point-to-plane's normal matrix, with rotations scaled by the source's RMS
@@ -575,7 +576,7 @@ fn remove_motion_along(t: &Isometry3<f64>, init: &Isometry3<f64>, dirs: &[(Vecto
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::register::{rotation_about_axis, KdTree};
+    use crate::register::rotation_about_axis;
 
     /// A bumpy, asymmetric height field 100 × 100 mm seen from 400 mm, `n`² points.
     fn bumpy(n: usize) -> Vec<[f32; 3]> {
@@ -591,7 +592,7 @@ mod tests {
     }
 
     fn target_of(pts: &[[f32; 3]], params: &IcpParams) -> Target {
-        Target::new(KdTree::build(pts.to_vec(), "target").unwrap(), params.normals)
+        Target::cells(pts.to_vec(), params.cell_size(), params.normals, "target").unwrap()
     }
 
     #[test]

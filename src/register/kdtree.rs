@@ -41,14 +41,6 @@ impl KdTree {
         (r.item as usize, r.distance)
     }
 
-    /// The nearest point no farther than `max_d2` (squared): the search prunes every branch
-    /// beyond it, so a query far from the cloud costs no more than one near it.
-    #[inline]
-    pub fn nearest_within(&self, p: &[f32; 3], max_d2: f32) -> Option<(usize, f32)> {
-        let r = self.tree.query(p).nearest_n::<SquaredEuclidean<f32>>(NonZeroUsize::MIN).within(max_d2).execute();
-        r.first().map(|r| (r.item as usize, r.distance))
-    }
-
     /// The `k` nearest points, nearest first: `(index, squared distance)`.
     pub fn knn(&self, p: &[f32; 3], k: usize) -> Vec<(usize, f32)> {
         let k = NonZeroUsize::new(k.clamp(1, self.len())).unwrap();

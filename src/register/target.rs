@@ -6,13 +6,10 @@ use rayon::prelude::*;
 
 use super::cells::CellIndex;
 use super::grid::RangeGrid;
-use super::normals::{normal_at, normal_of, NormalParams};
-use super::KdTree;
+use super::normals::{normal_of, NormalParams};
 
 /// How a target pairs a query point with one of its own.
 pub enum Index {
-    /// The exact nearest point (any cloud).
-    Tree(KdTree),
     /// The exact nearest point within a bounded distance (any cloud; see [`super::cells`]).
     Cells(CellIndex),
     /// The nearest point near the query's line of sight (a view's cloud in its own camera
@@ -30,15 +27,9 @@ pub struct Target {
 }
 
 impl Target {
-    /// Exact nearest neighbours; normals from up to `params.max_nn` neighbours within
-    /// `params.radius`.
-    pub fn new(tree: KdTree, params: NormalParams) -> Target {
-        Target::with(Index::Tree(tree), params)
-    }
-
-    /// Exact nearest neighbours on a grid of cubic cells: the same pairs and normals as
-    /// [`Target::new`] (ties aside), faster when ICP's correspondence distance bounds every
-    /// query. `cell` is the cells' side (a third of the correspondence distance suits).
+    /// Exact nearest neighbours on a grid of cubic cells (any cloud); normals from up to
+    /// `params.max_nn` neighbours within `params.radius`. `cell` is the cells' side
+    /// ([`super::IcpParams::cell_size`] suits ICP).
     pub fn cells(points: Vec<[f32; 3]>, cell: f32, params: NormalParams, what: &str) -> Result<Target, super::RegisterError> {
         Ok(Target::with(Index::Cells(CellIndex::build(points, cell, what)?), params))
     }
@@ -51,7 +42,6 @@ impl Target {
 
     fn with(index: Index, params: NormalParams) -> Target {
         let n = match &index {
-            Index::Tree(t) => t.len(),
             Index::Cells(c) => c.len(),
             Index::Grid(g) => g.len(),
         };
@@ -61,7 +51,6 @@ impl Target {
     /// The target's points; pairs and normals index into them.
     pub fn points(&self) -> &[[f32; 3]] {
         match &self.index {
-            Index::Tree(t) => &t.points,
             Index::Cells(c) => &c.points,
             Index::Grid(g) => &g.points,
         }
@@ -73,7 +62,6 @@ impl Target {
     #[inline]
     pub fn nearest_within(&self, p: &[f32; 3], max_d2: f32) -> Option<(usize, f32)> {
         match &self.index {
-            Index::Tree(t) => t.nearest_within(p, max_d2),
             Index::Cells(c) => c.nearest_within(p, max_d2),
             Index::Grid(g) => g.nearest(p).filter(|&(_, d2)| d2 <= max_d2),
         }
@@ -87,7 +75,6 @@ impl Target {
 
         let params = self.params;
         let found: Vec<Option<[f32; 3]>> = match &self.index {
-            Index::Tree(tree) => todo.par_iter().with_min_len(256).map(|&i| normal_at(tree, &tree.points[i], params).map(|(n, _)| n)).collect(),
             Index::Cells(cells) => todo
                 .par_iter()
                 .with_min_len(256)
