@@ -10,7 +10,7 @@
 //! a tree descent into everything within reach: a k-d tree's bounded search collects every
 //! point inside its radius, which on a dense scan is hundreds of points per query.
 
-use super::{check_points, RegisterError};
+use super::{check_points, dist2, RegisterError};
 
 /// Most cells the grid may have; a larger cloud gets larger cells (the search stays exact).
 const MAX_CELLS: usize = 1 << 22;
@@ -119,8 +119,9 @@ impl CellIndex {
         self.points.is_empty()
     }
 
-    /// The cell of a point inside the grid's box.
-    fn cell_of(&self, p: &[f32; 3]) -> usize {
+    /// The cell of a point, clamped into the grid's box: queries made in this order read the
+    /// points in their memory order.
+    pub(super) fn cell_of(&self, p: &[f32; 3]) -> usize {
         let c: [usize; 3] = std::array::from_fn(|a| (((p[a] as f64 - self.origin[a] as f64) * self.inv_cell as f64) as usize).min(self.dims[a] - 1));
         (c[2] * self.dims[1] + c[1]) * self.dims[0] + c[0]
     }
@@ -199,7 +200,7 @@ impl CellIndex {
         for r in 0..=r_max {
             self.shell(&at, r, best_d2.next_up(), |pts, ids| {
                 for (q, &id) in pts.iter().zip(ids) {
-                    let d2 = (q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2) + (q[2] - p[2]).powi(2);
+                    let d2 = dist2(p, q);
                     // Ties go to the lower index, whatever order the cells come in.
                     if d2 < best_d2 || (d2 == best_d2 && best.is_none_or(|(b, _)| id < b)) {
                         best = Some((id, d2));
@@ -215,17 +216,8 @@ impl CellIndex {
         best.map(|(i, d2)| (i as usize, d2))
     }
 
-    /// Up to `k` nearest points no farther than `radius`, nearest first: `(index, squared
-    /// distance)`.
-    pub fn knn_within(&self, p: &[f32; 3], k: usize, radius: f32) -> Vec<(usize, f32)> {
-        let mut found = Vec::new();
-        self.k_nearest_keys(p, k, radius, &mut found);
-        found.sort_unstable();
-        found.into_iter().map(|key| ((key & 0xffff_ffff) as usize, f32::from_bits((key >> 32) as u32))).collect()
-    }
-
-    /// [`CellIndex::knn_within`]'s points in no particular order (what a normal needs);
-    /// `scratch` is reused across calls.
+    /// Up to `k` nearest points no farther than `radius`, in no particular order (what a
+    /// normal needs); `scratch` is reused across calls.
     pub fn knn_within_unordered<'a>(&'a self, p: &[f32; 3], k: usize, radius: f32, scratch: &'a mut Vec<u64>) -> impl Iterator<Item = &'a [f32; 3]> + Clone + 'a {
         self.k_nearest_keys(p, k, radius, scratch);
         scratch.iter().map(|&key| &self.points[(key & 0xffff_ffff) as usize])
@@ -246,7 +238,7 @@ impl CellIndex {
         for r in 0..=r_max {
             self.shell(&at, r, cut2.next_up(), |pts, ids| {
                 for (q, &id) in pts.iter().zip(ids) {
-                    let d2 = (q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2) + (q[2] - p[2]).powi(2);
+                    let d2 = dist2(p, q);
                     if d2 <= cut2 {
                         found.push((d2.to_bits() as u64) << 32 | id as u64);
                     }
@@ -308,7 +300,9 @@ mod tests {
                     }
                 }
                 let (k, radius) = (1 + q % 31, [0.5f32, 2.5, 9.0][q % 3]);
-                let got: Vec<f32> = cells.knn_within(&p, k, radius).iter().map(|r| r.1).collect();
+                let mut scratch = Vec::new();
+                let mut got: Vec<f32> = cells.knn_within_unordered(&p, k, radius, &mut scratch).map(|q| dist2(&p, q)).collect();
+                got.sort_by(f32::total_cmp);
                 let want: Vec<f32> = tree.knn_within(&p, k, radius).iter().map(|r| r.1).collect();
                 assert_eq!(got, want, "cell {cell}: {k} nearest within {radius} of {p:?}");
             }

@@ -16,7 +16,7 @@
 //! A cloud seen from elsewhere (a merged model) must first be moved into a camera frame that
 //! sees it (`Registrar`'s block step does).
 
-use super::{check_points, RegisterError};
+use super::{check_points, dist2, RegisterError};
 
 /// Half-width, in cells, of the neighbourhood searched around a query's projection.
 const WINDOW: isize = 1;
@@ -150,7 +150,7 @@ impl RangeGrid {
         let mut best: Option<(usize, f32)> = None;
         self.around(at, WINDOW, |i| {
             let q = &self.points[i];
-            let d2 = (q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2) + (q[2] - p[2]).powi(2);
+            let d2 = dist2(p, q);
             if best.is_none_or(|(_, b)| d2 < b) {
                 best = Some((i, d2));
             }

@@ -249,13 +249,7 @@ pub fn icp(source: &[[f32; 3]], target: &mut Target, init: &Isometry3<f64>, para
     super::check_points(source, "source")?;
     let idx = super::subsample_indices(source.len(), params.max_source_points);
     let mut src: Vec<[f32; 3]> = idx.iter().map(|&i| source[i]).collect();
-    // Queried in space order (cells of the correspondence distance, z then y then x, as a
-    // cell target stores its points), neighbouring queries read the same target memory.
-    let inv = (1.0 / params.max_distance) as f32;
-    src.sort_by_cached_key(|p| {
-        let k = |v: f32| ((v * inv).floor() as i64 + (1 << 20)).clamp(0, (1 << 21) - 1) as u64;
-        (k(p[2]) << 42) | (k(p[1]) << 21) | k(p[0])
-    });
+    target.order_queries(&mut src, init);
     let centroid = src.iter().map(v3).sum::<Vector3<f64>>() / src.len() as f64;
     let scale = (src.iter().map(|p| (v3(p) - centroid).norm_squared()).sum::<f64>() / src.len() as f64).sqrt().max(1e-12);
 

@@ -119,6 +119,12 @@ pub fn check_points(points: &[[f32; 3]], what: &str) -> Result<(), RegisterError
     Ok(())
 }
 
+/// Squared distance between two points.
+#[inline]
+pub fn dist2(p: &[f32; 3], q: &[f32; 3]) -> f32 {
+    (q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2) + (q[2] - p[2]).powi(2)
+}
+
 /// Applies `t` to a point.
 #[inline]
 pub fn apply(t: &Isometry3<f64>, p: &[f32; 3]) -> [f32; 3] {

@@ -67,6 +67,16 @@ impl Target {
         }
     }
 
+    /// Puts ICP's source points (moved by `init` into the target's frame) in the order that
+    /// reads this target's memory best: a cell grid's cell order, so neighbouring queries
+    /// read the same cells. A range grid keeps the caller's order (a view's scan order is
+    /// already its cells' order).
+    pub(super) fn order_queries(&self, src: &mut [[f32; 3]], init: &nalgebra::Isometry3<f64>) {
+        if let Index::Cells(cells) = &self.index {
+            src.sort_by_cached_key(|p| cells.cell_of(&super::apply(init, p)));
+        }
+    }
+
     /// Computes the normals of `indices` not computed yet, in parallel.
     pub(super) fn ensure_normals(&mut self, indices: impl Iterator<Item = usize>) {
         let mut todo: Vec<usize> = indices.filter(|&i| self.state[i] == 0).collect();
