@@ -255,7 +255,7 @@ impl StereoMatcher {
         // Stripes start on tile rows (see `BAND_TILE`).
         let rows_per = h.div_ceil(threads).next_multiple_of(TILE_H);
         let params = &self.params;
-        let input = StripeInput { p: params, g: geo, lpf: &self.left_pf, rrev: &self.right_pf_rev, intervals };
+        let input = StripeInput::new(params, geo, &self.left_pf, &self.right_pf_rev, intervals);
         let mut totals = MatchStats { prefilter_ns, ..MatchStats::default() };
         let out_chunks = out.values_mut().chunks_mut(rows_per * w);
         let stats: Vec<MatchStats> = std::thread::scope(|scope| {
@@ -355,18 +355,21 @@ impl StereoMatcher {
 
 /// OpenCV BM's x-Sobel prefilter, clipped to ±cap and offset by cap, written with
 /// `pad = (left, right)` columns of replicated padding; `reversed` stores each padded row back
-/// to front so that increasing disparity walks forward in memory.
+/// to front so that increasing disparity walks forward in memory. The rows start
+/// [`tiles::PF_SLACK`] bytes into `out`, which has as many after them.
 fn prefilter_xsobel(img: GrayView, cap: u8, pad: (usize, usize), reversed: bool, out: &mut Vec<u8>) {
     let (w, h) = (img.width, img.height);
     let (r, wp) = (pad.0, w + pad.0 + pad.1);
     out.clear();
-    out.resize(wp * h, 0);
+    // Slack before and after the rows: the narrow-band path loads whole chunks of columns.
+    out.resize(wp * h + 2 * tiles::PF_SLACK, 0);
+    let rows = &mut out[tiles::PF_SLACK..tiles::PF_SLACK + wp * h];
     let cap_i = cap as i16;
     for y in 0..h {
         let up = &img.data[y.saturating_sub(1) * w..][..w];
         let mid = &img.data[y * w..][..w];
         let down = &img.data[(y + 1).min(h - 1) * w..][..w];
-        let dst = &mut out[y * wp..][..wp];
+        let dst = &mut rows[y * wp..][..wp];
         {
             // Interior: written straight into the padded row (vectorises as i16 lanes).
             let row = &mut dst[r..r + w];
@@ -443,7 +446,7 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
     out: &mut [f32],
     s: &mut StripeScratch,
 ) -> MatchStats {
-    let StripeInput { p, g, lpf, rrev, intervals } = input;
+    let StripeInput { p, g, lpf, rrev, intervals, slack } = input;
     let Geometry { w, n, wp, .. } = g;
     s.cs.resize(wp * n, 0);
     for v in [&mut s.band_lo, &mut s.need_lo] {
@@ -454,22 +457,30 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         v.clear();
         v.resize(wp, 0);
     }
-    for v in [&mut s.ilo, &mut s.ihi, &mut s.prev_ilo, &mut s.prev_ihi, &mut s.tlo, &mut s.thi] {
+    for v in [&mut s.ilo, &mut s.ihi, &mut s.prev_ilo, &mut s.prev_ihi] {
         v.resize(w, 0);
+    }
+    // A tile's worth past the last pixel, never searched: the narrow-band path reads whole
+    // tiles.
+    for (v, none) in [(&mut s.tlo, 1), (&mut s.thi, 0)] {
+        v.resize(w.next_multiple_of(TILE_W), none);
+        v[w..].fill(none);
     }
     // LANES entries of slack: narrow intervals are searched as one 16-lane load.
     s.sad.resize(w * n + kernels::LANES, 0);
     s.right_min.resize(w + n + kernels::LANES, u16::MAX);
     s.best.resize(w, None);
     s.tex_col.resize(wp, 0);
-    s.tex_row.resize(w, 0);
+    // Whole tiles: the narrow-band path reads sixteen at a time.
+    s.tex_row.resize(w.next_multiple_of(TILE_W), 0);
 
     // The narrow-band path needs AVX2 and whole blocks of disparities; a tile row takes it
     // when its tiles' bands are narrow on average (the full range stays on the row path).
-    let tile_path_ok = AVX2 && tiles::supported(g);
+    let tile_path_ok = AVX2;
     if tile_path_ok {
         let tiles = w.div_ceil(TILE_W);
-        s.tile_cs.resize(tiles * (TILE_W + 2 * g.r) * n, 0);
+        s.tile_v.resize(tiles * n * tiles::tile_cols(g), 0);
+        s.tile_cost.resize(tiles * n * TILE_W, 0);
         s.tile_sums.clear();
         s.tile_sums.resize(tiles, TileSums { lo: 1, hi: 0, row: usize::MAX });
     }
@@ -504,12 +515,11 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
             texture_row(g, s, span.clone());
         }
         if narrow {
-            // SAFETY: `narrow` implies AVX2 (checked at dispatch) and `tiles::supported`;
-            // the stripe's buffers were sized above and this row's intervals and tile bands
-            // computed.
+            // SAFETY: `narrow` implies AVX2 (checked at dispatch); the stripe's buffers were
+            // sized above and this row's intervals and tile bands computed.
             #[cfg(target_arch = "x86_64")]
             unsafe {
-                tiles::tile_row(p, g, lpf, rrev, y, s, span.clone())
+                tiles::tile_row(p, g, slack, y, s, span.clone())
             };
             row_sums_valid = false;
         } else {
@@ -537,7 +547,11 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         let t0 = std::time::Instant::now();
         out_row[..span.start].fill(f32::NAN);
         out_row[span.end..].fill(f32::NAN);
-        let (candidates, passed) = left_right_check(p, g, s, out_row, span.clone());
+        let (candidates, passed) = if narrow {
+            left_right_check(p, g, s, out_row, span.clone(), |x, k| tiles::cost(g, s, x, k), |x, k| tiles::right_target(g, s, x, k))
+        } else {
+            left_right_check(p, g, s, out_row, span.clone(), |x, k| s.sad[x * n + k], |x, k| s.right_min[w - 1 - x + k])
+        };
         stats.lr_candidates += candidates;
         stats.lr_passed += passed;
         prev_row = Some((y, span));

@@ -30,13 +30,13 @@ pub(super) fn clip_row(g: Geometry, iv: &DisparityIntervals, y: usize, lo: &mut 
 }
 
 /// The clipped intervals of the tile row `rows` (into `clip_lo/hi`, row by row, `w` apart)
-/// and the band of each of its tiles: the union of its pixels' intervals, widened to whole
-/// blocks of [`BLOCK`] disparities (empty tiles get `lo > hi`). Returns the mean band width
+/// and the band of each of its tiles: the union of its pixels' intervals (empty tiles get
+/// `lo > hi`). Returns the mean band width
 /// over the searched pixels (0: none).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize>, clip_lo: &mut Vec<i32>, clip_hi: &mut Vec<i32>, tile_lo: &mut Vec<i32>, tile_hi: &mut Vec<i32>, tile_px: &mut Vec<u32>, cols: &mut Vec<i32>) -> f64 {
-    let Geometry { w, n, .. } = g;
+    let Geometry { w, .. } = g;
     let tiles = w.div_ceil(TILE_W);
     tile_lo.clear();
     tile_lo.resize(tiles, i32::MAX);
@@ -70,13 +70,9 @@ pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize
         tile_hi[t] = b.iter().fold(tile_hi[t], |m, &v| m.max(v));
         tile_px[t] += c.iter().sum::<i32>() as u32;
     }
-    let block = BLOCK as i32;
     let (mut pairs, mut pixels) = (0u64, 0u64);
     for ((lo, hi), &px) in tile_lo.iter_mut().zip(tile_hi.iter_mut()).zip(tile_px.iter()) {
         if *lo <= *hi {
-            // Whole blocks; not clipped to the image (the right rows are padded for that),
-            // so border pixels share their neighbours' blocks.
-            (*lo, *hi) = (*lo - lo.rem_euclid(block), (*hi - hi.rem_euclid(block) + block - 1).min(n as i32 - 1));
             pairs += (*hi - *lo + 1) as u64 * px as u64;
             pixels += px as u64;
         } else {
@@ -574,11 +570,12 @@ pub(super) fn window_sums(g: Geometry, cs: &[u16], sad: &mut [u16], ilo: &[i32],
 /// the number of pixels with a match before the check and after it.
 ///
 /// A match `k` at `x` lands on right pixel `x − d`; the cheapest pair anywhere on that right
-/// pixel's diagonal is `right_min`. The match passes when a pair on the diagonal within
+/// pixel's diagonal is `target(x, k)`, and `cost(x, k)` the cost of a searched pair (the row
+/// path's `sad` and `right_min`, or the narrow-band path's tiles). The match passes when a pair on the diagonal within
 /// `lr_max_diff` disparities of `k` — pixel `x + j` at index `k + j` — reaches that minimum,
 /// i.e. when the right pixel's own best disparity agrees with `k` to `lr_max_diff`.
 #[inline(always)]
-pub(super) fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &mut [f32], span: Range<usize>) -> (usize, usize) {
+pub(super) fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &mut [f32], span: Range<usize>, cost: impl Fn(usize, usize) -> u16, target: impl Fn(usize, usize) -> u16) -> (usize, usize) {
     let Geometry { w, n, dmin, .. } = g;
     let (mut candidates, mut passed) = (0, 0);
     for x in span {
@@ -589,11 +586,11 @@ pub(super) fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScra
                     None => true,
                     Some(max) => {
                         let k = k as isize;
-                        let target = s.right_min[w - 1 - x + k as usize];
+                        let target = target(x, k as usize);
                         let m = max.min(n as u32) as isize;
                         // The pixel's own pair decides almost always; neighbours on the
                         // diagonal only when another pair is cheaper.
-                        let mut ok = s.sad[x * n + k as usize] <= target;
+                        let mut ok = cost(x, k as usize) <= target;
                         let mut j = 1;
                         while !ok && j <= m {
                             for xj in [x as isize + j, x as isize - j] {
@@ -602,7 +599,7 @@ pub(super) fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScra
                                     && (xj as usize) < w
                                     && s.tlo[xj as usize] as isize <= kj
                                     && kj <= s.thi[xj as usize] as isize
-                                    && s.sad[xj as usize * n + kj as usize] <= target;
+                                    && cost(xj as usize, kj as usize) <= target;
                             }
                             j += 1;
                         }

@@ -1,5 +1,6 @@
 //! The sizes and per-thread buffers every stripe of one matcher call shares.
 
+use super::tiles::{Slack, PF_SLACK};
 use crate::stereo::disparity::DisparityIntervals;
 use crate::stereo::params::ValidMatchParams;
 
@@ -117,6 +118,25 @@ pub(super) struct StripeInput<'a> {
     pub(super) lpf: &'a [u8],
     pub(super) rrev: &'a [u8],
     pub(super) intervals: &'a DisparityIntervals,
+    /// The same rows with the slack around them, for the narrow-band path's chunked loads.
+    pub(super) slack: Slack<'a>,
+}
+
+impl<'a> StripeInput<'a> {
+    /// The input of the prefiltered buffers `left` and `right` (rows with
+    /// [`PF_SLACK`] bytes around them, as `prefilter_xsobel` writes them).
+    pub(super) fn new(p: &'a ValidMatchParams, g: Geometry, left: &'a [u8], right: &'a [u8], intervals: &'a DisparityIntervals) -> Self {
+        let (nl, nr) = (g.h * g.wp, g.h * g.wr());
+        assert!(left.len() == nl + 2 * PF_SLACK && right.len() == nr + 2 * PF_SLACK, "prefiltered rows of another size");
+        StripeInput {
+            p,
+            g,
+            lpf: &left[PF_SLACK..PF_SLACK + nl],
+            rrev: &right[PF_SLACK..PF_SLACK + nr],
+            intervals,
+            slack: Slack { left, right },
+        }
+    }
 }
 
 /// Per-thread buffers, grown to fit and reused across frames.
@@ -158,11 +178,15 @@ pub(super) struct StripeScratch {
     /// Per column of a tile row: the min, max and count of its searched intervals (three
     /// rows of `w`).
     pub(super) tile_cols: Vec<i32>,
-    /// The narrow-band path's vertical window sums: per tile, its columns and their halo
-    /// (`TILE_W + 2r`), `n` entries each (only the tile's band is used).
-    pub(super) tile_cs: AlignedBuf,
+    /// The narrow-band path's vertical window sums: per tile and disparity index, its
+    /// columns and their halo (`tiles::tile_cols`; only the tile's band is used).
+    pub(super) tile_v: AlignedBuf,
+    /// The narrow-band path's costs of the current row: per tile and disparity index, one
+    /// per pixel of the tile (`tiles::cost`).
+    pub(super) tile_cost: AlignedBuf,
     pub(super) tile_sums: Vec<TileSums>,
-    /// The narrow-band path's copies of the right-row minima (see `tiles::tile_row`).
+    /// The narrow-band path's copies of the forward right-row minima (see `tiles::tile_row`;
+    /// the first holds the merged minima after a row).
     pub(super) tile_right: Vec<u16>,
 }
 

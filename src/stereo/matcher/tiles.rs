@@ -1,256 +1,307 @@
-//! The narrow-band path: rows whose tiles search few disparities.
+//! The narrow-band path: rows whose tiles search few disparities, with the pixels in the
+//! vector lanes.
 //!
-//! The image is cut into tiles of [`TILE_W`] × [`TILE_H`] pixels; a tile's band is the union
-//! of its pixels' searched intervals, widened to whole 16-lane blocks (`tile_bands`). Each
-//! tile keeps its own vertical window sums over its band for its columns and their window's
-//! halo, slid down row by row while the band stays, summed afresh where it changes (a new
-//! tile row with another band, or a gap). Along a row the window sums slide from pixel to
-//! pixel inside the tile. Every pixel then searches only its own interval, masked inside the
-//! band's lanes: winner, rival for the uniqueness test and the splat onto the right row for
-//! the left–right check are a few vector instructions per block of 16 disparities — no
-//! per-pixel branching on ranges, and the tile's sums stay in the first-level cache.
+//! The image is cut into tiles of [`TILE_W`] × [`TILE_H`] pixels; a tile's band is the
+//! exact union of its pixels' searched intervals (`tile_bands`), not widened to blocks. For
+//! every disparity of the band, the tile keeps the vertical window sums of its columns and
+//! their window's halo in one row of `u16` lanes (one lane per column), slid down row by row
+//! while the band stays and summed afresh where it changes (a new tile row with another
+//! band, or a gap). A row of the tile then costs, per disparity of the band:
+//!
+//! - the slide: the new and the old window row's absolute differences, sixteen columns per
+//!   instruction (the right row is stored reversed, so its sixteen bytes are reversed once);
+//! - the horizontal window sum of each of the 32 pixels from the column sums;
+//! - each pixel's own interval as a lane mask (pairs outside it read as `u16::MAX`), the
+//!   winner (first lowest: a lane moves only on a strictly lower cost) as a vertical
+//!   minimum with its disparity blended in, and the splat onto the right row for the
+//!   left–right check;
+//!
+//! and the rival for the uniqueness test is a second vertical pass over the kept costs. The
+//! work is therefore proportional to the pairs of the band, about three instructions per
+//! (pixel, disparity) pair, and nothing per pixel but the final decision (texture,
+//! uniqueness, sub-pixel fit).
 //!
 //! The results are those of the row path (`rows.rs`) for the same intervals: the same
-//! costs, the same winner (first lowest), rival, texture, sub-pixel fit and left–right check.
+//! costs, the same winner, rival, texture, sub-pixel fit and left–right check
+//! (`narrow_band_tiles_agree_with_the_row_path`).
 
 use std::ops::Range;
 
-use super::rows::{decide_at, right_start};
+use super::rows::right_start;
 use super::scratch::{clamp_row, Geometry, StripeScratch, TileSums, TILE_W};
 use crate::stereo::params::ValidMatchParams;
 
-/// Copies of the right row's minima the pixels of a row take turns at.
+/// Copies of the right row's minima the disparities of a tile take turns at: the next
+/// disparity's read-modify-write overlaps this one's by all but one lane, and reading a
+/// store still in flight stalls; the copies are merged after the row.
 const RIGHT_COPIES: usize = 4;
 
-/// Whether the tile path can run with these sizes: whole blocks of 16 disparities, at most
-/// [`MAX_BLOCKS`] of them.
-pub(super) fn supported(g: Geometry) -> bool {
-    g.n % 16 == 0 && g.n / 16 <= MAX_BLOCKS
+/// Bytes of slack before and after the prefiltered rows: the tile kernel loads sixteen
+/// columns at a time, and the last chunk of a tile (or a tile that runs past the image's
+/// right edge) may reach past the rows' ends; those lanes are never used.
+pub(super) const PF_SLACK: usize = 64;
+
+/// Sixteen-column chunks of a tile's window columns (`TILE_W + 2r`).
+pub(super) fn chunks(g: Geometry) -> usize {
+    (TILE_W + 2 * g.r).div_ceil(16)
 }
 
-/// Most blocks of 16 disparities a tile band may have (256 disparities).
-pub(super) const MAX_BLOCKS: usize = 16;
+/// Entries of one disparity's column sums in a tile (whole chunks).
+pub(super) fn tile_cols(g: Geometry) -> usize {
+    16 * chunks(g)
+}
 
-/// Matches the searched pixels of row `y` inside `span`, tile by tile: fills `s.best`,
-/// the window sums `s.sad` of every searched pixel over its tile's band, and the right-row
-/// minima `s.right_min` of the searched pairs (as `select_row` does).
+/// Entries of the forward right-row minima: index `x + n − 1 − k` for left pixel `x` at
+/// disparity index `k` (every lane of the last tile included).
+pub(super) fn right_len(g: Geometry) -> usize {
+    g.w.next_multiple_of(TILE_W) + g.n + 16
+}
+
+/// The prefiltered rows with their slack: the left rows (`wp` apart) and the reversed right
+/// rows (`wr` apart), each starting [`PF_SLACK`] bytes into its buffer.
+#[derive(Clone, Copy)]
+pub(super) struct Slack<'a> {
+    pub(super) left: &'a [u8],
+    pub(super) right: &'a [u8],
+}
+
+/// Matches the searched pixels of row `y` inside `span`, tile by tile: fills `s.best`, the
+/// tiles' costs `s.tile_cost` (lookup: [`cost`]) and the forward right-row minima
+/// `s.tile_rmin` (lookup: [`right_target`]).
 ///
 /// # Safety
-/// AVX2 must be available; [`supported`] must hold; `s` must be sized by the stripe set-up
-/// and `s.tile_lo/hi` hold this tile row's bands, `s.tlo/thi` this row's intervals.
+/// AVX2 must be available; `s` must be sized by the stripe set-up, `s.tile_lo/hi` hold this
+/// tile row's bands and `s.tlo/thi` this row's intervals (`TILE_W` entries past `w` with
+/// nothing searched).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, lpf: &[u8], rrev: &[u8], y: usize, s: &mut StripeScratch, span: Range<usize>) {
+pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: usize, s: &mut StripeScratch, span: Range<usize>) {
     use std::arch::x86_64::*;
     let Geometry { w, h, r, wp, n, .. } = g;
     let wr = g.wr();
-    let cols = TILE_W + 2 * r;
+    let (nch, cw) = (chunks(g), tile_cols(g));
+    let tiles = w.div_ceil(TILE_W);
+    assert!(pf.left.len() >= h * wp + 2 * PF_SLACK && pf.right.len() >= h * wr + 2 * PF_SLACK);
+    assert!(s.tile_v.len() >= tiles * n * cw && s.tile_cost.len() >= tiles * n * TILE_W && s.tile_sums.len() >= tiles);
+    assert!(s.tlo.len() >= tiles * TILE_W && s.thi.len() >= tiles * TILE_W && s.tex_row.len() >= w);
+    let rlen = right_len(g);
+    s.tile_right.resize(RIGHT_COPIES * rlen, u16::MAX);
+    // Right pixels this row's span reaches: left x in span, k in 0..n.
+    let rr = span.start..(span.end.next_multiple_of(TILE_W) + n).min(rlen);
+    for c in 0..RIGHT_COPIES {
+        s.tile_right[c * rlen + rr.start..c * rlen + rr.end].fill(u16::MAX);
+    }
+    s.best[span.clone()].fill(None);
+    let (lp, rp) = (pf.left.as_ptr().add(PF_SLACK), pf.right.as_ptr().add(PF_SLACK));
     let y_new = clamp_row(y as isize + r as isize, h);
     let y_old = clamp_row(y as isize - r as isize - 1, h);
-    assert!(lpf.len() >= h * wp && rrev.len() >= h * wr && s.sad.len() >= w * n && s.right_min.len() >= w + n);
-    assert!(s.tile_cs.len() >= w.div_ceil(TILE_W) * cols * n && s.tile_sums.len() >= w.div_ceil(TILE_W));
-    let (lp, rp) = (lpf.as_ptr(), rrev.as_ptr());
-    let sad = s.sad.as_mut_ptr();
-    // Pixel x splats onto copy x mod RIGHT_COPIES of the right row: the next pixel's
-    // read-modify-write overlaps this one's by all but one lane, and reading a store still in
-    // flight stalls; the copies are merged after the row.
-    let stride = w + n + 16;
-    s.tile_right.resize(RIGHT_COPIES * stride, u16::MAX);
-    let right_range = w - span.end..w - span.start + n;
-    for c in 0..RIGHT_COPIES {
-        s.tile_right[c * stride + right_range.start..c * stride + right_range.end].fill(u16::MAX);
-    }
+    let rev = _mm_setr_epi8(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+    // |a − b| of sixteen bytes, widened to sixteen u16 lanes.
+    let absdiff = |a: __m128i, b: __m128i| _mm256_cvtepu8_epi16(_mm_or_si128(_mm_subs_epu8(a, b), _mm_subs_epu8(b, a)));
+    // The right row's sixteen bytes for columns x0 + 16j … + 15 at disparity index k, in
+    // column order: they lie backwards before `pos`.
+    let right16 = |row: usize, pos: isize| _mm_shuffle_epi8(_mm_loadu_si128(rp.offset(row as isize * wr as isize + pos - 15) as *const __m128i), rev);
     let right_copies = s.tile_right.as_mut_ptr();
-    s.best[span.clone()].fill(None);
     for t in span.start / TILE_W..=(span.end - 1) / TILE_W {
         let (lo, hi) = (s.tile_lo[t], s.tile_hi[t]);
         if lo > hi {
             continue;
         }
         let x0 = t * TILE_W;
-        let x1 = ((t + 1) * TILE_W).min(w);
-        // The searched pixels of this tile in this row.
-        let Some(xa) = (x0.max(span.start)..x1.min(span.end)).find(|&x| s.tlo[x] <= s.thi[x]) else {
+        // The pixels' intervals as i16 lanes (two halves of sixteen).
+        let mut ilo = [_mm256_setzero_si256(); 2];
+        let mut ihi = [_mm256_setzero_si256(); 2];
+        for half in 0..2 {
+            let pack = |v: &[i32]| {
+                let q = v.as_ptr().add(x0 + 16 * half) as *const __m256i;
+                _mm256_permute4x64_epi64::<0xD8>(_mm256_packs_epi32(_mm256_loadu_si256(q), _mm256_loadu_si256(q.add(1))))
+            };
+            ilo[half] = pack(&s.tlo);
+            ihi[half] = pack(&s.thi);
+        }
+        let searched = [0, 1].map(|hf| _mm256_movemask_epi8(_mm256_cmpgt_epi16(ilo[hf], ihi[hf])) as u32 != u32::MAX);
+        if !searched[0] && !searched[1] {
             // Nothing searched here this row: the sums fall behind and are summed afresh
             // when the tile is needed again.
             continue;
-        };
-        let xb = (xa..x1.min(span.end)).rev().find(|&x| s.tlo[x] <= s.thi[x]).expect("xa is searched");
-        let k0 = lo as usize;
-        let nb = (hi - lo + 1) as usize / 16;
-        debug_assert!((hi - lo + 1) % 16 == 0 && nb <= MAX_BLOCKS);
-        let ncols = (x1 + 2 * r).min(wp) - x0;
-        let cs = s.tile_cs.as_mut_ptr().add(t * cols * n);
+        }
+        let vt = s.tile_v.as_mut_ptr().add(t * n * cw);
         let state = &mut s.tile_sums[t];
         let slide = state.lo == lo && state.hi == hi && state.row.wrapping_add(1) == y;
         *state = TileSums { lo, hi, row: y };
-        // Vertical window sums of the tile's columns, down to row y.
-        for c in 0..ncols {
-            let xp = x0 + c;
-            let rs = (right_start(g, xp) + k0 as isize) as usize;
-            let col = cs.add(c * n + k0);
-            if slide {
-                let ln = _mm_set1_epi8(*lp.add(y_new * wp + xp) as i8);
-                let lo_ = _mm_set1_epi8(*lp.add(y_old * wp + xp) as i8);
-                let (rn, ro) = (rp.add(y_new * wr + rs), rp.add(y_old * wr + rs));
-                for j in 0..nb {
-                    let a = _mm_loadu_si128(rn.add(16 * j) as *const __m128i);
-                    let o = _mm_loadu_si128(ro.add(16 * j) as *const __m128i);
-                    let da = _mm_or_si128(_mm_subs_epu8(a, ln), _mm_subs_epu8(ln, a));
-                    let dold = _mm_or_si128(_mm_subs_epu8(o, lo_), _mm_subs_epu8(lo_, o));
-                    let v = _mm256_load_si256(col.add(16 * j) as *const __m256i);
-                    let v = _mm256_sub_epi16(_mm256_add_epi16(v, _mm256_cvtepu8_epi16(da)), _mm256_cvtepu8_epi16(dold));
-                    _mm256_store_si256(col.add(16 * j) as *mut __m256i, v);
+        // The left window rows' chunks, shared by every disparity.
+        let lchunk = |row: usize, j: usize| _mm_loadu_si128(lp.add(row * wp + x0 + 16 * j) as *const __m128i);
+        let pos: [isize; 4] = std::array::from_fn(|j| if j < nch { right_start(g, x0 + 16 * j) } else { 0 });
+        // Vertical window sums of the tile's columns, down to row y, for every k of the band.
+        if slide {
+            let ln: [__m128i; 4] = std::array::from_fn(|j| if j < nch { lchunk(y_new, j) } else { _mm_setzero_si128() });
+            let lo_: [__m128i; 4] = std::array::from_fn(|j| if j < nch { lchunk(y_old, j) } else { _mm_setzero_si128() });
+            for k in lo..=hi {
+                let col = vt.add(k as usize * cw);
+                for j in 0..nch {
+                    let dn = absdiff(ln[j], right16(y_new, pos[j] + k as isize));
+                    let dold = absdiff(lo_[j], right16(y_old, pos[j] + k as isize));
+                    let v = col.add(16 * j) as *mut __m256i;
+                    _mm256_storeu_si256(v, _mm256_sub_epi16(_mm256_add_epi16(_mm256_loadu_si256(v), dn), dold));
                 }
-            } else {
-                for j in 0..nb {
+            }
+        } else {
+            for k in lo..=hi {
+                let col = vt.add(k as usize * cw);
+                for j in 0..nch {
                     let mut acc = _mm256_setzero_si256();
                     for dy in -(r as isize)..=r as isize {
                         let yy = clamp_row(y as isize + dy, h);
-                        let l = _mm_set1_epi8(*lp.add(yy * wp + xp) as i8);
-                        let a = _mm_loadu_si128(rp.add(yy * wr + rs + 16 * j) as *const __m128i);
-                        let d = _mm_or_si128(_mm_subs_epu8(a, l), _mm_subs_epu8(l, a));
-                        acc = _mm256_add_epi16(acc, _mm256_cvtepu8_epi16(d));
+                        acc = _mm256_add_epi16(acc, absdiff(lchunk(yy, j), right16(yy, pos[j] + k as isize)));
                     }
-                    _mm256_store_si256(col.add(16 * j) as *mut __m256i, acc);
+                    _mm256_storeu_si256(col.add(16 * j) as *mut __m256i, acc);
                 }
             }
         }
-        // Window sums along the row, then each searched pixel's own interval: the band's
-        // lanes in registers where it has at most four blocks (nearly always when this path
-        // is taken), through memory otherwise.
-        let px = TilePixels { p, g, cs, sad, right_copies, stride, lo, k0, xs: (xa, xb), x0 };
-        match nb {
-            1 => tile_pixels::<1>(px, s, 1),
-            2 => tile_pixels::<2>(px, s, 2),
-            3 => tile_pixels::<3>(px, s, 3),
-            4 => tile_pixels::<4>(px, s, 4),
-            _ => tile_pixels::<MAX_BLOCKS>(px, s, nb),
+        // Window sums along the row, masked to each pixel's interval: winner, its two
+        // neighbours' costs (`u16::MAX` outside the interval) and splat.
+        let ones = _mm256_set1_epi16(-1);
+        let mut best_c = [ones; 2];
+        let mut best_k = [_mm256_setzero_si256(); 2];
+        let (mut before, mut after, mut last, mut moved) = ([ones; 2], [ones; 2], [ones; 2], [_mm256_setzero_si256(); 2]);
+        let cost = s.tile_cost.as_mut_ptr().add(t * n * TILE_W);
+        for k in lo..=hi {
+            let col = vt.add(k as usize * cw);
+            let kv = _mm256_set1_epi16(k as i16);
+            let rm = right_copies.add((k as usize % RIGHT_COPIES) * rlen + x0 + n - 1 - k as usize);
+            for half in 0..2 {
+                if !searched[half] {
+                    continue;
+                }
+                let c0 = col.add(16 * half);
+                let mut sum = _mm256_loadu_si256(c0 as *const __m256i);
+                for i in 1..2 * r + 1 {
+                    sum = _mm256_add_epi16(sum, _mm256_loadu_si256(c0.add(i) as *const __m256i));
+                }
+                let out = _mm256_or_si256(_mm256_cmpgt_epi16(ilo[half], kv), _mm256_cmpgt_epi16(kv, ihi[half]));
+                let m = _mm256_or_si256(sum, out);
+                _mm256_storeu_si256(cost.add(k as usize * TILE_W + 16 * half) as *mut __m256i, m);
+                let nb = _mm256_min_epu16(m, best_c[half]);
+                // Lanes whose best stays (not strictly lower): the first lowest wins.
+                let stay = _mm256_cmpeq_epi16(nb, best_c[half]);
+                best_k[half] = _mm256_blendv_epi8(kv, best_k[half], stay);
+                best_c[half] = nb;
+                // The cost after a winner is this one where the winner moved one step ago;
+                // the cost before it, the previous step's.
+                after[half] = _mm256_blendv_epi8(after[half], m, moved[half]);
+                after[half] = _mm256_blendv_epi8(ones, after[half], stay);
+                before[half] = _mm256_blendv_epi8(last[half], before[half], stay);
+                moved[half] = _mm256_andnot_si256(stay, ones);
+                last[half] = m;
+                let rv = rm.add(16 * half) as *mut __m256i;
+                _mm256_storeu_si256(rv, _mm256_min_epu16(_mm256_loadu_si256(rv), m));
+            }
+        }
+        // The rival: the cheapest pair more than one disparity from the winner.
+        let mut rival = [ones; 2];
+        if p.uniqueness_ratio > 0 {
+            let two = _mm256_set1_epi16(2);
+            let (below, above) = ([0, 1].map(|hf| _mm256_sub_epi16(best_k[hf], two)), [0, 1].map(|hf| _mm256_add_epi16(best_k[hf], two)));
+            for k in lo..=hi {
+                let kv = _mm256_set1_epi16(k as i16);
+                for half in 0..2 {
+                    let c = _mm256_loadu_si256(cost.add(k as usize * TILE_W + 16 * half) as *const __m256i);
+                    let near = _mm256_and_si256(_mm256_cmpgt_epi16(kv, below[half]), _mm256_cmpgt_epi16(above[half], kv));
+                    rival[half] = _mm256_min_epu16(rival[half], _mm256_or_si256(c, near));
+                }
+            }
+        }
+        // Each searched pixel's decision, sixteen lanes at a time (`decide_at`'s rules).
+        let (mut keep, mut bk, mut frac) = ([0u16; TILE_W], [0u16; TILE_W], [0f32; TILE_W]);
+        for half in 0..2 {
+            let searched = _mm256_andnot_si256(_mm256_cmpgt_epi16(ilo[half], ihi[half]), ones);
+            let ok = searched_ok(p, best_c[half], rival[half], s.tex_row.as_ptr().add(x0 + 16 * half), searched);
+            _mm256_storeu_si256(keep.as_mut_ptr().add(16 * half) as *mut __m256i, ok);
+            _mm256_storeu_si256(bk.as_mut_ptr().add(16 * half) as *mut __m256i, best_k[half]);
+            if p.subpixel {
+                subpixel(before[half], best_c[half], after[half], frac.as_mut_ptr().add(16 * half));
+            }
+        }
+        for c in 0..TILE_W.min(w - x0) {
+            *s.best.get_unchecked_mut(x0 + c) = (keep[c] != 0).then_some((bk[c], frac[c]));
         }
     }
-    let (copies, merged) = (&s.tile_right, &mut s.right_min[right_range.clone()]);
-    merged.copy_from_slice(&copies[right_range.clone()]);
-    for c in 1..RIGHT_COPIES {
-        for (m, &v) in merged.iter_mut().zip(&copies[c * stride + right_range.start..c * stride + right_range.end]) {
+    // The copies of the right row merged into the first.
+    let (first, rest) = s.tile_right.split_at_mut(rlen);
+    for c in 0..RIGHT_COPIES - 1 {
+        for (m, &v) in first[rr.clone()].iter_mut().zip(&rest[c * rlen + rr.start..c * rlen + rr.end]) {
             *m = (*m).min(v);
         }
     }
-
 }
 
-/// What [`tile_pixels`] needs of its tile: the column sums `cs` (band from `k0`), the
-/// row's window sums `sad`, the right-row copies, the band's first disparity index `lo` and
-/// the tile's first and last searched pixel `xs`, the tile's first column `x0`.
-#[cfg(target_arch = "x86_64")]
-#[derive(Clone, Copy)]
-struct TilePixels<'a> {
-    p: &'a ValidMatchParams,
-    g: Geometry,
-    cs: *const u16,
-    sad: *mut u16,
-    right_copies: *mut u16,
-    stride: usize,
-    lo: i32,
-    k0: usize,
-    xs: (usize, usize),
-    x0: usize,
-}
-
-/// The pixels `xs` of one tile in one row: window sums slid along the row over the band's
-/// `nb` blocks (`NB` of them in registers; `NB` = [`MAX_BLOCKS`] runs through the first `nb`),
-/// each pixel's own interval masked inside them, its winner, rival and decision, and its
-/// pairs splatted onto the right row.
+/// Which of sixteen lanes keep their winner: searched, with enough texture (`tex`, sixteen
+/// `u32`), and unique — no pair more than one disparity away (`rival`) within
+/// `uniqueness_ratio` percent of the winner's cost `min`: `100 · rival > (100 + ratio) · min`,
+/// which is `decide_at`'s `rival > min + min · ratio / 100` in integers.
 ///
 /// # Safety
-/// AVX2 must be available; `px` must describe a tile of [`tile_row`] with `nb ≤ NB` blocks
-/// in its band.
+/// AVX2 must be available; `tex` must point at sixteen readable `u32`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]
-unsafe fn tile_pixels<const NB: usize>(px: TilePixels, s: &mut StripeScratch, nb: usize) {
-    use crate::stereo::kernels::avx2::hmin;
+unsafe fn searched_ok(p: &ValidMatchParams, min: std::arch::x86_64::__m256i, rival: std::arch::x86_64::__m256i, tex: *const u32, searched: std::arch::x86_64::__m256i) -> std::arch::x86_64::__m256i {
     use std::arch::x86_64::*;
-    let TilePixels { p, g, cs, sad, right_copies, stride, lo, k0, xs: (xa, xb), x0 } = px;
-    let (w, n, b) = (g.w, g.n, 2 * g.r + 1);
-    let nb = if NB <= 4 { NB } else { nb };
-    let ones = _mm256_set1_epi16(-1);
-    let mut kv = [_mm256_setzero_si256(); NB];
-    for (j, k) in kv.iter_mut().enumerate().take(nb) {
-        *k = _mm256_add_epi16(_mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15), _mm256_set1_epi16(16 * j as i16));
+    let mut ok = searched;
+    // 32-bit halves, packed back to sixteen 16-bit masks.
+    let wide = |v: __m256i, i: i32| if i == 0 { _mm256_cvtepu16_epi32(_mm256_castsi256_si128(v)) } else { _mm256_cvtepu16_epi32(_mm256_extracti128_si256::<1>(v)) };
+    let pack = |a: __m256i, b: __m256i| _mm256_permute4x64_epi64::<0xD8>(_mm256_packs_epi32(a, b));
+    if p.texture_threshold > 0 {
+        // tex ≥ threshold ⇔ tex > threshold − 1 (textures are far below 2³¹).
+        let thr = _mm256_set1_epi32(p.texture_threshold as i32 - 1);
+        let t = |i: usize| _mm256_cmpgt_epi32(_mm256_loadu_si256(tex.add(8 * i) as *const __m256i), thr);
+        ok = _mm256_and_si256(ok, pack(t(0), t(1)));
     }
-    let mut lanes = [_mm256_setzero_si256(); NB];
-    let mut masked = [ones; NB];
-    let check_texture = p.texture_threshold > 0;
-    for x in xa..=xb {
-        let c = x - x0;
-        let row = sad.add(x * n + k0);
-        if x == xa {
-            for (j, lane) in lanes.iter_mut().enumerate().take(nb) {
-                let mut acc = _mm256_load_si256(cs.add(c * n + k0 + 16 * j) as *const __m256i);
-                for cc in c + 1..c + b {
-                    acc = _mm256_add_epi16(acc, _mm256_load_si256(cs.add(cc * n + k0 + 16 * j) as *const __m256i));
-                }
-                *lane = acc;
-            }
-        } else {
-            let (add, sub) = (cs.add((c + b - 1) * n + k0), cs.add((c - 1) * n + k0));
-            for (j, lane) in lanes.iter_mut().enumerate().take(nb) {
-                let a = _mm256_load_si256(add.add(16 * j) as *const __m256i);
-                let o = _mm256_load_si256(sub.add(16 * j) as *const __m256i);
-                *lane = _mm256_sub_epi16(_mm256_add_epi16(*lane, a), o);
-            }
-        }
-        for (j, lane) in lanes.iter().enumerate().take(nb) {
-            _mm256_store_si256(row.add(16 * j) as *mut __m256i, *lane);
-        }
-        let (t0, t1) = (*s.tlo.get_unchecked(x), *s.thi.get_unchecked(x));
-        if t0 > t1 {
-            continue;
-        }
-        let tex = if check_texture { *s.tex_row.get_unchecked(x) } else { 0 };
-        // Lanes outside the pixel's interval read as u16::MAX (whole blocks outside it too:
-        // their splat leaves the right row as it is).
-        let (a, bb) = (_mm256_set1_epi16((t0 - lo) as i16), _mm256_set1_epi16((t1 - lo) as i16));
-        let mut minv = ones;
-        let rm = right_copies.add((x % RIGHT_COPIES) * stride + w - 1 - x + k0);
-        for j in 0..nb {
-            let out = _mm256_or_si256(_mm256_cmpgt_epi16(a, kv[j]), _mm256_cmpgt_epi16(kv[j], bb));
-            let m = _mm256_or_si256(lanes[j], out);
-            masked[j] = m;
-            minv = _mm256_min_epu16(minv, m);
-            let rmj = rm.add(16 * j) as *mut __m256i;
-            _mm256_storeu_si256(rmj, _mm256_min_epu16(_mm256_loadu_si256(rmj), m));
-        }
-        let min = hmin(minv);
-        let target = _mm256_set1_epi16(min as i16);
-        let mut best = 0;
-        for (j, m) in masked.iter().enumerate().take(nb) {
-            let bits = _mm256_movemask_epi8(_mm256_cmpeq_epi16(*m, target)) as u32;
-            if bits != 0 {
-                best = 16 * j + bits.trailing_zeros() as usize / 2;
-                break;
-            }
-        }
-        let rival = if p.uniqueness_ratio == 0 {
-            u16::MAX
-        } else {
-            let (below, above) = (_mm256_set1_epi16(best as i16 - 2), _mm256_set1_epi16(best as i16 + 2));
-            let mut rv = ones;
-            for j in 0..nb {
-                let near = _mm256_and_si256(_mm256_cmpgt_epi16(kv[j], below), _mm256_cmpgt_epi16(above, kv[j]));
-                rv = _mm256_min_epu16(rv, _mm256_or_si256(masked[j], near));
-            }
-            hmin(rv)
+    if p.uniqueness_ratio > 0 {
+        let (hundred, scale) = (_mm256_set1_epi32(100), _mm256_set1_epi32(100 + p.uniqueness_ratio as i32));
+        let u = |i: i32| _mm256_cmpgt_epi32(_mm256_mullo_epi32(wide(rival, i), hundred), _mm256_mullo_epi32(wide(min, i), scale));
+        ok = _mm256_and_si256(ok, pack(u(0), u(1)));
+    }
+    ok
+}
+
+/// The sub-pixel offsets of sixteen winners from their neighbours' costs (`u16::MAX`: the
+/// neighbour lies outside the interval, no fit), as `decide_at` computes them, into `out`.
+///
+/// # Safety
+/// AVX2 must be available; `out` must point at sixteen writable `f32`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn subpixel(before: std::arch::x86_64::__m256i, min: std::arch::x86_64::__m256i, after: std::arch::x86_64::__m256i, out: *mut f32) {
+    use std::arch::x86_64::*;
+    let ones = _mm256_set1_epi16(-1);
+    let inside = _mm256_andnot_si256(_mm256_or_si256(_mm256_cmpeq_epi16(before, ones), _mm256_cmpeq_epi16(after, ones)), ones);
+    for i in 0..2 {
+        let f = |v: __m256i| {
+            let h = if i == 0 { _mm256_castsi256_si128(v) } else { _mm256_extracti128_si256::<1>(v) };
+            _mm256_cvtepi32_ps(_mm256_cvtepu16_epi32(h))
         };
-        let i0 = (t0 - lo) as usize;
-        let costs = std::slice::from_raw_parts(row.add(i0), (t1 - t0 + 1) as usize);
-        // A `match`, not `Option::map`: the closure was not inlined into this AVX2 function.
-        #[allow(clippy::manual_map)]
-        let chosen = match decide_at(p, costs, min, best - i0, rival, tex) {
-            Some((bi, frac)) => Some(((t0 as usize + bi) as u16, frac)),
-            None => None,
-        };
-        *s.best.get_unchecked_mut(x) = chosen;
+        let (c0, c1, c2) = (f(before), f(min), f(after));
+        let fit = if i == 0 { _mm256_cvtepi16_epi32(_mm256_castsi256_si128(inside)) } else { _mm256_cvtepi16_epi32(_mm256_extracti128_si256::<1>(inside)) };
+        let denom = _mm256_sub_ps(_mm256_add_ps(c0, c2), _mm256_mul_ps(_mm256_set1_ps(2.0), c1));
+        let fit = _mm256_and_ps(_mm256_castsi256_ps(fit), _mm256_cmp_ps::<_CMP_GT_OQ>(denom, _mm256_setzero_ps()));
+        let q = _mm256_div_ps(_mm256_sub_ps(c0, c2), _mm256_mul_ps(_mm256_set1_ps(2.0), denom));
+        let q = _mm256_min_ps(_mm256_max_ps(q, _mm256_set1_ps(-0.5)), _mm256_set1_ps(0.5));
+        _mm256_storeu_ps(out.add(8 * i), _mm256_and_ps(q, fit));
     }
 }
 
+/// The cost of pixel `x` at disparity index `k` in this row, kept by [`tile_row`] (only for
+/// pairs inside the pixel's interval).
+#[inline(always)]
+pub(super) fn cost(g: Geometry, s: &StripeScratch, x: usize, k: usize) -> u16 {
+    s.tile_cost[((x / TILE_W) * g.n + k) * TILE_W + x % TILE_W]
+}
+
+/// The cheapest searched pair of this row on the right pixel of left pixel `x` at disparity
+/// index `k`, kept by [`tile_row`].
+#[inline(always)]
+pub(super) fn right_target(g: Geometry, s: &StripeScratch, x: usize, k: usize) -> u16 {
+    s.tile_right[x + g.n - 1 - k]
+}
