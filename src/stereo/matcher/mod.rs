@@ -481,6 +481,10 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         let tiles = w.div_ceil(TILE_W);
         s.tile_v.resize(tiles * n * tiles::tile_cols(g), 0);
         s.tile_cost.resize(tiles * n * TILE_W, 0);
+        for v in [&mut s.win_k, &mut s.win_cost, &mut s.win_keep] {
+            v.resize(tiles * TILE_W, 0);
+        }
+        s.win_frac.resize(tiles * TILE_W, 0.0);
         s.tile_sums.clear();
         s.tile_sums.resize(tiles, TileSums { lo: 1, hi: 0, row: usize::MAX });
     }
@@ -548,9 +552,15 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         out_row[..span.start].fill(f32::NAN);
         out_row[span.end..].fill(f32::NAN);
         let (candidates, passed) = if narrow {
-            left_right_check(p, g, s, out_row, span.clone(), |x, k| tiles::cost(g, s, x, k), |x, k| tiles::right_target(g, s, x, k))
+            // SAFETY: as for `tile_row` above, which matched this row.
+            #[cfg(target_arch = "x86_64")]
+            unsafe {
+                tiles::tile_check(p, g, s, out_row, span.clone())
+            }
+            #[cfg(not(target_arch = "x86_64"))]
+            unreachable!("the narrow-band path needs AVX2")
         } else {
-            left_right_check(p, g, s, out_row, span.clone(), |x, k| s.sad[x * n + k], |x, k| s.right_min[w - 1 - x + k])
+            left_right_check(p, g, s, out_row, span.clone())
         };
         stats.lr_candidates += candidates;
         stats.lr_passed += passed;

@@ -570,12 +570,11 @@ pub(super) fn window_sums(g: Geometry, cs: &[u16], sad: &mut [u16], ilo: &[i32],
 /// the number of pixels with a match before the check and after it.
 ///
 /// A match `k` at `x` lands on right pixel `x − d`; the cheapest pair anywhere on that right
-/// pixel's diagonal is `target(x, k)`, and `cost(x, k)` the cost of a searched pair (the row
-/// path's `sad` and `right_min`, or the narrow-band path's tiles). The match passes when a pair on the diagonal within
+/// pixel's diagonal is `right_min`. The match passes when a pair on the diagonal within
 /// `lr_max_diff` disparities of `k` — pixel `x + j` at index `k + j` — reaches that minimum,
 /// i.e. when the right pixel's own best disparity agrees with `k` to `lr_max_diff`.
 #[inline(always)]
-pub(super) fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &mut [f32], span: Range<usize>, cost: impl Fn(usize, usize) -> u16, target: impl Fn(usize, usize) -> u16) -> (usize, usize) {
+pub(super) fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &mut [f32], span: Range<usize>) -> (usize, usize) {
     let Geometry { w, n, dmin, .. } = g;
     let (mut candidates, mut passed) = (0, 0);
     for x in span {
@@ -586,11 +585,11 @@ pub(super) fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScra
                     None => true,
                     Some(max) => {
                         let k = k as isize;
-                        let target = target(x, k as usize);
+                        let target = s.right_min[w - 1 - x + k as usize];
                         let m = max.min(n as u32) as isize;
                         // The pixel's own pair decides almost always; neighbours on the
                         // diagonal only when another pair is cheaper.
-                        let mut ok = cost(x, k as usize) <= target;
+                        let mut ok = s.sad[x * n + k as usize] <= target;
                         let mut j = 1;
                         while !ok && j <= m {
                             for xj in [x as isize + j, x as isize - j] {
@@ -599,7 +598,7 @@ pub(super) fn left_right_check(p: &ValidMatchParams, g: Geometry, s: &StripeScra
                                     && (xj as usize) < w
                                     && s.tlo[xj as usize] as isize <= kj
                                     && kj <= s.thi[xj as usize] as isize
-                                    && cost(xj as usize, kj as usize) <= target;
+                                    && s.sad[xj as usize * n + kj as usize] <= target;
                             }
                             j += 1;
                         }

@@ -161,6 +161,12 @@ pub(super) struct StripeScratch {
     /// is right pixel `x − dmin − k`, so a left pixel's run of disparities is contiguous.
     pub(super) right_min: Vec<u16>,
     pub(super) best: Vec<Option<(u16, f32)>>,
+    /// The narrow-band path's winners of the row, per pixel (whole tiles): disparity index,
+    /// cost, whether kept (all ones) before the left–right check, sub-pixel offset.
+    pub(super) win_k: Vec<u16>,
+    pub(super) win_cost: Vec<u16>,
+    pub(super) win_keep: Vec<u16>,
+    pub(super) win_frac: Vec<f32>,
     pub(super) tex_col: Vec<u32>,
     /// Window texture of each pixel of the row.
     pub(super) tex_row: Vec<u32>,

@@ -65,9 +65,9 @@ pub(super) struct Slack<'a> {
     pub(super) right: &'a [u8],
 }
 
-/// Matches the searched pixels of row `y` inside `span`, tile by tile: fills `s.best`, the
-/// tiles' costs `s.tile_cost` (lookup: [`cost`]) and the forward right-row minima
-/// `s.tile_rmin` (lookup: [`right_target`]).
+/// Matches the searched pixels of row `y` inside `span`, tile by tile: fills the winners
+/// `s.win_*`, the tiles' costs `s.tile_cost` and the forward right-row minima in the first
+/// `s.tile_right` copy, for [`tile_check`].
 ///
 /// # Safety
 /// AVX2 must be available; `s` must be sized by the stripe set-up, `s.tile_lo/hi` hold this
@@ -83,7 +83,8 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
     let tiles = w.div_ceil(TILE_W);
     assert!(pf.left.len() >= h * wp + 2 * PF_SLACK && pf.right.len() >= h * wr + 2 * PF_SLACK);
     assert!(s.tile_v.len() >= tiles * n * cw && s.tile_cost.len() >= tiles * n * TILE_W && s.tile_sums.len() >= tiles);
-    assert!(s.tlo.len() >= tiles * TILE_W && s.thi.len() >= tiles * TILE_W && s.tex_row.len() >= w);
+    assert!(s.tlo.len() >= tiles * TILE_W && s.thi.len() >= tiles * TILE_W && s.tex_row.len() >= tiles * TILE_W);
+    assert!([s.win_k.len(), s.win_cost.len(), s.win_keep.len(), s.win_frac.len()].iter().all(|&l| l >= tiles * TILE_W));
     let rlen = right_len(g);
     s.tile_right.resize(RIGHT_COPIES * rlen, u16::MAX);
     // Right pixels this row's span reaches: left x in span, k in 0..n.
@@ -91,7 +92,8 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
     for c in 0..RIGHT_COPIES {
         s.tile_right[c * rlen + rr.start..c * rlen + rr.end].fill(u16::MAX);
     }
-    s.best[span.clone()].fill(None);
+    // Tiles skipped below keep nothing.
+    s.win_keep[span.start / TILE_W * TILE_W..span.end.next_multiple_of(TILE_W)].fill(0);
     let (lp, rp) = (pf.left.as_ptr().add(PF_SLACK), pf.right.as_ptr().add(PF_SLACK));
     let y_new = clamp_row(y as isize + r as isize, h);
     let y_old = clamp_row(y as isize - r as isize - 1, h);
@@ -211,19 +213,22 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
                 }
             }
         }
-        // Each searched pixel's decision, sixteen lanes at a time (`decide_at`'s rules).
-        let (mut keep, mut bk, mut frac) = ([0u16; TILE_W], [0u16; TILE_W], [0f32; TILE_W]);
+        // Each searched pixel's decision, sixteen lanes at a time (`decide_at`'s rules),
+        // kept for the left–right check ([`tile_check`]).
         for half in 0..2 {
+            let x = x0 + 16 * half;
             let searched = _mm256_andnot_si256(_mm256_cmpgt_epi16(ilo[half], ihi[half]), ones);
-            let ok = searched_ok(p, best_c[half], rival[half], s.tex_row.as_ptr().add(x0 + 16 * half), searched);
-            _mm256_storeu_si256(keep.as_mut_ptr().add(16 * half) as *mut __m256i, ok);
-            _mm256_storeu_si256(bk.as_mut_ptr().add(16 * half) as *mut __m256i, best_k[half]);
+            let ok = searched_ok(p, best_c[half], rival[half], s.tex_row.as_ptr().add(x), searched);
+            _mm256_storeu_si256(s.win_keep.as_mut_ptr().add(x) as *mut __m256i, ok);
+            _mm256_storeu_si256(s.win_k.as_mut_ptr().add(x) as *mut __m256i, best_k[half]);
+            _mm256_storeu_si256(s.win_cost.as_mut_ptr().add(x) as *mut __m256i, best_c[half]);
+            let frac = s.win_frac.as_mut_ptr().add(x);
             if p.subpixel {
-                subpixel(before[half], best_c[half], after[half], frac.as_mut_ptr().add(16 * half));
+                subpixel(before[half], best_c[half], after[half], frac);
+            } else {
+                _mm256_storeu_ps(frac, _mm256_setzero_ps());
+                _mm256_storeu_ps(frac.add(8), _mm256_setzero_ps());
             }
-        }
-        for c in 0..TILE_W.min(w - x0) {
-            *s.best.get_unchecked_mut(x0 + c) = (keep[c] != 0).then_some((bk[c], frac[c]));
         }
     }
     // The copies of the right row merged into the first.
@@ -292,16 +297,97 @@ unsafe fn subpixel(before: std::arch::x86_64::__m256i, min: std::arch::x86_64::_
     }
 }
 
-/// The cost of pixel `x` at disparity index `k` in this row, kept by [`tile_row`] (only for
-/// pairs inside the pixel's interval).
-#[inline(always)]
-pub(super) fn cost(g: Geometry, s: &StripeScratch, x: usize, k: usize) -> u16 {
-    s.tile_cost[((x / TILE_W) * g.n + k) * TILE_W + x % TILE_W]
+/// The left–right check of a row matched by [`tile_row`] (the rule of `left_right_check`),
+/// writing the disparities of `span` into `out`; returns the matches before and after it.
+/// Sixteen pixels at a time: a match passes at once when its own cost reaches its right
+/// pixel's minimum (nearly all do); the others look along the right pixel's diagonal.
+///
+/// # Safety
+/// AVX2 must be available; [`tile_row`] must have matched this row with these buffers.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+pub(super) unsafe fn tile_check(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, out: &mut [f32], span: Range<usize>) -> (usize, usize) {
+    use std::arch::x86_64::*;
+    let Geometry { w, n, dmin, .. } = g;
+    let rlen = right_len(g);
+    assert!(out.len() >= w && s.tile_right.len() >= rlen + 2 && span.end <= w);
+    let (mut candidates, mut passed) = (0, 0);
+    let nan = _mm256_set1_ps(f32::NAN);
+    let rmin = s.tile_right.as_ptr();
+    let mut x = span.start / 16 * 16;
+    while x < span.end {
+        let keep = _mm256_loadu_si256(s.win_keep.as_ptr().add(x) as *const __m256i);
+        // (Lanes not kept read as disparity index 0: their gather stays inside the row.)
+        let k = _mm256_and_si256(keep, _mm256_loadu_si256(s.win_k.as_ptr().add(x) as *const __m256i));
+        let own = _mm256_loadu_si256(s.win_cost.as_ptr().add(x) as *const __m256i);
+        let mut pass = keep;
+        if p.lr_max_diff.is_some() {
+            // The right pixel's minimum at x + n − 1 − k, gathered as the low half of a
+            // 32-bit read (the copy has two entries of slack).
+            let base = _mm256_add_epi32(_mm256_set1_epi32((x + n - 1) as i32), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+            let target = |h: __m128i, lane0: i32| {
+                let idx = _mm256_sub_epi32(_mm256_add_epi32(base, _mm256_set1_epi32(lane0)), _mm256_cvtepu16_epi32(h));
+                _mm256_and_si256(_mm256_i32gather_epi32::<2>(rmin as *const i32, idx), _mm256_set1_epi32(0xffff))
+            };
+            let t = _mm256_permute4x64_epi64::<0xD8>(_mm256_packus_epi32(target(_mm256_castsi256_si128(k), 0), target(_mm256_extracti128_si256::<1>(k), 8)));
+            let reached = _mm256_cmpeq_epi16(_mm256_min_epu16(own, t), own);
+            pass = _mm256_and_si256(keep, reached);
+            // Kept matches not passed at once: along the diagonal.
+            let mut rest = (_mm256_movemask_epi8(_mm256_andnot_si256(reached, keep)) as u32) & 0x5555_5555;
+            let mut extra = 0u32;
+            while rest != 0 {
+                let lane = rest.trailing_zeros() as usize / 2;
+                rest &= rest - 1;
+                if diagonal_reaches(p, g, s, x + lane) {
+                    extra |= 3 << (2 * lane);
+                }
+            }
+            if extra != 0 {
+                let bits = _mm256_setr_epi32(1, 1 << 2, 1 << 4, 1 << 6, 1 << 8, 1 << 10, 1 << 12, 1 << 14);
+                let lanes = |e: u32| _mm256_cmpeq_epi32(_mm256_and_si256(_mm256_set1_epi32(e as i32), bits), bits);
+                let e = _mm256_permute4x64_epi64::<0xD8>(_mm256_packs_epi32(lanes(extra), lanes(extra >> 16)));
+                pass = _mm256_or_si256(pass, e);
+            }
+        }
+        let keep_bits = (_mm256_movemask_epi8(keep) as u32) & 0x5555_5555;
+        let pass_bits = (_mm256_movemask_epi8(pass) as u32) & 0x5555_5555;
+        // Only the span's pixels count and are written.
+        let lo = span.start.saturating_sub(x).min(16);
+        let hi = (span.end - x).min(16);
+        let inside = (if hi == 16 { u32::MAX } else { (1u32 << (2 * hi)) - 1 }) & !((1u32 << (2 * lo)) - 1);
+        candidates += (keep_bits & inside).count_ones() as usize;
+        passed += (pass_bits & inside).count_ones() as usize;
+        let mut vals = [0f32; 16];
+        for i in 0..2 {
+            let half = |v: __m256i| if i == 0 { _mm256_castsi256_si128(v) } else { _mm256_extracti128_si256::<1>(v) };
+            let d = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_cvtepu16_epi32(half(k)), _mm256_set1_epi32(dmin)));
+            let v = _mm256_add_ps(d, _mm256_loadu_ps(s.win_frac.as_ptr().add(x + 8 * i)));
+            let m = _mm256_castsi256_ps(_mm256_cvtepi16_epi32(half(pass)));
+            _mm256_storeu_ps(vals.as_mut_ptr().add(8 * i), _mm256_blendv_ps(nan, v, m));
+        }
+        out[x + lo..x + hi].copy_from_slice(&vals[lo..hi]);
+        x += 16;
+    }
+    (candidates, passed)
 }
 
-/// The cheapest searched pair of this row on the right pixel of left pixel `x` at disparity
-/// index `k`, kept by [`tile_row`].
+/// Whether a pair on the diagonal of pixel `x`'s right pixel within `lr_max_diff` of its
+/// winner reaches that right pixel's minimum (`left_right_check`'s rule, past its first
+/// test).
 #[inline(always)]
-pub(super) fn right_target(g: Geometry, s: &StripeScratch, x: usize, k: usize) -> u16 {
-    s.tile_right[x + g.n - 1 - k]
+fn diagonal_reaches(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, x: usize) -> bool {
+    let Geometry { w, n, .. } = g;
+    let k = s.win_k[x] as isize;
+    let target = s.tile_right[x + n - 1 - k as usize];
+    let m = p.lr_max_diff.unwrap_or(0).min(n as u32) as isize;
+    (1..=m).any(|j| {
+        [x as isize + j, x as isize - j].into_iter().any(|xj| {
+            let kj = k + (xj - x as isize);
+            xj >= 0
+                && (xj as usize) < w
+                && s.tlo[xj as usize] as isize <= kj
+                && kj <= s.thi[xj as usize] as isize
+                && s.tile_cost[((xj as usize / TILE_W) * n + kj as usize) * TILE_W + xj as usize % TILE_W] <= target
+        })
+    })
 }
