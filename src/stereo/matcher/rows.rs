@@ -23,9 +23,11 @@ pub(super) fn clip_row(g: Geometry, iv: &DisparityIntervals, y: usize, lo: &mut 
         let kmax = (x as i32).min(dmin + n as i32 - 1) - dmin;
         let (dlo, dhi) = (row_lo[x] as i32, row_hi[x] as i32);
         let (a, b) = ((dlo - dmin).max(kmin), (dhi - dmin).min(kmax));
-        let ok = dlo <= dhi && a <= b;
-        lo[x] = if ok { a } else { 1 };
-        hi[x] = if ok { b } else { 0 };
+        // Selected with masks, not `if`: LLVM turns an `if` here into masked stores, which
+        // are slow on AMD cores.
+        let m = -(((dlo <= dhi) & (a <= b)) as i32);
+        lo[x] = (a & m) | (1 & !m);
+        hi[x] = b & m;
     }
 }
 
@@ -59,10 +61,13 @@ pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize
         clip_row(g, iv, y, lo, hi);
         for x in 0..w {
             let (l, h) = (lo[x], hi[x]);
-            let ok = l <= h;
-            col_lo[x] = col_lo[x].min(if ok { l } else { i32::MAX });
-            col_hi[x] = col_hi[x].max(if ok { h } else { i32::MIN });
-            col_n[x] += ok as i32;
+            // An unsearched pixel (clipped to lo = 1 > hi = 0) takes part as 2³⁰ + 1 and
+            // −2³⁰: out of every band. (With `if ok { l } else { i32::MAX }` LLVM stores only
+            // where `ok`, as masked stores, which are slow on AMD cores.)
+            let out = ((l > h) as i32) << 30;
+            col_lo[x] = col_lo[x].min(l | out);
+            col_hi[x] = col_hi[x].max(h - out);
+            col_n[x] += (l <= h) as i32;
         }
     }
     for (t, ((a, b), c)) in col_lo.chunks(TILE_W).zip(col_hi.chunks(TILE_W)).zip(col_n.chunks(TILE_W)).enumerate() {
