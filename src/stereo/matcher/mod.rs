@@ -45,7 +45,7 @@ use super::kernels;
 use super::params::{Method, ValidMatchParams};
 use super::speckle::SpeckleFilter;
 use rows::{column_bands, left_right_check, row_intervals, select_row, texture_row, tile_bands, update_column_sums, update_texture};
-use scratch::{searched_span, Geometry, StripeInput, StripeScratch, TileSums, TILE_H, TILE_W};
+use scratch::{searched_span, Geometry, StripeInput, StripeScratch, TileSums, PF_SLACK, TILE_H, TILE_W};
 
 mod rows;
 mod scratch;
@@ -356,14 +356,14 @@ impl StereoMatcher {
 /// OpenCV BM's x-Sobel prefilter, clipped to ±cap and offset by cap, written with
 /// `pad = (left, right)` columns of replicated padding; `reversed` stores each padded row back
 /// to front so that increasing disparity walks forward in memory. The rows start
-/// [`tiles::PF_SLACK`] bytes into `out`, which has as many after them.
+/// [`PF_SLACK`] bytes into `out`, which has as many after them.
 fn prefilter_xsobel(img: GrayView, cap: u8, pad: (usize, usize), reversed: bool, out: &mut Vec<u8>) {
     let (w, h) = (img.width, img.height);
     let (r, wp) = (pad.0, w + pad.0 + pad.1);
     out.clear();
     // Slack before and after the rows: the narrow-band path loads whole chunks of columns.
-    out.resize(wp * h + 2 * tiles::PF_SLACK, 0);
-    let rows = &mut out[tiles::PF_SLACK..tiles::PF_SLACK + wp * h];
+    out.resize(wp * h + 2 * PF_SLACK, 0);
+    let rows = &mut out[PF_SLACK..PF_SLACK + wp * h];
     let cap_i = cap as i16;
     for y in 0..h {
         let up = &img.data[y.saturating_sub(1) * w..][..w];

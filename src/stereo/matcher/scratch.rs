@@ -1,6 +1,5 @@
 //! The sizes and per-thread buffers every stripe of one matcher call shares.
 
-use super::tiles::{Slack, PF_SLACK};
 use crate::stereo::disparity::DisparityIntervals;
 use crate::stereo::params::ValidMatchParams;
 
@@ -15,6 +14,19 @@ pub(super) const NARROW: usize = 8;
 pub(super) const BLOCK: usize = 16;
 // Rounding a disparity index down to its block is a mask.
 const _: () = assert!(BLOCK.is_power_of_two());
+
+/// Bytes of slack before and after the prefiltered rows: the tile kernel loads sixteen
+/// columns at a time, and the last chunk of a tile (or a tile that runs past the image's
+/// right edge) may reach past the rows' ends; those lanes are never used.
+pub(super) const PF_SLACK: usize = 64;
+
+/// The prefiltered rows with their slack: the left rows (`wp` apart) and the reversed right
+/// rows (`wr` apart), each starting [`PF_SLACK`] bytes into its buffer.
+#[derive(Clone, Copy)]
+pub(super) struct Slack<'a> {
+    pub(super) left: &'a [u8],
+    pub(super) right: &'a [u8],
+}
 
 /// Tile width, pixels.
 pub(super) const TILE_W: usize = 32;

@@ -28,18 +28,13 @@
 use std::ops::Range;
 
 use super::rows::right_start;
-use super::scratch::{clamp_row, Geometry, StripeScratch, TileSums, TILE_W};
+use super::scratch::{clamp_row, Geometry, Slack, StripeScratch, TileSums, PF_SLACK, TILE_W};
 use crate::stereo::params::ValidMatchParams;
 
 /// Copies of the right row's minima the disparities of a tile take turns at: the next
 /// disparity's read-modify-write overlaps this one's by all but one lane, and reading a
 /// store still in flight stalls; the copies are merged after the row.
 const RIGHT_COPIES: usize = 4;
-
-/// Bytes of slack before and after the prefiltered rows: the tile kernel loads sixteen
-/// columns at a time, and the last chunk of a tile (or a tile that runs past the image's
-/// right edge) may reach past the rows' ends; those lanes are never used.
-pub(super) const PF_SLACK: usize = 64;
 
 /// Sixteen-column chunks of a tile's window columns (`TILE_W + 2r`).
 pub(super) fn chunks(g: Geometry) -> usize {
@@ -55,14 +50,6 @@ pub(super) fn tile_cols(g: Geometry) -> usize {
 /// disparity index `k` (every lane of the last tile included).
 pub(super) fn right_len(g: Geometry) -> usize {
     g.w.next_multiple_of(TILE_W) + g.n + 16
-}
-
-/// The prefiltered rows with their slack: the left rows (`wp` apart) and the reversed right
-/// rows (`wr` apart), each starting [`PF_SLACK`] bytes into its buffer.
-#[derive(Clone, Copy)]
-pub(super) struct Slack<'a> {
-    pub(super) left: &'a [u8],
-    pub(super) right: &'a [u8],
 }
 
 /// Matches the searched pixels of row `y` inside `span`, tile by tile: fills the winners
