@@ -5,8 +5,8 @@
 //! exact union of its pixels' searched intervals (`tile_bands`), not widened to blocks. For
 //! every disparity of the band, the tile keeps the vertical window sums of its columns and
 //! their window's halo in one row of `u16` lanes (one lane per column), slid down row by row
-//! while the band stays and summed afresh where it changes (a new tile row with another
-//! band, or a gap). A row of the tile then costs, per disparity of the band:
+//! where the previous row's band held that disparity and summed afresh elsewhere (the new
+//! part of a band at a tile row, or after a gap). A row of the tile then costs, per disparity of the band:
 //!
 //! - the slide: the new and the old window row's absolute differences, sixteen columns per
 //!   instruction (the right row is stored reversed, so its sixteen bytes are reversed once);
@@ -115,17 +115,19 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
             continue;
         }
         let vt = s.tile_v.as_mut_ptr().add(t * n * cw);
+        // The part of the band whose sums hold the previous row slides down; the rest (all
+        // of it after a gap) is summed afresh.
         let state = &mut s.tile_sums[t];
-        let slide = state.lo == lo && state.hi == hi && state.row.wrapping_add(1) == y;
+        let (keep_lo, keep_hi) = if state.row.wrapping_add(1) == y { (lo.max(state.lo), hi.min(state.hi)) } else { (1, 0) };
         *state = TileSums { lo, hi, row: y };
         // The left window rows' chunks, shared by every disparity.
         let lchunk = |row: usize, j: usize| _mm_loadu_si128(lp.add(row * wp + x0 + 16 * j) as *const __m128i);
         let pos: [isize; 4] = std::array::from_fn(|j| if j < nch { right_start(g, x0 + 16 * j) } else { 0 });
         // Vertical window sums of the tile's columns, down to row y, for every k of the band.
-        if slide {
+        if keep_lo <= keep_hi {
             let ln: [__m128i; 4] = std::array::from_fn(|j| if j < nch { lchunk(y_new, j) } else { _mm_setzero_si128() });
             let lo_: [__m128i; 4] = std::array::from_fn(|j| if j < nch { lchunk(y_old, j) } else { _mm_setzero_si128() });
-            for k in lo..=hi {
+            for k in keep_lo..=keep_hi {
                 let col = vt.add(k as usize * cw);
                 for j in 0..nch {
                     let dn = absdiff(ln[j], right16(y_new, pos[j] + k as isize));
@@ -134,17 +136,16 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
                     _mm256_storeu_si256(v, _mm256_sub_epi16(_mm256_add_epi16(_mm256_loadu_si256(v), dn), dold));
                 }
             }
-        } else {
-            for k in lo..=hi {
-                let col = vt.add(k as usize * cw);
-                for j in 0..nch {
-                    let mut acc = _mm256_setzero_si256();
-                    for dy in -(r as isize)..=r as isize {
-                        let yy = clamp_row(y as isize + dy, h);
-                        acc = _mm256_add_epi16(acc, absdiff(lchunk(yy, j), right16(yy, pos[j] + k as isize)));
-                    }
-                    _mm256_storeu_si256(col.add(16 * j) as *mut __m256i, acc);
+        }
+        for k in (lo..=hi).filter(|k| !(keep_lo..=keep_hi).contains(k)) {
+            let col = vt.add(k as usize * cw);
+            for j in 0..nch {
+                let mut acc = _mm256_setzero_si256();
+                for dy in -(r as isize)..=r as isize {
+                    let yy = clamp_row(y as isize + dy, h);
+                    acc = _mm256_add_epi16(acc, absdiff(lchunk(yy, j), right16(yy, pos[j] + k as isize)));
                 }
+                _mm256_storeu_si256(col.add(16 * j) as *mut __m256i, acc);
             }
         }
         // Window sums along the row, masked to each pixel's interval: winner, its two
