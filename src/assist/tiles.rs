@@ -3,7 +3,7 @@
 //! intervals the mode's rule gives the tile's pixels.
 //!
 //! The matcher's narrow-band path sums costs over a tile's band anyway (the union of its
-//! pixels' intervals, in whole blocks of 16 disparities); what a per-pixel interval adds is
+//! pixels' intervals, for every pixel of the tile in vector lanes); what a per-pixel interval adds is
 //! the masking of each pixel inside that band — and a per-pixel map to build. At tile
 //! resolution the predicted mode needs no per-pixel map at all: every previous point's
 //! prediction goes straight into the hull of the tile (or tiles) its 2 × 2 splat lands on,

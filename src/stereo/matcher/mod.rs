@@ -23,9 +23,9 @@
 //! (clipped to the valid range), so that neighbours with slightly different narrow intervals
 //! share a range and slide; the work is proportional to the summed interval widths rounded up
 //! to blocks. Runs of pixels and columns sharing one range go through tight AVX2 loops. Tile
-//! rows ([`TILE_W`] × [`TILE_H`] tiles) whose bands — the union of a tile's intervals in
-//! whole blocks — are narrow take the narrow-band path (`tiles.rs`), which gives the same
-//! results.
+//! rows ([`TILE_W`] × [`TILE_H`] tiles) whose bands — the union of a tile's intervals — are
+//! narrow take the narrow-band path (`tiles.rs`, the pixels in the vector lanes), which gives
+//! the same results.
 //!
 //! # The left–right check with left intervals only
 //! The right image gets no intervals of its own: the candidate set of a right pixel `x_r` is
@@ -474,8 +474,8 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
     // Whole tiles: the narrow-band path reads sixteen at a time.
     s.tex_row.resize(w.next_multiple_of(TILE_W), 0);
 
-    // The narrow-band path needs AVX2 and whole blocks of disparities; a tile row takes it
-    // when its tiles' bands are narrow on average (the full range stays on the row path).
+    // The narrow-band path needs AVX2; a tile row takes it when its tiles' bands are narrow
+    // on average (the full range stays on the row path).
     let tile_path_ok = AVX2;
     if tile_path_ok {
         let tiles = w.div_ceil(TILE_W);
