@@ -33,8 +33,7 @@ pub(super) fn clip_row(g: Geometry, iv: &DisparityIntervals, y: usize, lo: &mut 
 
 /// The clipped intervals of the tile row `rows` (into `clip_lo/hi`, row by row, `w` apart)
 /// and the band of each of its tiles: the union of its pixels' intervals (empty tiles get
-/// `lo > hi`). Returns the mean band width
-/// over the searched pixels (0: none).
+/// `lo > hi`). Returns the mean band width over the searched pixels (0: none).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize>, clip_lo: &mut Vec<i32>, clip_hi: &mut Vec<i32>, tile_lo: &mut Vec<i32>, tile_hi: &mut Vec<i32>, tile_px: &mut Vec<u32>, cols: &mut Vec<i32>) -> f64 {
