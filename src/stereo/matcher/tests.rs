@@ -205,6 +205,42 @@ fn narrow_band_tiles_agree_with_the_row_path() {
 }
 
 #[test]
+fn narrow_band_tiles_reject_flat_windows_as_the_row_path_does() {
+    // Flat patches (no texture) inside a textured pair, narrow intervals: the narrow-band
+    // path's texture test (in vector lanes) must reject the pixels the row path rejects.
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        let (w, h) = (160, 64);
+        let (mut l, mut r) = shifted_pair(w, h, |_, _| 12);
+        for y in 10..40 {
+            for x in 30..90 {
+                l[y * w + x] = 128;
+            }
+            for x in 18..78 {
+                r[y * w + x] = 128;
+            }
+        }
+        let (lv, rv) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap());
+        // (No uniqueness test and no left–right check: a flat window's equal costs would fail
+        // them too.)
+        let p = MatchParams { num_disparities: 32, threads: 1, speckle_window: 0, uniqueness_ratio: 0, lr_max_diff: None, ..Default::default() }.validate().unwrap();
+        let mut m = StereoMatcher::new(p);
+        let mut iv = DisparityIntervals::full(w, h, 0, 0);
+        for y in 0..h {
+            for x in 0..w {
+                iv.set(x, y, Some((9, 15)));
+            }
+        }
+        let rows = run_path::<false, false>(&mut m, lv, rv, &iv);
+        let tiles = run_path::<true, false>(&mut m, lv, rv, &iv);
+        assert!(same_map(&rows, &tiles));
+        // The middle of the patch has no texture at all: nothing is matched there.
+        assert!((20..30).all(|y| (50..70).all(|x| rows[y * w + x].is_nan())));
+        assert!(rows.iter().filter(|v| (*v - 12.0).abs() < 1.0).count() > w * h / 2);
+    }
+}
+
+#[test]
 fn matching_the_crop_gives_what_matching_the_whole_image_gives() {
     let (w, h) = (200, 90);
     let (l, r) = shifted_pair(w, h, |x, y| 20 + (x + 2 * y) / 30);
