@@ -1,5 +1,5 @@
 //! `cargo bench --bench matcher [-- FILTER]`: times the matcher (full range and narrow
-//! intervals) on the Middlebury pairs in `../shared/data` when present, and on a simulated
+//! intervals, per pixel and per tile) on the Middlebury pairs in `../shared/data` when present, and on a simulated
 //! pair always. Prints min and median milliseconds per case over repeated runs.
 //!
 //! For the side-by-side comparison with OpenCV use `../shared/bench/peer_stereo.py` with
@@ -72,6 +72,24 @@ fn around(map: &DisparityMap, half: i32) -> DisparityIntervals {
     iv
 }
 
+/// Every pixel of `mask` searches the hull of `iv`'s intervals over its matcher tile
+/// (`stereo::BAND_TILE`); the others nothing.
+fn per_tile(iv: &DisparityIntervals, mask: &[u8]) -> DisparityIntervals {
+    let (w, h) = (iv.width(), iv.height());
+    let (tw, th) = spinscan::stereo::BAND_TILE;
+    let mut out = DisparityIntervals::empty(w, h);
+    for ty in (0..h).step_by(th) {
+        for tx in (0..w).step_by(tw) {
+            let pixels = || (ty..(ty + th).min(h)).flat_map(move |y| (tx..(tx + tw).min(w)).map(move |x| (x, y)));
+            let hull = pixels().filter_map(|(x, y)| iv.get(x, y)).reduce(|(a, b), (c, d)| (a.min(c), b.max(d)));
+            for (x, y) in pixels().filter(|&(x, y)| mask[y * w + x] != 0) {
+                out.set(x, y, hull);
+            }
+        }
+    }
+    out
+}
+
 /// Times the matcher on one set of intervals and prints a line, unless `filter` leaves it out.
 fn run(m: &mut StereoMatcher, (lv, rv): (GrayView, GrayView), iv: &DisparityIntervals, name: &str, filter: Option<&str>) {
     if filter.is_some_and(|f| !name.contains(f)) {
@@ -110,6 +128,9 @@ fn main() {
                 run(&mut m, pair, &fg, &format!("{} object full t{threads}", case.name), filter.as_deref());
                 m.compute(pair.0, pair.1, &fg, &mut out).unwrap();
                 run(&mut m, pair, &around(&out, 3), &format!("{} object ±3px t{threads}", case.name), filter.as_deref());
+                // The same, one interval per matcher tile (the hull over the tile's object
+                // pixels), as the predicted mode gives it.
+                run(&mut m, pair, &per_tile(&around(&out, 3), mask), &format!("{} object tile ±3px t{threads}", case.name), filter.as_deref());
                 let one = DisparityIntervals::within(w, h, Some(mask), mid, mid);
                 run(&mut m, pair, &one, &format!("{} object one disparity t{threads}", case.name), filter.as_deref());
             }
