@@ -1,6 +1,6 @@
 //! `cargo bench --bench matcher [-- FILTER]`: times the matcher (full range and narrow
-//! intervals, per pixel and per tile) on the Middlebury pairs in `../shared/data` when present, and on a simulated
-//! pair always. Prints min and median milliseconds per case over repeated runs.
+//! intervals, per pixel and per tile) on the Middlebury pairs in `../shared/data` when
+//! present, and on a simulated pair always. Prints min and median milliseconds per case over repeated runs.
 //!
 //! For the side-by-side comparison with OpenCV use `../shared/bench/peer_stereo.py` with
 //! `--eval-cmd "spinscan disparity … --threads 1 --repeat 5 -o {out}"` (see README).
