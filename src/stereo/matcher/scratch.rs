@@ -200,7 +200,7 @@ pub(super) struct StripeScratch {
     /// columns and their halo (`tiles::tile_cols`; only the tile's band is used).
     pub(super) tile_v: AlignedBuf,
     /// The narrow-band path's costs of the current row: per tile and disparity index, one
-    /// per pixel of the tile (`tiles::cost`).
+    /// per pixel of the tile (`tiles::cost_index`).
     pub(super) tile_cost: AlignedBuf,
     pub(super) tile_sums: Vec<TileSums>,
     /// The narrow-band path's copies of the forward right-row minima (see `tiles::tile_row`;

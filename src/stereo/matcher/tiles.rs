@@ -108,7 +108,9 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
             ilo[half] = pack(&s.tlo);
             ihi[half] = pack(&s.thi);
         }
-        let searched = [0, 1].map(|hf| _mm256_movemask_epi8(_mm256_cmpgt_epi16(ilo[hf], ihi[hf])) as u32 != u32::MAX);
+        // Lanes with nothing to search (lo > hi), and whether each half has any other.
+        let unsearched = [0, 1].map(|hf| _mm256_cmpgt_epi16(ilo[hf], ihi[hf]));
+        let searched = unsearched.map(|u| _mm256_movemask_epi8(u) as u32 != u32::MAX);
         if !searched[0] && !searched[1] {
             // Nothing searched here this row: the sums fall behind and are summed afresh
             // when the tile is needed again.
@@ -154,7 +156,7 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
         let mut best_c = [ones; 2];
         let mut best_k = [_mm256_setzero_si256(); 2];
         let (mut before, mut after, mut last, mut moved) = ([ones; 2], [ones; 2], [ones; 2], [_mm256_setzero_si256(); 2]);
-        let cost = s.tile_cost.as_mut_ptr().add(t * n * TILE_W);
+        let cost = s.tile_cost.as_mut_ptr();
         for k in lo..=hi {
             let col = vt.add(k as usize * cw);
             let kv = _mm256_set1_epi16(k as i16);
@@ -170,7 +172,7 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
                 }
                 let out = _mm256_or_si256(_mm256_cmpgt_epi16(ilo[half], kv), _mm256_cmpgt_epi16(kv, ihi[half]));
                 let m = _mm256_or_si256(sum, out);
-                _mm256_storeu_si256(cost.add(k as usize * TILE_W + 16 * half) as *mut __m256i, m);
+                _mm256_storeu_si256(cost.add(cost_index(n, x0 + 16 * half, k as usize)) as *mut __m256i, m);
                 let nb = _mm256_min_epu16(m, best_c[half]);
                 // Lanes whose best stays (not strictly lower): the first lowest wins.
                 let stay = _mm256_cmpeq_epi16(nb, best_c[half]);
@@ -195,7 +197,7 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
             for k in lo..=hi {
                 let kv = _mm256_set1_epi16(k as i16);
                 for half in 0..2 {
-                    let c = _mm256_loadu_si256(cost.add(k as usize * TILE_W + 16 * half) as *const __m256i);
+                    let c = _mm256_loadu_si256(cost.add(cost_index(n, x0 + 16 * half, k as usize)) as *const __m256i);
                     let near = _mm256_and_si256(_mm256_cmpgt_epi16(kv, below[half]), _mm256_cmpgt_epi16(above[half], kv));
                     rival[half] = _mm256_min_epu16(rival[half], _mm256_or_si256(c, near));
                 }
@@ -205,8 +207,7 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
         // kept for the left–right check ([`tile_check`]).
         for half in 0..2 {
             let x = x0 + 16 * half;
-            let searched = _mm256_andnot_si256(_mm256_cmpgt_epi16(ilo[half], ihi[half]), ones);
-            let ok = searched_ok(p, best_c[half], rival[half], s.tex_row.as_ptr().add(x), searched);
+            let ok = searched_ok(p, best_c[half], rival[half], s.tex_row.as_ptr().add(x), _mm256_andnot_si256(unsearched[half], ones));
             _mm256_storeu_si256(s.win_keep.as_mut_ptr().add(x) as *mut __m256i, ok);
             _mm256_storeu_si256(s.win_k.as_mut_ptr().add(x) as *mut __m256i, best_k[half]);
             _mm256_storeu_si256(s.win_cost.as_mut_ptr().add(x) as *mut __m256i, best_c[half]);
@@ -359,6 +360,14 @@ pub(super) unsafe fn tile_check(p: &ValidMatchParams, g: Geometry, s: &StripeScr
     (candidates, passed)
 }
 
+/// Where `s.tile_cost` keeps the cost of pixel `x` at disparity index `k` in this row: per
+/// tile, per disparity index, one entry per pixel of the tile (sixteen consecutive pixels of
+/// a tile are consecutive entries).
+#[inline(always)]
+fn cost_index(n: usize, x: usize, k: usize) -> usize {
+    ((x / TILE_W) * n + k) * TILE_W + x % TILE_W
+}
+
 /// Whether a pair on the diagonal of pixel `x`'s right pixel within `lr_max_diff` of its
 /// winner reaches that right pixel's minimum (`left_right_check`'s rule, past its first
 /// test).
@@ -375,7 +384,7 @@ fn diagonal_reaches(p: &ValidMatchParams, g: Geometry, s: &StripeScratch, x: usi
                 && (xj as usize) < w
                 && s.tlo[xj as usize] as isize <= kj
                 && kj <= s.thi[xj as usize] as isize
-                && s.tile_cost[((xj as usize / TILE_W) * n + kj as usize) * TILE_W + xj as usize % TILE_W] <= target
+                && s.tile_cost[cost_index(n, xj as usize, kj as usize)] <= target
         })
     })
 }
