@@ -40,6 +40,7 @@
 //! Nothing ever waits for a pose.
 
 pub mod motion;
+mod paper;
 mod region;
 mod splat;
 mod tiles;
@@ -52,7 +53,7 @@ use nalgebra::{Isometry3, Matrix3, UnitQuaternion, Vector3};
 use crate::register::posestore::PoseSnapshot;
 use crate::stereo::{DisparityIntervals, DisparityMap, MatchStats, Rectification};
 use motion::{MotionFilter, MotionNoise};
-use region::{for_each_set, interval, MaskRows, Region, FILL};
+use region::{for_each_set, interval, round_row, MaskRows, Region, FILL};
 pub use tiles::Granularity;
 
 /// How the search range of a frame is chosen.
@@ -431,7 +432,15 @@ impl Assistant {
     #[inline(always)]
     fn build(&mut self, gap: u64, mask: Option<&[u8]>, plan: &mut Plan) {
         match self.params.mode {
-            AssistMode::Paper { w: weight } => self.splat_paper(weight, gap, plan.lag, mask, plan),
+            AssistMode::Paper { w: weight } if self.params.granularity != Granularity::Tile => {
+                // Straight into the plan's map: no per-pixel pass after the splat.
+                let (mut iv, mut holes) = (self.spare_intervals(), Vec::new());
+                self.splat_paper(weight, gap, plan.lag, mask, plan, Some(paper::PixelOut { iv: &mut iv, holes: &mut holes }));
+                self.fill_holes(&mut iv, &holes, plan);
+                plan.intervals = iv;
+                return;
+            }
+            AssistMode::Paper { w: weight } => self.splat_paper(weight, gap, plan.lag, mask, plan, None),
             AssistMode::Predicted => self.splat_predicted(gap, plan.lag, mask, plan),
             AssistMode::None => unreachable!("handled by plan"),
         }
@@ -481,48 +490,35 @@ impl Assistant {
     }
 
     /// The intervals from the splatted bounds: foreground pixels with bounds search them;
-    /// those without take the hull of the bounds within `FILL` pixels, widened by `MARGIN`
-    /// (the disparity of a surface continues across a small gap); the rest the full range.
+    /// those without are holes (`fill_holes`).
     #[inline(always)]
     fn intervals(&mut self, mask: Option<&[u8]>, plan: &mut Plan) -> DisparityIntervals {
         let w = self.size.0;
         let mut iv = self.spare_intervals();
-        let (lo, hi, range, region) = (&self.lo, &self.hi, self.range, self.region);
-        let (r0, r1) = (range.0 as f32, range.1 as f32);
+        let (lo, hi, region) = (&self.lo, &self.hi, self.region);
         let mut holes = Vec::new();
-        let mut hole_flags = vec![0u8; region.x1 - region.x0];
+        let n = region.x1 - region.x0;
+        let (mut hole_row, none) = (vec![0u8; n], vec![0u8; n]);
         let masks = MaskRows::new(mask, w, &region);
         let xs = region.xs();
         for y in region.ys() {
             let (out_lo, out_hi) = iv.row_mut(y);
-            let row = y * w;
-            let mrow = masks.row(y);
-            let (lo_row, hi_row) = (&lo[row + xs.start..row + xs.end], &hi[row + xs.start..row + xs.end]);
-            let (out_lo, out_hi) = (&mut out_lo[xs.clone()], &mut out_hi[xs.clone()]);
-            // Clipped, then rounded outwards (the range's ends are whole, so the order does not
-            // matter); nothing reached (lo = +∞, hi = −∞) fails `a <= b`. Branch-free, so it
-            // vectorises; the rare holes are collected after.
-            let mut row_holes = 0u8;
-            let hole_row = &mut hole_flags[..mrow.len()];
-            for k in 0..mrow.len() {
-                let here = mrow[k] != 0;
-                let (a, b) = (lo_row[k].max(r0), hi_row[k].min(r1));
-                let ok = here & (a <= b);
-                // Inside the range once selected, so the plain conversion is exact (and,
-                // unlike `as`, needs no saturation checks: it vectorises).
-                let (a, b) = (if ok { a } else { r0 }, if ok { b } else { r0 });
-                // SAFETY: a and b lie in [r0, r1], whole numbers of i16 range.
-                let (ta, tb) = unsafe { (a.to_int_unchecked::<i32>(), b.to_int_unchecked::<i32>()) };
-                out_lo[k] = if ok { (ta - (ta as f32 > a) as i32) as i16 } else { 1 };
-                out_hi[k] = if ok { (tb + ((tb as f32) < b) as i32) as i16 } else { 0 };
-                let hole = here & !ok;
-                hole_row[k] = hole as u8;
-                row_holes |= hole as u8;
-            }
-            if row_holes != 0 {
-                for_each_set(hole_row, |k| holes.push((xs.start + k, y)));
+            let row = y * w + xs.start..y * w + xs.end;
+            if round_row(masks.row(y), &none, &lo[row.clone()], &hi[row], &mut out_lo[xs.clone()], &mut out_hi[xs.clone()], &mut hole_row, self.range) {
+                for_each_set(&hole_row, |k| holes.push((xs.start + k, y)));
             }
         }
+        self.fill_holes(&mut iv, &holes, plan);
+        iv
+    }
+
+    /// Each hole (`(x, y)`, sorted by row, then column) takes the hull of the bounds within
+    /// `FILL` pixels, widened by `MARGIN` (the disparity of a surface continues across a
+    /// small gap), or the full range where there are none.
+    #[inline(always)]
+    fn fill_holes(&self, iv: &mut DisparityIntervals, holes: &[(usize, usize)], plan: &mut Plan) {
+        let w = self.size.0;
+        let (lo, hi, range, region) = (&self.lo, &self.hi, self.range, self.region);
         // Per row holding holes: the bounds' extremes down each column of the FILL rows
         // around it (element-wise over the holes' columns, so that it vectorises), then per
         // hole across the FILL columns around it. (The bounds are never NaN.)
@@ -563,11 +559,10 @@ impl Assistant {
                 let xs = x.saturating_sub(FILL).max(region.x0) - cols.start..(x + FILL + 1).min(region.x1) - cols.start;
                 let a = col_lo[xs.clone()].iter().fold(f32::INFINITY, |m, &v| if v < m { v } else { m });
                 let b = col_hi[xs].iter().fold(f32::NEG_INFINITY, |m, &v| if v > m { v } else { m });
-                fill_hole(&mut iv, plan, range, (x, y), a, b);
+                fill_hole(iv, plan, range, (x, y), a, b);
             }
             start = end;
         }
-        iv
     }
 
     /// Hands a plan's interval buffer back for the next plan (saves allocating and clearing

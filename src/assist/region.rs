@@ -52,6 +52,38 @@ pub(super) fn for_each_set(flags: &[u8], mut f: impl FnMut(usize)) {
     }
 }
 
+/// One row of bounds into one row of intervals. A pixel with `want[k] != 0` and
+/// `except[k] == 0` searches `lo[k]..=hi[k]` clipped to `range` and rounded outwards; one
+/// whose clipped bounds are empty (nothing reached it: `lo = +∞`, `hi = −∞`) searches
+/// nothing and is flagged in `hole`; every other pixel searches nothing. Returns whether any
+/// hole was flagged.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+pub(super) fn round_row(want: &[u8], except: &[u8], lo: &[f32], hi: &[f32], out_lo: &mut [i16], out_hi: &mut [i16], hole: &mut [u8], range: (i32, i32)) -> bool {
+    let (r0, r1) = (range.0 as f32, range.1 as f32);
+    let n = want.len();
+    let (except, lo, hi, out_lo, out_hi, hole) = (&except[..n], &lo[..n], &hi[..n], &mut out_lo[..n], &mut out_hi[..n], &mut hole[..n]);
+    let mut any = 0u8;
+    // Clipped, then rounded outwards (the range's ends are whole, so the order does not
+    // matter). Branch-free, so that it vectorises; the rare holes are collected after.
+    for k in 0..n {
+        let wanted = (want[k] != 0) & (except[k] == 0);
+        let (a, b) = (lo[k].max(r0), hi[k].min(r1));
+        let ok = wanted & (a <= b);
+        // Inside the range once selected, so the plain conversion is exact (and, unlike
+        // `as`, needs no saturation checks: it vectorises).
+        let (a, b) = (if ok { a } else { r0 }, if ok { b } else { r0 });
+        // SAFETY: a and b lie in [r0, r1], whole numbers of i16 range.
+        let (ta, tb) = unsafe { (a.to_int_unchecked::<i32>(), b.to_int_unchecked::<i32>()) };
+        out_lo[k] = if ok { (ta - (ta as f32 > a) as i32) as i16 } else { 1 };
+        out_hi[k] = if ok { (tb + ((tb as f32) < b) as i32) as i16 } else { 0 };
+        let missed = wanted & !ok;
+        hole[k] = missed as u8;
+        any |= missed as u8;
+    }
+    any != 0
+}
+
 /// Pixels nothing reached take the hull of the intervals within this many pixels.
 pub(super) const FILL: usize = 6;
 
