@@ -10,7 +10,7 @@ mod cli;
 
 use cli::bench::BenchCommand;
 use cli::sim::SimCommand;
-use cli::{bench, daemon, register, replay, sim, stereo, turntable};
+use cli::{bench, daemon, mesh, register, replay, sim, stereo, turntable};
 
 #[derive(Parser)]
 #[command(name = "spinscan", version, about = "Registration-assisted stereo scanning for turntable labs")]
@@ -39,6 +39,9 @@ enum Command {
     /// Registers two scans by ICP (SOURCE onto TARGET), or, with --ring, a ring of scans into
     /// Stanford .conf poses.
     Register(register::RegisterArgs),
+    /// Fuses a results folder's registered views into a closed, coloured triangle mesh
+    /// (.ply, .obj or .stl).
+    Mesh(mesh::MeshArgs),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -74,6 +77,7 @@ fn main() -> ExitCode {
         Command::Sim(SimCommand::Render(a)) => sim::cmd_sim_render(a),
         Command::Replay(a) => replay::cmd_replay(a),
         Command::Register(a) => register::cmd_register(a),
+        Command::Mesh(a) => mesh::cmd_mesh(a),
         Command::Bench(BenchCommand::Table1(a)) => bench::cmd_table1(a),
         Command::Bench(BenchCommand::Live(a)) => bench::cmd_bench_live(a),
         Command::Status(a) => daemon::status(a),

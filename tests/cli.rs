@@ -156,9 +156,42 @@ fn demo_records_and_replays_a_scan_on_the_simulated_lab() {
     assert!(j["gt_bad2_of_matched"].as_f64().unwrap() < 0.05, "{j}");
     for f in ["recording/calib.yaml", "recording/frames.jsonl", "recording/gt/poses.jsonl", "recording/gt/mesh.ply", "recording/gt/disparity/000002.png",
               "results/manifest.json", "results/report.json", "results/views/000002.ply", "results/disparity/000002.png",
-              "results/poses.jsonl", "results/model.ply"] {
+              "results/poses.jsonl", "results/model.ply", "results/mesh.ply"] {
         assert!(dir.join(f).is_file(), "{f} missing");
     }
+    // The fused mesh re-meshed into each format, and each read back by a reader that is not
+    // spinscan's writer: every file holds the same triangles.
+    let mesh = spinscan::io::ply::read_ply(&dir.join("results/mesh.ply")).unwrap();
+    assert!(mesh.triangles.len() > 1000 && mesh.cloud.normals.is_some(), "{} triangles", mesh.triangles.len());
+    for ext in ["ply", "obj", "stl"] {
+        let out = dir.join(format!("again.{ext}"));
+        let o = spinscan(&["mesh", dir.join("results").to_str().unwrap(), "-o", out.to_str().unwrap()]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let about = json_line(&o);
+        assert_eq!((about["triangles"].as_u64(), about["boundary_edges"].as_u64(), about["non_manifold_edges"].as_u64()), (Some(mesh.triangles.len() as u64), Some(0), Some(0)), "{about}");
+        let bytes = std::fs::read(&out).unwrap();
+        match ext {
+            "ply" => assert_eq!(spinscan::io::ply::read_ply(&out).unwrap(), mesh),
+            "obj" => {
+                let text = String::from_utf8(bytes).unwrap();
+                let v: Vec<Vec<f32>> = text.lines().filter_map(|l| l.strip_prefix("v ")).map(|l| l.split_whitespace().map(|x| x.parse().unwrap()).collect()).collect();
+                let f: Vec<Vec<usize>> = text.lines().filter_map(|l| l.strip_prefix("f ")).map(|l| l.split_whitespace().map(|x| x.split('/').next().unwrap().parse().unwrap()).collect()).collect();
+                assert_eq!((v.len(), f.len()), (mesh.cloud.len(), mesh.triangles.len()));
+                assert!(v.iter().all(|v| v.len() == 6 && v[3..].iter().all(|c| (0.0..=1.0).contains(c))));
+                assert!(f.iter().all(|f| f.len() == 3 && f.iter().all(|&i| (1..=v.len()).contains(&i))));
+                assert_eq!(text.lines().filter(|l| l.starts_with("vn ")).count(), mesh.cloud.len());
+            }
+            _ => {
+                let n = u32::from_le_bytes(bytes[80..84].try_into().unwrap()) as usize;
+                assert_eq!((n, bytes.len()), (mesh.triangles.len(), 84 + 50 * n));
+                // The first triangle's corners are the mesh's.
+                let corner = |k: usize| -> [f32; 3] { std::array::from_fn(|c| f32::from_le_bytes(bytes[84 + 12 + 12 * k + 4 * c..][..4].try_into().unwrap())) };
+                assert_eq!([corner(0), corner(1), corner(2)], mesh.triangles[0].map(|v| mesh.cloud.points[v as usize]));
+            }
+        }
+    }
+    let o = spinscan(&["mesh", dir.join("results").to_str().unwrap(), "-o", dir.join("again.xyz").to_str().unwrap()]);
+    assert!(!o.status.success() && stderr(&o).contains("expected a name ending in .ply, .obj or .stl"), "{}", stderr(&o));
     // The views are registered: three poses, and a model near the true surface.
     assert_eq!(std::fs::read_to_string(dir.join("results/poses.jsonl")).unwrap().lines().count(), 3);
     assert!(j["registration"]["gt_model_distance_mm"]["median"].as_f64().unwrap() < 2.0, "{j}");

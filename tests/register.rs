@@ -229,6 +229,17 @@ fn a_simulated_turn_replays_into_poses_model_and_axis() {
     let median = reg["gt_model_distance_mm"]["median"].as_f64().unwrap();
     assert!(median < 2.0, "model median {median:.2} mm from the surface: {reg}");
 
+    // mesh.ply: the fused surface, closed (the unseen base capped and reported), nearer the
+    // true surface than the merged model, and covering what the views saw.
+    let mesh = &reg["mesh"];
+    assert_eq!((mesh["boundary_edges"].as_u64(), mesh["non_manifold_edges"].as_u64()), (Some(0), Some(0)), "{mesh}");
+    assert!(mesh["holes_filled"].as_u64().unwrap() >= 1 && mesh["fill_area_mm2"].as_f64().unwrap() > 0.0, "{mesh}");
+    let mesh_median = mesh["gt_distance_mm"]["median"].as_f64().unwrap();
+    assert!(mesh_median < median, "mesh {mesh_median} mm, model {median} mm from the surface: {mesh}");
+    assert!(mesh["gt_completeness"]["share"].as_f64().unwrap() > 0.9, "{mesh}");
+    let read = spinscan::io::ply::read_ply(&out.join("mesh.ply")).unwrap();
+    assert_eq!(read.triangles.len() as u64, mesh["triangles"].as_u64().unwrap());
+
     // turntable_estimated.yaml: the true axis, pointing up, source "estimated".
     let path = out.join("turntable_estimated.yaml");
     let est = spinscan::recording::TurntableAxis::parse(&path, &std::fs::read_to_string(&path).unwrap()).unwrap();

@@ -4,6 +4,7 @@
 
 pub mod bench;
 pub mod daemon;
+pub mod mesh;
 pub mod progress;
 pub mod register;
 pub mod replay;

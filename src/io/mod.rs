@@ -1,6 +1,7 @@
 //! Files: images in, disparity maps (16-bit PNG, PFM, false colour), masks, PLY, and the pose
 //! files of `spinscan register` (transform JSON, Stanford `.conf`).
 
+pub mod mesh;
 pub mod ply;
 pub mod poses;
 

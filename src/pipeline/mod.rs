@@ -12,6 +12,7 @@
 //! [`Pipeline::match_frame`] and [`Pipeline::finish_view`].
 
 pub mod live;
+pub mod mesh;
 pub mod replay;
 pub mod results;
 

@@ -13,6 +13,7 @@ use serde_json::{json, Value};
 use super::View;
 use crate::assist::AssistParams;
 use crate::cloud::PointCloud;
+use crate::fuse::{FuseParams, MeshStats, Tsdf};
 use crate::hw::StereoFrame;
 use crate::io;
 use crate::recording::TurntableAxis;
@@ -42,12 +43,14 @@ pub struct ModelOptions {
     pub voxel_mm: f64,
     /// Isolated-point removal on the model (None: keep every voxel).
     pub denoise: Option<DenoiseParams>,
+    /// The fused surface, `mesh.ply` (None: no mesh).
+    pub mesh: Option<FuseParams>,
 }
 
 impl Default for ModelOptions {
     /// A 1 mm model cleaned with the default thresholds.
     fn default() -> Self {
-        ModelOptions { voxel_mm: 1.0, denoise: Some(DenoiseParams::default()) }
+        ModelOptions { voxel_mm: 1.0, denoise: Some(DenoiseParams::default()), mesh: Some(FuseParams::default()) }
     }
 }
 
@@ -327,14 +330,27 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
     // Scored against the truth as the views are read back for the model (read once).
     let truth = inputs.gt_poses.as_deref().and_then(|gt| Truth::new(gt, &poses, inputs.gt_mesh.as_deref()));
     let mut own = Vec::new();
+    // The fused surface, integrated as the views are read (docs/meshing.md).
+    let mut tsdf = opts.mesh.clone().map(Tsdf::new).transpose().map_err(|e| ResultsError::SideFile(format!("mesh settings: {e}")))?;
+    let fuse_start = Instant::now();
+    // The views' points placed by their true poses: samples of the visible true surface.
+    let mut seen = Vec::new();
     for p in &poses {
         let path = results.dir.join("views").join(format!("{:06}.ply", p.seq));
         let view = io::ply::read_ply(&path).map_err(|e| ResultsError::Output { path: path.clone(), what: format!("cannot read the view back: {e}") })?;
         model.add(&view.cloud, &p.first_from_view);
+        if let Some(t) = tsdf.as_mut() {
+            t.integrate(&view.cloud, &p.first_from_view);
+        }
         if let Some(t) = &truth {
             t.view_distances(p.seq, &view.cloud.points, &mut own);
+            t.placed_sample(p.seq, &view.cloud.points, &mut seen);
         }
     }
+    let mesh = match &tsdf {
+        Some(t) => Some(write_mesh(t, &results.dir.join("mesh.ply"), fuse_start)?),
+        None => None,
+    };
     let (mut cloud, _) = model.to_cloud();
     let voxels = cloud.len();
     if let Some(d) = &opts.denoise {
@@ -376,6 +392,12 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
         about["point_mm"] = json!(est.axis_point_mm);
         about["dir"] = json!(est.axis_dir);
         section["axis"] = about;
+    }
+    if let Some((mesh, about)) = &mesh {
+        section["mesh"] = about.clone();
+        if let Some(t) = &truth {
+            score_mesh(&mut section["mesh"], t, mesh, &own, &seen)?;
+        }
     }
     if let Some(t) = &truth {
         score_registration(&mut section, results, &poses, t, &cloud.points, &own)?;
@@ -423,6 +445,53 @@ impl<'a> Truth<'a> {
         let pts: Vec<[f32; 3]> = crate::register::subsample_indices(points.len(), VIEW_SAMPLE).into_iter().map(|i| crate::register::apply(&placed, &points[i])).collect();
         out.extend(surface.distances(&pts));
     }
+
+    /// (At most 2000 of) view `seq`'s points placed by its true pose, into `out`.
+    fn placed_sample(&self, seq: u64, points: &[[f32; 3]], out: &mut Vec<[f32; 3]>) {
+        const SAMPLE: usize = 2000;
+        let (Some(Ok(_)), Some(cam_from_obj)) = (&self.surface, self.cam_from_obj(seq)) else { return };
+        let placed = self.first * cam_from_obj.inverse();
+        out.extend(crate::register::subsample_indices(points.len(), SAMPLE).into_iter().map(|i| crate::register::apply(&placed, &points[i])));
+    }
+}
+
+/// The fused field's mesh written to `path`; its figures for the report.
+fn write_mesh(tsdf: &Tsdf, path: &Path, fuse_start: Instant) -> Result<(crate::cloud::Mesh, Value), ResultsError> {
+    let fuse_ms = fuse_start.elapsed().as_secs_f64() * 1e3;
+    let t = Instant::now();
+    let (mesh, stats): (_, MeshStats) = tsdf.mesh();
+    let mesh_ms = t.elapsed().as_secs_f64() * 1e3;
+    io::mesh::write_mesh(path, &mesh).map_err(|e| ResultsError::Output { path: path.to_path_buf(), what: e.to_string() })?;
+    let p = tsdf.params();
+    let mut about = serde_json::to_value(&stats).expect("plain numbers");
+    about["file"] = json!("mesh.ply");
+    about["voxel_mm"] = json!(p.voxel_mm);
+    about["truncation_voxels"] = json!(p.truncation_voxels);
+    about["filled"] = json!(p.fill);
+    about["blocks"] = json!(tsdf.blocks());
+    about["field_mib"] = json!(tsdf.memory_bytes() as f64 / (1024.0 * 1024.0));
+    about["read_and_fuse_ms"] = json!(fuse_ms);
+    about["extract_ms"] = json!(mesh_ms);
+    Ok((mesh, about))
+}
+
+/// The mesh against the truth: its vertices' distances to the true surface (and against
+/// the views' own), and completeness — the share of the visible true surface (sampled by
+/// the views' points placed by their true poses) within 1.5 mm of the mesh.
+fn score_mesh(about: &mut Value, truth: &Truth, mesh: &crate::cloud::Mesh, own: &[f64], seen: &[[f32; 3]]) -> Result<(), ResultsError> {
+    let Some(Ok(surface)) = &truth.surface else { return Ok(()) };
+    let d = surface.distances(&mesh.cloud.points);
+    about["gt_distance_mm"] = json!({"median": quantile(&d, 0.5), "p95": quantile(&d, 0.95), "vertices": d.len()});
+    if !own.is_empty() {
+        let ratio = |m: Option<f64>, v: Option<f64>| m.zip(v).map(|(m, v)| m / v.max(1e-12));
+        about["gt_mesh_to_view_ratio"] = json!({"median": ratio(quantile(&d, 0.5), quantile(own, 0.5)), "p95": ratio(quantile(&d, 0.95), quantile(own, 0.95))});
+    }
+    if !seen.is_empty() && !mesh.triangles.is_empty() {
+        let ours = Surface::new(mesh, &Isometry3::identity()).map_err(|e| ResultsError::SideFile(format!("mesh: {e}")))?;
+        let near = ours.distances(seen).iter().filter(|&&d| d <= 1.5).count();
+        about["gt_completeness"] = json!({"within_mm": 1.5, "share": near as f64 / seen.len() as f64, "samples": seen.len()});
+    }
+    Ok(())
 }
 
 /// View `seq`'s `cam_from_obj` in `gt/poses.jsonl`.

@@ -18,7 +18,7 @@ struct Cell {
 /// A multiplicative hash of voxel keys (FxHash's mixing): the std SipHash is built to resist
 /// chosen keys, which voxel coordinates are not, and cost most of a model update.
 #[derive(Default)]
-struct VoxelHasher(u64);
+pub(crate) struct VoxelHasher(u64);
 
 impl Hasher for VoxelHasher {
     fn finish(&self) -> u64 {

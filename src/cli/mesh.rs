@@ -1,0 +1,50 @@
+//! `spinscan mesh`: re-meshes a results folder (docs/meshing.md).
+
+use std::path::PathBuf;
+
+use clap::Args;
+
+use super::{input, output, progress, Failure};
+use spinscan::fuse::FuseParams;
+use spinscan::pipeline::mesh::{mesh_results, MeshError};
+
+#[derive(Args)]
+pub struct MeshArgs {
+    /// Results folder of a finished scan or replay (its `poses.jsonl` and `views/`).
+    pub results: PathBuf,
+    /// The mesh to write: `.ply` (binary, vertex colours and normals), `.obj` (vertex colours
+    /// and normals) or `.stl` (binary, geometry only).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Voxel side of the fused field, mm (smaller: finer detail, more memory and time).
+    #[arg(long, default_value_t = FuseParams::default().voxel_mm)]
+    pub voxel_mm: f64,
+    /// Half-width of the band each point updates around the surface, in voxels.
+    #[arg(long, default_value_t = FuseParams::default().truncation_voxels)]
+    pub truncation_voxels: f64,
+    /// Leave the holes open (the part never seen, e.g. the bottom on the table) instead of
+    /// capping them.
+    #[arg(long)]
+    pub no_fill: bool,
+    /// Remove connected pieces with fewer triangles than this share of the largest.
+    #[arg(long, default_value_t = FuseParams::default().min_component_share)]
+    pub min_component_share: f64,
+    /// Also write the mesh's figures (counts, holes filled, times) as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+pub fn cmd_mesh(a: MeshArgs) -> Result<(), Failure> {
+    let params = FuseParams { voxel_mm: a.voxel_mm, truncation_voxels: a.truncation_voxels, fill: !a.no_fill, min_component_share: a.min_component_share, ..FuseParams::default() };
+    let result = mesh_results(&a.results, params, &a.output, |done, total| progress::show(format!("mesh: fused {done}/{total} views")));
+    progress::finish();
+    let (_, about) = result.map_err(|e| match e {
+        MeshError::Write(_) => output(e),
+        _ => input(e),
+    })?;
+    if let Some(path) = &a.json {
+        spinscan::io::write_atomic(path, serde_json::to_string_pretty(&about).expect("plain numbers").as_bytes()).map_err(|e| output(format!("cannot write {}: {e}", path.display())))?;
+    }
+    println!("{about}");
+    Ok(())
+}

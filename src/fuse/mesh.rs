@@ -1,0 +1,450 @@
+//! The zero level set of the fused field as a triangle mesh, then its clean-up.
+//!
+//! Extraction is marching tetrahedra: each cube of eight voxel centres is cut into the six
+//! tetrahedra of its Kuhn triangulation (all around the diagonal from its low to its high
+//! corner, so that neighbouring cubes cut their shared faces alike), and each tetrahedron
+//! whose corners change sign gets one triangle or two. A vertex lies on a grid edge and is
+//! shared by every triangle that cuts that edge, so the mesh is indexed and, where the
+//! field is seen, closed; every edge of it lies on a face shared by at most two
+//! tetrahedra, so no edge has more than two triangles. Cubes with an unseen corner get no
+//! triangles: the mesh has a boundary where the views end.
+//!
+//! Clean-up, in order: connected pieces with fewer triangles than
+//! `min_component_share` × the largest are removed (floating fragments); with `fill`, every
+//! boundary loop is closed by a cap — a fan around the loop's centroid (one triangle for a
+//! loop of three) — and reported as filled; vertex normals are the area-weighted normals of
+//! the triangles around each vertex.
+
+use std::collections::HashMap;
+
+use super::{Tsdf, Voxel, BLOCK_SIDE};
+use crate::cloud::{Mesh, PointCloud};
+
+/// The mesh type the fusion returns: vertices with colours and normals, triangles.
+pub type SurfaceMesh = Mesh;
+
+/// What the extraction and clean-up produced and did.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct MeshStats {
+    pub vertices: usize,
+    pub triangles: usize,
+    /// Edges of one triangle after clean-up (0: closed).
+    pub boundary_edges: usize,
+    /// Edges of more than two triangles (0 by construction; counted, not assumed).
+    pub non_manifold_edges: usize,
+    /// Connected pieces removed as fragments, and their triangles.
+    pub components_removed: usize,
+    pub triangles_removed: usize,
+    /// Boundary loops closed by caps, their triangles and area (mm²): surface not seen.
+    pub holes_filled: usize,
+    pub fill_triangles: usize,
+    pub fill_area_mm2: f64,
+    /// Boundary loops that could not be walked round (left open).
+    pub holes_left_open: usize,
+}
+
+/// Corners of a cube of voxel centres, from its low corner.
+const CORNERS: [[i32; 3]; 8] = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]];
+/// The six tetrahedra of the Kuhn triangulation: every path from corner 0 to corner 6
+/// along the three axes, in each order.
+const TETRAS: [[usize; 4]; 6] = [[0, 1, 2, 6], [0, 3, 2, 6], [0, 3, 7, 6], [0, 4, 7, 6], [0, 4, 5, 6], [0, 1, 5, 6]];
+
+/// A grid index packed into one integer (21 bits a coordinate, offset to be positive).
+fn pack(g: [i32; 3]) -> u64 {
+    const OFF: i64 = 1 << 20;
+    let f = |v: i32| ((v as i64 + OFF) as u64) & ((1 << 21) - 1);
+    f(g[0]) << 42 | f(g[1]) << 21 | f(g[2])
+}
+
+#[derive(Default)]
+struct Builder {
+    points: Vec<[f32; 3]>,
+    colors: Vec<[f32; 3]>,
+    /// The vertex on each grid edge cut, by the edge's two packed ends (low, high).
+    on_edge: HashMap<(u64, u64), u32>,
+    triangles: Vec<[u32; 3]>,
+}
+
+impl Builder {
+    /// The vertex where the field crosses zero between two corners.
+    fn vertex(&mut self, (ia, pa, va): (u64, [f32; 3], Voxel), (ib, pb, vb): (u64, [f32; 3], Voxel)) -> u32 {
+        let key = if ia < ib { (ia, ib) } else { (ib, ia) };
+        if let Some(&v) = self.on_edge.get(&key) {
+            return v;
+        }
+        // Kept off the corners, so that no two vertices coincide and no triangle is
+        // degenerate (a move of at most 1 % of a voxel).
+        let t = (va.sdf / (va.sdf - vb.sdf)).clamp(0.01, 0.99);
+        let lerp = |a: [f32; 3], b: [f32; 3]| [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), a[2] + t * (b[2] - a[2])];
+        let v = self.points.len() as u32;
+        self.points.push(lerp(pa, pb));
+        self.colors.push(lerp(va.rgb, vb.rgb));
+        self.on_edge.insert(key, v);
+        v
+    }
+
+    /// A triangle, wound so that its normal points along `out` (inside to outside).
+    fn triangle(&mut self, mut v: [u32; 3], out: [f32; 3]) {
+        let (a, b, c) = (self.points[v[0] as usize], self.points[v[1] as usize], self.points[v[2] as usize]);
+        let n = cross(sub(b, a), sub(c, a));
+        if dot(n, out) < 0.0 {
+            v.swap(1, 2);
+        }
+        self.triangles.push(v);
+    }
+
+    /// The triangles of one tetrahedron (corners: packed index, position, voxel).
+    fn tetra(&mut self, c: [(u64, [f32; 3], Voxel); 4]) {
+        let (inside, outside): (Vec<usize>, Vec<usize>) = (0..4).partition(|&i| c[i].2.sdf < 0.0);
+        let mean = |ix: &[usize]| {
+            let mut m = [0f32; 3];
+            for &i in ix {
+                for k in 0..3 {
+                    m[k] += c[i].1[k] / ix.len() as f32;
+                }
+            }
+            m
+        };
+        match inside.len() {
+            1 | 3 => {
+                // One corner alone on its side: one triangle across its three edges.
+                let single = inside.len() == 1;
+                let (alone, rest) = if single { (inside[0], &outside) } else { (outside[0], &inside) };
+                let v = [self.vertex(c[alone], c[rest[0]]), self.vertex(c[alone], c[rest[1]]), self.vertex(c[alone], c[rest[2]])];
+                let out = if single { sub(mean(rest), c[alone].1) } else { sub(c[alone].1, mean(rest)) };
+                self.triangle(v, out);
+            }
+            2 => {
+                // Two and two: a quad round the four cut edges, as two triangles.
+                let (a, b, p, q) = (inside[0], inside[1], outside[0], outside[1]);
+                let v = [self.vertex(c[a], c[p]), self.vertex(c[a], c[q]), self.vertex(c[b], c[q]), self.vertex(c[b], c[p])];
+                let out = sub(mean(&outside), mean(&inside));
+                self.triangle([v[0], v[1], v[2]], out);
+                self.triangle([v[0], v[2], v[3]], out);
+            }
+            _ => {}
+        }
+    }
+}
+
+fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn norm(a: [f32; 3]) -> f32 {
+    dot(a, a).sqrt()
+}
+
+/// The mesh of the field's zero level set, cleaned (module docs).
+pub(super) fn extract(tsdf: &Tsdf) -> (Mesh, MeshStats) {
+    let voxel = tsdf.voxel_mm();
+    let mut b = Builder::default();
+    for key in tsdf.block_keys() {
+        let origin = [key[0] * BLOCK_SIDE, key[1] * BLOCK_SIDE, key[2] * BLOCK_SIDE];
+        for z in 0..BLOCK_SIDE {
+            for y in 0..BLOCK_SIDE {
+                'cube: for x in 0..BLOCK_SIDE {
+                    let g0 = [origin[0] + x, origin[1] + y, origin[2] + z];
+                    let mut corners = [(0u64, [0f32; 3], Voxel { sdf: 0.0, rgb: [0.0; 3] }); 8];
+                    let (mut neg, mut pos) = (false, false);
+                    for (c, off) in CORNERS.iter().enumerate() {
+                        let g = [g0[0] + off[0], g0[1] + off[1], g0[2] + off[2]];
+                        let Some(v) = tsdf.voxel(g) else { continue 'cube };
+                        neg |= v.sdf < 0.0;
+                        pos |= v.sdf >= 0.0;
+                        let p = [(g[0] as f32 + 0.5) * voxel, (g[1] as f32 + 0.5) * voxel, (g[2] as f32 + 0.5) * voxel];
+                        corners[c] = (pack(g), p, v);
+                    }
+                    if !(neg && pos) {
+                        continue;
+                    }
+                    for t in TETRAS {
+                        b.tetra([corners[t[0]], corners[t[1]], corners[t[2]], corners[t[3]]]);
+                    }
+                }
+            }
+        }
+    }
+    clean(b.points, b.colors, b.triangles, tsdf.params.fill, tsdf.params.min_component_share)
+}
+
+/// Union–find root with path halving.
+fn root(parent: &mut [u32], mut v: u32) -> u32 {
+    while parent[v as usize] != v {
+        parent[v as usize] = parent[parent[v as usize] as usize];
+        v = parent[v as usize];
+    }
+    v
+}
+
+/// Fragments removed, holes capped, normals computed (module docs).
+fn clean(points: Vec<[f32; 3]>, colors: Vec<[f32; 3]>, triangles: Vec<[u32; 3]>, fill: bool, share: f64) -> (Mesh, MeshStats) {
+    let mut stats = MeshStats::default();
+    // Connected pieces, by shared vertices.
+    let mut parent: Vec<u32> = (0..points.len() as u32).collect();
+    for t in &triangles {
+        let (a, b, c) = (root(&mut parent, t[0]), root(&mut parent, t[1]), root(&mut parent, t[2]));
+        parent[b as usize] = a;
+        let c = root(&mut parent, c);
+        parent[c as usize] = a;
+    }
+    let mut size: HashMap<u32, usize> = HashMap::new();
+    let roots: Vec<u32> = triangles.iter().map(|t| root(&mut parent, t[0])).collect();
+    for &r in &roots {
+        *size.entry(r).or_default() += 1;
+    }
+    let largest = size.values().copied().max().unwrap_or(0);
+    let keep_piece = |n: usize| n as f64 >= share * largest as f64;
+    stats.components_removed = size.values().filter(|&&n| !keep_piece(n)).count();
+    // Kept triangles, their vertices renumbered in order.
+    let mut new_index = vec![u32::MAX; points.len()];
+    let (mut pts, mut cols, mut tris) = (Vec::new(), Vec::new(), Vec::new());
+    for (t, r) in triangles.iter().zip(&roots) {
+        if !keep_piece(size[r]) {
+            stats.triangles_removed += 1;
+            continue;
+        }
+        let mut nt = [0u32; 3];
+        for k in 0..3 {
+            let v = t[k] as usize;
+            if new_index[v] == u32::MAX {
+                new_index[v] = pts.len() as u32;
+                pts.push(points[v]);
+                cols.push(colors[v]);
+            }
+            nt[k] = new_index[v];
+        }
+        tris.push(nt);
+    }
+    if fill {
+        fill_holes(&mut pts, &mut cols, &mut tris, &mut stats);
+    }
+    let (boundary, non_manifold) = edge_counts(&tris);
+    stats.boundary_edges = boundary.len();
+    stats.non_manifold_edges = non_manifold;
+    // Area-weighted vertex normals (the cross product's length is twice the area).
+    let mut normals = vec![[0f32; 3]; pts.len()];
+    for t in &tris {
+        let n = cross(sub(pts[t[1] as usize], pts[t[0] as usize]), sub(pts[t[2] as usize], pts[t[0] as usize]));
+        for &v in t {
+            for k in 0..3 {
+                normals[v as usize][k] += n[k];
+            }
+        }
+    }
+    for n in &mut normals {
+        let l = norm(*n);
+        if l > 0.0 {
+            *n = n.map(|v| v / l);
+        }
+    }
+    stats.vertices = pts.len();
+    stats.triangles = tris.len();
+    let colors = cols.iter().map(|c| c.map(|v| v.round().clamp(0.0, 255.0) as u8)).collect();
+    (Mesh { cloud: PointCloud { points: pts, colors, normals: Some(normals) }, triangles: tris }, stats)
+}
+
+/// The directed boundary half-edges (each edge of one triangle, as that triangle winds it),
+/// and the number of edges of more than two triangles.
+fn edge_counts(tris: &[[u32; 3]]) -> (Vec<(u32, u32)>, usize) {
+    let mut count: HashMap<(u32, u32), (u32, (u32, u32))> = HashMap::with_capacity(tris.len() * 3 / 2);
+    for t in tris {
+        for k in 0..3 {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            let e = count.entry((a.min(b), a.max(b))).or_insert((0, (a, b)));
+            e.0 += 1;
+        }
+    }
+    let mut boundary: Vec<(u32, u32)> = count.values().filter(|(n, _)| *n == 1).map(|&(_, d)| d).collect();
+    boundary.sort_unstable();
+    (boundary, count.values().filter(|(n, _)| *n > 2).count())
+}
+
+/// Closes every boundary loop with a cap (module docs); a loop whose walk cannot close is
+/// left open and counted.
+fn fill_holes(pts: &mut Vec<[f32; 3]>, cols: &mut Vec<[f32; 3]>, tris: &mut Vec<[u32; 3]>, stats: &mut MeshStats) {
+    let (boundary, _) = edge_counts(tris);
+    // A triangle winds a → b along a boundary edge; the hole runs b → a.
+    let mut out: HashMap<u32, Vec<u32>> = HashMap::new();
+    for &(a, b) in &boundary {
+        out.entry(b).or_default().push(a);
+    }
+    let mut starts: Vec<u32> = out.keys().copied().collect();
+    starts.sort_unstable();
+    for s in starts {
+        while out.get(&s).is_some_and(|v| !v.is_empty()) {
+            // Walk round from s. A vertex met twice pinches the boundary: the part walked
+            // since its first visit is a loop of its own, capped alone, so that every cap is
+            // bounded by a simple loop (no vertex twice) and no edge gets a third triangle.
+            let mut ring = vec![s];
+            let mut at: HashMap<u32, usize> = HashMap::from([(s, 0)]);
+            let mut cur = out.get_mut(&s).and_then(|v| v.pop()).expect("checked non-empty");
+            let mut steps = 0;
+            let closed = loop {
+                if cur == s {
+                    break true;
+                }
+                if let Some(&i) = at.get(&cur) {
+                    let sub: Vec<u32> = ring.drain(i + 1..).collect();
+                    let mut simple = vec![cur];
+                    simple.extend(sub);
+                    for v in &simple[1..] {
+                        at.remove(v);
+                    }
+                    cap(&simple, pts, cols, tris, stats);
+                } else {
+                    at.insert(cur, ring.len());
+                    ring.push(cur);
+                }
+                steps += 1;
+                match out.get_mut(&cur).and_then(|v| v.pop()) {
+                    Some(next) if steps <= boundary.len() => cur = next,
+                    _ => break false,
+                }
+            };
+            if closed {
+                cap(&ring, pts, cols, tris, stats);
+            } else {
+                stats.holes_left_open += 1;
+            }
+        }
+    }
+}
+
+/// Caps one simple boundary loop (module docs); a loop of fewer than three vertices is left
+/// open and counted.
+fn cap(ring: &[u32], pts: &mut Vec<[f32; 3]>, cols: &mut Vec<[f32; 3]>, tris: &mut Vec<[u32; 3]>, stats: &mut MeshStats) {
+    if ring.len() < 3 {
+        stats.holes_left_open += 1;
+        return;
+    }
+    let before = tris.len();
+    if ring.len() == 3 {
+        tris.push([ring[0], ring[1], ring[2]]);
+    } else {
+        let n = ring.len() as f32;
+        let (mut c, mut rgb) = ([0f32; 3], [0f32; 3]);
+        for &v in ring {
+            for k in 0..3 {
+                c[k] += pts[v as usize][k] / n;
+                rgb[k] += cols[v as usize][k] / n;
+            }
+        }
+        let m = pts.len() as u32;
+        pts.push(c);
+        cols.push(rgb);
+        for k in 0..ring.len() {
+            tris.push([ring[k], ring[(k + 1) % ring.len()], m]);
+        }
+    }
+    stats.holes_filled += 1;
+    stats.fill_triangles += tris.len() - before;
+    stats.fill_area_mm2 += tris[before..].iter().map(|t| 0.5 * norm(cross(sub(pts[t[1] as usize], pts[t[0] as usize]), sub(pts[t[2] as usize], pts[t[0] as usize]))) as f64).sum::<f64>();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fuse::{FuseParams, Tsdf};
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+
+    /// Views of a sphere (radius 20 mm, centre 300 mm ahead of the first camera) from cameras
+    /// turning round it on a horizontal circle, each seeing the hemisphere facing it: the
+    /// points, in each camera's own frame, and the camera's pose.
+    fn sphere_views(n: usize, top_only: bool) -> Vec<(PointCloud, Isometry3<f64>)> {
+        let centre = Vector3::new(0.0, 0.0, 300.0);
+        (0..n)
+            .map(|k| {
+                let angle = k as f64 / n as f64 * std::f64::consts::TAU;
+                // The camera turns round the sphere's vertical axis (y).
+                let world_from_cam = Isometry3::from_parts(Translation3::from(centre), UnitQuaternion::from_axis_angle(&Vector3::y_axis(), angle)) * Isometry3::translation(0.0, 0.0, -300.0);
+                let cam_from_world = world_from_cam.inverse();
+                let mut cloud = PointCloud::default();
+                for i in 0..120 {
+                    for j in 0..240 {
+                        let (th, ph) = (i as f64 / 119.0 * std::f64::consts::PI, j as f64 / 240.0 * std::f64::consts::TAU);
+                        let n = Vector3::new(th.sin() * ph.cos(), th.cos(), th.sin() * ph.sin());
+                        // The bottom cap (below −12 mm) is never seen, like an object's base.
+                        if top_only && n.y * 20.0 < -12.0 {
+                            continue;
+                        }
+                        let p = cam_from_world * nalgebra::Point3::from(centre + n * 20.0);
+                        let seen = (cam_from_world.rotation * n).dot(&-p.coords.normalize()) > 0.1;
+                        if seen {
+                            cloud.points.push([p.x as f32, p.y as f32, p.z as f32]);
+                            cloud.colors.push([200, 100, 50]);
+                        }
+                    }
+                }
+                (cloud, world_from_cam)
+            })
+            .collect()
+    }
+
+    fn fused(views: &[(PointCloud, Isometry3<f64>)], fill: bool) -> (Mesh, MeshStats) {
+        let mut tsdf = Tsdf::new(FuseParams { voxel_mm: 1.0, fill, ..FuseParams::default() }).unwrap();
+        for (c, p) in views {
+            tsdf.integrate(c, p);
+        }
+        tsdf.mesh()
+    }
+
+    #[test]
+    fn a_sphere_seen_all_round_comes_out_closed_and_on_its_surface() {
+        let (mesh, stats) = fused(&sphere_views(24, false), true);
+        assert_eq!((stats.boundary_edges, stats.non_manifold_edges), (0, 0), "{stats:?}");
+        assert!(stats.triangles > 5000, "{stats:?}");
+        let centre = Vector3::new(0.0f32, 0.0, 300.0);
+        let mut err: Vec<f32> = mesh.cloud.points.iter().map(|p| ((Vector3::from(*p) - centre).norm() - 20.0).abs()).collect();
+        err.sort_by(f32::total_cmp);
+        assert!(err[err.len() / 2] < 0.1 && err[err.len() * 95 / 100] < 0.3, "median {} p95 {}", err[err.len() / 2], err[err.len() * 95 / 100]);
+        // Normals point out of the sphere; colours are the points'.
+        let normals = mesh.cloud.normals.as_ref().unwrap();
+        let outward = mesh.cloud.points.iter().zip(normals).filter(|(p, n)| (Vector3::from(**p) - centre).dot(&Vector3::from(**n)) > 0.0).count();
+        assert!(outward as f64 > 0.99 * mesh.cloud.points.len() as f64, "{outward} of {} normals outward", mesh.cloud.points.len());
+        assert!(mesh.cloud.colors.iter().all(|c| c[0].abs_diff(200) <= 1 && c[2].abs_diff(50) <= 1));
+    }
+
+    #[test]
+    fn the_unseen_base_is_capped_and_reported_or_left_open() {
+        let views = sphere_views(24, true);
+        let (_, open) = fused(&views, false);
+        assert!(open.boundary_edges > 50 && open.holes_filled == 0, "{open:?}");
+        let (mesh, closed) = fused(&views, true);
+        assert_eq!((closed.boundary_edges, closed.non_manifold_edges, closed.holes_left_open), (0, 0, 0), "{closed:?}");
+        // The cap spans the unseen base: a disc of radius √(20² − 12²) = 16 mm, ≈ 804 mm².
+        assert!(closed.holes_filled >= 1 && (600.0..1000.0).contains(&closed.fill_area_mm2), "{closed:?}");
+        // Every edge has two triangles, wound opposite ways (a closed, oriented surface).
+        let mut directed = std::collections::HashSet::new();
+        for t in &mesh.triangles {
+            for k in 0..3 {
+                assert!(directed.insert((t[k], t[(k + 1) % 3])), "edge {:?} wound twice the same way", (t[k], t[(k + 1) % 3]));
+            }
+        }
+    }
+
+    #[test]
+    fn fragments_are_removed() {
+        let mut views = sphere_views(24, false);
+        // A second, tiny sphere's worth of points far off, in one view: a floating fragment.
+        let (cloud, pose) = &mut views[0];
+        let _ = pose;
+        for i in 0..30 {
+            for j in 0..30 {
+                cloud.points.push([60.0 + i as f32 * 0.3, 60.0 + j as f32 * 0.3, 280.0]);
+                cloud.colors.push([0, 0, 0]);
+            }
+        }
+        let (_, stats) = fused(&views, true);
+        assert!(stats.components_removed >= 1 && stats.triangles_removed > 0, "{stats:?}");
+        assert_eq!(stats.boundary_edges, 0, "{stats:?}");
+    }
+}

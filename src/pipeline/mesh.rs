@@ -1,0 +1,82 @@
+//! The surface of a finished results folder, re-meshed (`spinscan mesh`): its views fused
+//! with the poses in its `poses.jsonl` (fuse/), the mesh written in the format its name
+//! asks for. Scans write `mesh.ply` themselves as they finish (results.rs).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde_json::{json, Value};
+
+use crate::cloud::Mesh;
+use crate::fuse::{FuseParams, Tsdf};
+use crate::io;
+
+/// Why a results folder could not be meshed.
+#[derive(Debug, thiserror::Error)]
+pub enum MeshError {
+    #[error("{path}: {what}")]
+    Input { path: PathBuf, what: String },
+    #[error("mesh settings: {0}")]
+    Params(#[from] crate::fuse::FuseParamsError),
+    #[error("{0}")]
+    Write(#[from] io::mesh::MeshWriteError),
+}
+
+/// The views of `poses.jsonl` as `(seq, first_from_view)`, in file order.
+pub fn read_poses(path: &Path) -> Result<Vec<(u64, nalgebra::Isometry3<f64>)>, MeshError> {
+    let bad = |what: String| MeshError::Input { path: path.to_path_buf(), what };
+    let text = std::fs::read_to_string(path).map_err(|e| bad(format!("cannot read it ({e}); is this a results folder of a finished scan?")))?;
+    let mut poses = Vec::new();
+    for (n, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+        #[derive(serde::Deserialize)]
+        struct Line {
+            seq: u64,
+            first_from_view: crate::register::Rows4,
+        }
+        let l: Line = serde_json::from_str(line).map_err(|e| bad(format!("line {}: {e}; expected {{\"seq\": N, \"first_from_view\": [[4 × 4]]}}", n + 1)))?;
+        let pose = crate::register::from_rows(&l.first_from_view, 1e-4).map_err(|e| bad(format!("line {} (seq {}): {e}", n + 1, l.seq)))?;
+        poses.push((l.seq, pose));
+    }
+    if poses.is_empty() {
+        return Err(bad("no registered views; expected one line per view".into()));
+    }
+    Ok(poses)
+}
+
+/// Fuses the views of results folder `dir` and writes the mesh to `out` (.ply, .obj or
+/// .stl); `progress(done, total)` after every view. Returns the mesh and its figures.
+pub fn mesh_results(dir: &Path, params: FuseParams, out: &Path, mut progress: impl FnMut(usize, usize)) -> Result<(Mesh, Value), MeshError> {
+    // Checked before the work: an output name that cannot be written fails now.
+    io::mesh::MeshFormat::of(out)?;
+    let poses = read_poses(&dir.join("poses.jsonl"))?;
+    let mut tsdf = Tsdf::new(params)?;
+    let (mut read_ms, mut fuse_ms) = (0.0, 0.0);
+    for (k, (seq, pose)) in poses.iter().enumerate() {
+        let t = Instant::now();
+        let path = dir.join("views").join(format!("{seq:06}.ply"));
+        let view = io::ply::read_ply(&path).map_err(|e| MeshError::Input { path: path.clone(), what: format!("cannot read the view: {e}") })?;
+        read_ms += t.elapsed().as_secs_f64() * 1e3;
+        let t = Instant::now();
+        tsdf.integrate(&view.cloud, pose);
+        fuse_ms += t.elapsed().as_secs_f64() * 1e3;
+        progress(k + 1, poses.len());
+    }
+    let t = Instant::now();
+    let (mesh, stats) = tsdf.mesh();
+    let extract_ms = t.elapsed().as_secs_f64() * 1e3;
+    io::mesh::write_mesh(out, &mesh)?;
+    let mut about = serde_json::to_value(&stats).expect("plain numbers");
+    let p = tsdf.params();
+    about["views"] = json!(poses.len());
+    about["points"] = json!(tsdf.integrated().1);
+    about["voxel_mm"] = json!(p.voxel_mm);
+    about["truncation_voxels"] = json!(p.truncation_voxels);
+    about["filled"] = json!(p.fill);
+    about["blocks"] = json!(tsdf.blocks());
+    about["field_mib"] = json!(tsdf.memory_bytes() as f64 / (1024.0 * 1024.0));
+    about["read_ms"] = json!(read_ms);
+    about["fuse_ms"] = json!(fuse_ms);
+    about["extract_ms"] = json!(extract_ms);
+    about["file"] = json!(out.display().to_string());
+    Ok((mesh, about))
+}
