@@ -19,6 +19,11 @@ use std::collections::HashMap;
 
 use super::{Tsdf, Voxel, BLOCK_SIDE};
 use crate::cloud::{Mesh, PointCloud};
+use crate::register::voxel::VoxelHasher;
+
+/// A hash map with a fast multiplicative hash (keys are grid and vertex indices, not chosen
+/// by anyone).
+type FastMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<VoxelHasher>>;
 
 /// The mesh type the fusion returns: vertices with colours and normals, triangles.
 pub type SurfaceMesh = Mesh;
@@ -61,7 +66,7 @@ struct Builder {
     points: Vec<[f32; 3]>,
     colors: Vec<[f32; 3]>,
     /// The vertex on each grid edge cut, by the edge's two packed ends (low, high).
-    on_edge: HashMap<(u64, u64), u32>,
+    on_edge: FastMap<(u64, u64), u32>,
     triangles: Vec<[u32; 3]>,
 }
 
@@ -147,19 +152,22 @@ fn norm(a: [f32; 3]) -> f32 {
 pub(super) fn extract(tsdf: &Tsdf) -> (Mesh, MeshStats) {
     let voxel = tsdf.voxel_mm();
     let mut b = Builder::default();
+    const N: i32 = BLOCK_SIDE + 1;
+    let mut near = Vec::new();
     for key in tsdf.block_keys() {
+        tsdf.neighbourhood(key, &mut near);
         let origin = [key[0] * BLOCK_SIDE, key[1] * BLOCK_SIDE, key[2] * BLOCK_SIDE];
         for z in 0..BLOCK_SIDE {
             for y in 0..BLOCK_SIDE {
                 'cube: for x in 0..BLOCK_SIDE {
-                    let g0 = [origin[0] + x, origin[1] + y, origin[2] + z];
                     let mut corners = [(0u64, [0f32; 3], Voxel { sdf: 0.0, rgb: [0.0; 3] }); 8];
                     let (mut neg, mut pos) = (false, false);
                     for (c, off) in CORNERS.iter().enumerate() {
-                        let g = [g0[0] + off[0], g0[1] + off[1], g0[2] + off[2]];
-                        let Some(v) = tsdf.voxel(g) else { continue 'cube };
+                        let (lx, ly, lz) = (x + off[0], y + off[1], z + off[2]);
+                        let Some(v) = near[((lz * N + ly) * N + lx) as usize] else { continue 'cube };
                         neg |= v.sdf < 0.0;
                         pos |= v.sdf >= 0.0;
+                        let g = [origin[0] + lx, origin[1] + ly, origin[2] + lz];
                         let p = [(g[0] as f32 + 0.5) * voxel, (g[1] as f32 + 0.5) * voxel, (g[2] as f32 + 0.5) * voxel];
                         corners[c] = (pack(g), p, v);
                     }
@@ -196,7 +204,7 @@ fn clean(points: Vec<[f32; 3]>, colors: Vec<[f32; 3]>, triangles: Vec<[u32; 3]>,
         let c = root(&mut parent, c);
         parent[c as usize] = a;
     }
-    let mut size: HashMap<u32, usize> = HashMap::new();
+    let mut size: FastMap<u32, usize> = FastMap::default();
     let roots: Vec<u32> = triangles.iter().map(|t| root(&mut parent, t[0])).collect();
     for &r in &roots {
         *size.entry(r).or_default() += 1;
@@ -255,7 +263,7 @@ fn clean(points: Vec<[f32; 3]>, colors: Vec<[f32; 3]>, triangles: Vec<[u32; 3]>,
 /// The directed boundary half-edges (each edge of one triangle, as that triangle winds it),
 /// and the number of edges of more than two triangles.
 fn edge_counts(tris: &[[u32; 3]]) -> (Vec<(u32, u32)>, usize) {
-    let mut count: HashMap<(u32, u32), (u32, (u32, u32))> = HashMap::with_capacity(tris.len() * 3 / 2);
+    let mut count: FastMap<(u32, u32), (u32, (u32, u32))> = FastMap::with_capacity_and_hasher(tris.len() * 3 / 2, Default::default());
     for t in tris {
         for k in 0..3 {
             let (a, b) = (t[k], t[(k + 1) % 3]);
