@@ -46,6 +46,9 @@ pub struct MeshStats {
     pub fill_area_mm2: f64,
     /// Boundary loops that could not be walked round (left open).
     pub holes_left_open: usize,
+    /// Vertices where two parts of the surface touched at a point, split into one vertex
+    /// per part (so that every vertex's triangles form one fan).
+    pub pinched_vertices_split: usize,
 }
 
 /// Corners of a cube of voxel centres, from its low corner.
@@ -235,6 +238,7 @@ fn clean(points: Vec<[f32; 3]>, colors: Vec<[f32; 3]>, triangles: Vec<[u32; 3]>,
     if fill {
         fill_holes(&mut pts, &mut cols, &mut tris, &mut stats);
     }
+    stats.pinched_vertices_split = split_pinched(&mut pts, &mut cols, &mut tris);
     let (boundary, non_manifold) = edge_counts(&tris);
     stats.boundary_edges = boundary.len();
     stats.non_manifold_edges = non_manifold;
@@ -258,6 +262,83 @@ fn clean(points: Vec<[f32; 3]>, colors: Vec<[f32; 3]>, triangles: Vec<[u32; 3]>,
     stats.triangles = tris.len();
     let colors = cols.iter().map(|c| c.map(|v| v.round().clamp(0.0, 255.0) as u8)).collect();
     (Mesh { cloud: PointCloud { points: pts, colors, normals: Some(normals) }, triangles: tris }, stats)
+}
+
+/// Splits every vertex whose triangles form more than one fan (two parts of the surface
+/// touching at a point: a pinched boundary, once capped) into one vertex per fan; returns
+/// how many vertices were split. Edges keep their triangles: two triangles sharing an edge
+/// through the vertex are in the same fan.
+fn split_pinched(pts: &mut Vec<[f32; 3]>, cols: &mut Vec<[f32; 3]>, tris: &mut [[u32; 3]]) -> usize {
+    let n = pts.len();
+    // The triangles round each vertex.
+    let mut start = vec![0usize; n + 1];
+    for t in tris.iter() {
+        for &v in t {
+            start[v as usize + 1] += 1;
+        }
+    }
+    for v in 0..n {
+        start[v + 1] += start[v];
+    }
+    let mut next = start.clone();
+    let mut around = vec![0u32; start[n]];
+    for (k, t) in tris.iter().enumerate() {
+        for &v in t {
+            around[next[v as usize]] = k as u32;
+            next[v as usize] += 1;
+        }
+    }
+    let mut split = 0;
+    let (mut parent, mut seen): (Vec<u32>, Vec<(u32, u32)>) = (Vec::new(), Vec::new());
+    for v in 0..n {
+        let ts = &around[start[v]..start[v + 1]];
+        if ts.len() < 2 {
+            continue;
+        }
+        // Fans: triangles joined when they share another vertex (an edge through v).
+        parent.clear();
+        parent.extend(0..ts.len() as u32);
+        seen.clear();
+        for (j, &k) in ts.iter().enumerate() {
+            for &w in &tris[k as usize] {
+                if w as usize == v {
+                    continue;
+                }
+                match seen.iter().find(|e| e.0 == w) {
+                    Some(&(_, i)) => {
+                        let (a, b) = (root(&mut parent, i), root(&mut parent, j as u32));
+                        parent[b as usize] = a;
+                    }
+                    None => seen.push((w, j as u32)),
+                }
+            }
+        }
+        let first = root(&mut parent, 0);
+        let mut copies: Vec<(u32, u32)> = Vec::new();
+        for (j, &k) in ts.iter().enumerate() {
+            let r = root(&mut parent, j as u32);
+            if r == first {
+                continue;
+            }
+            let copy = match copies.iter().find(|c| c.0 == r) {
+                Some(&(_, c)) => c,
+                None => {
+                    let c = pts.len() as u32;
+                    pts.push(pts[v]);
+                    cols.push(cols[v]);
+                    copies.push((r, c));
+                    c
+                }
+            };
+            for u in tris[k as usize].iter_mut() {
+                if *u as usize == v {
+                    *u = copy;
+                }
+            }
+        }
+        split += (!copies.is_empty()) as usize;
+    }
+    split
 }
 
 /// The directed boundary half-edges (each edge of one triangle, as that triangle winds it),
@@ -430,6 +511,8 @@ mod tests {
         assert_eq!((closed.boundary_edges, closed.non_manifold_edges, closed.holes_left_open), (0, 0, 0), "{closed:?}");
         // The cap spans the unseen base: a disc of radius √(20² − 12²) = 16 mm, ≈ 804 mm².
         assert!(closed.holes_filled >= 1 && (600.0..1000.0).contains(&closed.fill_area_mm2), "{closed:?}");
+        // Every vertex's triangles form one fan.
+        assert_eq!(fans_per_vertex(&mesh).into_iter().max(), Some(1));
         // Every edge has two triangles, wound opposite ways (a closed, oriented surface).
         let mut directed = std::collections::HashSet::new();
         for t in &mesh.triangles {
@@ -437,6 +520,47 @@ mod tests {
                 assert!(directed.insert((t[k], t[(k + 1) % 3])), "edge {:?} wound twice the same way", (t[k], t[(k + 1) % 3]));
             }
         }
+    }
+
+    /// How many fans of triangles meet at each vertex (1 where the surface is a disc round it).
+    fn fans_per_vertex(mesh: &Mesh) -> Vec<usize> {
+        let mut around = vec![Vec::new(); mesh.cloud.len()];
+        for (k, t) in mesh.triangles.iter().enumerate() {
+            for &v in t {
+                around[v as usize].push(k);
+            }
+        }
+        around
+            .iter()
+            .enumerate()
+            .map(|(v, ts)| {
+                let mut parent: Vec<u32> = (0..ts.len() as u32).collect();
+                for a in 0..ts.len() {
+                    for b in a + 1..ts.len() {
+                        let shared = mesh.triangles[ts[a]].iter().filter(|&&w| w as usize != v && mesh.triangles[ts[b]].contains(&w)).count();
+                        if shared > 0 {
+                            let (ra, rb) = (root(&mut parent, a as u32), root(&mut parent, b as u32));
+                            parent[rb as usize] = ra;
+                        }
+                    }
+                }
+                (0..ts.len() as u32).filter(|&i| root(&mut parent, i) == i).count()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_vertex_where_two_parts_touch_is_split() {
+        // Two squares of two triangles each, touching at one corner (vertex 0), one of them
+        // capped nowhere: vertex 0 has two fans before, one each after.
+        let pts = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.5], [-1.0, -1.0, 0.5], [0.0, -1.0, 0.5]];
+        let tris = vec![[0, 1, 2], [0, 2, 3], [0, 4, 5], [0, 5, 6]];
+        let cols = vec![[0.0; 3]; pts.len()];
+        let (mesh, stats) = clean(pts, cols, tris, false, 0.0);
+        assert_eq!(stats.pinched_vertices_split, 1);
+        assert_eq!(mesh.cloud.len(), 8);
+        assert_eq!(fans_per_vertex(&mesh).into_iter().max(), Some(1));
+        assert_eq!(stats.non_manifold_edges, 0);
     }
 
     #[test]
