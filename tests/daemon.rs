@@ -31,6 +31,16 @@ fn a_full_step_turn_through_the_socket() {
     // A second scan while one runs is refused.
     let (code, msg) = c.error_code("scan.start", json!({"name": "other"}));
     assert_eq!(code, -32000, "{msg}");
+    // A preview mesh of the views fused so far, on request, once a few are registered.
+    loop {
+        let v = c.line();
+        c.events.push(v.clone());
+        if v["method"] == "scan.progress" && v["params"]["registered"].as_u64().unwrap() >= 3 {
+            break;
+        }
+    }
+    let meshing = c.ok("scan.mesh", json!({}));
+    assert_eq!(meshing["name"], "torus-step");
     let end = c.until_end("torus-step");
     assert_eq!(end["status"], "complete", "{end}");
     assert_eq!(end["progress"]["views"], 8);
@@ -58,6 +68,16 @@ fn a_full_step_turn_through_the_socket() {
     }
     let report: Value = serde_json::from_str(&std::fs::read_to_string(scan.join("report.json")).unwrap()).unwrap();
     assert_eq!(report["registration"]["views"], 8);
+    // The preview came as asked (announced, written where the answer said), and the scan's
+    // own mesh at its end.
+    let preview = c.events.iter().find(|e| e["method"] == "scan.mesh").unwrap_or_else(|| panic!("no scan.mesh event: {:?}", c.events));
+    assert!(preview["params"].get("error").is_none() && preview["params"]["views"].as_u64().unwrap() >= 1, "{preview}");
+    assert_eq!(preview["params"]["file"], meshing["file"]);
+    let live = spinscan::io::ply::read_ply(std::path::Path::new(meshing["file"].as_str().unwrap())).unwrap();
+    assert_eq!(live.triangles.len() as u64, preview["params"]["triangles"].as_u64().unwrap());
+    assert!(!live.triangles.is_empty());
+    assert!(scan.join("mesh.ply").is_file());
+    assert_eq!(report["registration"]["mesh"]["non_manifold_edges"], 0, "{}", report["registration"]["mesh"]);
     // The recording replays.
     let rec = spinscan::recording::Recording::open(&scan).unwrap();
     assert_eq!(rec.frames.len(), 8);
@@ -127,6 +147,7 @@ fn bad_requests_get_json_rpc_errors_and_the_connection_survives() {
     assert!(code == -32602 && msg.contains("stepdeg"), "{msg}");
     assert_eq!(c.error_code("scan.start", json!({})).0, -32602);
     assert_eq!(c.error_code("scan.stop", json!({})).0, -32001);
+    assert_eq!(c.error_code("scan.mesh", json!({})).0, -32001);
     assert_eq!(c.error_code("scan.get", json!({"name": "nothing"})).0, -32001);
     // A line over the limit (64 KiB by default) is refused, and the next one is answered.
     let long = format!("{{\"jsonrpc\": \"2.0\", \"id\": 1, \"method\": \"status\", \"params\": {{\"pad\": \"{}\"}}}}\n", "x".repeat(70_000));

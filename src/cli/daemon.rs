@@ -41,6 +41,9 @@ pub enum ScanCommand {
     Start(ScanStartArgs),
     /// Stops the running scan after its current view (it ends `interrupted`).
     Stop(SocketArg),
+    /// Writes a preview mesh of the running scan's views fused so far (`mesh_live.ply` in
+    /// its folder); the scan's own `mesh.ply` is written when it ends.
+    Mesh(SocketArg),
     /// One scan's manifest (status, frames, why it ended).
     Get {
         name: String,
@@ -175,6 +178,16 @@ pub fn scan(cmd: ScanCommand) -> Result<(), Failure> {
                 print_json(&json!(v));
             } else {
                 println!("stopping {} after its current view", v.name);
+            }
+            Ok(())
+        }
+        ScanCommand::Mesh(s) => {
+            let mut c = connect(&s)?;
+            let v = c.scan_mesh().map_err(daemon_err)?;
+            if s.json {
+                print_json(&json!(v));
+            } else {
+                println!("{}: the mesh of the views fused so far is being written to {} (a scan.mesh event says when)", v.name, v.file);
             }
             Ok(())
         }

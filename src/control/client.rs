@@ -10,7 +10,7 @@ use serde::de::DeserializeOwned;
 use serde_json::{json, Value};
 
 use super::protocol::{Call, Hello, ScanList, ScanStartParams, Subscribed};
-use crate::daemon::{ScanStarted, ScanStopping};
+use crate::daemon::{ScanMeshing, ScanStarted, ScanStopping};
 
 /// Why a call did not get a result.
 #[derive(Debug, thiserror::Error)]
@@ -105,6 +105,12 @@ impl Client {
 
     pub fn scan_stop(&mut self) -> Result<ScanStopping, ClientError> {
         self.typed(&Call::ScanStop)
+    }
+
+    /// `scan.mesh`: asks the running scan for a preview mesh (announced by a `scan.mesh`
+    /// event).
+    pub fn scan_mesh(&mut self) -> Result<ScanMeshing, ClientError> {
+        self.typed(&Call::ScanMesh)
     }
 
     pub fn scan_list(&mut self) -> Result<ScanList, ClientError> {

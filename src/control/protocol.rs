@@ -15,7 +15,7 @@ use crate::pipeline::live::{ScanMode, ScanSpec};
 pub const PROTOCOL_VERSION: u32 = 1;
 
 /// The events `events.subscribe` forwards.
-pub const EVENTS: [&str; 3] = ["scan.progress", "scan.state", "device.error"];
+pub const EVENTS: [&str; 4] = ["scan.progress", "scan.state", "scan.mesh", "device.error"];
 
 /// One method call with its parameters.
 #[derive(Debug, Clone, PartialEq)]
@@ -24,6 +24,7 @@ pub enum Call {
     Devices,
     ScanStart(ScanStartParams),
     ScanStop,
+    ScanMesh,
     ScanList,
     ScanGet { name: String },
     EventsSubscribe,
@@ -77,6 +78,7 @@ impl Call {
             "status" => none().map(|_| Call::Status)?,
             "devices" => none().map(|_| Call::Devices)?,
             "scan.stop" => none().map(|_| Call::ScanStop)?,
+            "scan.mesh" => none().map(|_| Call::ScanMesh)?,
             "scan.list" => none().map(|_| Call::ScanList)?,
             "events.subscribe" => none().map(|_| Call::EventsSubscribe)?,
             "scan.get" => {
@@ -107,6 +109,7 @@ impl Call {
             Call::Devices => "devices",
             Call::ScanStart(_) => "scan.start",
             Call::ScanStop => "scan.stop",
+            Call::ScanMesh => "scan.mesh",
             Call::ScanList => "scan.list",
             Call::ScanGet { .. } => "scan.get",
             Call::EventsSubscribe => "events.subscribe",
@@ -124,7 +127,7 @@ impl Call {
 
     /// Whether the call changes what the daemon does (only controlling peers may).
     pub fn controls(&self) -> bool {
-        matches!(self, Call::ScanStart(_) | Call::ScanStop)
+        matches!(self, Call::ScanStart(_) | Call::ScanStop | Call::ScanMesh)
     }
 }
 

@@ -293,6 +293,7 @@ fn dispatch(daemon: &Arc<Daemon>, call: Call, may_control: bool, who: &str) -> R
             daemon.start_scan(spec).map(|s| json!(s)).map_err(of)
         }
         Call::ScanStop => daemon.stop_scan(&format!("stopped by scan.stop ({who})")).map(|s| json!(s)).map_err(of),
+        Call::ScanMesh => daemon.mesh_scan().map(|s| json!(s)).map_err(of),
         Call::ScanList => {
             let running = daemon.current_scan().map(|s| s.spec.name.clone());
             let scans = crate::daemon::list_manifests(&daemon.config.daemon.state_dir)

@@ -95,6 +95,14 @@ pub struct ScanStopping {
     pub stopping: bool,
 }
 
+/// What `scan.mesh` answers: the file the running scan's preview mesh will be written to,
+/// announced by a `scan.mesh` event when it is.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ScanMeshing {
+    pub name: String,
+    pub file: String,
+}
+
 /// Exit codes of `spinscand` (sysexits.h), named in the unit's `RestartPreventExitStatus=`.
 pub mod exit {
     /// The configuration (file or flags) is wrong: restarting will not help.
@@ -447,6 +455,18 @@ impl Daemon {
             Some(s) => {
                 s.request_stop(why);
                 Ok(ScanStopping { name: s.spec.name.clone(), stopping: true })
+            }
+            None => Err(DaemonError::NoScan),
+        }
+    }
+
+    /// `scan.mesh`: the running scan writes a mesh of the views fused so far to
+    /// `mesh_live.ply` in its folder and announces it with a `scan.mesh` event.
+    pub fn mesh_scan(&self) -> Result<ScanMeshing, DaemonError> {
+        match self.current_scan() {
+            Some(s) => {
+                s.request_mesh();
+                Ok(ScanMeshing { name: s.spec.name.clone(), file: s.dir.join("mesh_live.ply").display().to_string() })
             }
             None => Err(DaemonError::NoScan),
         }

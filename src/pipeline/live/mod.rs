@@ -17,6 +17,7 @@
 //! matchers it plans from views up to N frames back (the lag the assistant is built for).
 
 mod capture;
+mod fusion;
 mod pool;
 mod register;
 mod state;

@@ -11,6 +11,7 @@ use std::time::{Duration, Instant};
 use crossbeam_channel::{Receiver, Sender};
 use serde_json::json;
 
+use super::fusion::LiveFusion;
 use super::state::{lower_priority, Note, PipelineSettings, ScanError, ScanMode, ScanShared};
 use crate::pipeline::results::{finish_registration, register_view, ModelOptions, ResultsWriter};
 use crate::register::posestore::PoseStore;
@@ -44,10 +45,15 @@ fn register_all(
     views: Receiver<Note>,
     observers: Vec<Sender<(u64, f64, f64)>>,
     store: Arc<PoseStore>,
-    shared: &ScanShared,
+    shared: &Arc<ScanShared>,
     settings: &PipelineSettings,
 ) -> Result<(), ScanError> {
     let mut registrar = settings.registration.clone().map(|p| crate::pipeline::registrar(p, None, store));
+    // The live surface (fusion.rs): registered views, fused as their poses are published.
+    let live = match (&registrar, ModelOptions::default().mesh) {
+        (Some(_), Some(params)) => Some(LiveFusion::start(shared.clone(), params, REGISTER_NICE + 2)),
+        _ => None,
+    };
     let mut expected = std::collections::VecDeque::new();
     let mut done: BTreeMap<u64, Note> = BTreeMap::new();
     let c = &shared.counters;
@@ -70,6 +76,9 @@ fn register_all(
                         for o in &observers {
                             let _ = o.send((frame_meta.seq, fitness, rmse));
                         }
+                    }
+                    if let (Some(live), Some(p)) = (&live, reg.poses().iter().rev().find(|p| p.seq == frame_meta.seq)) {
+                        live.add(&view.cloud, &p.first_from_view);
                     }
                     results.write_poses(reg.poses())?;
                     if let Some(p) = reg.poses().last() {
@@ -135,6 +144,8 @@ fn register_all(
         }
     }
     shared.emit("scan.progress", shared.progress());
+    // (A mesh asked for now is answered from the live field before it goes.)
+    drop(live);
     if let Some(reg) = registrar.as_mut() {
         if reg.poses().len() >= 2 {
             finish_registration(reg, results, &ModelOptions::default(), &Default::default()).map_err(ScanError::Model)?;

@@ -220,6 +220,8 @@ pub struct Counters {
     /// Unpaired frames (free-running cameras).
     pub unpaired: AtomicU64,
     pub max_skew_us: AtomicU64,
+    /// Registered views left out of the live preview (its thread was behind).
+    pub live_fusion_skipped: AtomicU64,
 }
 
 /// A scan's shared state: its counters, its stop flag and the event sink.
@@ -230,12 +232,13 @@ pub struct ScanShared {
     pub counters: Counters,
     stop: Mutex<Option<String>>,
     stop_flag: Arc<AtomicBool>,
+    mesh_request: AtomicBool,
     events: Box<dyn Fn(&str, Value) + Send + Sync>,
 }
 
 impl ScanShared {
     pub fn new(spec: ScanSpec, dir: PathBuf, events: Box<dyn Fn(&str, Value) + Send + Sync>) -> ScanShared {
-        ScanShared { spec, dir, started: Instant::now(), counters: Counters::default(), stop: Mutex::new(None), stop_flag: Arc::new(AtomicBool::new(false)), events }
+        ScanShared { spec, dir, started: Instant::now(), counters: Counters::default(), stop: Mutex::new(None), stop_flag: Arc::new(AtomicBool::new(false)), mesh_request: AtomicBool::new(false), events }
     }
 
     /// Asks the scan to stop after the current view; `why` goes into the manifest.
@@ -245,6 +248,17 @@ impl ScanShared {
             *s = Some(why.to_string());
         }
         self.stop_flag.store(true, Ordering::SeqCst);
+    }
+
+    /// Asks for a mesh of the views fused so far (`mesh_live.ply`, announced by a
+    /// `scan.mesh` event).
+    pub fn request_mesh(&self) {
+        self.mesh_request.store(true, Ordering::SeqCst);
+    }
+
+    /// Whether a mesh was asked for since the last call.
+    pub(super) fn take_mesh_request(&self) -> bool {
+        self.mesh_request.swap(false, Ordering::SeqCst)
     }
 
     /// The stop flag itself, for device waits that must end when a stop is asked for.
@@ -285,6 +299,7 @@ impl ScanShared {
             "views": get(&c.matched),
             "registered": registered,
             "register_skipped": get(&c.register_skipped),
+            "live_fusion_skipped": get(&c.live_fusion_skipped),
             "captured": get(&c.captured),
             "recorded": get(&c.recorded),
             "drops": get(&c.dropped),
