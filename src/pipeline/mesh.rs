@@ -8,7 +8,7 @@ use std::time::Instant;
 use serde_json::{json, Value};
 
 use crate::cloud::Mesh;
-use crate::fuse::{FuseParams, Tsdf};
+use crate::fuse::{FuseParams, MeshStats, Tsdf};
 use crate::io;
 
 /// Why a results folder could not be meshed.
@@ -65,18 +65,26 @@ pub fn mesh_results(dir: &Path, params: FuseParams, out: &Path, mut progress: im
     let (mesh, stats) = tsdf.mesh();
     let extract_ms = t.elapsed().as_secs_f64() * 1e3;
     io::mesh::write_mesh(out, &mesh)?;
-    let mut about = serde_json::to_value(&stats).expect("plain numbers");
+    let mut about = mesh_json(&tsdf, &stats, extract_ms);
+    about["read_ms"] = json!(read_ms);
+    about["fuse_ms"] = json!(fuse_ms);
+    about["file"] = json!(out.display().to_string());
+    Ok((mesh, about))
+}
+
+/// A mesh's figures (`MeshStats`) with the field's: views and points fused, settings,
+/// blocks, memory, and the extraction's time.
+pub(crate) fn mesh_json(tsdf: &Tsdf, stats: &MeshStats, extract_ms: f64) -> Value {
+    let mut about = serde_json::to_value(stats).expect("plain numbers");
     let p = tsdf.params();
-    about["views"] = json!(poses.len());
-    about["points"] = json!(tsdf.integrated().1);
+    let (views, points) = tsdf.integrated();
+    about["views"] = json!(views);
+    about["points"] = json!(points);
     about["voxel_mm"] = json!(p.voxel_mm);
     about["truncation_voxels"] = json!(p.truncation_voxels);
     about["filled"] = json!(p.fill);
     about["blocks"] = json!(tsdf.blocks());
     about["field_mib"] = json!(tsdf.memory_bytes() as f64 / (1024.0 * 1024.0));
-    about["read_ms"] = json!(read_ms);
-    about["fuse_ms"] = json!(fuse_ms);
     about["extract_ms"] = json!(extract_ms);
-    about["file"] = json!(out.display().to_string());
-    Ok((mesh, about))
+    about
 }

@@ -462,16 +462,10 @@ fn write_mesh(tsdf: &Tsdf, path: &Path, fuse_start: Instant) -> Result<(crate::c
     let (mesh, stats): (_, MeshStats) = tsdf.mesh();
     let mesh_ms = t.elapsed().as_secs_f64() * 1e3;
     io::mesh::write_mesh(path, &mesh).map_err(|e| ResultsError::Output { path: path.to_path_buf(), what: e.to_string() })?;
-    let p = tsdf.params();
-    let mut about = serde_json::to_value(&stats).expect("plain numbers");
+    let mut about = super::mesh::mesh_json(tsdf, &stats, mesh_ms);
     about["file"] = json!("mesh.ply");
-    about["voxel_mm"] = json!(p.voxel_mm);
-    about["truncation_voxels"] = json!(p.truncation_voxels);
-    about["filled"] = json!(p.fill);
-    about["blocks"] = json!(tsdf.blocks());
-    about["field_mib"] = json!(tsdf.memory_bytes() as f64 / (1024.0 * 1024.0));
+    // (Reading the views back, the model's merge and the views' scores included.)
     about["read_and_fuse_ms"] = json!(fuse_ms);
-    about["extract_ms"] = json!(mesh_ms);
     Ok((mesh, about))
 }
 
