@@ -29,19 +29,26 @@ pub struct MeshArgs {
     /// Remove connected pieces with fewer triangles than this share of the largest.
     #[arg(long, default_value_t = FuseParams::default().min_component_share)]
     pub min_component_share: f64,
+    /// Memory the fused field may take, MiB; past it the surface that needs more is left
+    /// out and a warning says so.
+    #[arg(long, default_value_t = FuseParams::default().max_field_mib)]
+    pub max_field_mib: f64,
     /// Also write the mesh's figures (counts, holes filled, times) as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
 }
 
 pub fn cmd_mesh(a: MeshArgs) -> Result<(), Failure> {
-    let params = FuseParams { voxel_mm: a.voxel_mm, truncation_voxels: a.truncation_voxels, fill: !a.no_fill, min_component_share: a.min_component_share, ..FuseParams::default() };
+    let params = FuseParams { voxel_mm: a.voxel_mm, truncation_voxels: a.truncation_voxels, fill: !a.no_fill, min_component_share: a.min_component_share, max_field_mib: a.max_field_mib, ..FuseParams::default() };
     let result = mesh_results(&a.results, params, &a.output, |done, total| progress::show(format!("mesh: fused {done}/{total} views")));
     progress::finish();
     let (_, about) = result.map_err(|e| match e {
         MeshError::Write(_) => output(e),
         _ => input(e),
     })?;
+    if let Some(w) = about["warning"].as_str() {
+        tracing::warn!("{w}");
+    }
     if let Some(path) = &a.json {
         spinscan::io::write_atomic(path, serde_json::to_string_pretty(&about).expect("plain numbers").as_bytes()).map_err(|e| output(format!("cannot write {}: {e}", path.display())))?;
     }

@@ -564,6 +564,21 @@ mod tests {
     }
 
     #[test]
+    fn a_field_over_its_memory_budget_leaves_surface_out_and_counts_it() {
+        let views = sphere_views(8, false);
+        let mut tsdf = Tsdf::new(FuseParams { voxel_mm: 0.25, max_field_mib: 1.0, ..FuseParams::default() }).unwrap();
+        for (c, p) in &views {
+            tsdf.integrate(c, p);
+        }
+        assert!(tsdf.refused_updates() > 0);
+        assert!(tsdf.memory_bytes() <= 1024 * 1024 + 4096 * 32, "{} bytes", tsdf.memory_bytes());
+        // What was fused still meshes (the surface past the budget is missing, not broken).
+        let (_, stats) = tsdf.mesh();
+        assert_eq!((stats.non_manifold_edges, stats.boundary_edges), (0, 0));
+        assert_eq!(Tsdf::new(FuseParams { max_field_mib: 0.5, ..FuseParams::default() }).err(), Some(crate::fuse::FuseParamsError::Budget(0.5)));
+    }
+
+    #[test]
     fn fragments_are_removed() {
         let mut views = sphere_views(24, false);
         // A second, tiny sphere's worth of points far off, in one view: a floating fragment.

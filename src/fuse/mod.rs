@@ -39,11 +39,15 @@ pub struct FuseParams {
     /// Depth at which a point's weight is 1, mm: weights fall as (depth_ref / Z)⁴, the
     /// inverse variance of a stereo depth (σ_Z ∝ Z²).
     pub depth_ref_mm: f64,
+    /// Memory the field may take, MiB: past it no new block is allocated, and the
+    /// surface that would have needed one is left out (counted, and reported) rather than
+    /// the process running out of memory (a tiny voxel on a large object).
+    pub max_field_mib: f64,
 }
 
 impl Default for FuseParams {
     fn default() -> Self {
-        FuseParams { voxel_mm: 1.0, truncation_voxels: 4.0, fill: true, min_component_share: 0.05, depth_ref_mm: 500.0 }
+        FuseParams { voxel_mm: 1.0, truncation_voxels: 4.0, fill: true, min_component_share: 0.05, depth_ref_mm: 500.0, max_field_mib: 1024.0 }
     }
 }
 
@@ -58,6 +62,8 @@ pub enum FuseParamsError {
     Share(f64),
     #[error("reference depth {0} mm: expected a positive depth")]
     DepthRef(f64),
+    #[error("field memory budget {0} MiB: expected at least 1 MiB")]
+    Budget(f64),
 }
 
 impl FuseParams {
@@ -73,6 +79,9 @@ impl FuseParams {
         }
         if !(self.depth_ref_mm > 0.0 && self.depth_ref_mm.is_finite()) {
             return Err(FuseParamsError::DepthRef(self.depth_ref_mm));
+        }
+        if !(self.max_field_mib >= 1.0) {
+            return Err(FuseParamsError::Budget(self.max_field_mib));
         }
         Ok(())
     }
@@ -109,8 +118,12 @@ pub struct Tsdf {
     trunc: f32,
     index: HashMap<[i32; 3], u32, std::hash::BuildHasherDefault<VoxelHasher>>,
     blocks: Vec<Block>,
+    /// Blocks the memory budget allows.
+    max_blocks: usize,
     views: usize,
     points: usize,
+    /// Voxel updates refused because the budget was spent.
+    refused: u64,
 }
 
 impl Tsdf {
@@ -119,7 +132,8 @@ impl Tsdf {
         params.check()?;
         let voxel = params.voxel_mm as f32;
         let trunc = (params.truncation_voxels * params.voxel_mm) as f32;
-        Ok(Tsdf { params, voxel, trunc, index: HashMap::default(), blocks: Vec::new(), views: 0, points: 0 })
+        let max_blocks = (params.max_field_mib * 1024.0 * 1024.0 / std::mem::size_of::<Block>() as f64) as usize;
+        Ok(Tsdf { params, voxel, trunc, index: HashMap::default(), blocks: Vec::new(), max_blocks, views: 0, points: 0, refused: 0 })
     }
 
     pub fn params(&self) -> &FuseParams {
@@ -134,6 +148,11 @@ impl Tsdf {
     /// Allocated blocks (each 8³ voxels).
     pub fn blocks(&self) -> usize {
         self.blocks.len()
+    }
+
+    /// Voxel updates left out because the field had spent its memory budget (0: none).
+    pub fn refused_updates(&self) -> u64 {
+        self.refused
     }
 
     /// Bytes held by the blocks and their index.
@@ -207,11 +226,16 @@ impl Tsdf {
                 let key = [g[0].div_euclid(SIDE), g[1].div_euclid(SIDE), g[2].div_euclid(SIDE)];
                 let b = match last {
                     Some((k, b)) if k == key => b,
-                    _ => {
-                        let b = self.block_of(key);
-                        last = Some((key, b));
-                        b
-                    }
+                    _ => match self.block_of(key) {
+                        Some(b) => {
+                            last = Some((key, b));
+                            b
+                        }
+                        None => {
+                            self.refused += 1;
+                            continue;
+                        }
+                    },
                 };
                 let v = &mut self.blocks[b].voxels[local(g)];
                 v.sdf += sdf * w;
@@ -225,14 +249,23 @@ impl Tsdf {
         self.points += used;
     }
 
-    /// The index of block `key`, allocated (unseen) when new.
-    fn block_of(&mut self, key: [i32; 3]) -> usize {
-        let next = self.blocks.len();
-        let b = *self.index.entry(key).or_insert(next as u32) as usize;
-        if b == next {
-            self.blocks.push(Block { voxels: [Sums::default(); VOXELS] });
+    /// The index of block `key`, allocated (unseen) when new; None when it is new and the
+    /// memory budget is spent.
+    fn block_of(&mut self, key: [i32; 3]) -> Option<usize> {
+        if let Some(&b) = self.index.get(&key) {
+            return Some(b as usize);
         }
-        b
+        if self.blocks.len() >= self.max_blocks {
+            return None;
+        }
+        if self.blocks.len() == self.blocks.capacity() {
+            // Doubling, but never past the budget.
+            let extra = self.blocks.capacity().max(16).min(self.max_blocks - self.blocks.len());
+            self.blocks.reserve_exact(extra);
+        }
+        self.index.insert(key, self.blocks.len() as u32);
+        self.blocks.push(Block { voxels: [Sums::default(); VOXELS] });
+        Some(self.blocks.len() - 1)
     }
 
     /// The averages of block `key`'s voxels, and of the first layer of voxels past its high

@@ -86,5 +86,15 @@ pub(crate) fn mesh_json(tsdf: &Tsdf, stats: &MeshStats, extract_ms: f64) -> Valu
     about["blocks"] = json!(tsdf.blocks());
     about["field_mib"] = json!(tsdf.memory_bytes() as f64 / (1024.0 * 1024.0));
     about["extract_ms"] = json!(extract_ms);
+    about["max_field_mib"] = json!(p.max_field_mib);
+    about["refused_updates"] = json!(tsdf.refused_updates());
+    if tsdf.refused_updates() > 0 {
+        about["warning"] = json!(format!(
+            "the field reached its memory budget of {} MiB and {} voxel updates were left out: part of the surface is missing; use a larger voxel (now {} mm) or a larger budget",
+            p.max_field_mib,
+            tsdf.refused_updates(),
+            p.voxel_mm
+        ));
+    }
     about
 }

@@ -463,6 +463,9 @@ fn write_mesh(tsdf: &Tsdf, path: &Path, fuse_start: Instant) -> Result<(crate::c
     let mesh_ms = t.elapsed().as_secs_f64() * 1e3;
     io::mesh::write_mesh(path, &mesh).map_err(|e| ResultsError::Output { path: path.to_path_buf(), what: e.to_string() })?;
     let mut about = super::mesh::mesh_json(tsdf, &stats, mesh_ms);
+    if let Some(w) = about["warning"].as_str() {
+        tracing::warn!("mesh.ply: {w}");
+    }
     about["file"] = json!("mesh.ply");
     // (Reading the views back, the model's merge and the views' scores included.)
     about["read_and_fuse_ms"] = json!(fuse_ms);
