@@ -34,6 +34,8 @@ pub enum ResultsError {
     SideFile(String),
     #[error("frame seq {seq}: loop closure: {what}")]
     LoopClosure { seq: u64, what: String },
+    #[error("mesh: {0}")]
+    Mesh(String),
 }
 
 /// How the final model is merged from the registered views.
@@ -331,7 +333,7 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
     let truth = inputs.gt_poses.as_deref().and_then(|gt| Truth::new(gt, &poses, inputs.gt_mesh.as_deref()));
     let mut own = Vec::new();
     // The fused surface, integrated as the views are read (docs/meshing.md).
-    let mut tsdf = opts.mesh.clone().map(Tsdf::new).transpose().map_err(|e| ResultsError::SideFile(format!("mesh settings: {e}")))?;
+    let mut tsdf = opts.mesh.clone().map(Tsdf::new).transpose().map_err(|e| ResultsError::Mesh(format!("settings: {e}")))?;
     let fuse_start = Instant::now();
     // The views' points placed by their true poses: samples of the visible true surface.
     let mut seen = Vec::new();
@@ -347,10 +349,7 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
             t.placed_sample(p.seq, &view.cloud.points, &mut seen);
         }
     }
-    let mesh = match &tsdf {
-        Some(t) => Some(write_mesh(t, &results.dir.join("mesh.ply"), fuse_start)?),
-        None => None,
-    };
+    let fuse_ms = fuse_start.elapsed().as_secs_f64() * 1e3;
     let (mut cloud, _) = model.to_cloud();
     let voxels = cloud.len();
     if let Some(d) = &opts.denoise {
@@ -362,6 +361,11 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
     }
     let model_path = results.dir.join("model.ply");
     io::ply::write_ply(&model_path, &cloud).map_err(|e| ResultsError::Output { path: model_path, what: e.to_string() })?;
+    // (After the model: a mesh that cannot be written loses nothing else.)
+    let mesh = match &tsdf {
+        Some(t) => Some(write_mesh(t, &results.dir.join("mesh.ply"), fuse_ms)?),
+        None => None,
+    };
 
     let mut section = json!({
         "views": poses.len(),
@@ -456,8 +460,7 @@ impl<'a> Truth<'a> {
 }
 
 /// The fused field's mesh written to `path`; its figures for the report.
-fn write_mesh(tsdf: &Tsdf, path: &Path, fuse_start: Instant) -> Result<(crate::cloud::Mesh, Value), ResultsError> {
-    let fuse_ms = fuse_start.elapsed().as_secs_f64() * 1e3;
+fn write_mesh(tsdf: &Tsdf, path: &Path, fuse_ms: f64) -> Result<(crate::cloud::Mesh, Value), ResultsError> {
     let t = Instant::now();
     let (mesh, stats): (_, MeshStats) = tsdf.mesh();
     let mesh_ms = t.elapsed().as_secs_f64() * 1e3;
@@ -484,7 +487,7 @@ fn score_mesh(about: &mut Value, truth: &Truth, mesh: &crate::cloud::Mesh, own: 
         about["gt_mesh_to_view_ratio"] = json!({"median": ratio(quantile(&d, 0.5), quantile(own, 0.5)), "p95": ratio(quantile(&d, 0.95), quantile(own, 0.95))});
     }
     if !seen.is_empty() && !mesh.triangles.is_empty() {
-        let ours = Surface::new(mesh, &Isometry3::identity()).map_err(|e| ResultsError::SideFile(format!("mesh: {e}")))?;
+        let ours = Surface::new(mesh, &Isometry3::identity()).map_err(|e| ResultsError::Mesh(format!("scoring it: {e}")))?;
         let near = ours.distances(seen).iter().filter(|&&d| d <= 1.5).count();
         about["gt_completeness"] = json!({"within_mm": 1.5, "share": near as f64 / seen.len() as f64, "samples": seen.len()});
     }
