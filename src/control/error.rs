@@ -63,6 +63,7 @@ impl ControlError {
                 DaemonError::Devices(_) => code::DEVICE,
                 DaemonError::Create { .. } | DaemonError::StateDir { .. } | DaemonError::Locked(_) | DaemonError::NoRoom { .. } => code::INTERNAL,
                 DaemonError::NoScan | DaemonError::NoSuchScan { .. } => code::NOT_FOUND,
+                DaemonError::NotFused(_) => code::NOT_FOUND,
             },
         }
     }
@@ -86,6 +87,7 @@ mod tests {
     fn every_daemon_error_has_its_code() {
         assert_eq!(ControlError::from(DaemonError::Busy("a".into())).code(), code::BUSY);
         assert_eq!(ControlError::from(DaemonError::NoScan).code(), code::NOT_FOUND);
+        assert_eq!(ControlError::from(DaemonError::NotFused("a".into())).code(), code::NOT_FOUND);
         assert_eq!(ControlError::from(DaemonError::Exists { name: "a".into(), dir: "/x/a".into() }).code(), code::EXISTS);
         let e = ControlError::of("scan.start", DaemonError::Spec(SpecError::Range { field: "step_deg", expected: "within (0, 360]", got: "0".into() }));
         assert_eq!((e.code(), e.to_string().as_str()), (code::INVALID_PARAMS, "scan.start: `step_deg` must be within (0, 360], got 0"));

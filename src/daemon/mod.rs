@@ -51,6 +51,8 @@ pub enum DaemonError {
     Locked(PathBuf),
     #[error("no scan is running")]
     NoScan,
+    #[error("scan {0} fuses nothing: this daemon's scans are not registered (scan.register = false in its config); its views are in its folder, and `spinscan mesh` meshes a results folder whose views are registered")]
+    NotFused(String),
     #[error("no scan named {name} in {state_dir}")]
     NoSuchScan { name: String, state_dir: PathBuf },
 }
@@ -464,6 +466,7 @@ impl Daemon {
     /// `mesh_live.ply` in its folder and announces it with a `scan.mesh` event.
     pub fn mesh_scan(&self) -> Result<ScanMeshing, DaemonError> {
         match self.current_scan() {
+            Some(s) if !self.config.scan.register => Err(DaemonError::NotFused(s.spec.name.clone())),
             Some(s) => {
                 s.request_mesh();
                 Ok(ScanMeshing { name: s.spec.name.clone(), file: s.dir.join("mesh_live.ply").display().to_string() })
