@@ -315,10 +315,14 @@ pub struct RegistrationArgs {
     /// ICP method: point-to-plane or point-to-point (the paper's).
     #[arg(long, default_value = "point-to-plane")]
     pub icp_method: String,
-    /// Voxel side of model.ply, mm.
+    /// Voxel side of the fused surface (mesh.ply, model.ply), mm.
     #[arg(long, default_value_t = 1.0)]
     pub voxel: f64,
-    /// Keep isolated points in model.ply (no noise removal).
+    /// Do not fuse the views: no mesh.ply, and model.ply is the voxel-merged points (the
+    /// model before fusion; docs/registration.md).
+    #[arg(long)]
+    pub no_mesh: bool,
+    /// With --no-mesh: keep isolated points in model.ply (no noise removal).
     #[arg(long)]
     pub no_denoise: bool,
     /// Do not close the loop after a full turn.
@@ -342,6 +346,11 @@ impl RegistrationArgs {
         opts.model.voxel_mm = self.voxel;
         if self.no_denoise {
             opts.model.denoise = None;
+        }
+        match opts.model.mesh.as_mut() {
+            Some(_) if self.no_mesh => opts.model.mesh = None,
+            Some(m) => m.voxel_mm = self.voxel,
+            None => {}
         }
         if self.no_register {
             opts.registration = None;

@@ -49,6 +49,9 @@ pub struct MeshStats {
     /// Vertices where two parts of the surface touched at a point, split into one vertex
     /// per part (so that every vertex's triangles form one fan).
     pub pinched_vertices_split: usize,
+    /// The first this many vertices are on the fused (seen) surface; the rest are the caps'
+    /// centres and the copies made by splitting.
+    pub measured_vertices: usize,
 }
 
 /// Corners of a cube of voxel centres, from its low corner.
@@ -235,6 +238,7 @@ fn clean(points: Vec<[f32; 3]>, colors: Vec<[f32; 3]>, triangles: Vec<[u32; 3]>,
         }
         tris.push(nt);
     }
+    stats.measured_vertices = pts.len();
     if fill {
         fill_holes(&mut pts, &mut cols, &mut tris, &mut stats);
     }

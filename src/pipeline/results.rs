@@ -350,26 +350,45 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
         }
     }
     let fuse_ms = fuse_start.elapsed().as_secs_f64() * 1e3;
-    let (mut cloud, _) = model.to_cloud();
-    let voxels = cloud.len();
-    if let Some(d) = &opts.denoise {
-        let keep = keep_mask(&cloud.points, d);
-        let mut k = keep.iter();
-        cloud.points.retain(|_| *k.next().unwrap());
-        let mut k = keep.iter();
-        cloud.colors.retain(|_| *k.next().unwrap());
-    }
+    let built = tsdf.as_ref().map(|t| {
+        let start = Instant::now();
+        let (mesh, stats) = t.mesh();
+        (mesh, stats, start.elapsed().as_secs_f64() * 1e3)
+    });
+    // The model: the fused surface's measured vertices where there is a fused surface (each
+    // view weighed in, noise averaged out: docs/meshing.md), else the voxel-merged points
+    // cleaned by the paper's isolated-point removal.
+    let (cloud, voxels, source) = match &built {
+        Some((mesh, stats, _)) if stats.measured_vertices > 0 => {
+            let n = stats.measured_vertices;
+            let c = &mesh.cloud;
+            (PointCloud { points: c.points[..n].to_vec(), colors: c.colors[..n].to_vec(), normals: c.normals.as_ref().map(|v| v[..n].to_vec()) }, n, "fused surface")
+        }
+        _ => {
+            let (mut cloud, _) = model.to_cloud();
+            let voxels = cloud.len();
+            if let Some(d) = &opts.denoise {
+                let keep = keep_mask(&cloud.points, d);
+                let mut k = keep.iter();
+                cloud.points.retain(|_| *k.next().unwrap());
+                let mut k = keep.iter();
+                cloud.colors.retain(|_| *k.next().unwrap());
+            }
+            (cloud, voxels, "voxel-merged points")
+        }
+    };
     let model_path = results.dir.join("model.ply");
     io::ply::write_ply(&model_path, &cloud).map_err(|e| ResultsError::Output { path: model_path, what: e.to_string() })?;
     // (After the model: a mesh that cannot be written loses nothing else.)
-    let mesh = match &tsdf {
-        Some(t) => Some(write_mesh(t, &results.dir.join("mesh.ply"), fuse_ms)?),
-        None => None,
+    let mesh = match (&tsdf, built) {
+        (Some(t), Some((mesh, stats, mesh_ms))) => Some(write_mesh(t, mesh, &stats, mesh_ms, &results.dir.join("mesh.ply"), fuse_ms)?),
+        _ => None,
     };
 
     let mut section = json!({
         "views": poses.len(),
         "model_points": cloud.len(),
+        "model_source": source,
         "model_voxels_before_denoise": voxels,
         "model_voxel_mm": voxel,
         "turned_deg": reg.turned_deg(),
@@ -460,12 +479,9 @@ impl<'a> Truth<'a> {
 }
 
 /// The fused field's mesh written to `path`; its figures for the report.
-fn write_mesh(tsdf: &Tsdf, path: &Path, fuse_ms: f64) -> Result<(crate::cloud::Mesh, Value), ResultsError> {
-    let t = Instant::now();
-    let (mesh, stats): (_, MeshStats) = tsdf.mesh();
-    let mesh_ms = t.elapsed().as_secs_f64() * 1e3;
+fn write_mesh(tsdf: &Tsdf, mesh: crate::cloud::Mesh, stats: &MeshStats, mesh_ms: f64, path: &Path, fuse_ms: f64) -> Result<(crate::cloud::Mesh, Value), ResultsError> {
     io::mesh::write_mesh(path, &mesh).map_err(|e| ResultsError::Output { path: path.to_path_buf(), what: e.to_string() })?;
-    let mut about = super::mesh::mesh_json(tsdf, &stats, mesh_ms);
+    let mut about = super::mesh::mesh_json(tsdf, stats, mesh_ms);
     if let Some(w) = about["warning"].as_str() {
         tracing::warn!("mesh.ply: {w}");
     }
