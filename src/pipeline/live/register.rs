@@ -148,7 +148,12 @@ fn register_all(
     drop(live);
     if let Some(reg) = registrar.as_mut() {
         if reg.poses().len() >= 2 {
-            finish_registration(reg, results, &ModelOptions::default(), &Default::default()).map_err(ScanError::Model)?;
+            let section = finish_registration(reg, results, &ModelOptions::default(), &Default::default()).map_err(ScanError::Model)?;
+            // A mesh asked for after the live field went is answered by the scan's own.
+            if shared.take_mesh_request() {
+                let m = &section["mesh"];
+                shared.emit("scan.mesh", json!({"name": shared.spec.name, "file": shared.dir.join("mesh.ply").display().to_string(), "views": m["views"], "vertices": m["vertices"], "triangles": m["triangles"], "holes_filled": m["holes_filled"]}));
+            }
         }
     }
     Ok(())
