@@ -30,6 +30,7 @@ pub mod calib;
 pub mod cloud;
 pub mod control;
 pub mod daemon;
+mod disjoint;
 pub mod fuse;
 pub mod fuzz;
 pub mod hw;

@@ -19,6 +19,7 @@ use std::collections::HashMap;
 
 use super::{Tsdf, Voxel, BLOCK_SIDE};
 use crate::cloud::{Mesh, PointCloud};
+use crate::disjoint::root;
 use crate::register::voxel::VoxelHasher;
 
 /// A hash map with a fast multiplicative hash (keys are grid and vertex indices, not chosen
@@ -188,15 +189,6 @@ pub(super) fn extract(tsdf: &Tsdf) -> (Mesh, MeshStats) {
         }
     }
     clean(b.points, b.colors, b.triangles, tsdf.params.fill, tsdf.params.min_component_share)
-}
-
-/// Union–find root with path halving.
-fn root(parent: &mut [u32], mut v: u32) -> u32 {
-    while parent[v as usize] != v {
-        parent[v as usize] = parent[parent[v as usize] as usize];
-        v = parent[v as usize];
-    }
-    v
 }
 
 /// Fragments removed, holes capped, normals computed (module docs).

@@ -22,13 +22,8 @@ pub struct SpeckleFilter {
 }
 
 impl SpeckleFilter {
-    fn find(&mut self, mut a: u32) -> u32 {
-        while self.parent[a as usize] != a {
-            let up = self.parent[self.parent[a as usize] as usize];
-            self.parent[a as usize] = up;
-            a = up;
-        }
-        a
+    fn find(&mut self, a: u32) -> u32 {
+        crate::disjoint::root(&mut self.parent, a)
     }
 
     fn union(&mut self, a: u32, b: u32) {
