@@ -17,7 +17,7 @@
 
 use std::collections::HashMap;
 
-use super::{Tsdf, Voxel, BLOCK_SIDE};
+use super::{near_index, voxel_centre, Tsdf, Voxel, SIDE};
 use crate::cloud::{Mesh, PointCloud};
 use crate::disjoint::root;
 use crate::register::voxel::VoxelHasher;
@@ -159,24 +159,22 @@ fn norm(a: [f32; 3]) -> f32 {
 pub(super) fn extract(tsdf: &Tsdf) -> (Mesh, MeshStats) {
     let voxel = tsdf.voxel_mm();
     let mut b = Builder::default();
-    const N: i32 = BLOCK_SIDE + 1;
     let mut near = Vec::new();
     for key in tsdf.block_keys() {
         tsdf.neighbourhood(key, &mut near);
-        let origin = [key[0] * BLOCK_SIDE, key[1] * BLOCK_SIDE, key[2] * BLOCK_SIDE];
-        for z in 0..BLOCK_SIDE {
-            for y in 0..BLOCK_SIDE {
-                'cube: for x in 0..BLOCK_SIDE {
+        let origin = [key[0] * SIDE, key[1] * SIDE, key[2] * SIDE];
+        for z in 0..SIDE {
+            for y in 0..SIDE {
+                'cube: for x in 0..SIDE {
                     let mut corners = [(0u64, [0f32; 3], Voxel { sdf: 0.0, rgb: [0.0; 3] }); 8];
                     let (mut neg, mut pos) = (false, false);
                     for (c, off) in CORNERS.iter().enumerate() {
                         let (lx, ly, lz) = (x + off[0], y + off[1], z + off[2]);
-                        let Some(v) = near[((lz * N + ly) * N + lx) as usize] else { continue 'cube };
+                        let Some(v) = near[near_index([lx, ly, lz])] else { continue 'cube };
                         neg |= v.sdf < 0.0;
                         pos |= v.sdf >= 0.0;
                         let g = [origin[0] + lx, origin[1] + ly, origin[2] + lz];
-                        let p = [(g[0] as f32 + 0.5) * voxel, (g[1] as f32 + 0.5) * voxel, (g[2] as f32 + 0.5) * voxel];
-                        corners[c] = (pack(g), p, v);
+                        corners[c] = (pack(g), voxel_centre(g, voxel), v);
                     }
                     if !(neg && pos) {
                         continue;

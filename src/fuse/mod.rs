@@ -20,7 +20,7 @@ use crate::register::voxel::VoxelHasher;
 pub use mesh::{MeshStats, SurfaceMesh};
 
 /// Voxels per block side.
-const SIDE: i32 = 8;
+pub(crate) const SIDE: i32 = 8;
 const VOXELS: usize = (SIDE * SIDE * SIDE) as usize;
 
 /// Knobs of the fusion; see `docs/meshing.md`.
@@ -185,9 +185,9 @@ impl Tsdf {
             .map(|(i, p)| {
                 let q = rot * nalgebra::Vector3::new(p[0], p[1], p[2]) + t;
                 // The block's coordinates (18 bits each), then the voxel inside the block.
-                let g = [floor_i32(q.x * inv_voxel), floor_i32(q.y * inv_voxel), floor_i32(q.z * inv_voxel)];
-                let b = |v: i32| ((v.div_euclid(SIDE) as i64 + (1 << 17)) as u64) & ((1 << 18) - 1);
-                (b(g[2]) << 45 | b(g[1]) << 27 | b(g[0]) << 9 | local(g) as u64, i as u32)
+                let g = grid_index(&q, inv_voxel);
+                let b = block_key(g).map(|v| ((v as i64 + (1 << 17)) as u64) & ((1 << 18) - 1));
+                (b[2] << 45 | b[1] << 27 | b[0] << 9 | local(g) as u64, i as u32)
             })
             .collect();
         order.sort_unstable_by_key(|e| e.0);
@@ -215,15 +215,15 @@ impl Tsdf {
             let dir = rot * (pv / len);
             for s in -steps..=steps {
                 let q = pw + dir * (s as f32 * voxel);
-                let g = [floor_i32(q.x * inv_voxel), floor_i32(q.y * inv_voxel), floor_i32(q.z * inv_voxel)];
-                let centre = nalgebra::Vector3::new((g[0] as f32 + 0.5) * voxel, (g[1] as f32 + 0.5) * voxel, (g[2] as f32 + 0.5) * voxel);
+                let g = grid_index(&q, inv_voxel);
+                let centre = nalgebra::Vector3::from(voxel_centre(g, voxel));
                 // Distance from the voxel to the surface along the ray: positive in front.
                 let sdf = (pw - centre).dot(&dir);
                 if sdf < -trunc {
                     continue;
                 }
                 let sdf = sdf.min(trunc);
-                let key = [g[0].div_euclid(SIDE), g[1].div_euclid(SIDE), g[2].div_euclid(SIDE)];
+                let key = block_key(g);
                 let b = match last {
                     Some((k, b)) if k == key => b,
                     _ => match self.block_of(key) {
@@ -272,9 +272,8 @@ impl Tsdf {
     /// faces (from the neighbouring blocks): a 9 × 9 × 9 neighbourhood, `x` fastest, None
     /// where never seen — every cube whose low corner lies in the block.
     pub(crate) fn neighbourhood(&self, key: [i32; 3], out: &mut Vec<Option<Voxel>>) {
-        const N: i32 = SIDE + 1;
         out.clear();
-        out.resize((N * N * N) as usize, None);
+        out.resize(near_index([SIDE; 3]) + 1, None);
         for dz in 0..2 {
             for dy in 0..2 {
                 for dx in 0..2 {
@@ -285,11 +284,10 @@ impl Tsdf {
                     for z in span(dz) {
                         for y in span(dy) {
                             for x in span(dx) {
-                                let v = block.voxels[((z * SIDE + y) * SIDE + x) as usize];
+                                let v = block.voxels[local([x, y, z])];
                                 if v.weight > 0.0 {
-                                    let (nx, ny, nz) = (x + dx * SIDE, y + dy * SIDE, z + dz * SIDE);
                                     let inv = 1.0 / v.weight;
-                                    out[((nz * N + ny) * N + nx) as usize] = Some(Voxel { sdf: v.sdf * inv, rgb: v.rgb.map(|c| c * inv) });
+                                    out[near_index([x + dx * SIDE, y + dy * SIDE, z + dz * SIDE])] = Some(Voxel { sdf: v.sdf * inv, rgb: v.rgb.map(|c| c * inv) });
                                 }
                             }
                         }
@@ -326,11 +324,34 @@ fn floor_i32(x: f32) -> i32 {
     t - ((t as f32) > x) as i32
 }
 
+/// The grid index of the voxel holding world point `q`.
+#[inline(always)]
+fn grid_index(q: &nalgebra::Vector3<f32>, inv_voxel: f32) -> [i32; 3] {
+    [floor_i32(q.x * inv_voxel), floor_i32(q.y * inv_voxel), floor_i32(q.z * inv_voxel)]
+}
+
+/// The key of the block holding voxel `g`.
+#[inline(always)]
+fn block_key(g: [i32; 3]) -> [i32; 3] {
+    g.map(|v| v.div_euclid(SIDE))
+}
+
+/// The centre of voxel `g`, in the world.
+#[inline(always)]
+pub(crate) fn voxel_centre(g: [i32; 3], voxel: f32) -> [f32; 3] {
+    g.map(|v| (v as f32 + 0.5) * voxel)
+}
+
+/// The index of `l` (each coordinate 0…8, from the block's low corner) in a block's 9³
+/// neighbourhood ([`Tsdf::neighbourhood`]).
+#[inline(always)]
+pub(crate) fn near_index(l: [i32; 3]) -> usize {
+    const N: i32 = SIDE + 1;
+    ((l[2] * N + l[1]) * N + l[0]) as usize
+}
+
 /// A voxel's index inside its block.
 fn local(g: [i32; 3]) -> usize {
     let (x, y, z) = (g[0].rem_euclid(SIDE), g[1].rem_euclid(SIDE), g[2].rem_euclid(SIDE));
     ((z * SIDE + y) * SIDE + x) as usize
 }
-
-/// Voxels per block side, for the extraction.
-pub(crate) const BLOCK_SIDE: i32 = SIDE;
