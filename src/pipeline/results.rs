@@ -345,8 +345,7 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
             t.integrate(&view.cloud, &p.first_from_view);
         }
         if let Some(t) = &truth {
-            t.view_distances(p.seq, &view.cloud.points, &mut own);
-            t.placed_sample(p.seq, &view.cloud.points, &mut seen);
+            t.view_samples(p.seq, &view.cloud.points, &mut own, &mut seen);
         }
     }
     let fuse_ms = fuse_start.elapsed().as_secs_f64() * 1e3;
@@ -458,23 +457,18 @@ impl<'a> Truth<'a> {
         true_pose(self.gt, seq)
     }
 
-    /// The views' own error: the distances to the true surface of (at most `VIEW_SAMPLE`
-    /// of) view `seq`'s points placed by its true pose — what the stereo gives, whatever the
-    /// registration.
-    fn view_distances(&self, seq: u64, points: &[[f32; 3]], out: &mut Vec<f64>) {
+    /// View `seq`'s points placed by its true pose, sampled twice: the views' own error —
+    /// the distances to the true surface of at most `VIEW_SAMPLE` of them, what the stereo
+    /// gives whatever the registration — into `own`; and at most `SEEN_SAMPLE` of them, as
+    /// samples of the visible true surface for the mesh's completeness, into `seen`.
+    fn view_samples(&self, seq: u64, points: &[[f32; 3]], own: &mut Vec<f64>, seen: &mut Vec<[f32; 3]>) {
         const VIEW_SAMPLE: usize = 5000;
+        const SEEN_SAMPLE: usize = 2000;
         let (Some(Ok(surface)), Some(cam_from_obj)) = (&self.surface, self.cam_from_obj(seq)) else { return };
         let placed = self.first * cam_from_obj.inverse();
-        let pts: Vec<[f32; 3]> = crate::register::subsample_indices(points.len(), VIEW_SAMPLE).into_iter().map(|i| crate::register::apply(&placed, &points[i])).collect();
-        out.extend(surface.distances(&pts));
-    }
-
-    /// (At most 2000 of) view `seq`'s points placed by its true pose, into `out`.
-    fn placed_sample(&self, seq: u64, points: &[[f32; 3]], out: &mut Vec<[f32; 3]>) {
-        const SAMPLE: usize = 2000;
-        let (Some(Ok(_)), Some(cam_from_obj)) = (&self.surface, self.cam_from_obj(seq)) else { return };
-        let placed = self.first * cam_from_obj.inverse();
-        out.extend(crate::register::subsample_indices(points.len(), SAMPLE).into_iter().map(|i| crate::register::apply(&placed, &points[i])));
+        let sample = |n: usize| crate::register::subsample_indices(points.len(), n).into_iter().map(|i| crate::register::apply(&placed, &points[i]));
+        own.extend(surface.distances(&sample(VIEW_SAMPLE).collect::<Vec<_>>()));
+        seen.extend(sample(SEEN_SAMPLE));
     }
 }
 
@@ -499,7 +493,6 @@ fn score_mesh(about: &mut Value, truth: &Truth, mesh: &crate::cloud::Mesh, own: 
     let d = surface.distances(&mesh.cloud.points);
     about["gt_distance_mm"] = json!({"median": quantile(&d, 0.5), "p95": quantile(&d, 0.95), "vertices": d.len()});
     if !own.is_empty() {
-        let ratio = |m: Option<f64>, v: Option<f64>| m.zip(v).map(|(m, v)| m / v.max(1e-12));
         about["gt_mesh_to_view_ratio"] = json!({"median": ratio(quantile(&d, 0.5), quantile(own, 0.5)), "p95": ratio(quantile(&d, 0.95), quantile(own, 0.95))});
     }
     if !seen.is_empty() && !mesh.triangles.is_empty() {
@@ -510,13 +503,18 @@ fn score_mesh(about: &mut Value, truth: &Truth, mesh: &crate::cloud::Mesh, own: 
     Ok(())
 }
 
+/// `m / v` where both are known (a distance against the views' own).
+fn ratio(m: Option<f64>, v: Option<f64>) -> Option<f64> {
+    m.zip(v).map(|(m, v)| m / v.max(1e-12))
+}
+
 /// View `seq`'s `cam_from_obj` in `gt/poses.jsonl`.
 fn true_pose(gt: &[(u64, Isometry3<f64>)], seq: u64) -> Option<Isometry3<f64>> {
     gt.iter().find(|g| g.0 == seq).map(|g| g.1)
 }
 
 /// Pose error of every view against `gt/poses.jsonl`, and the model's and the views' own
-/// (`own`, from [`Truth::view_distances`]) distance to the placed `gt/mesh.ply`, into the
+/// (`own`, from [`Truth::view_samples`]) distance to the placed `gt/mesh.ply`, into the
 /// report.
 fn score_registration(section: &mut Value, results: &mut ResultsWriter, poses: &[ViewPose], truth: &Truth, model: &[[f32; 3]], own: &[f64]) -> Result<(), ResultsError> {
     let mut last = None;
@@ -554,7 +552,6 @@ fn score_registration(section: &mut Value, results: &mut ResultsWriter, poses: &
             section["gt_model_distance_mm"] = json!({"median": quantile(&d, 0.5), "p95": quantile(&d, 0.95), "points": d.len()});
             if !own.is_empty() {
                 let (median, p95) = (quantile(own, 0.5), quantile(own, 0.95));
-                let ratio = |m: Option<f64>, v: Option<f64>| m.zip(v).map(|(m, v)| m / v.max(1e-12));
                 section["gt_view_distance_mm"] = json!({"median": median, "p95": p95, "points": own.len()});
                 section["gt_model_to_view_ratio"] = json!({"median": ratio(quantile(&d, 0.5), median), "p95": ratio(quantile(&d, 0.95), p95)});
             }
