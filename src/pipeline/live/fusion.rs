@@ -7,11 +7,12 @@
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::thread::JoinHandle;
-use std::time::Duration;
+use std::path::Path;
+use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Receiver, RecvTimeoutError, Sender, TrySendError};
 use nalgebra::Isometry3;
-use serde_json::json;
+use serde_json::{json, Value};
 
 use super::state::{lower_priority, ScanShared};
 use crate::cloud::PointCloud;
@@ -88,10 +89,21 @@ fn run(rx: Receiver<(PointCloud, Isometry3<f64>)>, shared: &ScanShared, params: 
 /// reason when it could not be written).
 fn write_preview(tsdf: &Tsdf, shared: &ScanShared) {
     let path = shared.dir.join("mesh_live.ply");
+    let start = Instant::now();
     let (mesh, stats) = tsdf.mesh();
-    let mut about = json!({"name": shared.spec.name, "file": path.display().to_string(), "views": tsdf.integrated().0, "vertices": stats.vertices, "triangles": stats.triangles, "holes_filled": stats.holes_filled});
-    if let Err(e) = crate::io::mesh::write_mesh(&path, &mesh) {
-        about["error"] = json!(e.to_string());
+    let figures = crate::pipeline::mesh::mesh_json(tsdf, &stats, start.elapsed().as_secs_f64() * 1e3);
+    let error = crate::io::mesh::write_mesh(&path, &mesh).err().map(|e| e.to_string());
+    announce_mesh(shared, &path, &figures, error);
+}
+
+/// The `scan.mesh` event for a mesh written to `file`, from its figures (`mesh_json`'s).
+pub(super) fn announce_mesh(shared: &ScanShared, file: &Path, figures: &Value, error: Option<String>) {
+    let mut about = json!({"name": shared.spec.name, "file": file.display().to_string()});
+    for key in ["views", "vertices", "triangles", "holes_filled"] {
+        about[key] = figures[key].clone();
+    }
+    if let Some(e) = error {
+        about["error"] = json!(e);
     }
     shared.emit("scan.mesh", about);
 }

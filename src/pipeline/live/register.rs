@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use crossbeam_channel::{Receiver, Sender};
 use serde_json::json;
 
-use super::fusion::LiveFusion;
+use super::fusion::{announce_mesh, LiveFusion};
 use super::state::{lower_priority, Note, PipelineSettings, ScanError, ScanMode, ScanShared};
 use crate::pipeline::results::{finish_registration, register_view, ModelOptions, ResultsWriter};
 use crate::register::posestore::PoseStore;
@@ -151,8 +151,7 @@ fn register_all(
             let section = finish_registration(reg, results, &ModelOptions::default(), &Default::default()).map_err(ScanError::Model)?;
             // A mesh asked for after the live field went is answered by the scan's own.
             if shared.take_mesh_request() {
-                let m = &section["mesh"];
-                shared.emit("scan.mesh", json!({"name": shared.spec.name, "file": shared.dir.join("mesh.ply").display().to_string(), "views": m["views"], "vertices": m["vertices"], "triangles": m["triangles"], "holes_filled": m["holes_filled"]}));
+                announce_mesh(shared, &shared.dir.join("mesh.ply"), &section["mesh"], None);
             }
         }
     }
