@@ -72,8 +72,12 @@ fn a_full_step_turn_through_the_socket() {
     // own mesh at its end.
     let preview = c.events.iter().find(|e| e["method"] == "scan.mesh").unwrap_or_else(|| panic!("no scan.mesh event: {:?}", c.events));
     assert!(preview["params"].get("error").is_none() && preview["params"]["views"].as_u64().unwrap() >= 1, "{preview}");
-    assert_eq!(preview["params"]["file"], meshing["file"]);
-    let live = spinscan::io::ply::read_ply(std::path::Path::new(meshing["file"].as_str().unwrap())).unwrap();
+    // A request that reaches the scan after its last view is answered by the scan's own
+    // mesh.ply (docs/protocol.md); a loaded machine can make that happen.
+    let file = preview["params"]["file"].as_str().unwrap();
+    let own = scan.join("mesh.ply").display().to_string();
+    assert!(file == meshing["file"] || file == own, "{preview} after {meshing}");
+    let live = spinscan::io::ply::read_ply(std::path::Path::new(file)).unwrap();
     assert_eq!(live.triangles.len() as u64, preview["params"]["triangles"].as_u64().unwrap());
     assert!(!live.triangles.is_empty());
     assert!(scan.join("mesh.ply").is_file());
