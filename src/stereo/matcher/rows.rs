@@ -522,9 +522,11 @@ pub(super) fn decide_at(p: &ValidMatchParams, costs: &[u16], min: u16, best: usi
     let mut frac = 0.0f32;
     if p.subpixel && best > 0 && best + 1 < costs.len() {
         let (c0, c1, c2) = (costs[best - 1] as f32, min as f32, costs[best + 1] as f32);
-        let denom = c0 + c2 - 2.0 * c1;
-        if denom > 0.0 {
-            frac = ((c0 - c2) / (2.0 * denom)).clamp(-0.5, 0.5);
+        // Equiangular (V) fit: SAD rises about linearly away from its minimum; a parabola
+        // pulls sub-pixel shifts towards whole pixels (docs/matcher.md).
+        let rise = c0.max(c2) - c1;
+        if rise > 0.0 {
+            frac = ((c0 - c2) / (2.0 * rise)).clamp(-0.5, 0.5);
         }
     }
     Some((best, frac))

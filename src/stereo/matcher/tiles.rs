@@ -278,9 +278,9 @@ unsafe fn subpixel(before: std::arch::x86_64::__m256i, min: std::arch::x86_64::_
         };
         let (c0, c1, c2) = (f(before), f(min), f(after));
         let fit = if i == 0 { _mm256_cvtepi16_epi32(_mm256_castsi256_si128(inside)) } else { _mm256_cvtepi16_epi32(_mm256_extracti128_si256::<1>(inside)) };
-        let denom = _mm256_sub_ps(_mm256_add_ps(c0, c2), _mm256_mul_ps(_mm256_set1_ps(2.0), c1));
-        let fit = _mm256_and_ps(_mm256_castsi256_ps(fit), _mm256_cmp_ps::<_CMP_GT_OQ>(denom, _mm256_setzero_ps()));
-        let q = _mm256_div_ps(_mm256_sub_ps(c0, c2), _mm256_mul_ps(_mm256_set1_ps(2.0), denom));
+        let rise = _mm256_sub_ps(_mm256_max_ps(c0, c2), c1);
+        let fit = _mm256_and_ps(_mm256_castsi256_ps(fit), _mm256_cmp_ps::<_CMP_GT_OQ>(rise, _mm256_setzero_ps()));
+        let q = _mm256_div_ps(_mm256_sub_ps(c0, c2), _mm256_mul_ps(_mm256_set1_ps(2.0), rise));
         let q = _mm256_min_ps(_mm256_max_ps(q, _mm256_set1_ps(-0.5)), _mm256_set1_ps(0.5));
         _mm256_storeu_ps(out.add(8 * i), _mm256_and_ps(q, fit));
     }
