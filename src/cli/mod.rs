@@ -85,7 +85,8 @@ pub struct MatchArgs {
     /// `bench table1` takes a comma-separated list (`bm,sgm`) and runs every row for each.
     #[arg(long, default_value = "bm", value_delimiter = ',')]
     pub method: Vec<Method>,
-    /// SGM: penalty for a disparity change of one between neighbours (census bits).
+    /// SGM: penalty for a disparity change of one between neighbours (in the cost's unit:
+    /// census bits plus grey levels of the intensity term).
     #[arg(long, default_value_t = MatchParams::default().p1)]
     pub p1: u16,
     /// SGM: penalty for a larger disparity jump between neighbours.
@@ -94,6 +95,11 @@ pub struct MatchArgs {
     /// SGM: aggregation paths, 4 (rows and columns) or 8 (and the diagonals).
     #[arg(long, default_value_t = MatchParams::default().sgm_paths)]
     pub sgm_paths: u8,
+    /// SGM: cap, in grey levels, of the per-pixel intensity term |left − right| added to the
+    /// census cost (the right image matched to the left's mean and spread first); 0 = census
+    /// alone, at most 100.
+    #[arg(long, default_value_t = MatchParams::default().sgm_ad_cap)]
+    pub sgm_ad_cap: u8,
     /// First disparity searched (may be negative). Default: 0, or −(N−1) on a calibrated rig
     /// whose rectified disparities are negative.
     #[arg(long, allow_hyphen_values = true)]
@@ -148,6 +154,7 @@ impl MatchArgs {
             p1: self.p1,
             p2: self.p2,
             sgm_paths: self.sgm_paths,
+            sgm_ad_cap: self.sgm_ad_cap,
             min_disparity: self.min_disparity.unwrap_or(0),
             num_disparities: self.num_disparities.unwrap_or(default_range),
             block: self.block,

@@ -272,6 +272,8 @@ pub struct MatchingSection {
     pub p1: u16,
     pub p2: u16,
     pub sgm_paths: u8,
+    /// SGM's intensity term: cap in grey levels (0 = census alone).
+    pub sgm_ad_cap: u8,
     /// "predicted", "paper" or "none".
     pub assist: String,
     /// The paper's weighting factor w (mode "paper").
@@ -288,7 +290,7 @@ impl Default for MatchingSection {
         // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
         // about 330 mm on.
         let m = crate::stereo::MatchParams::default();
-        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true }
+        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true }
     }
 }
 
@@ -410,6 +412,7 @@ impl Config {
                 "p1" => "matching.p1",
                 "p2" => "matching.p2",
                 "sgm_paths" => "matching.sgm_paths",
+                "sgm_ad_cap" => "matching.sgm_ad_cap",
                 _ => "matching",
             };
             return bad(key, format!("{}, got {}", e.expected, e.value));
@@ -429,7 +432,7 @@ impl Config {
         let config = self;
         let mut pipeline = crate::pipeline::PipelineOptions::default();
         let m = &config.matching;
-        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, ..crate::stereo::MatchParams::for_method(m.method) };
+        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, ..crate::stereo::MatchParams::for_method(m.method) };
         // Parallelism comes from the pool: one thread per matcher.
         pipeline.matching.threads = 1;
         let registration = config.scan.register.then(|| {
@@ -513,7 +516,7 @@ mod tests {
     #[test]
     fn matcher_parameters_follow_the_matchers_rules_and_every_accepted_value_builds() {
         let p = Path::new("x.toml");
-        for (text, key) in [("p1 = 0", "matching.p1"), ("p2 = 9000", "matching.p2"), ("sgm_paths = 5", "matching.sgm_paths"), ("method = \"census\"", "expected `bm` or `sgm`"), ("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities")] {
+        for (text, key) in [("p1 = 0", "matching.p1"), ("p2 = 9000", "matching.p2"), ("sgm_paths = 5", "matching.sgm_paths"), ("sgm_ad_cap = 101", "matching.sgm_ad_cap"), ("method = \"census\"", "expected `bm` or `sgm`"), ("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities")] {
             let e = Config::parse(p, &format!("[matching]\n{text}\n")).unwrap_err().to_string();
             assert!(e.contains(key), "{text}: {e}");
         }

@@ -9,13 +9,17 @@
 pub struct MatchParams {
     /// The matcher: correlation (block matching) or semi-global matching.
     pub method: Method,
-    /// SGM: penalty for a disparity change of one between neighbours along a path (in census
-    /// bits, the unit of the cost).
+    /// SGM: penalty for a disparity change of one between neighbours along a path (in the
+    /// cost's unit: census bits plus grey levels of the intensity term).
     pub p1: u16,
     /// SGM: penalty for a larger disparity jump between neighbours (> `p1`).
     pub p2: u16,
     /// SGM: aggregation paths, 4 (horizontal and vertical) or 8 (and the diagonals).
     pub sgm_paths: u8,
+    /// SGM: the per-pixel intensity term added to the census cost, |left − right| in grey
+    /// levels (the right image first matched to the left's mean and spread), capped at this
+    /// many levels (0 = census alone; at most 100).
+    pub sgm_ad_cap: u8,
     /// Smallest disparity searched (OpenCV `minDisparity`); may be negative.
     pub min_disparity: i32,
     /// Number of disparities searched: `min_disparity … min_disparity + num_disparities − 1`.
@@ -49,9 +53,10 @@ impl Default for MatchParams {
     fn default() -> Self {
         MatchParams {
             method: Method::Bm,
-            p1: 15,
-            p2: 120,
+            p1: 25,
+            p2: 100,
             sgm_paths: 4,
+            sgm_ad_cap: 25,
             min_disparity: 0,
             num_disparities: 64,
             block: 9,
@@ -196,8 +201,11 @@ impl MatchParams {
             return err("p1", self.p1.to_string(), "must be at least 1 and below p2");
         }
         if self.p2 > 2000 {
-            // Eight path costs of at most 62 + p2 each must fit the 16-bit sums.
+            // Eight path costs of at most 34 + 100 + p2 each must fit the 16-bit sums.
             return err("p2", self.p2.to_string(), "must be within p1 + 1 … 2000");
+        }
+        if self.sgm_ad_cap > 100 {
+            return err("sgm_ad_cap", self.sgm_ad_cap.to_string(), "must be within 0 (census alone) … 100 grey levels");
         }
         if self.sgm_paths != 4 && self.sgm_paths != 8 {
             return err("sgm_paths", self.sgm_paths.to_string(), "must be 4 or 8");
@@ -224,7 +232,7 @@ mod tests {
         assert!(sgm.clone().validate().is_ok());
         assert_eq!((sgm.method, sgm.uniqueness_ratio, sgm.speckle_range_px), (Method::Sgm, 0, 2.0));
         assert_eq!(MatchParams::for_method(Method::Bm), MatchParams::default());
-        for (bad, name) in [(MatchParams { p1: 0, ..sgm.clone() }, "p1"), (MatchParams { p1: 200, p2: 120, ..sgm.clone() }, "p1"), (MatchParams { p2: 5000, ..sgm.clone() }, "p2"), (MatchParams { sgm_paths: 6, ..sgm }, "sgm_paths")] {
+        for (bad, name) in [(MatchParams { p1: 0, ..sgm.clone() }, "p1"), (MatchParams { p1: 200, p2: 120, ..sgm.clone() }, "p1"), (MatchParams { p2: 5000, ..sgm.clone() }, "p2"), (MatchParams { sgm_paths: 6, ..sgm.clone() }, "sgm_paths"), (MatchParams { sgm_ad_cap: 101, ..sgm }, "sgm_ad_cap")] {
             assert_eq!(bad.validate().unwrap_err().name, name);
         }
         assert_eq!("sgm".parse::<Method>(), Ok(Method::Sgm));

@@ -237,24 +237,35 @@ impl StereoMatcher {
 
     /// [`StereoMatcher::compute`] over the whole of checked inputs.
     fn compute_whole(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
-        if self.params.method == Method::Sgm {
+        let mut totals = if self.params.method == Method::Sgm {
             let mut totals = self.compute_sgm(left, right, intervals, out);
-            self.speckle_filter(out, &mut totals);
-            return totals;
-        }
+            if self.params.subpixel {
+                self.refine_subpixel(left, right, out, &mut totals);
+            }
+            totals
+        } else {
+            let params = self.params.clone();
+            self.correlate(&params, left, right, intervals, out)
+        };
+        self.speckle_filter(out, &mut totals);
+        totals
+    }
+
+    /// The correlation matcher (`bm`) with `params` over the whole of checked inputs, without
+    /// the speckle filter.
+    fn correlate(&mut self, params: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
         let (w, h) = (left.width, left.height);
-        let geo = Geometry::new(&self.params, w, h);
+        let geo = Geometry::new(params, w, h);
 
         let t0 = std::time::Instant::now();
-        prefilter_xsobel(left, self.params.prefilter_cap, (geo.r, geo.r), false, &mut self.left_pf);
-        prefilter_xsobel(right, self.params.prefilter_cap, (geo.rpad_left, geo.rpad_right), true, &mut self.right_pf_rev);
+        prefilter_xsobel(left, params.prefilter_cap, (geo.r, geo.r), false, &mut self.left_pf);
+        prefilter_xsobel(right, params.prefilter_cap, (geo.rpad_left, geo.rpad_right), true, &mut self.right_pf_rev);
         let prefilter_ns = t0.elapsed().as_nanos() as u64;
 
-        let threads = self.params.thread_count().min(h).max(1);
+        let threads = params.thread_count().min(h).max(1);
         self.stripes.resize_with(threads, StripeScratch::default);
         // Stripes start on tile rows (see `BAND_TILE`).
         let rows_per = h.div_ceil(threads).next_multiple_of(TILE_H);
-        let params = &self.params;
         let input = StripeInput::new(params, geo, &self.left_pf, &self.right_pf_rev, intervals);
         let mut totals = MatchStats { prefilter_ns, ..MatchStats::default() };
         let out_chunks = out.values_mut().chunks_mut(rows_per * w);
@@ -285,8 +296,35 @@ impl StereoMatcher {
             totals.lr_candidates += s.lr_candidates;
             totals.lr_passed += s.lr_passed;
         }
-        self.speckle_filter(out, &mut totals);
         totals
+    }
+
+    /// SGM's sub-pixel disparities taken from the correlation cost: its aggregated sums are
+    /// flattened by the smoothness penalties and step along slanted surfaces, so each matched
+    /// pixel is correlated again (the `bm` cost, `block` window, no uniqueness, texture,
+    /// left–right or speckle test) over its SGM disparity ± 2, and where the correlation's
+    /// sub-pixel disparity lies within 1 of SGM's, it replaces SGM's value.
+    fn refine_subpixel(&mut self, left: GrayView, right: GrayView, out: &mut DisparityMap, totals: &mut MatchStats) {
+        let (w, h) = (left.width, left.height);
+        let p = &self.params;
+        let (dmin, dmax) = (p.min_disparity, p.max_disparity());
+        let bm = crate::stereo::MatchParams { method: Method::Bm, uniqueness_ratio: 0, texture_threshold: 0, lr_max_diff: None, speckle_window: 0, ..(**p).clone() }.validate().expect("the sgm parameters with the correlation's tests off are valid");
+        let mut iv = DisparityIntervals::empty(w, h);
+        for (i, &d) in out.values().iter().enumerate() {
+            if !d.is_nan() {
+                let r = d.round() as i32;
+                iv.lo[i] = (r - 2).clamp(dmin, dmax) as i16;
+                iv.hi[i] = (r + 2).clamp(dmin, dmax) as i16;
+            }
+        }
+        let mut corr = DisparityMap::new(w, h);
+        let stats = self.correlate(&bm, left, right, &iv, &mut corr);
+        totals.evaluated += stats.evaluated;
+        for (d, &c) in out.values_mut().iter_mut().zip(corr.values()) {
+            if !d.is_nan() && !c.is_nan() && (c - *d).abs() <= 1.0 {
+                *d = c;
+            }
+        }
     }
 
     /// Semi-global matching, in stripes of rows on `threads` threads. Each stripe runs the
@@ -296,9 +334,17 @@ impl StereoMatcher {
     fn compute_sgm(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
         let (w, h) = (left.width, left.height);
         let stripes = self.params.thread_count().min(h / SGM_MIN_ROWS).max(1);
+        // The intensity term's levels, matched over the whole images (not per stripe).
+        let matched;
+        let levels: &[u8] = if self.params.sgm_ad_cap > 0 {
+            matched = super::sgm::matched_levels(left.data, right.data);
+            &matched
+        } else {
+            right.data
+        };
         if stripes == 1 {
             self.sgm.resize_with(1, Default::default);
-            return self.sgm[0].compute(&self.params, left, right, intervals, 0..h, out);
+            return self.sgm[0].compute(&self.params, left, right, levels, intervals, 0..h, out);
         }
         self.sgm.resize_with(stripes, Default::default);
         let rows_per = h.div_ceil(stripes);
@@ -315,11 +361,11 @@ impl StereoMatcher {
                         .name(format!("sgm-{i}"))
                         .spawn_scoped(scope, move || {
                             let n = ext.len();
-                            let (l, r) = (&left.data[ext.start * w..ext.end * w], &right.data[ext.start * w..ext.end * w]);
+                            let (l, r, lv) = (&left.data[ext.start * w..ext.end * w], &right.data[ext.start * w..ext.end * w], &levels[ext.start * w..ext.end * w]);
                             let iv = DisparityIntervals { width: w, height: n, lo: intervals.lo[ext.start * w..ext.end * w].to_vec(), hi: intervals.hi[ext.start * w..ext.end * w].to_vec() };
                             let mut part = DisparityMap::new(w, n);
                             let keep = rows.start - ext.start..rows.end - ext.start;
-                            let stats = sgm.compute(params, GrayView { width: w, height: n, data: l }, GrayView { width: w, height: n, data: r }, &iv, keep, &mut part);
+                            let stats = sgm.compute(params, GrayView { width: w, height: n, data: l }, GrayView { width: w, height: n, data: r }, lv, &iv, keep, &mut part);
                             (rows, ext, part, stats)
                         })
                         .expect("spawning a matcher thread")

@@ -1,16 +1,22 @@
-//! The census transform and the per-pair matching cost (Hamming distance of census words).
+//! The census transform and the per-pair matching cost: the Hamming distance of census
+//! words plus a capped per-pixel intensity difference.
 //!
 //! Census compares each pixel of a `CENSUS_W × CENSUS_H` window with the window's centre
 //! (one bit: neighbour < centre). It depends only on the order of intensities, so a gain or
 //! offset between the two cameras — the lab's cameras are not photometrically matched —
-//! does not change the cost, and an edge costs no more than texture. The window is clamped
-//! at the image border (replicated pixels).
+//! does not change it, and an edge costs no more than texture. The window is clamped at the
+//! image border (replicated pixels).
+//!
+//! The intensity term, `min(|I_left − I_right|, cap)`, is what census lacks: the pixel's own
+//! level, sharp at depth edges where the census window straddles two surfaces (AD-census,
+//! Mei et al. 2011). It is not invariant to the cameras' gain and offset, so the right image
+//! is first mapped linearly onto the left's mean and standard deviation ([`matched_levels`]).
 
-/// Census window width and height (odd). 9 × 7 − 1 = 62 bits, one `u64` per pixel: chosen by
-/// measurement against 5 × 5, 7 × 5, 7 × 7 and the centre-symmetric 9 × 7 census (31 bits)
-/// on the Middlebury pairs (docs/matcher.md).
-pub(super) const CENSUS_W: usize = 9;
-pub(super) const CENSUS_H: usize = 7;
+/// Census window width and height (odd). 7 × 5 − 1 = 34 bits, in a `u64` per pixel: chosen
+/// by measurement on the Middlebury pairs (docs/matcher.md) — 9 × 7 was best alone, 7 × 5
+/// with the intensity term.
+pub(super) const CENSUS_W: usize = 7;
+pub(super) const CENSUS_H: usize = 5;
 
 /// The census word of every pixel of `img` (`w × h`, row-major) into `out`, each row padded
 /// with `pad = (left, right)` copies of its first and last word.
@@ -70,13 +76,58 @@ pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), out
     }
 }
 
-/// Costs of a left pixel (census `cl`) for consecutive disparities: `out[k]` against
-/// `cr_row[start − k]` (the right pixel moves left as the disparity grows).
+/// The right image's grey levels mapped linearly onto the left's mean and standard
+/// deviation (both over the whole image): a gain and offset between the cameras removed
+/// before the intensity term compares levels.
+pub(in crate::stereo) fn matched_levels(left: &[u8], right: &[u8]) -> Vec<u8> {
+    // From each image's histogram: one pass of integer counting per image.
+    let stats = |img: &[u8]| {
+        let mut hist = [0u32; 256];
+        for &v in img {
+            hist[v as usize] += 1;
+        }
+        let n = img.len().max(1) as f64;
+        let mean = hist.iter().enumerate().map(|(v, &c)| v as f64 * c as f64).sum::<f64>() / n;
+        let var = hist.iter().enumerate().map(|(v, &c)| (v as f64 - mean).powi(2) * c as f64).sum::<f64>() / n;
+        (mean, var.sqrt().max(1.0))
+    };
+    let ((ml, sl), (mr, sr)) = (stats(left), stats(right));
+    let table: Vec<u8> = (0..256).map(|v| ((v as f64 - mr) * sl / sr + ml).round().clamp(0.0, 255.0) as u8).collect();
+    right.iter().map(|&v| table[v as usize]).collect()
+}
+
+/// `img` (`w × h`) with each row padded by `pad = (left, right)` copies of its first and last
+/// pixel, into `out` (the layout of the padded right census).
+pub(super) fn pad_rows(img: &[u8], w: usize, h: usize, pad: (usize, usize), out: &mut Vec<u8>) {
+    out.clear();
+    out.reserve((pad.0 + w + pad.1) * h);
+    for row in img.chunks_exact(w).take(h) {
+        out.extend(std::iter::repeat_n(row[0], pad.0));
+        out.extend_from_slice(row);
+        out.extend(std::iter::repeat_n(row[w - 1], pad.1));
+    }
+}
+
+/// One left pixel against a run of right pixels: its census word `cl` and grey level `il`;
+/// the right row's census words and (matched, padded) grey levels; the intensity term's cap.
+#[derive(Clone, Copy)]
+pub(super) struct Pixel<'a> {
+    pub cl: u64,
+    pub il: u8,
+    pub cr_row: &'a [u64],
+    pub ir_row: &'a [u8],
+    pub cap: u8,
+}
+
+/// Costs of a left pixel for consecutive disparities: `out[k]` against the right pixel at
+/// `start − k` (the right pixel moves left as the disparity grows): census bits plus
+/// `min(|il − ir|, cap)`.
 #[inline(always)]
-pub(super) fn costs(cl: u64, cr_row: &[u64], start: usize, out: &mut [u8]) {
-    let src = &cr_row[start + 1 - out.len()..=start];
-    for (o, &r) in out.iter_mut().zip(src.iter().rev()) {
-        *o = (cl ^ r).count_ones() as u8;
+pub(super) fn costs(px: Pixel, start: usize, out: &mut [u8]) {
+    let from = start + 1 - out.len();
+    let (cr, ir) = (&px.cr_row[from..=start], &px.ir_row[from..=start]);
+    for ((o, &r), &i) in out.iter_mut().zip(cr.iter().rev()).zip(ir.iter().rev()) {
+        *o = (px.cl ^ r).count_ones() as u8 + px.il.abs_diff(i).min(px.cap);
     }
 }
 
@@ -116,8 +167,25 @@ mod tests {
         let cr: Vec<u64> = (0..10u64).map(|i| (1u64 << i) - 1).collect();
         let mut out = [0u8; 4];
         // Right pixels 5, 4, 3, 2.
-        costs(0, &cr, 5, &mut out);
+        let levels = [0u8; 10];
+        costs(Pixel { cl: 0, il: 0, cr_row: &cr, ir_row: &levels, cap: 0 }, 5, &mut out);
         assert_eq!(out, [5, 4, 3, 2]);
+        // The intensity term, capped: levels 7 · i against a left level of 20.
+        let levels: Vec<u8> = (0..10).map(|i| 7 * i).collect();
+        costs(Pixel { cl: 0, il: 20, cr_row: &cr, ir_row: &levels, cap: 10 }, 5, &mut out);
+        assert_eq!(out, [5 + 10, 4 + 8, 3 + 1, 2 + 6]);
+    }
+
+    #[test]
+    fn the_right_levels_are_matched_to_the_left_gain_and_offset() {
+        let left: Vec<u8> = (0..400).map(|i| (40 + (i * 37) % 150) as u8).collect();
+        let right: Vec<u8> = left.iter().map(|&v| (1.2 * v as f64 + 9.0).round() as u8).collect();
+        let matched = matched_levels(&left, &right);
+        assert!(left.iter().zip(&matched).all(|(a, b)| a.abs_diff(*b) <= 1), "{:?}", &matched[..10]);
+        let mut padded = Vec::new();
+        pad_rows(&left[..20], 10, 2, (2, 1), &mut padded);
+        assert_eq!(padded.len(), 26);
+        assert_eq!((&padded[..3], padded[12], &padded[13..16]), (&[left[0], left[0], left[0]][..], left[9], &[left[10], left[10], left[10]][..]));
     }
 
     #[test]

@@ -36,6 +36,7 @@ use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
 use super::params::ValidMatchParams;
 
 mod census;
+pub(super) use census::matched_levels;
 mod select;
 #[cfg(target_arch = "x86_64")]
 mod simd;
@@ -120,6 +121,8 @@ pub(super) struct Sgm {
     /// The right census, each row padded by replication so that every disparity of every
     /// block has a right pixel.
     census_r: Vec<u64>,
+    /// The right image's grey levels matched to the left's, padded as `census_r`.
+    levels_r: Vec<u8>,
     /// Per pixel: the aggregated band (first disparity index, multiple of [`LANES`], and
     /// count, a multiple of it; 0 = not searched), and the interval searched inside it.
     band_a: Vec<u16>,
@@ -200,25 +203,28 @@ fn step_portable<const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut 
 impl Sgm {
     /// Matches checked inputs (same size, at least 2 × 1) over `intervals`, and keeps (writes
     /// and counts) the rows `keep` — the others only feed the paths; the speckle filter is the
-    /// caller's.
-    pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
+    /// caller's. `right_levels` is `right` matched to the left image's levels
+    /// ([`matched_levels`] over the whole images, so that every stripe compares the same
+    /// levels), read by the intensity term.
+    pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, right_levels: &[u8], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
+        assert_eq!(right_levels.len(), right.data.len(), "one matched level per right pixel");
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("popcnt") {
             // SAFETY: the CPU supports AVX2 and POPCNT, checked just above.
-            return unsafe { self.compute_avx2(p, left, right, intervals, keep, out) };
+            return unsafe { self.compute_avx2(p, left, right, right_levels, intervals, keep, out) };
         }
-        self.compute_impl::<false>(p, left, right, intervals, keep, out)
+        self.compute_impl::<false>(p, left, right, right_levels, intervals, keep, out)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,popcnt")]
-    unsafe fn compute_avx2(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
-        self.compute_impl::<true>(p, left, right, intervals, keep, out)
+    unsafe fn compute_avx2(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, right_levels: &[u8], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
+        self.compute_impl::<true>(p, left, right, right_levels, intervals, keep, out)
     }
 
     /// The whole matcher; inlined into each SIMD-level wrapper so the loops vectorise for it.
     #[inline(always)]
-    fn compute_impl<const AVX2: bool>(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
+    fn compute_impl<const AVX2: bool>(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, right_levels: &[u8], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
         let (w, h) = (left.width, left.height);
         let n = (p.num_disparities as usize).div_ceil(LANES) * LANES;
         let dmin = p.min_disparity;
@@ -229,6 +235,7 @@ impl Sgm {
         let t0 = std::time::Instant::now();
         census::transform(left.data, w, h, (0, 0), &mut self.census_l);
         census::transform(right.data, w, h, (pad_l, pad_r), &mut self.census_r);
+        census::pad_rows(right_levels, w, h, (pad_l, pad_r), &mut self.levels_r);
         let mut stats = MatchStats { prefilter_ns: t0.elapsed().as_nanos() as u64, ..MatchStats::default() };
         self.bands(p, g, intervals, keep.clone(), &mut stats);
         let total = self.off[w * h];
@@ -240,8 +247,8 @@ impl Sgm {
         self.right_best.resize(w, 0);
         let vals = out.values_mut();
         vals.fill(f32::NAN);
-        self.pass::<AVX2>(p, g, false, keep.clone(), vals, &mut stats);
-        self.pass::<AVX2>(p, g, true, keep, vals, &mut stats);
+        self.pass::<AVX2>(p, g, left.data, false, keep.clone(), vals, &mut stats);
+        self.pass::<AVX2>(p, g, left.data, true, keep, vals, &mut stats);
         stats
     }
 
@@ -280,10 +287,11 @@ impl Sgm {
         self.off[w * h] = total;
     }
 
-    /// One pass: down the image left to right (`up = false`: census costs, and the sums of
-    /// four paths), or up right to left (adding the other four, then selecting each row).
+    /// One pass: down the image left to right (`up = false`: the costs, from the census words
+    /// and `left`'s levels, and the sums of four paths), or up right to left (adding the other
+    /// four, then selecting each row).
     #[inline(always)]
-    fn pass<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, up: bool, keep: Range<usize>, out: &mut [f32], stats: &mut MatchStats) {
+    fn pass<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, left: &[u8], up: bool, keep: Range<usize>, out: &mut [f32], stats: &mut MatchStats) {
         let Geo { w, h, n, .. } = g;
         let (p1, p2) = (p.p1, p.p2);
         // Eight paths: all three from the previous row; four: only the one above (below).
@@ -297,7 +305,8 @@ impl Sgm {
             let y = if up { h - 1 - step_y } else { step_y };
             if !up {
                 let cl = &self.census_l[y * w..][..w];
-                let cr = &self.census_r[y * g.wr..][..g.wr];
+                let il = &left[y * w..][..w];
+                let (cr_row, ir_row) = (&self.census_r[y * g.wr..][..g.wr], &self.levels_r[y * g.wr..][..g.wr]);
                 for x in 0..w {
                     let i = y * w + x;
                     let m = self.band_m[i] as usize;
@@ -306,13 +315,14 @@ impl Sgm {
                         // in the padded row.
                         let d0 = g.dmin + self.band_a[i] as i32;
                         let (start, out) = ((x as i32 + g.pad_l as i32 - d0) as usize, &mut self.cost[self.off[i]..][..m]);
+                        let px = census::Pixel { cl: cl[x], il: il[x], cr_row, ir_row, cap: p.sgm_ad_cap };
                         #[cfg(target_arch = "x86_64")]
                         if AVX2 {
                             // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU.
-                            unsafe { simd::costs(cl[x], cr, start, out) };
+                            unsafe { simd::costs(px, start, out) };
                             continue;
                         }
-                        census::costs(cl[x], cr, start, out);
+                        census::costs(px, start, out);
                     }
                 }
             }

@@ -130,17 +130,21 @@ pub(super) unsafe fn first_at(s: &[u16], a: usize, lo: usize, hi: usize, best: u
 }
 
 /// [`super::census::costs`] on AVX2 for a whole number of blocks: sixteen Hamming distances
-/// per step (nibble table popcount, summed per word), written as bytes.
+/// per step (nibble table popcount, summed per word), plus sixteen capped level differences,
+/// written as bytes.
 ///
 /// # Safety
-/// The CPU supports AVX2; `out.len()` is a multiple of [`LANES`] and `cr_row[start + 1 −
-/// out.len() ..= start]` exists.
+/// The CPU supports AVX2; `out.len()` is a multiple of [`LANES`] and `px.cr_row[start + 1 −
+/// out.len() ..= start]` and `px.ir_row[…]` (the same range) exist.
 #[target_feature(enable = "avx2")]
 #[inline]
-pub(super) unsafe fn costs(cl: u64, cr_row: &[u64], start: usize, out: &mut [u8]) {
+pub(super) unsafe fn costs(px: super::census::Pixel, start: usize, out: &mut [u8]) {
     let m = out.len();
-    assert!(m % LANES == 0 && start < cr_row.len() && start + 1 >= m);
-    let left = _mm256_set1_epi64x(cl as i64);
+    let cr_row = px.cr_row;
+    assert!(m % LANES == 0 && start < cr_row.len() && start < px.ir_row.len() && start + 1 >= m);
+    let left = _mm256_set1_epi64x(px.cl as i64);
+    let (level, cap) = (_mm_set1_epi8(px.il as i8), _mm_set1_epi8(px.cap as i8));
+    let reverse = _mm_setr_epi8(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
     let nibble = _mm256_setr_epi8(0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4, 0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4);
     let low = _mm256_set1_epi8(0x0f);
     let count = |v: __m256i| -> __m256i {
@@ -176,7 +180,12 @@ pub(super) unsafe fn costs(cl: u64, cr_row: &[u64], start: usize, out: &mut [u8]
         // the low 8 bytes of each half, then both halves into the low 128 bits.
         let even = _mm256_shuffle_epi8(bytes, _mm256_setr_epi8(0, 2, 4, 6, 8, 10, 12, 14, -1, -1, -1, -1, -1, -1, -1, -1, 0, 2, 4, 6, 8, 10, 12, 14, -1, -1, -1, -1, -1, -1, -1, -1));
         let joined = _mm256_castsi256_si128(_mm256_permute4x64_epi64::<0b1000>(even));
-        let res = _mm_shuffle_epi8(joined, order);
+        let bits = _mm_shuffle_epi8(joined, order);
+        // Levels top − 15 … top, reversed to disparities b … b + 15: |il − ir| capped.
+        // SAFETY: the same range as the census words, asserted above.
+        let ir = _mm_shuffle_epi8(unsafe { _mm_loadu_si128(px.ir_row.as_ptr().add(top - 15) as *const __m128i) }, reverse);
+        let diff = _mm_or_si128(_mm_subs_epu8(level, ir), _mm_subs_epu8(ir, level));
+        let res = _mm_adds_epu8(bits, _mm_min_epu8(diff, cap));
         // SAFETY: b + LANES ≤ m.
         unsafe { _mm_storeu_si128(out.as_mut_ptr().add(b) as *mut __m128i, res) };
         b += LANES;

@@ -40,7 +40,7 @@ fn params(n: u32) -> ValidMatchParams {
 
 fn run(p: &ValidMatchParams, l: &[u8], r: &[u8], w: usize, h: usize, iv: &DisparityIntervals) -> (DisparityMap, MatchStats) {
     let mut out = DisparityMap::new(w, h);
-    let stats = Sgm::default().compute(p, GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), iv, 0..h, &mut out);
+    let stats = Sgm::default().compute(p, GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), &matched_levels(l, r), iv, 0..h, &mut out);
     (out, stats)
 }
 
@@ -64,6 +64,51 @@ fn recovers_a_slanted_texture() {
     assert_eq!(stats.searched, w * h);
 }
 
+/// The intensity term compares levels only after the right image is matched to the left's:
+/// a right camera at 0.8 × the gain and 15 levels of offset matches as well as an equal one.
+#[test]
+fn a_brighter_right_camera_matches_as_well() {
+    let (w, h) = (120, 60);
+    let (l, r) = pair(w, h, |x, y| 5.0 + ((x / 30 + y / 20) % 3) as f32 * 4.0);
+    let bright: Vec<u8> = r.iter().map(|&v| (0.8 * v as f32 + 15.0).round() as u8).collect();
+    let p = params(32);
+    let iv = DisparityIntervals::full(w, h, 0, 31);
+    let correct = |m: &DisparityMap| {
+        let (same, _) = run(&p, &l, &r, w, h, &iv);
+        m.values().iter().zip(same.values()).filter(|(a, b)| !a.is_nan() && !b.is_nan() && (*a - *b).abs() <= 0.5).count()
+    };
+    let (equal, _) = run(&p, &l, &r, w, h, &iv);
+    let (brighter, _) = run(&p, &l, &bright, w, h, &iv);
+    let (a, b) = (correct(&equal), correct(&brighter));
+    assert!(b * 100 >= a * 98, "{b} of {a} pixels as with equal cameras");
+}
+
+/// SGM's sums step along a slanted surface; the matcher takes the sub-pixel disparity from
+/// the correlation cost around SGM's winner instead (`refine_subpixel`).
+#[test]
+fn slanted_surfaces_get_the_correlation_s_sub_pixel_precision() {
+    let (w, h) = (160, 60);
+    let (l, r) = pair(w, h, |x, _| 6.0 + x as f32 * 0.05);
+    let truth = |x: usize| (6.0 + x as f32 * 0.05) / 1.05;
+    let median_error = |subpixel_from_correlation: bool| {
+        let p = MatchParams { threads: 1, ..(*params(32)).clone() }.validate().unwrap();
+        let mut m = crate::stereo::StereoMatcher::new(p);
+        let iv = m.full_intervals(w, h, None);
+        let mut out = DisparityMap::new(w, h);
+        if subpixel_from_correlation {
+            m.compute(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut out).unwrap();
+        } else {
+            out = run(m.params(), &l, &r, w, h, &iv).0;
+        }
+        let mut e: Vec<f32> = (5..h - 5).flat_map(|y| (30..w - 10).map(move |x| (x, y))).filter_map(|(x, y)| out.get(x, y).map(|d| (d - truth(x)).abs())).collect();
+        assert!(e.len() > (h - 10) * (w - 40) * 9 / 10, "{} matched", e.len());
+        e.sort_by(f32::total_cmp);
+        e[e.len() / 2]
+    };
+    let (sgm, refined) = (median_error(false), median_error(true));
+    assert!(refined < 0.07 && refined < 0.6 * sgm, "median error {refined:.3} px refined, {sgm:.3} px from SGM's sums");
+}
+
 #[test]
 fn the_portable_build_gives_the_same_map() {
     let (w, h) = (90, 40);
@@ -73,7 +118,7 @@ fn the_portable_build_gives_the_same_map() {
         let p = MatchParams { sgm_paths: paths, ..(*params(40)).clone() }.validate().unwrap();
         let (fast, _) = run(&p, &l, &r, w, h, &iv);
         let mut portable = DisparityMap::new(w, h);
-        Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, 0..h, &mut portable);
+        Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &matched_levels(&l, &r), &iv, 0..h, &mut portable);
         let same = fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits());
         assert!(same, "{paths} paths");
         assert!(fast.valid_count() * 2 > w * h, "{paths} paths: {} matched", fast.valid_count());
