@@ -157,15 +157,19 @@ fn bunny_ring_writes_conf_poses_near_the_published_ones() {
     }
 }
 
+/// What [`replay_views`] made: the test's folder (removed when this is dropped), the
+/// recording and results folders in it, and the report's registration section.
+type Replayed = (support::TempDir, std::path::PathBuf, std::path::PathBuf, serde_json::Value);
+
 /// Renders a full turn of `object` (45 views, 8° apart, 320 × 240) and replays it with
-/// registration. Returns (recording dir, results dir, report's registration section).
-fn replay_turn(tag: &str, object: &str) -> (std::path::PathBuf, std::path::PathBuf, serde_json::Value) {
+/// registration.
+fn replay_turn(tag: &str, object: &str) -> Replayed {
     replay_views(tag, object, 45, 8.0)
 }
 
 /// Renders `frames` views of `object`, `deg` apart, at 320 × 240 and replays them with
 /// registration (see [`replay_turn`]).
-fn replay_views(tag: &str, object: &str, frames: usize, deg: f64) -> (std::path::PathBuf, std::path::PathBuf, serde_json::Value) {
+fn replay_views(tag: &str, object: &str, frames: usize, deg: f64) -> Replayed {
     let dir = support::temp_dir(tag);
     let rec_dir = dir.join("rec");
     let opts = spinscan::hw::sim::RenderOptions {
@@ -183,12 +187,12 @@ fn replay_views(tag: &str, object: &str, frames: usize, deg: f64) -> (std::path:
     });
     ropts.registration.as_mut().unwrap().icp.max_distance = 12.0;
     let summary = spinscan::pipeline::replay::run_recording(rec, &out, &ropts, &mut |_, _, _| {}).unwrap();
-    (rec_dir, out, summary.registration.expect("registration ran"))
+    (dir, rec_dir, out, summary.registration.expect("registration ran"))
 }
 
 #[test]
 fn a_surface_of_revolution_is_flagged_and_follows_the_table() {
-    let (_, out, reg) = replay_turn("register-vase", "vase");
+    let (_dir, _, out, reg) = replay_turn("register-vase", "vase");
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     let frames = report["frames"].as_array().unwrap();
     // Flagged in the report: as a note once the table's step seeds the turn about its axis
@@ -209,7 +213,7 @@ fn a_surface_of_revolution_is_flagged_and_follows_the_table() {
 
 #[test]
 fn a_simulated_turn_replays_into_poses_model_and_axis() {
-    let (rec_dir, out, reg) = replay_turn("register-turn", "torus");
+    let (_dir, rec_dir, out, reg) = replay_turn("register-turn", "torus");
 
     // poses.jsonl: one line per view, first_from_view rows, the first the identity.
     let poses: Vec<serde_json::Value> = std::fs::read_to_string(out.join("poses.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
@@ -304,7 +308,7 @@ fn a_smooth_symmetric_object_cannot_fool_the_axis() {
     // own axis, and the symmetry axis its degeneracy suggests was taken for the table's (16°
     // off at 640 × 480), the poses built on it and then confirmed by the turntable check: the
     // last view ended 20° off. The axis fitted to every view at once finds the table's axis.
-    let (rec_dir, _, reg) = replay_views("register-egg-arc", "egg", 40, 2.0);
+    let (_dir, rec_dir, _, reg) = replay_views("register-egg-arc", "egg", 40, 2.0);
     let last_err = reg["gt_last_view"]["pose_err_deg"].as_f64().unwrap();
     assert!(last_err < 1.0, "last view {last_err:.3}° from the truth: {reg}");
     let truth_path = rec_dir.join("gt/turntable.yaml");

@@ -12,10 +12,37 @@ pub fn shared_data(name: &str) -> PathBuf {
     p
 }
 
-/// A fresh temporary folder for one test.
-pub fn temp_dir(tag: &str) -> PathBuf {
+/// A fresh temporary folder for one test, removed when the test ends — kept (and named on
+/// stderr) when it fails, for a look at what it wrote.
+pub fn temp_dir(tag: &str) -> TempDir {
     let p = std::env::temp_dir().join(format!("spinscan-test-{tag}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&p);
     std::fs::create_dir_all(&p).unwrap();
-    p
+    TempDir(p)
+}
+
+/// See [`temp_dir`]; derefs to its path.
+pub struct TempDir(PathBuf);
+
+impl std::ops::Deref for TempDir {
+    type Target = PathBuf;
+    fn deref(&self) -> &PathBuf {
+        &self.0
+    }
+}
+
+impl AsRef<std::path::Path> for TempDir {
+    fn as_ref(&self) -> &std::path::Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            eprintln!("kept {} (the test failed)", self.0.display());
+        } else {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
 }
