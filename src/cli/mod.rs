@@ -100,6 +100,10 @@ pub struct MatchArgs {
     /// alone, at most 100.
     #[arg(long, default_value_t = MatchParams::default().sgm_ad_cap)]
     pub sgm_ad_cap: u8,
+    /// SGM: keep the sub-pixel disparities of SGM's own sums instead of refining them with the
+    /// correlation cost around each winner (faster, less precise on slanted surfaces).
+    #[arg(long)]
+    pub no_sgm_refine: bool,
     /// First disparity searched (may be negative). Default: 0, or −(N−1) on a calibrated rig
     /// whose rectified disparities are negative.
     #[arg(long, allow_hyphen_values = true)]
@@ -155,6 +159,7 @@ impl MatchArgs {
             p2: self.p2,
             sgm_paths: self.sgm_paths,
             sgm_ad_cap: self.sgm_ad_cap,
+            sgm_refine: !self.no_sgm_refine,
             min_disparity: self.min_disparity.unwrap_or(0),
             num_disparities: self.num_disparities.unwrap_or(default_range),
             block: self.block,

@@ -274,6 +274,8 @@ pub struct MatchingSection {
     pub sgm_paths: u8,
     /// SGM's intensity term: cap in grey levels (0 = census alone).
     pub sgm_ad_cap: u8,
+    /// SGM's sub-pixel disparities from the correlation cost around each winner.
+    pub sgm_refine: bool,
     /// "predicted", "paper" or "none".
     pub assist: String,
     /// The paper's weighting factor w (mode "paper").
@@ -290,7 +292,7 @@ impl Default for MatchingSection {
         // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
         // about 330 mm on.
         let m = crate::stereo::MatchParams::default();
-        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true }
+        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true }
     }
 }
 
@@ -432,7 +434,7 @@ impl Config {
         let config = self;
         let mut pipeline = crate::pipeline::PipelineOptions::default();
         let m = &config.matching;
-        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, ..crate::stereo::MatchParams::for_method(m.method) };
+        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, ..crate::stereo::MatchParams::for_method(m.method) };
         // Parallelism comes from the pool: one thread per matcher.
         pipeline.matching.threads = 1;
         let registration = config.scan.register.then(|| {

@@ -20,6 +20,10 @@ pub struct MatchParams {
     /// levels (the right image first matched to the left's mean and spread), capped at this
     /// many levels (0 = census alone; at most 100).
     pub sgm_ad_cap: u8,
+    /// SGM: take each match's sub-pixel disparity from the correlation cost (the `bm` cost
+    /// over `block`) around SGM's winner instead of from SGM's own sums (sharper on slanted
+    /// surfaces; about 25 ns per matched pixel more).
+    pub sgm_refine: bool,
     /// Smallest disparity searched (OpenCV `minDisparity`); may be negative.
     pub min_disparity: i32,
     /// Number of disparities searched: `min_disparity … min_disparity + num_disparities − 1`.
@@ -57,6 +61,7 @@ impl Default for MatchParams {
             p2: 100,
             sgm_paths: 4,
             sgm_ad_cap: 25,
+            sgm_refine: true,
             min_disparity: 0,
             num_disparities: 64,
             block: 9,

@@ -239,7 +239,7 @@ impl StereoMatcher {
     fn compute_whole(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
         let mut totals = if self.params.method == Method::Sgm {
             let mut totals = self.compute_sgm(left, right, intervals, out);
-            if self.params.subpixel {
+            if self.params.subpixel && self.params.sgm_refine {
                 self.refine_subpixel(left, right, out, &mut totals);
             }
             totals

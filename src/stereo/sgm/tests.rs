@@ -90,16 +90,12 @@ fn slanted_surfaces_get_the_correlation_s_sub_pixel_precision() {
     let (w, h) = (160, 60);
     let (l, r) = pair(w, h, |x, _| 6.0 + x as f32 * 0.05);
     let truth = |x: usize| (6.0 + x as f32 * 0.05) / 1.05;
-    let median_error = |subpixel_from_correlation: bool| {
-        let p = MatchParams { threads: 1, ..(*params(32)).clone() }.validate().unwrap();
+    let median_error = |sgm_refine: bool| {
+        let p = MatchParams { threads: 1, sgm_refine, ..(*params(32)).clone() }.validate().unwrap();
         let mut m = crate::stereo::StereoMatcher::new(p);
         let iv = m.full_intervals(w, h, None);
         let mut out = DisparityMap::new(w, h);
-        if subpixel_from_correlation {
-            m.compute(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut out).unwrap();
-        } else {
-            out = run(m.params(), &l, &r, w, h, &iv).0;
-        }
+        m.compute(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut out).unwrap();
         let mut e: Vec<f32> = (5..h - 5).flat_map(|y| (30..w - 10).map(move |x| (x, y))).filter_map(|(x, y)| out.get(x, y).map(|d| (d - truth(x)).abs())).collect();
         assert!(e.len() > (h - 10) * (w - 40) * 9 / 10, "{} matched", e.len());
         e.sort_by(f32::total_cmp);
