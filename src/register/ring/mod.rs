@@ -54,13 +54,15 @@
 //! about 0.1°–0.4° per pair on the simulated rig (the clouds' own errors: Open3D lands in the
 //! same place), and the chain wanders by up to a degree mid-ring, while the refined axis is
 //! good to a few hundredths of a degree. So [`Registrar::finish`] replaces the poses with the
-//! predictions when every pairwise registration agrees with the turntable's predicted step to
-//! within `max_turntable_deviation_deg` — nothing slipped, the angles are right — and the
-//! axis is calibrated, or refined to within `max_axis_sigma_deg`, or refined with poses that
-//! put the views onto each other better than the registered ones; otherwise it keeps the
-//! registered poses and says why. (Steps, not whole poses, are compared: a slip shows as one
-//! step that disagrees, while the chain's slow wander would fail a whole-pose test on good
-//! data.)
+//! predictions when no pairwise registration disagrees with the turntable's predicted step by
+//! more than `max_turntable_deviation_deg` beyond the typical step's disagreement — nothing
+//! slipped — and the typical step agrees to that bound too, or (a nearly symmetric object,
+//! whose steps all under-turn) the turntable's poses put the views onto each other better than
+//! the registered ones; and the axis is calibrated, or refined to within
+//! `max_axis_sigma_deg`, or refined with poses that put the views onto each other better than
+//! the registered ones; otherwise it keeps the registered poses and says why. (Steps, not
+//! whole poses, are compared: a slip shows as one step that disagrees, while the chain's slow
+//! wander would fail a whole-pose test on good data.)
 
 use std::time::Instant;
 
@@ -98,8 +100,9 @@ pub struct RegistrationParams {
     /// Replace the poses with the turntable's predictions when they all agree (see the
     /// module docs).
     pub turntable_poses: bool,
-    /// Largest disagreement, degrees, between a pairwise registration and the turntable's
-    /// predicted step for which the predictions are used.
+    /// Largest disagreement, degrees, of a pairwise registration with the turntable's
+    /// predicted step beyond the typical step's (a slip), and of the typical step itself
+    /// unless the turntable's poses fit the views better, for which the predictions are used.
     pub max_turntable_deviation_deg: f64,
     /// ICP results below this fitness are not trusted: the seed is kept and a warning given.
     pub min_fitness: f64,

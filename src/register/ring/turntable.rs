@@ -117,10 +117,8 @@ impl Registrar {
             Some(format!("the turntable's axis is known only to ±{:.3}° (more than {:.3}°), and its poses put the views onto each other no better than the registered ones ({turned:.3} against {registered:.3} mm)", f.sigma_dir_deg, self.params.max_axis_sigma_deg))
         } else if source == "refined" && self.refine_scores.is_none() {
             Some("the turntable's poses could not be scored against the registered ones".to_string())
-        } else if max > self.params.max_turntable_deviation_deg {
-            Some(format!("the step to view {worst_seq} is {max:.2}° from the turntable's prediction (more than {:.2}°): the object may have moved on the table, or the table angles are off", self.params.max_turntable_deviation_deg))
         } else {
-            None
+            steps_disagree(&devs, self.params.max_turntable_deviation_deg, scores_of(source, self.refine_scores))
         };
         let applied = kept_because.is_none();
         if applied {
@@ -132,7 +130,65 @@ impl Registrar {
         } else if self.params.turntable_poses {
             tracing::warn!("{}; keeping the registered poses", kept_because.as_deref().unwrap_or_default());
         }
-        let scores = if source == "refined" { self.refine_scores } else { None };
+        let scores = scores_of(source, self.refine_scores);
         self.turntable_fit = Some(TurntableFit { steps: devs.len(), rms_deviation_deg: rms, max_deviation_deg: max, worst_seq, applied, axis_source: source, refined, scores, kept_because });
+    }
+}
+
+/// The refinement's scores (turntable, registered) when the axis was refined.
+fn scores_of(source: &str, scores: Option<(f64, f64)>) -> Option<(f64, f64)> {
+    if source == "refined" {
+        scores
+    } else {
+        None
+    }
+}
+
+/// Why the turntable's poses must not replace the registered ones, judged from each step's
+/// disagreement with the turntable's predicted step (`(seq, degrees)`), or None. A slip — the
+/// object moved on the table — shows as a step that disagrees by more than `max_deg` beyond
+/// the typical (median) step. All steps disagreeing alike is not a slip: a nearly symmetric
+/// object's steps all under-turn (ICP cannot see its turn), and so would table angles on the
+/// wrong scale; the turntable's poses are then used only when they put the views onto each
+/// other better than the registered ones (`scores`: turntable, registered — never with a
+/// calibrated axis, which has none).
+fn steps_disagree(devs: &[(u64, f64)], max_deg: f64, scores: Option<(f64, f64)>) -> Option<String> {
+    let mut sorted: Vec<f64> = devs.iter().map(|d| d.1).collect();
+    sorted.sort_by(f64::total_cmp);
+    let typical = sorted.get(sorted.len() / 2).copied()?;
+    let (worst_seq, worst) = devs.iter().copied().fold((0, f64::NEG_INFINITY), |a, b| if b.1 > a.1 { b } else { a });
+    if worst - typical > max_deg {
+        return Some(format!("the step to view {worst_seq} is {worst:.2}° from the turntable's prediction, {:.2}° more than the typical step's {typical:.2}° (more than {max_deg:.2}°): the object may have moved on the table", worst - typical));
+    }
+    if typical > max_deg {
+        return match scores {
+            Some((turned, registered)) if turned < registered => None,
+            Some((turned, registered)) => Some(format!("the steps are typically {typical:.2}° from the turntable's prediction (more than {max_deg:.2}°), and its poses put the views onto each other no better than the registered ones ({turned:.3} against {registered:.3} mm): the table angles may be off")),
+            None => Some(format!("the steps are typically {typical:.2}° from the turntable's prediction (more than {max_deg:.2}°): the table angles or the calibrated axis may be off")),
+        };
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::steps_disagree;
+
+    #[test]
+    fn a_slip_is_one_step_off_and_a_symmetric_object_all_of_them() {
+        let calm: Vec<(u64, f64)> = (1..40).map(|k| (k, 0.1 + 0.01 * (k % 5) as f64)).collect();
+        assert_eq!(steps_disagree(&calm, 1.5, None), None);
+        // One step 3° off: a slip, whatever the scores say.
+        let mut slipped = calm.clone();
+        slipped[20].1 = 3.0;
+        let why = steps_disagree(&slipped, 1.5, Some((0.5, 1.0))).unwrap();
+        assert!(why.contains("view 21") && why.contains("moved on the table"), "{why}");
+        // Every step under-turned by about 1.6° (a nearly symmetric object): the turntable's
+        // poses when they fit the views better, not when they fit them worse, nor without a
+        // score to tell.
+        let under: Vec<(u64, f64)> = (1..40).map(|k| (k, 1.55 + 0.01 * (k % 5) as f64)).collect();
+        assert_eq!(steps_disagree(&under, 1.5, Some((1.40, 1.62))), None);
+        assert!(steps_disagree(&under, 1.5, Some((1.70, 1.62))).unwrap().contains("no better"));
+        assert!(steps_disagree(&under, 1.5, None).unwrap().contains("typically"));
     }
 }
