@@ -240,7 +240,8 @@ impl StereoMatcher {
         let mut totals = if self.params.method == Method::Sgm {
             let mut totals = self.compute_sgm(left, right, intervals, out);
             if self.params.subpixel && self.params.sgm_refine {
-                self.refine_subpixel(left, right, out, &mut totals);
+                let rim = rim_of(intervals, super::sgm::WINDOW_HALF);
+                self.refine_subpixel(left, right, out, rim.as_deref(), &mut totals);
             }
             totals
         } else {
@@ -303,8 +304,11 @@ impl StereoMatcher {
     /// flattened by the smoothness penalties and step along slanted surfaces, so each matched
     /// pixel is correlated again (the `bm` cost, `block` window, no uniqueness, texture,
     /// left–right or speckle test) over its SGM disparity ± 2, and where the correlation's
-    /// sub-pixel disparity lies within 1 of SGM's, it replaces SGM's value.
-    fn refine_subpixel(&mut self, left: GrayView, right: GrayView, out: &mut DisparityMap, totals: &mut MatchStats) {
+    /// sub-pixel disparity lies within 1 of SGM's, it replaces SGM's value. Where they
+    /// disagree on the object's `rim` (pixels whose census window reached into the unsearched
+    /// background), the match is dropped: there SGM carries the background's lower
+    /// disparities in, millimetres too far.
+    fn refine_subpixel(&mut self, left: GrayView, right: GrayView, out: &mut DisparityMap, rim: Option<&[bool]>, totals: &mut MatchStats) {
         let (w, h) = (left.width, left.height);
         let p = &self.params;
         let (dmin, dmax) = (p.min_disparity, p.max_disparity());
@@ -320,9 +324,14 @@ impl StereoMatcher {
         let mut corr = DisparityMap::new(w, h);
         let stats = self.correlate(&bm, left, right, &iv, &mut corr);
         totals.evaluated += stats.evaluated;
-        for (d, &c) in out.values_mut().iter_mut().zip(corr.values()) {
-            if !d.is_nan() && !c.is_nan() && (c - *d).abs() <= 1.0 {
+        for (i, (d, &c)) in out.values_mut().iter_mut().zip(corr.values()).enumerate() {
+            if d.is_nan() {
+                continue;
+            }
+            if !c.is_nan() && (c - *d).abs() <= 1.0 {
                 *d = c;
+            } else if rim.is_some_and(|r| r[i]) {
+                *d = f32::NAN;
             }
         }
     }
@@ -616,3 +625,33 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
     stats
 }
 
+
+/// The pixels within `half` (columns, rows) of a pixel that was not searched, or None when
+/// every pixel was searched.
+fn rim_of(intervals: &DisparityIntervals, half: (usize, usize)) -> Option<Vec<bool>> {
+    let (w, h) = (intervals.width, intervals.height);
+    let unsearched: Vec<bool> = intervals.lo.iter().zip(&intervals.hi).map(|(a, b)| a > b).collect();
+    if !unsearched.contains(&true) {
+        return None;
+    }
+    // Per row: an unsearched pixel within `half.0` columns (a running count over the window);
+    // then the same down the columns over `half.1` rows.
+    let mut near_h = vec![false; w * h];
+    for y in 0..h {
+        let row = &unsearched[y * w..][..w];
+        let mut count = row[..half.0.min(w)].iter().filter(|&&u| u).count();
+        for x in 0..w {
+            if x + half.0 < w && row[x + half.0] {
+                count += 1;
+            }
+            near_h[y * w + x] = count > 0;
+            if x >= half.0 && row[x - half.0] {
+                count -= 1;
+            }
+        }
+    }
+    Some((0..w * h).map(|i| {
+        let (x, y) = (i % w, i / w);
+        (y.saturating_sub(half.1)..=(y + half.1).min(h - 1)).any(|yy| near_h[yy * w + x])
+    }).collect())
+}
