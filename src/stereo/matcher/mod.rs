@@ -650,8 +650,28 @@ fn rim_of(intervals: &DisparityIntervals, half: (usize, usize)) -> Option<Vec<bo
             }
         }
     }
-    Some((0..w * h).map(|i| {
-        let (x, y) = (i % w, i / w);
-        (y.saturating_sub(half.1)..=(y + half.1).min(h - 1)).any(|yy| near_h[yy * w + x])
-    }).collect())
+    let mut rim = vec![false; w * h];
+    let mut counts = vec![0u32; w];
+    let add = |counts: &mut [u32], y: usize, up: bool| {
+        for (c, &n) in counts.iter_mut().zip(&near_h[y * w..][..w]) {
+            if n {
+                if up { *c += 1 } else { *c -= 1 }
+            }
+        }
+    };
+    for y in 0..half.1.min(h) {
+        add(&mut counts, y, true);
+    }
+    for y in 0..h {
+        if y + half.1 < h {
+            add(&mut counts, y + half.1, true);
+        }
+        for (r, &c) in rim[y * w..][..w].iter_mut().zip(&counts) {
+            *r = c > 0;
+        }
+        if y >= half.1 {
+            add(&mut counts, y - half.1, false);
+        }
+    }
+    Some(rim)
 }
