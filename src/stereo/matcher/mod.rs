@@ -625,7 +625,6 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
     stats
 }
 
-
 /// The pixels within `half` (columns, rows) of a pixel that was not searched, or None when
 /// every pixel was searched.
 fn rim_of(intervals: &DisparityIntervals, half: (usize, usize)) -> Option<Vec<bool>> {
