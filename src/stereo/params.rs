@@ -47,7 +47,8 @@ pub struct MatchParams {
     pub speckle_window: u32,
     /// Largest disparity step, in pixels, between neighbours of one speckle region.
     pub speckle_range_px: f32,
-    /// Parabola fit through the best cost and its neighbours.
+    /// Sub-pixel disparities: the equiangular (V) fit through the best cost and its two
+    /// neighbours (for sgm, see `sgm_refine`).
     pub subpixel: bool,
     /// Worker threads (row stripes); 0 = all cores.
     pub threads: usize,
