@@ -240,8 +240,9 @@ impl StereoMatcher {
         let mut totals = if self.params.method == Method::Sgm {
             let mut totals = self.compute_sgm(left, right, intervals, out);
             if self.params.subpixel && self.params.sgm_refine {
-                let rim = rim_of(intervals, super::sgm::WINDOW_HALF);
-                self.refine_subpixel(left, right, out, rim.as_deref(), &mut totals);
+                // A mask (the object segmented from the blue screen) marks a scan's view.
+                let masked = intervals.lo.iter().zip(&intervals.hi).any(|(a, b)| a > b);
+                self.refine_subpixel(left, right, out, masked, &mut totals);
             }
             totals
         } else {
@@ -305,10 +306,12 @@ impl StereoMatcher {
     /// pixel is correlated again (the `bm` cost, `block` window, no uniqueness, texture,
     /// left–right or speckle test) over its SGM disparity ± 2, and where the correlation's
     /// sub-pixel disparity lies within 1 of SGM's, it replaces SGM's value. Where they
-    /// disagree on the object's `rim` (pixels whose census window reached into the unsearched
-    /// background), the match is dropped: there SGM carries the background's lower
-    /// disparities in, millimetres too far.
-    fn refine_subpixel(&mut self, left: GrayView, right: GrayView, out: &mut DisparityMap, rim: Option<&[bool]>, totals: &mut MatchStats) {
+    /// disagree in a `masked` match (a scan's view: the object segmented, the background
+    /// unsearched), the match is dropped — on the object's rim SGM carries the background's
+    /// lower disparities in, millimetres too far, and a view's missing pixel is seen by its
+    /// neighbours while a wrong one spoils the fused surface. On a whole image (a single pair)
+    /// SGM's value stays: there density matters and there is no rim.
+    fn refine_subpixel(&mut self, left: GrayView, right: GrayView, out: &mut DisparityMap, masked: bool, totals: &mut MatchStats) {
         let (w, h) = (left.width, left.height);
         let p = &self.params;
         let (dmin, dmax) = (p.min_disparity, p.max_disparity());
@@ -324,13 +327,13 @@ impl StereoMatcher {
         let mut corr = DisparityMap::new(w, h);
         let stats = self.correlate(&bm, left, right, &iv, &mut corr);
         totals.evaluated += stats.evaluated;
-        for (i, (d, &c)) in out.values_mut().iter_mut().zip(corr.values()).enumerate() {
+        for (d, &c) in out.values_mut().iter_mut().zip(corr.values()) {
             if d.is_nan() {
                 continue;
             }
             if !c.is_nan() && (c - *d).abs() <= 1.0 {
                 *d = c;
-            } else if rim.is_some_and(|r| r[i]) {
+            } else if masked {
                 *d = f32::NAN;
             }
         }
@@ -623,54 +626,4 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         stats.lr_check_ns += t0.elapsed().as_nanos() as u64;
     }
     stats
-}
-
-/// The pixels within `half` (columns, rows) of a pixel that was not searched, or None when
-/// every pixel was searched.
-fn rim_of(intervals: &DisparityIntervals, half: (usize, usize)) -> Option<Vec<bool>> {
-    let (w, h) = (intervals.width, intervals.height);
-    let unsearched: Vec<bool> = intervals.lo.iter().zip(&intervals.hi).map(|(a, b)| a > b).collect();
-    if !unsearched.contains(&true) {
-        return None;
-    }
-    // Per row: an unsearched pixel within `half.0` columns (a running count over the window);
-    // then the same down the columns over `half.1` rows.
-    let mut near_h = vec![false; w * h];
-    for y in 0..h {
-        let row = &unsearched[y * w..][..w];
-        let mut count = row[..half.0.min(w)].iter().filter(|&&u| u).count();
-        for x in 0..w {
-            if x + half.0 < w && row[x + half.0] {
-                count += 1;
-            }
-            near_h[y * w + x] = count > 0;
-            if x >= half.0 && row[x - half.0] {
-                count -= 1;
-            }
-        }
-    }
-    let mut rim = vec![false; w * h];
-    let mut counts = vec![0u32; w];
-    let add = |counts: &mut [u32], y: usize, up: bool| {
-        for (c, &n) in counts.iter_mut().zip(&near_h[y * w..][..w]) {
-            if n {
-                if up { *c += 1 } else { *c -= 1 }
-            }
-        }
-    };
-    for y in 0..half.1.min(h) {
-        add(&mut counts, y, true);
-    }
-    for y in 0..h {
-        if y + half.1 < h {
-            add(&mut counts, y + half.1, true);
-        }
-        for (r, &c) in rim[y * w..][..w].iter_mut().zip(&counts) {
-            *r = c > 0;
-        }
-        if y >= half.1 {
-            add(&mut counts, y - half.1, false);
-        }
-    }
-    Some(rim)
 }

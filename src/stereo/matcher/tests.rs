@@ -321,28 +321,10 @@ fn size_mismatch_is_an_error() {
     assert_eq!(err, MatchError::SizeMismatch(20, 10, 20, 11));
 }
 
-/// The rim: every pixel within the window's half-width of an unsearched one, and nothing when
-/// every pixel is searched.
-#[test]
-fn the_rim_is_the_band_within_a_window_of_the_unsearched_pixels() {
-    let (w, h) = (20, 12);
-    let mut iv = DisparityIntervals::full(w, h, 0, 15);
-    assert!(rim_of(&iv, (3, 2)).is_none());
-    // One unsearched pixel at (10, 6).
-    (iv.lo[6 * w + 10], iv.hi[6 * w + 10]) = (1, 0);
-    let rim = rim_of(&iv, (3, 2)).unwrap();
-    for y in 0..h {
-        for x in 0..w {
-            let near = x.abs_diff(10) <= 3 && y.abs_diff(6) <= 2;
-            assert_eq!(rim[y * w + x], near, "({x}, {y})");
-        }
-    }
-}
-
 /// SGM's values are replaced by the correlation's where the two agree; where they disagree
-/// a value is kept inside the object and dropped on its rim.
+/// a value is dropped in a masked (scan) match and kept on a whole image.
 #[test]
-fn refinement_replaces_agreeing_values_and_drops_disagreeing_ones_on_the_rim() {
+fn refinement_replaces_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
     let (w, h) = (96, 40);
     // A long wave: the correlation cost falls steadily towards the true shift (7) from 20 px
     // either side, so a search of 3.0 ± 2 ends at its edge, 5.
@@ -351,18 +333,21 @@ fn refinement_replaces_agreeing_values_and_drops_disagreeing_ones_on_the_rim() {
     let r: Vec<u8> = (0..w * h).map(|i| wave((i % w) as f64 + 7.0)).collect();
     let p = MatchParams { method: crate::stereo::Method::Sgm, num_disparities: 16, threads: 1, ..Default::default() }.validate().unwrap();
     let mut m = StereoMatcher::new(p);
-    let mut out = DisparityMap::new(w, h);
-    // Near the truth on the left half, 4 px off (beyond the correlation's ± 2) on the right.
-    for (i, d) in out.values_mut().iter_mut().enumerate() {
-        *d = if i % w < w / 2 { 7.3 } else { 3.0 };
+    for masked in [true, false] {
+        let mut out = DisparityMap::new(w, h);
+        // Near the truth on the left half, 4 px off (beyond the correlation's ± 2) on the right.
+        for (i, d) in out.values_mut().iter_mut().enumerate() {
+            *d = if i % w < w / 2 { 7.3 } else { 3.0 };
+        }
+        let mut totals = MatchStats::default();
+        m.refine_subpixel(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &mut out, masked, &mut totals);
+        let at = |x: usize, y: usize| out.values()[y * w + x];
+        // Agreeing: the correlation's value (the shift is whole, 7).
+        assert!((at(30, 10) - 7.0).abs() < 0.1, "{}", at(30, 10));
+        // Disagreeing: dropped in a scan, kept on a whole image.
+        assert_eq!(at(70, 10).is_nan(), masked, "{}", at(70, 10));
+        if !masked {
+            assert_eq!(at(70, 10), 3.0);
+        }
     }
-    let rim: Vec<bool> = (0..w * h).map(|i| i / w < h / 2).collect();
-    let mut totals = MatchStats::default();
-    m.refine_subpixel(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &mut out, Some(&rim), &mut totals);
-    let at = |x: usize, y: usize| out.values()[y * w + x];
-    // Agreeing: the correlation's value (the shift is whole, 7).
-    assert!((at(30, 10) - 7.0).abs() < 0.1 && (at(30, 30) - 7.0).abs() < 0.1, "{} {}", at(30, 10), at(30, 30));
-    // Disagreeing: dropped on the rim (top half), kept inside (bottom half).
-    assert!(at(70, 10).is_nan(), "{}", at(70, 10));
-    assert_eq!(at(70, 30), 3.0);
 }

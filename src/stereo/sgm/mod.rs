@@ -37,10 +37,6 @@ use super::params::ValidMatchParams;
 
 mod census;
 pub(super) use census::matched_levels;
-
-/// Half the census window, (columns, rows): a matched pixel within this of an unsearched one
-/// (the blue screen around the object) compared a window that reached into the background.
-pub(super) const WINDOW_HALF: (usize, usize) = (census::CENSUS_W / 2, census::CENSUS_H / 2);
 mod select;
 #[cfg(target_arch = "x86_64")]
 mod simd;
