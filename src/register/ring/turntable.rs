@@ -108,7 +108,7 @@ impl Registrar {
         if devs.len() < 3 {
             return;
         }
-        let (worst_seq, max) = devs.iter().copied().fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+        let (worst_seq, max) = worst_step(&devs);
         let rms = (devs.iter().map(|d| d.1 * d.1).sum::<f64>() / devs.len() as f64).sqrt();
         let refined = if source == "refined" { self.refined.clone() } else { None };
         let kept_because = if !self.params.turntable_poses {
@@ -118,7 +118,7 @@ impl Registrar {
         } else if source == "refined" && self.refine_scores.is_none() {
             Some("the turntable's poses could not be scored against the registered ones".to_string())
         } else {
-            steps_disagree(&devs, self.params.max_turntable_deviation_deg, scores_of(source, self.refine_scores))
+            steps_disagree(&devs, (worst_seq, max), self.params.max_turntable_deviation_deg, scores_of(source, self.refine_scores))
         };
         let applied = kept_because.is_none();
         if applied {
@@ -135,6 +135,11 @@ impl Registrar {
     }
 }
 
+/// The step (`(seq, degrees)`) that disagrees most with the turntable's prediction.
+fn worst_step(devs: &[(u64, f64)]) -> (u64, f64) {
+    devs.iter().copied().fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a })
+}
+
 /// The refinement's scores (turntable, registered) when the axis was refined.
 fn scores_of(source: &str, scores: Option<(f64, f64)>) -> Option<(f64, f64)> {
     if source == "refined" {
@@ -145,18 +150,18 @@ fn scores_of(source: &str, scores: Option<(f64, f64)>) -> Option<(f64, f64)> {
 }
 
 /// Why the turntable's poses must not replace the registered ones, judged from each step's
-/// disagreement with the turntable's predicted step (`(seq, degrees)`), or None. A slip — the
+/// disagreement with the turntable's predicted step (`(seq, degrees)`; `worst`, the largest),
+/// or None. A slip — the
 /// object moved on the table — shows as a step that disagrees by more than `max_deg` beyond
 /// the typical (median) step. All steps disagreeing alike is not a slip: a nearly symmetric
 /// object's steps all under-turn (ICP cannot see its turn), and so would table angles on the
 /// wrong scale; the turntable's poses are then used only when they put the views onto each
 /// other better than the registered ones (`scores`: turntable, registered — never with a
 /// calibrated axis, which has none).
-fn steps_disagree(devs: &[(u64, f64)], max_deg: f64, scores: Option<(f64, f64)>) -> Option<String> {
+fn steps_disagree(devs: &[(u64, f64)], (worst_seq, worst): (u64, f64), max_deg: f64, scores: Option<(f64, f64)>) -> Option<String> {
     let mut sorted: Vec<f64> = devs.iter().map(|d| d.1).collect();
     sorted.sort_by(f64::total_cmp);
     let typical = sorted.get(sorted.len() / 2).copied()?;
-    let (worst_seq, worst) = devs.iter().copied().fold((0, f64::NEG_INFINITY), |a, b| if b.1 > a.1 { b } else { a });
     if worst - typical > max_deg {
         return Some(format!("the step to view {worst_seq} is {worst:.2}° from the turntable's prediction, {:.2}° more than the typical step's {typical:.2}° (more than {max_deg:.2}°): the object may have moved on the table", worst - typical));
     }
@@ -172,7 +177,10 @@ fn steps_disagree(devs: &[(u64, f64)], max_deg: f64, scores: Option<(f64, f64)>)
 
 #[cfg(test)]
 mod tests {
-    use super::steps_disagree;
+    /// [`super::steps_disagree`] with the worst step found as `fit_turntable` finds it.
+    fn steps_disagree(devs: &[(u64, f64)], max_deg: f64, scores: Option<(f64, f64)>) -> Option<String> {
+        super::steps_disagree(devs, super::worst_step(devs), max_deg, scores)
+    }
 
     #[test]
     fn a_slip_is_one_step_off_and_a_symmetric_object_all_of_them() {
