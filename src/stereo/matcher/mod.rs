@@ -91,6 +91,9 @@ pub struct StereoMatcher {
     crop_right: Vec<u8>,
     crop_intervals: DisparityIntervals,
     crop_out: DisparityMap,
+    /// SGM's refinement pass: its intervals and map (see `refine_subpixel`), reused.
+    refine_intervals: DisparityIntervals,
+    refine_out: DisparityMap,
 }
 
 /// The rectangle of a call that matters: the searched pixels' rows and columns, with the
@@ -157,6 +160,8 @@ impl StereoMatcher {
             crop_right: Vec::new(),
             crop_intervals: DisparityIntervals::empty(0, 0),
             crop_out: DisparityMap::new(0, 0),
+            refine_intervals: DisparityIntervals::empty(0, 0),
+            refine_out: DisparityMap::new(0, 0),
         }
     }
 
@@ -316,15 +321,25 @@ impl StereoMatcher {
         let p = &self.params;
         let (dmin, dmax) = (p.min_disparity, p.max_disparity());
         let bm = crate::stereo::MatchParams { method: Method::Bm, uniqueness_ratio: 0, texture_threshold: 0, lr_max_diff: None, speckle_window: 0, ..(**p).clone() }.validate().expect("the sgm parameters with the correlation's tests off are valid");
-        let mut iv = DisparityIntervals::empty(w, h);
-        for (i, &d) in out.values().iter().enumerate() {
-            if !d.is_nan() {
+        let mut iv = std::mem::replace(&mut self.refine_intervals, DisparityIntervals::empty(0, 0));
+        (iv.width, iv.height) = (w, h);
+        iv.lo.clear();
+        iv.hi.clear();
+        for &d in out.values() {
+            // Unmatched pixels search nothing.
+            let (lo, hi) = if d.is_nan() {
+                (1, 0)
+            } else {
                 let r = d.round() as i32;
-                iv.lo[i] = (r - 2).clamp(dmin, dmax) as i16;
-                iv.hi[i] = (r + 2).clamp(dmin, dmax) as i16;
-            }
+                ((r - 2).clamp(dmin, dmax) as i16, (r + 2).clamp(dmin, dmax) as i16)
+            };
+            iv.lo.push(lo);
+            iv.hi.push(hi);
         }
-        let mut corr = DisparityMap::new(w, h);
+        let mut corr = std::mem::replace(&mut self.refine_out, DisparityMap::new(0, 0));
+        if (corr.width, corr.height) != (w, h) {
+            corr = DisparityMap::new(w, h);
+        }
         let stats = self.correlate(&bm, left, right, &iv, &mut corr);
         totals.evaluated += stats.evaluated;
         for (d, &c) in out.values_mut().iter_mut().zip(corr.values()) {
@@ -337,6 +352,7 @@ impl StereoMatcher {
                 *d = f32::NAN;
             }
         }
+        (self.refine_intervals, self.refine_out) = (iv, corr);
     }
 
     /// Semi-global matching, in stripes of rows on `threads` threads. Each stripe runs the
@@ -346,17 +362,11 @@ impl StereoMatcher {
     fn compute_sgm(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
         let (w, h) = (left.width, left.height);
         let stripes = self.params.thread_count().min(h / SGM_MIN_ROWS).max(1);
-        // The intensity term's levels, matched over the whole images (not per stripe).
-        let matched;
-        let levels: &[u8] = if self.params.sgm_ad_cap > 0 {
-            matched = super::sgm::matched_levels(left.data, right.data);
-            &matched
-        } else {
-            right.data
-        };
+        // The intensity term's level map, over the whole images (not per stripe).
+        let levels = if self.params.sgm_ad_cap > 0 { super::sgm::level_map(left.data, right.data) } else { std::array::from_fn(|v| v as u8) };
         if stripes == 1 {
             self.sgm.resize_with(1, Default::default);
-            return self.sgm[0].compute(&self.params, left, right, levels, intervals, 0..h, out);
+            return self.sgm[0].compute(&self.params, left, right, &levels, intervals, 0..h, out);
         }
         self.sgm.resize_with(stripes, Default::default);
         let rows_per = h.div_ceil(stripes);
@@ -373,11 +383,11 @@ impl StereoMatcher {
                         .name(format!("sgm-{i}"))
                         .spawn_scoped(scope, move || {
                             let n = ext.len();
-                            let (l, r, lv) = (&left.data[ext.start * w..ext.end * w], &right.data[ext.start * w..ext.end * w], &levels[ext.start * w..ext.end * w]);
+                            let (l, r) = (&left.data[ext.start * w..ext.end * w], &right.data[ext.start * w..ext.end * w]);
                             let iv = DisparityIntervals { width: w, height: n, lo: intervals.lo[ext.start * w..ext.end * w].to_vec(), hi: intervals.hi[ext.start * w..ext.end * w].to_vec() };
                             let mut part = DisparityMap::new(w, n);
                             let keep = rows.start - ext.start..rows.end - ext.start;
-                            let stats = sgm.compute(params, GrayView { width: w, height: n, data: l }, GrayView { width: w, height: n, data: r }, lv, &iv, keep, &mut part);
+                            let stats = sgm.compute(params, GrayView { width: w, height: n, data: l }, GrayView { width: w, height: n, data: r }, &levels, &iv, keep, &mut part);
                             (rows, ext, part, stats)
                         })
                         .expect("spawning a matcher thread")

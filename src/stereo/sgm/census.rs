@@ -10,7 +10,7 @@
 //! The intensity term, `min(|I_left − I_right|, cap)`, is what census lacks: the pixel's own
 //! level, sharp at depth edges where the census window straddles two surfaces (AD-census,
 //! Mei et al. 2011). It is not invariant to the cameras' gain and offset, so the right image
-//! is first mapped linearly onto the left's mean and standard deviation ([`matched_levels`]).
+//! is first mapped linearly onto the left's mean and standard deviation ([`level_map`]).
 
 /// Census window width and height (odd). 7 × 5 − 1 = 34 bits, in a `u64` per pixel: chosen
 /// by measurement on the Middlebury pairs (docs/matcher.md) — 9 × 7 was best alone, 7 × 5
@@ -76,10 +76,11 @@ pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), out
     }
 }
 
-/// The right image's grey levels mapped linearly onto the left's mean and standard
-/// deviation (both over the whole image): a gain and offset between the cameras removed
-/// before the intensity term compares levels.
-pub(in crate::stereo) fn matched_levels(left: &[u8], right: &[u8]) -> Vec<u8> {
+/// The map of the right image's grey levels onto the left's mean and standard deviation
+/// (both over the whole images): a gain and offset between the cameras removed before the
+/// intensity term compares levels. One table for a call, so that every stripe of rows
+/// compares the same levels.
+pub(in crate::stereo) fn level_map(left: &[u8], right: &[u8]) -> [u8; 256] {
     // From each image's histogram: one pass of integer counting per image.
     let stats = |img: &[u8]| {
         let mut hist = [0u32; 256];
@@ -92,19 +93,19 @@ pub(in crate::stereo) fn matched_levels(left: &[u8], right: &[u8]) -> Vec<u8> {
         (mean, var.sqrt().max(1.0))
     };
     let ((ml, sl), (mr, sr)) = (stats(left), stats(right));
-    let table: Vec<u8> = (0..256).map(|v| ((v as f64 - mr) * sl / sr + ml).round().clamp(0.0, 255.0) as u8).collect();
-    right.iter().map(|&v| table[v as usize]).collect()
+    std::array::from_fn(|v| ((v as f64 - mr) * sl / sr + ml).round().clamp(0.0, 255.0) as u8)
 }
 
-/// `img` (`w × h`) with each row padded by `pad = (left, right)` copies of its first and last
-/// pixel, into `out` (the layout of the padded right census).
-pub(super) fn pad_rows(img: &[u8], w: usize, h: usize, pad: (usize, usize), out: &mut Vec<u8>) {
+/// `img` (`w × h`) through `map`, with each row padded by `pad = (left, right)` copies of its
+/// first and last pixel, into `out` (the layout of the padded right census).
+pub(super) fn pad_rows(img: &[u8], w: usize, h: usize, pad: (usize, usize), map: &[u8; 256], out: &mut Vec<u8>) {
     out.clear();
     out.reserve((pad.0 + w + pad.1) * h);
     for row in img.chunks_exact(w).take(h) {
-        out.extend(std::iter::repeat_n(row[0], pad.0));
-        out.extend_from_slice(row);
-        out.extend(std::iter::repeat_n(row[w - 1], pad.1));
+        let (first, last) = (map[row[0] as usize], map[row[w - 1] as usize]);
+        out.extend(std::iter::repeat_n(first, pad.0));
+        out.extend(row.iter().map(|&v| map[v as usize]));
+        out.extend(std::iter::repeat_n(last, pad.1));
     }
 }
 
@@ -180,12 +181,15 @@ mod tests {
     fn the_right_levels_are_matched_to_the_left_gain_and_offset() {
         let left: Vec<u8> = (0..400).map(|i| (40 + (i * 37) % 150) as u8).collect();
         let right: Vec<u8> = left.iter().map(|&v| (1.2 * v as f64 + 9.0).round() as u8).collect();
-        let matched = matched_levels(&left, &right);
-        assert!(left.iter().zip(&matched).all(|(a, b)| a.abs_diff(*b) <= 1), "{:?}", &matched[..10]);
+        let map = level_map(&left, &right);
+        assert!(left.iter().zip(&right).all(|(a, b)| a.abs_diff(map[*b as usize]) <= 1), "{:?}", &map[..10]);
         let mut padded = Vec::new();
-        pad_rows(&left[..20], 10, 2, (2, 1), &mut padded);
+        let identity: [u8; 256] = std::array::from_fn(|v| v as u8);
+        pad_rows(&left[..20], 10, 2, (2, 1), &identity, &mut padded);
         assert_eq!(padded.len(), 26);
         assert_eq!((&padded[..3], padded[12], &padded[13..16]), (&[left[0], left[0], left[0]][..], left[9], &[left[10], left[10], left[10]][..]));
+        pad_rows(&right[..20], 10, 2, (2, 1), &map, &mut padded);
+        assert!(padded[2..12].iter().zip(&left[..10]).all(|(a, b)| a.abs_diff(*b) <= 1));
     }
 
     #[test]

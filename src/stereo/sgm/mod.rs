@@ -36,7 +36,7 @@ use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
 use super::params::ValidMatchParams;
 
 mod census;
-pub(super) use census::matched_levels;
+pub(super) use census::level_map;
 mod select;
 #[cfg(target_arch = "x86_64")]
 mod simd;
@@ -203,28 +203,26 @@ fn step_portable<const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut 
 impl Sgm {
     /// Matches checked inputs (same size, at least 2 × 1) over `intervals`, and keeps (writes
     /// and counts) the rows `keep` — the others only feed the paths; the speckle filter is the
-    /// caller's. `right_levels` is `right` matched to the left image's levels
-    /// ([`matched_levels`] over the whole images, so that every stripe compares the same
-    /// levels), read by the intensity term.
-    pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, right_levels: &[u8], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
-        assert_eq!(right_levels.len(), right.data.len(), "one matched level per right pixel");
+    /// caller's. `levels` maps `right`'s grey levels onto the left image's for the intensity
+    /// term ([`level_map`], over the whole images).
+    pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("popcnt") {
             // SAFETY: the CPU supports AVX2 and POPCNT, checked just above.
-            return unsafe { self.compute_avx2(p, left, right, right_levels, intervals, keep, out) };
+            return unsafe { self.compute_avx2(p, left, right, levels, intervals, keep, out) };
         }
-        self.compute_impl::<false>(p, left, right, right_levels, intervals, keep, out)
+        self.compute_impl::<false>(p, left, right, levels, intervals, keep, out)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,popcnt")]
-    unsafe fn compute_avx2(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, right_levels: &[u8], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
-        self.compute_impl::<true>(p, left, right, right_levels, intervals, keep, out)
+    unsafe fn compute_avx2(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
+        self.compute_impl::<true>(p, left, right, levels, intervals, keep, out)
     }
 
     /// The whole matcher; inlined into each SIMD-level wrapper so the loops vectorise for it.
     #[inline(always)]
-    fn compute_impl<const AVX2: bool>(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, right_levels: &[u8], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
+    fn compute_impl<const AVX2: bool>(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
         let (w, h) = (left.width, left.height);
         let n = (p.num_disparities as usize).div_ceil(LANES) * LANES;
         let dmin = p.min_disparity;
@@ -235,7 +233,7 @@ impl Sgm {
         let t0 = std::time::Instant::now();
         census::transform(left.data, w, h, (0, 0), &mut self.census_l);
         census::transform(right.data, w, h, (pad_l, pad_r), &mut self.census_r);
-        census::pad_rows(right_levels, w, h, (pad_l, pad_r), &mut self.levels_r);
+        census::pad_rows(right.data, w, h, (pad_l, pad_r), levels, &mut self.levels_r);
         let mut stats = MatchStats { prefilter_ns: t0.elapsed().as_nanos() as u64, ..MatchStats::default() };
         self.bands(p, g, intervals, keep.clone(), &mut stats);
         let total = self.off[w * h];

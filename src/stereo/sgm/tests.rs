@@ -40,7 +40,7 @@ fn params(n: u32) -> ValidMatchParams {
 
 fn run(p: &ValidMatchParams, l: &[u8], r: &[u8], w: usize, h: usize, iv: &DisparityIntervals) -> (DisparityMap, MatchStats) {
     let mut out = DisparityMap::new(w, h);
-    let stats = Sgm::default().compute(p, GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), &matched_levels(l, r), iv, 0..h, &mut out);
+    let stats = Sgm::default().compute(p, GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), &level_map(l, r), iv, 0..h, &mut out);
     (out, stats)
 }
 
@@ -114,7 +114,7 @@ fn the_portable_build_gives_the_same_map() {
         let p = MatchParams { sgm_paths: paths, ..(*params(40)).clone() }.validate().unwrap();
         let (fast, _) = run(&p, &l, &r, w, h, &iv);
         let mut portable = DisparityMap::new(w, h);
-        Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &matched_levels(&l, &r), &iv, 0..h, &mut portable);
+        Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), &iv, 0..h, &mut portable);
         let same = fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits());
         assert!(same, "{paths} paths");
         assert!(fast.valid_count() * 2 > w * h, "{paths} paths: {} matched", fast.valid_count());
