@@ -8,8 +8,10 @@
 //! Convention: `X_right = R · X_left + T`, T in millimetres (the units of the calibration
 //! target, which labs measure in mm).
 
+pub mod board;
 pub mod distortion;
 pub mod filestorage;
+pub mod subpix;
 
 use std::path::{Path, PathBuf};
 
