@@ -4,6 +4,8 @@
 mod support;
 
 use spinscan::calib::board::{detect, BoardSize, DetectParams};
+use spinscan::calib::solve::{board_points, calibrate_stereo, LensModel, TargetView};
+use spinscan::stereo::Rectification;
 use spinscan::stereo::GrayView;
 
 fn opencv_corners() -> serde_json::Value {
@@ -38,4 +40,47 @@ fn boards_are_found_in_every_image_within_a_tenth_of_a_pixel_of_opencv_s_corners
     let mean = all.iter().sum::<f64>() / all.len() as f64;
     eprintln!("mean over 50 images {mean:.4} px");
     assert!(mean < 0.1, "{mean}");
+}
+
+fn detected_views() -> (Vec<TargetView>, Vec<TargetView>) {
+    let dir = support::shared_data("stereo-calib-chessboard-ximea");
+    let board = BoardSize { cols: 9, rows: 6 };
+    let object = board_points(9, 6, 24.0);
+    let view = |name: String| {
+        let img = spinscan::io::load_image(&dir.join(&name)).unwrap();
+        let found = detect(&GrayView::new(img.width, img.height, &img.gray).unwrap(), board, &DetectParams::default()).unwrap();
+        TargetView { object: object.clone(), image: found.points }
+    };
+    ((1..=25).map(|i| view(format!("left{i:02}.jpg"))).collect(), (1..=25).map(|i| view(format!("right{i:02}.jpg"))).collect())
+}
+
+/// OpenCV 5.0 on the same 25 pairs (its corners, `calibrateCamera` then `stereoCalibrate`
+/// with the intrinsics refined, 5 coefficients; `bench/peer_calib.py`).
+const OPENCV_RMS: (f64, f64, f64) = (0.1488, 0.1604, 0.1739);
+const OPENCV_T_NORM: f64 = 92.028;
+const OPENCV_ROWS_PX: f64 = 0.1031;
+
+#[test]
+fn the_rig_is_calibrated_as_well_as_opencv_does_it() {
+    let (left, right) = detected_views();
+    let sol = calibrate_stereo(&left, &right, (640, 512), LensModel::Five).unwrap();
+    let t = sol.calib.t_mm.norm();
+    eprintln!("rms left {:.4} right {:.4} stereo {:.4} (OpenCV {:?}); |T| {t:.3} (OpenCV {OPENCV_T_NORM})", sol.rms_left, sol.rms_right, sol.rms_stereo, OPENCV_RMS);
+    assert!(sol.rms_stereo <= OPENCV_RMS.2 + 0.02, "stereo rms {}", sol.rms_stereo);
+    assert!(sol.rms_left <= OPENCV_RMS.0 + 0.02 && sol.rms_right <= OPENCV_RMS.1 + 0.02);
+    assert!((t / OPENCV_T_NORM - 1.0).abs() < 0.002, "|T| {t}");
+
+    // OpenCV's corners rectified with this calibration land on the same rows.
+    let reference = opencv_corners();
+    let rect = Rectification::compute(&sol.calib, (640, 512), -1.0).unwrap();
+    let pts = |name: &str| -> Vec<(f64, f64)> { reference["corners"][name].as_array().unwrap().iter().map(|p| (p[0].as_f64().unwrap(), p[1].as_f64().unwrap())).collect() };
+    let mut per_pair = Vec::new();
+    for i in 1..=25 {
+        let (l, r) = (pts(&format!("left{i:02}.jpg")), pts(&format!("right{i:02}.jpg")));
+        let sum: f64 = l.iter().zip(&r).map(|(a, b)| (rect.rectify_left_point(&sol.calib, *a).1 - rect.rectify_right_point(&sol.calib, *b).1).abs()).sum();
+        per_pair.push(sum / l.len() as f64);
+    }
+    let rows = per_pair.iter().sum::<f64>() / 25.0;
+    eprintln!("row mismatch after rectification {rows:.4} px (OpenCV's calibration {OPENCV_ROWS_PX})");
+    assert!(rows <= OPENCV_ROWS_PX + 0.02, "{rows}");
 }

@@ -11,6 +11,8 @@
 pub mod board;
 pub mod distortion;
 pub mod filestorage;
+pub mod lm;
+pub mod solve;
 pub mod subpix;
 
 use std::path::{Path, PathBuf};
