@@ -9,8 +9,9 @@ use clap::{Parser, Subcommand};
 mod cli;
 
 use cli::bench::BenchCommand;
+use cli::calibrate::CalibrateCommand;
 use cli::sim::SimCommand;
-use cli::{bench, daemon, mesh, register, replay, sim, stereo, turntable};
+use cli::{bench, calibrate, daemon, mesh, register, replay, sim, stereo, turntable};
 
 #[derive(Parser)]
 #[command(name = "spinscan", version, about = "Registration-assisted stereo scanning for turntable labs")]
@@ -42,6 +43,10 @@ enum Command {
     /// Fuses a results folder's registered views into a closed, coloured triangle mesh
     /// (.ply, .obj or .stl).
     Mesh(mesh::MeshArgs),
+    /// Calibration: the stereo rig from chessboard pairs (calib.yaml), the turntable's axis
+    /// from a board on the table (turntable.yaml), capture through the daemon.
+    #[command(subcommand)]
+    Calibrate(CalibrateCommand),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -78,6 +83,7 @@ fn main() -> ExitCode {
         Command::Replay(a) => replay::cmd_replay(a),
         Command::Register(a) => register::cmd_register(a),
         Command::Mesh(a) => mesh::cmd_mesh(a),
+        Command::Calibrate(CalibrateCommand::Stereo(a)) => calibrate::cmd_stereo(a),
         Command::Bench(BenchCommand::Table1(a)) => bench::cmd_table1(a),
         Command::Bench(BenchCommand::Live(a)) => bench::cmd_bench_live(a),
         Command::Status(a) => daemon::status(a),

@@ -354,7 +354,6 @@ fn find_grid(c: &[Candidate], board: BoardSize) -> Result<Grid, DetectFailure> {
     let mut used = vec![false; c.len()];
     let mut largest = (0usize, 0usize);
     let mut too_large: Option<(usize, usize)> = None;
-    let want = [(board.cols, board.rows), (board.rows, board.cols)];
     for seed in 0..c.len().min(60) {
         if used[seed] {
             continue;

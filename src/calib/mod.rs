@@ -11,6 +11,7 @@
 pub mod board;
 pub mod distortion;
 pub mod filestorage;
+pub mod job;
 pub mod lm;
 pub mod solve;
 pub mod subpix;

@@ -3,6 +3,7 @@
 //! assistant's.
 
 pub mod bench;
+pub mod calibrate;
 pub mod daemon;
 pub mod mesh;
 pub mod progress;
