@@ -84,3 +84,60 @@ fn the_rig_is_calibrated_as_well_as_opencv_does_it() {
     eprintln!("row mismatch after rectification {rows:.4} px (OpenCV's calibration {OPENCV_ROWS_PX})");
     assert!(rows <= OPENCV_ROWS_PX + 0.02, "{rows}");
 }
+
+fn spinscan(args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_spinscan")).args(args).output().expect("spinscan runs")
+}
+
+/// Eight good pairs, a non-image, a pair without a board and a left image without its right
+/// one: each bad input named in one line, the rest calibrated; then a wrong `--board` and too
+/// few pairs, exit 3 with the count.
+#[test]
+fn calibrate_stereo_names_every_bad_input_and_uses_the_rest() {
+    let src = support::shared_data("stereo-calib-chessboard-ximea");
+    let dir = support::temp_dir("calibrate-stereo");
+    for i in [1, 3, 5, 9, 12, 17, 21, 25] {
+        for side in ["left", "right"] {
+            std::fs::copy(src.join(format!("{side}{i:02}.jpg")), dir.join(format!("{side}{i:02}.jpg"))).unwrap();
+        }
+    }
+    std::fs::write(dir.join("left30.jpg"), b"not a picture").unwrap();
+    std::fs::copy(src.join("right02.jpg"), dir.join("right30.jpg")).unwrap();
+    // A pair with no board: a flat grey picture.
+    let grey = vec![128u8; 640 * 512 * 3];
+    spinscan::io::write_rgb_png(&dir.join("left31.jpg"), 640, 512, &grey).unwrap();
+    spinscan::io::write_rgb_png(&dir.join("right31.jpg"), 640, 512, &grey).unwrap();
+    std::fs::copy(src.join("left04.jpg"), dir.join("left32.jpg")).unwrap();
+
+    let (l, r) = (format!("{}/left*.jpg", dir.display()), format!("{}/right*.jpg", dir.display()));
+    let yaml = dir.join("calib.yaml");
+    let json = dir.join("report.json");
+    let o = spinscan(&["calibrate", "stereo", "--left", &l, "--right", &r, "--board", "9x6", "--square-mm", "24", "-o", yaml.to_str().unwrap(), "--json", json.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{err}\n{out}");
+    assert!(err.lines().any(|l| l.contains("left30.jpg") && l.contains("left out")), "the non-image is named: {err}");
+    assert!(err.lines().any(|l| l.contains("left31.jpg") && l.contains("no 9×6 board found")), "the empty pair is named: {err}");
+    assert!(err.lines().any(|l| l.contains("left32.jpg") && l.contains("no right image")), "the unpaired image is named: {err}");
+    assert!(out.contains("pairs used: 8 of 10"), "{out}");
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(report["pairs_used"], 8);
+    assert!(report["rms_stereo"].as_f64().unwrap() < 0.3, "{report}");
+    // What it wrote loads as a calibration, and its RMS figures are in it.
+    let calib = spinscan::calib::StereoCalib::load(&yaml).unwrap();
+    assert!((calib.t_mm.norm() - 92.0).abs() < 1.0, "{}", calib.t_mm);
+    assert!(std::fs::read_to_string(&yaml).unwrap().contains("rms_stereo: "));
+
+    // A wrong board size: every pair says what it saw, and the run fails with the count.
+    let o = spinscan(&["calibrate", "stereo", "--left", &l, "--right", &r, "--board", "8x6", "--square-mm", "24", "-o", yaml.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(3), "{err}");
+    assert!(err.contains("a 9×6 grid of corners, larger than the 8×6 board"), "{err}");
+    assert!(err.contains("boards found in 0 of 10 pairs; a calibration needs at least 4"), "{err}");
+
+    // Counts that differ and names that do not pair up.
+    let o = spinscan(&["calibrate", "stereo", "--left", &format!("{}/left0*.jpg", dir.display()), "--right", &format!("{}/right*1.jpg", dir.display()), "--square-mm", "24", "-o", yaml.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(3), "{err}");
+    assert!(err.contains("left images but") && err.contains("do not pair up"), "{err}");
+}

@@ -140,12 +140,15 @@ fn natural(a: &str, b: &str) -> std::cmp::Ordering {
     key(a).cmp(&key(b)).then_with(|| a.cmp(b))
 }
 
-/// Pairs the left and right files: by what the wildcards matched when the names pair up,
-/// else in sorted order when the counts agree. Unpaired files are named in warnings.
+/// Pairs the left and right files: by what the wildcards matched when the names pair up (at
+/// least half of them find a partner), else in sorted order when the counts agree.
+/// Unpaired files are named in warnings.
 fn pair_files(left: Vec<(PathBuf, String)>, right: Vec<(PathBuf, String)>) -> Result<Vec<(PathBuf, PathBuf)>, Failure> {
     let by_key: std::collections::HashMap<&str, &PathBuf> = right.iter().map(|(p, k)| (k.as_str(), p)).collect();
     let matched = left.iter().filter(|(_, k)| by_key.contains_key(k.as_str())).count();
-    if matched > 0 {
+    // Names pair up when most of them find their partner (a few missing is a lab's normal;
+    // one accidental match between unrelated names is not a pairing).
+    if matched > 0 && 2 * matched >= left.len().min(right.len()) {
         let left_keys: std::collections::HashSet<&str> = left.iter().map(|(_, k)| k.as_str()).collect();
         for (p, k) in &left {
             if !by_key.contains_key(k.as_str()) {

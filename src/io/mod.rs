@@ -35,7 +35,14 @@ pub struct LoadedImage {
 
 /// Loads a PNG, JPEG or PNM image.
 pub fn load_image(path: &Path) -> Result<LoadedImage, ImageIoError> {
-    let img = image::open(path).map_err(|e| ImageIoError::Read { path: path.to_path_buf(), what: e.to_string() })?;
+    // The format from the bytes, not the name: a PNG saved as `.jpg` still loads, and a
+    // file that is no image says so.
+    let read = |e: String| ImageIoError::Read { path: path.to_path_buf(), what: e };
+    let reader = image::ImageReader::open(path).map_err(|e| read(e.to_string()))?.with_guessed_format().map_err(|e| read(e.to_string()))?;
+    if reader.format().is_none() {
+        return Err(read("not a PNG, JPEG or PNM image".into()));
+    }
+    let img = reader.decode().map_err(|e| read(e.to_string()))?;
     let rgb = img.to_rgb8();
     let (w, h) = (rgb.width() as usize, rgb.height() as usize);
     if w == 0 || h == 0 {
@@ -108,7 +115,14 @@ pub fn write_disparity_png(path: &Path, disp: &DisparityMap) -> Result<(), Image
 
 /// Reads a KITTI-convention 16-bit disparity PNG; `sign` (±1) restores the sign.
 pub fn read_disparity_png(path: &Path, sign: f32) -> Result<DisparityMap, ImageIoError> {
-    let img = image::open(path).map_err(|e| ImageIoError::Read { path: path.to_path_buf(), what: e.to_string() })?;
+    // The format from the bytes, not the name: a PNG saved as `.jpg` still loads, and a
+    // file that is no image says so.
+    let read = |e: String| ImageIoError::Read { path: path.to_path_buf(), what: e };
+    let reader = image::ImageReader::open(path).map_err(|e| read(e.to_string()))?.with_guessed_format().map_err(|e| read(e.to_string()))?;
+    if reader.format().is_none() {
+        return Err(read("not a PNG, JPEG or PNM image".into()));
+    }
+    let img = reader.decode().map_err(|e| read(e.to_string()))?;
     if img.color().channel_count() != 1 {
         return Err(ImageIoError::Format { path: path.to_path_buf(), what: format!("a disparity PNG has one channel, this one has {}", img.color().channel_count()) });
     }
