@@ -84,6 +84,7 @@ fn main() -> ExitCode {
         Command::Register(a) => register::cmd_register(a),
         Command::Mesh(a) => mesh::cmd_mesh(a),
         Command::Calibrate(CalibrateCommand::Stereo(a)) => calibrate::cmd_stereo(a),
+        Command::Calibrate(CalibrateCommand::Turntable(a)) => calibrate::cmd_turntable(a),
         Command::Bench(BenchCommand::Table1(a)) => bench::cmd_table1(a),
         Command::Bench(BenchCommand::Live(a)) => bench::cmd_bench_live(a),
         Command::Status(a) => daemon::status(a),

@@ -141,3 +141,74 @@ fn calibrate_stereo_names_every_bad_input_and_uses_the_rest() {
     assert_eq!(o.status.code(), Some(3), "{err}");
     assert!(err.contains("left images but") && err.contains("do not pair up"), "{err}");
 }
+
+/// Corners found on rendered boards (realistic rig: distortion, blur, noise) lie where the
+/// renderer put them, and in the same order.
+#[test]
+fn rendered_boards_are_found_where_they_are() {
+    let rig = hw_sim::Rig::realistic(640, 480, 700.0, 60.0);
+    let board = hw_sim::Chessboard { cols: 9, rows: 6, square_mm: 20.0 };
+    let renderer = hw_sim::TargetRenderer::new(rig);
+    let mut errs = Vec::new();
+    for (k, pose) in hw_sim::target::stereo_poses(&rig, &board, 9, 600.0, 7).iter().enumerate() {
+        let pair = renderer.render(&board, pose, 1.5, k as u64);
+        for (img, truth) in [(&pair.left, &pair.left_corners), (&pair.right, &pair.right_corners)] {
+            let found = detect(&GrayView::new(640, 480, img).unwrap(), BoardSize { cols: 9, rows: 6 }, &DetectParams::default()).unwrap_or_else(|e| panic!("pose {k}: {e}"));
+            for (i, (p, t)) in found.points.iter().zip(truth).enumerate() {
+                let t = t.unwrap();
+                let e = ((p[0] - t.0).powi(2) + (p[1] - t.1).powi(2)).sqrt();
+                if e > 0.3 {
+                    eprintln!("pose {k} corner {i}: found ({:.2}, {:.2}), truth ({:.2}, {:.2})", p[0], p[1], t.0, t.1);
+                }
+                errs.push(e);
+            }
+        }
+    }
+    errs.sort_by(f64::total_cmp);
+    let (median, worst) = (errs[errs.len() / 2], errs[errs.len() - 1]);
+    eprintln!("corner error vs truth: median {median:.4} px, worst {worst:.4} px");
+    assert!(median < 0.05 && worst < 0.3, "median {median}, worst {worst}");
+}
+
+fn angle_deg(a: nalgebra::Vector3<f64>, b: nalgebra::Vector3<f64>) -> f64 {
+    a.normalize().dot(&b.normalize()).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// The simulated lab's chessboard recordings (realistic rig): the rig and then the turntable
+/// axis recovered through the CLI, each within the bounds of the truth in gt/.
+#[test]
+fn the_simulated_rig_and_turntable_are_recovered() {
+    let dir = support::temp_dir("calibrate-sim");
+    let run = |args: &[&str]| {
+        let o = spinscan(args);
+        assert!(o.status.success(), "{args:?}: {}", String::from_utf8_lossy(&o.stderr));
+    };
+    let (st, tt) = (dir.join("stereo"), dir.join("table"));
+    run(&["sim", "render", "--target", "chessboard", "--frames", "16", "--seed", "3", "-o", st.to_str().unwrap()]);
+    run(&["sim", "render", "--target", "chessboard-on-table", "--frames", "9", "--seed", "3", "-o", tt.to_str().unwrap()]);
+    let calib_path = dir.join("calib.yaml");
+    run(&["calibrate", "stereo", "--recording", st.to_str().unwrap(), "--square-mm", "20", "-o", calib_path.to_str().unwrap()]);
+    let got = spinscan::calib::StereoCalib::load(&calib_path).unwrap();
+    let truth = spinscan::calib::StereoCalib::load(&st.join("gt/calib.yaml")).unwrap();
+    for (side, g, t) in [("left", &got.left, &truth.left), ("right", &got.right, &truth.right)] {
+        let (fx, fy) = (g.k[(0, 0)] / t.k[(0, 0)] - 1.0, g.k[(1, 1)] / t.k[(1, 1)] - 1.0);
+        let (cx, cy) = (g.k[(0, 2)] - t.k[(0, 2)], g.k[(1, 2)] - t.k[(1, 2)]);
+        eprintln!("{side}: fx {:+.3} %, fy {:+.3} %, cx {cx:+.3} px, cy {cy:+.3} px", 100.0 * fx, 100.0 * fy);
+        assert!(fx.abs() < 0.003 && fy.abs() < 0.003 && cx.abs() < 1.0 && cy.abs() < 1.0);
+    }
+    let baseline = got.t_mm.norm() - truth.t_mm.norm();
+    let r_err = nalgebra::Rotation3::from_matrix_unchecked(got.r * truth.r.transpose()).angle().to_degrees();
+    eprintln!("baseline {baseline:+.4} mm, R {r_err:.4}°");
+    assert!(baseline.abs() < 0.3 && r_err < 0.05);
+
+    let axis_path = dir.join("turntable.yaml");
+    run(&["calibrate", "turntable", "--recording", tt.to_str().unwrap(), "--calib", calib_path.to_str().unwrap(), "--square-mm", "20", "-o", axis_path.to_str().unwrap()]);
+    let read = |p: &std::path::Path| spinscan::recording::TurntableAxis::parse(p, &std::fs::read_to_string(p).unwrap()).unwrap();
+    let (got, truth) = (read(&axis_path), read(&tt.join("gt/turntable.yaml")));
+    let (gd, td) = (nalgebra::Vector3::from(got.axis_dir), nalgebra::Vector3::from(truth.axis_dir));
+    let (gp, tp) = (nalgebra::Vector3::from(got.axis_point_mm), nalgebra::Vector3::from(truth.axis_point_mm));
+    // The true point's distance from the fitted line.
+    let off = (tp - gp) - gd * gd.dot(&(tp - gp));
+    eprintln!("axis direction {:.4}°, point {:.3} mm from the fitted axis", angle_deg(gd, td), off.norm());
+    assert!(angle_deg(gd, td) < 0.1 && off.norm() < 0.5);
+}

@@ -30,6 +30,7 @@ pub mod math;
 pub mod mesh;
 pub mod render;
 pub mod rig;
+pub mod target;
 pub mod turntable;
 
 pub use camera::{CameraFault, Side, SimCameraError, SimFrame, SimStereoCamera, TableAngle, Timing};
@@ -37,4 +38,5 @@ pub use math::Pose;
 pub use mesh::{Mesh, MeshError, BUILTIN_OBJECTS};
 pub use render::{RenderedPair, Renderer, SceneConfig};
 pub use rig::{Intrinsics, Rig};
+pub use target::{Chessboard, TargetPair, TargetRenderer};
 pub use turntable::{Emulator, FirmwareConfig, TurntableFault};

@@ -15,6 +15,7 @@ pub mod job;
 pub mod lm;
 pub mod solve;
 pub mod subpix;
+pub mod turntable;
 
 use std::path::{Path, PathBuf};
 

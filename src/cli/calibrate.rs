@@ -16,6 +16,27 @@ use spinscan::stereo::GrayView;
 pub enum CalibrateCommand {
     /// Both cameras and the rig from pairs of chessboard images: writes calib.yaml.
     Stereo(StereoArgs),
+    /// The turntable's axis from a recording of a board standing on the table at several
+    /// table angles: writes turntable.yaml (the file replay and the daemon read).
+    Turntable(TurntableArgs),
+}
+
+#[derive(Args)]
+pub struct TurntableArgs {
+    /// The recording: pairs of the board on the table, each with its `table_deg`.
+    #[arg(long)]
+    pub recording: PathBuf,
+    /// The rig's calibration (from `calibrate stereo`); default: the recording's calib.yaml.
+    #[arg(long)]
+    pub calib: Option<PathBuf>,
+    #[command(flatten)]
+    pub board: BoardArgs,
+    /// Where to write the axis (turntable.yaml: axis_point_mm, axis_dir, source, rms_px).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Also write the fit's figures (every pair's residual and angle check) as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
 }
 
 /// The board and how its corners are found (shared by the calibrate commands).
@@ -249,6 +270,81 @@ pub fn cmd_stereo(a: StereoArgs) -> Result<(), Failure> {
         spinscan::io::write_atomic(path, serde_json::to_string_pretty(&report).expect("plain numbers").as_bytes()).map_err(|e| output(format!("cannot write {}: {e}", path.display())))?;
     }
     print_report(&report);
+    println!("wrote {}", a.output.display());
+    Ok(())
+}
+
+pub fn cmd_turntable(a: TurntableArgs) -> Result<(), Failure> {
+    use spinscan::calib::solve::{board_points, TargetView};
+    use spinscan::calib::turntable::{fit_axis, TablePair};
+    let detect = a.board.detect()?;
+    let job = StereoJob { board: a.board.board, square_mm: a.board.square_mm, model: LensModel::Five, detect };
+    let calib_path = a.calib.clone().unwrap_or_else(|| a.recording.clone());
+    let calib = spinscan::calib::StereoCalib::load(&calib_path).map_err(input)?;
+    if a.calib.is_none() {
+        tracing::warn!("no --calib: using the recording's own calibration ({}); give the one `calibrate stereo` wrote if that is not it", calib_path.display());
+    }
+    let path = a.recording.join("frames.jsonl");
+    let text = std::fs::read_to_string(&path).map_err(|e| input(format!("{}: {e} (expected a recording folder with frames.jsonl)", path.display())))?;
+    let (frames, _) = spinscan::recording::parse_frames(&path, &text).map_err(input)?;
+    let object = board_points(job.board.cols, job.board.rows, job.square_mm);
+    let mut pairs = Vec::new();
+    let mut names = Vec::new();
+    let total = frames.len();
+    for (k, f) in frames.iter().enumerate() {
+        progress::show(format!("calibrate turntable: looking for {} boards in pair {}/{total} ({} found so far)", job.board, k + 1, pairs.len()));
+        let Some(deg) = f.table_deg else {
+            tracing::warn!("{}:{}: no table_deg — this pair cannot place the axis, left out", path.display(), f.line);
+            continue;
+        };
+        let (lp, rp) = (a.recording.join(&f.left), a.recording.join(&f.right));
+        let (l, r) = match super::load_pair(&lp, &rp) {
+            Ok(v) => v,
+            Err(e) => {
+                tracing::warn!("{} — left out", e.message);
+                continue;
+            }
+        };
+        if let Some((w, h)) = calib.image_size {
+            if (l.width as u32, l.height as u32) != (w, h) {
+                return Err(input(format!("{} is {}×{} but the calibration is for {w}×{h} images", lp.display(), l.width, l.height)));
+            }
+        }
+        let lv = GrayView::new(l.width, l.height, &l.gray).expect("decoded size");
+        let rv = GrayView::new(r.width, r.height, &r.gray).expect("decoded size");
+        match job::find_pair(&job, &f.left, &lv, &f.right, &rv) {
+            Ok(p) => {
+                names.push((f.seq, deg));
+                pairs.push(TablePair {
+                    table_deg: deg,
+                    left: TargetView { object: object.clone(), image: p.left.points },
+                    right: TargetView { object: object.clone(), image: p.right.points },
+                });
+            }
+            Err(why) => tracing::warn!("{why} — pair left out"),
+        }
+    }
+    progress::finish();
+    println!("boards found in {} of {total} pairs", pairs.len());
+    let fit = fit_axis(&calib, &pairs).map_err(input)?;
+    let axis = spinscan::recording::TurntableAxis { axis_point_mm: fit.point_mm.into(), axis_dir: fit.dir.into(), source: "calibrated".into() };
+    let yaml = format!("{}rms_px: {:.6}\npairs: {}\n", axis.to_yaml(), fit.rms_px, pairs.len());
+    spinscan::io::write_atomic(&a.output, yaml.as_bytes()).map_err(|e| output(format!("cannot write {}: {e}", a.output.display())))?;
+    println!("{:>6} {:>9} {:>8} {:>11}", "seq", "table°", "rms px", "angle err°");
+    for ((seq, deg), (rms, err)) in names.iter().zip(&fit.pairs) {
+        println!("{seq:>6} {deg:>9.2} {rms:>8.3} {err:>11.4}");
+    }
+    println!(
+        "axis point [{:.3}, {:.3}, {:.3}] mm, direction [{:.6}, {:.6}, {:.6}], rms {:.4} px",
+        fit.point_mm.x, fit.point_mm.y, fit.point_mm.z, fit.dir.x, fit.dir.y, fit.dir.z, fit.rms_px
+    );
+    if let Some(path) = &a.json {
+        let about = serde_json::json!({
+            "axis_point_mm": axis.axis_point_mm, "axis_dir": axis.axis_dir, "rms_px": fit.rms_px, "pairs_used": pairs.len(), "pairs_total": total,
+            "pairs": names.iter().zip(&fit.pairs).map(|((seq, deg), (rms, err))| serde_json::json!({"seq": seq, "table_deg": deg, "rms_px": rms, "angle_error_deg": err})).collect::<Vec<_>>(),
+        });
+        spinscan::io::write_atomic(path, serde_json::to_string_pretty(&about).expect("plain numbers").as_bytes()).map_err(|e| output(format!("cannot write {}: {e}", path.display())))?;
+    }
     println!("wrote {}", a.output.display());
     Ok(())
 }

@@ -24,6 +24,23 @@ pub struct SimRenderArgs {
     /// Built-in object: sphere, egg, vase or torus.
     #[arg(long, conflicts_with = "mesh")]
     pub object: Option<String>,
+    /// A calibration target instead of an object: `chessboard` (the board held at varied
+    /// poses, for `calibrate stereo`) or `chessboard-on-table` (the board standing on the
+    /// turntable as it turns, for `calibrate turntable`). The truth is under gt/.
+    #[arg(long, conflicts_with_all = ["object", "mesh"])]
+    pub target: Option<TargetArg>,
+    /// Target: inner corners of the board, along a row × rows.
+    #[arg(long, default_value = "9x6", requires = "target")]
+    pub board: spinscan::calib::board::BoardSize,
+    /// Target: side of one square, mm.
+    #[arg(long, default_value_t = 20.0, requires = "target")]
+    pub square_mm: f64,
+    /// `chessboard`: the board's distance from the left camera, mm.
+    #[arg(long, default_value_t = 600.0, requires = "target")]
+    pub distance_mm: f64,
+    /// `chessboard-on-table`: the table turns from −SWEEP to +SWEEP degrees over the frames.
+    #[arg(long, default_value_t = 50.0, requires = "target")]
+    pub sweep_deg: f64,
     /// A triangle mesh (PLY) to put on the turntable instead, +y up.
     #[arg(long)]
     pub mesh: Option<PathBuf>,
@@ -89,7 +106,17 @@ pub struct DemoArgs {
     pub assist: AssistModeArgs,
 }
 
+/// `sim render --target`.
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum TargetArg {
+    Chessboard,
+    ChessboardOnTable,
+}
+
 pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
+    if let Some(target) = a.target {
+        return render_target(&a, target);
+    }
     let object = match (&a.object, &a.mesh) {
         (_, Some(path)) => {
             let mesh = io::ply::read_ply(path).map_err(input)?;
@@ -130,6 +157,35 @@ pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
         json!({"out": a.out, "frames": rec.frames.len(), "ideal": a.ideal, "width": rec.image_size.0, "height": rec.image_size.1,
                "seconds": seconds, "gt_disparity": a.ideal})
     );
+    Ok(())
+}
+
+fn render_target(a: &SimRenderArgs, target: TargetArg) -> Result<(), Failure> {
+    use spinscan::hw::sim_target::{render_target_recording, TargetKind, TargetOptions};
+    let opts = TargetOptions {
+        kind: match target {
+            TargetArg::Chessboard => TargetKind::Chessboard,
+            TargetArg::ChessboardOnTable => TargetKind::ChessboardOnTable,
+        },
+        board: hw_sim::Chessboard { cols: a.board.cols, rows: a.board.rows, square_mm: a.square_mm },
+        frames: a.frames,
+        ideal: a.ideal,
+        seed: a.seed,
+        noise_sigma: a.noise,
+        distance_mm: a.distance_mm,
+        sweep_deg: a.sweep_deg,
+        ..TargetOptions::default()
+    };
+    let t0 = Instant::now();
+    let done = render_target_recording(&opts, &a.out, &mut |done, total| progress::show(format!("sim render: {done}/{total} target pairs")));
+    progress::finish();
+    done.map_err(|e| match e {
+        spinscan::hw::sim::SimError::Recording(
+            spinscan::recording::RecordingError::Io { .. } | spinscan::recording::RecordingError::Write { .. } | spinscan::recording::RecordingError::Exists(_),
+        ) => output(e),
+        other => input(other),
+    })?;
+    println!("{}", json!({"out": a.out, "frames": a.frames, "target": a.out.join("gt/board.json"), "ideal": a.ideal, "seconds": t0.elapsed().as_secs_f64()}));
     Ok(())
 }
 

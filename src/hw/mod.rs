@@ -17,6 +17,7 @@ pub mod mjpeg;
 pub mod pairing;
 pub mod replay;
 pub mod sim;
+pub mod sim_target;
 pub mod v4l2;
 
 pub use frame::{DecodeError, Picture, StereoFrame};
