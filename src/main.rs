@@ -85,6 +85,8 @@ fn main() -> ExitCode {
         Command::Mesh(a) => mesh::cmd_mesh(a),
         Command::Calibrate(CalibrateCommand::Stereo(a)) => calibrate::cmd_stereo(a),
         Command::Calibrate(CalibrateCommand::Turntable(a)) => calibrate::cmd_turntable(a),
+        Command::Calibrate(CalibrateCommand::Capture(a)) => calibrate::cmd_capture(a),
+        Command::Calibrate(CalibrateCommand::Stop(a)) => calibrate::cmd_stop(a),
         Command::Bench(BenchCommand::Table1(a)) => bench::cmd_table1(a),
         Command::Bench(BenchCommand::Live(a)) => bench::cmd_bench_live(a),
         Command::Status(a) => daemon::status(a),

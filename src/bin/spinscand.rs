@@ -156,6 +156,7 @@ async fn run(config: Config, auth: Auth) -> u8 {
     tracing::info!("{why}: finishing the current view and stopping");
     notify(&[sd_notify::NotifyState::Stopping, sd_notify::NotifyState::Status(&format!("stopping ({why})"))]);
     let _ = daemon.stop_scan(&format!("spinscand stopped ({why})"));
+    let _ = daemon.stop_calibration();
     daemon.wait_idle().await;
     let _ = stop_tx.send(true);
     let _ = serving.await;

@@ -19,6 +19,42 @@ pub enum CalibrateCommand {
     /// The turntable's axis from a recording of a board standing on the table at several
     /// table angles: writes turntable.yaml (the file replay and the daemon read).
     Turntable(TurntableArgs),
+    /// Captures calibration pairs through the daemon and solves them there: keeps a pair
+    /// only when the board is found in both images (results under
+    /// <state-dir>/calibrations/NAME/).
+    Capture(CaptureArgs),
+    /// Ends the daemon's calibration capture after its current pair (what it kept is solved).
+    Stop(super::daemon::SocketArg),
+}
+
+#[derive(Args)]
+pub struct CaptureArgs {
+    /// Name of this calibration: letters, digits, '-', '_', '.'.
+    pub name: String,
+    /// `stereo` (the rig: hold the board up at varied poses) or `turntable` (the axis: stand
+    /// the board on the table; the daemon turns it through ±--sweep-deg).
+    #[arg(long, default_value = "stereo")]
+    pub kind: String,
+    /// Pairs to keep (default 20 for stereo, 9 for turntable).
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// Inner corners of the board, along a row × rows.
+    #[arg(long, default_value = "9x6")]
+    pub board: String,
+    /// Side of one square as printed, mm.
+    #[arg(long)]
+    pub square_mm: f64,
+    /// The lens model: 5, 8 or 14 coefficients (stereo).
+    #[arg(long, default_value_t = 5)]
+    pub model: u64,
+    /// Turntable: the table turns from −SWEEP to +SWEEP degrees.
+    #[arg(long, default_value_t = 45.0)]
+    pub sweep_deg: f64,
+    /// Follow the capture (pairs kept, why the last was not) until it is solved.
+    #[arg(long)]
+    pub watch: bool,
+    #[command(flatten)]
+    pub socket: super::daemon::SocketArg,
 }
 
 #[derive(Args)]
@@ -402,4 +438,103 @@ mod tests {
         v.sort_by(|a, b| natural(a, b));
         assert_eq!(v, ["img1.png", "img2.png", "img10.png"]);
     }
+}
+
+fn daemon_failure(e: spinscan::control::client::ClientError) -> Failure {
+    Failure { code: exit::DAEMON, message: e.to_string() }
+}
+
+pub fn cmd_capture(a: CaptureArgs) -> Result<(), Failure> {
+    use spinscan::control::client::Client;
+    use spinscan::control::protocol::CalibCaptureParams;
+    let mut c = Client::connect(&a.socket.socket).map_err(daemon_failure)?;
+    if a.watch {
+        // Subscribe first so no event of this capture is missed.
+        c.subscribe().map_err(daemon_failure)?;
+    }
+    let params = CalibCaptureParams {
+        name: a.name.clone(),
+        kind: Some(a.kind.clone()),
+        count: a.count,
+        board: Some(a.board.clone()),
+        square_mm: a.square_mm,
+        model: Some(a.model),
+        sweep_deg: Some(a.sweep_deg),
+        max_pairs: None,
+    };
+    let started = c.calib_capture(&params).map_err(daemon_failure)?;
+    eprintln!(
+        "calibration {} ({}) started: keeping {} pairs, folder {}",
+        a.name,
+        a.kind,
+        started["count"],
+        started["dir"].as_str().unwrap_or("?")
+    );
+    if a.kind == "stereo" {
+        eprintln!("hold the {} board up to both cameras; move it between pairs: near the image's corners and edges, tilted up to 40°", a.board);
+    }
+    if !a.watch {
+        return Ok(());
+    }
+    c.set_timeout(None).map_err(daemon_failure)?;
+    loop {
+        let n = c.next_notification().map_err(daemon_failure)?;
+        let p = &n.params;
+        if p["name"].as_str() != Some(a.name.as_str()) {
+            continue;
+        }
+        match n.method.as_str() {
+            "calib.progress" => {
+                let last = p["last_rejection"].as_str().map(|r| format!(" — last pair: {r}")).unwrap_or_default();
+                let table = p["table_deg"].as_f64().filter(|_| a.kind == "turntable").map(|d| format!(", table {d:.1}°")).unwrap_or_default();
+                progress::show(format!("{}: kept {}/{} pairs, {} seen{table}{last}", a.name, p["kept"], p["count"], p["seen"]));
+            }
+            "calib.state" if p["status"] != "running" => {
+                progress::finish();
+                let status = p["status"].as_str().unwrap_or("?");
+                let reason = p["reason"].as_str().map(|r| format!(": {r}")).unwrap_or_default();
+                if a.socket.json {
+                    println!("{}", serde_json::to_string_pretty(p).expect("plain values"));
+                } else {
+                    let r = &p["result"];
+                    println!("calibration {} {status}{reason}", a.name);
+                    if let Some(file) = r["file"].as_str() {
+                        match a.kind.as_str() {
+                            "turntable" => {
+                                let v = |key: &str| r[key].as_array().map(|v| v.iter().map(|x| format!("{:.4}", x.as_f64().unwrap_or(f64::NAN))).collect::<Vec<_>>().join(", ")).unwrap_or_default();
+                                println!("axis point [{}] mm, direction [{}], rms {:.4} px from {} pairs", v("axis_point_mm"), v("axis_dir"), r["rms_px"].as_f64().unwrap_or(f64::NAN), r["pairs"])
+                            }
+                            _ => println!(
+                                "rms_left {:.4} px  rms_right {:.4} px  rms_stereo {:.4} px, baseline {:.3} mm from {} pairs; coverage {:.0} % / {:.0} %",
+                                r["rms_left"].as_f64().unwrap_or(f64::NAN),
+                                r["rms_right"].as_f64().unwrap_or(f64::NAN),
+                                r["rms_stereo"].as_f64().unwrap_or(f64::NAN),
+                                r["baseline_mm"].as_f64().unwrap_or(f64::NAN),
+                                r["pairs"],
+                                r["coverage_left_pct"].as_f64().unwrap_or(f64::NAN),
+                                r["coverage_right_pct"].as_f64().unwrap_or(f64::NAN)
+                            ),
+                        }
+                        for w in r["warnings"].as_array().into_iter().flatten().filter_map(|w| w.as_str()) {
+                            tracing::warn!("{w}");
+                        }
+                        println!("wrote {file}");
+                    }
+                }
+                return match (status, p["result"]["file"].is_string()) {
+                    ("complete", _) | ("interrupted", true) => Ok(()),
+                    _ => Err(Failure { code: exit::DAEMON, message: format!("calibration {} {status}{reason}", a.name) }),
+                };
+            }
+            "device.error" => tracing::warn!("device error: {}", p["message"].as_str().unwrap_or("?")),
+            _ => {}
+        }
+    }
+}
+
+pub fn cmd_stop(s: super::daemon::SocketArg) -> Result<(), Failure> {
+    let mut c = spinscan::control::client::Client::connect(&s.socket).map_err(daemon_failure)?;
+    let v = c.calib_stop().map_err(daemon_failure)?;
+    println!("stopping calibration {} after its current pair; what it kept is solved", v["name"].as_str().unwrap_or("?"));
+    Ok(())
 }

@@ -122,6 +122,16 @@ impl Client {
         self.call(&Call::ScanGet { name: name.to_string() })
     }
 
+    /// `calib.capture`: starts capturing calibration pairs (announced by `calib.*` events).
+    pub fn calib_capture(&mut self, params: &super::protocol::CalibCaptureParams) -> Result<Value, ClientError> {
+        self.call(&Call::CalibCapture(params.clone()))
+    }
+
+    /// `calib.stop`: ends the capture after its current pair; what was kept is solved.
+    pub fn calib_stop(&mut self) -> Result<Value, ClientError> {
+        self.call(&Call::CalibStop)
+    }
+
     pub fn subscribe(&mut self) -> Result<Subscribed, ClientError> {
         self.typed(&Call::EventsSubscribe)
     }

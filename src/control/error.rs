@@ -64,6 +64,10 @@ impl ControlError {
                 DaemonError::Create { .. } | DaemonError::StateDir { .. } | DaemonError::Locked(_) | DaemonError::NoRoom { .. } => code::INTERNAL,
                 DaemonError::NoScan | DaemonError::NoSuchScan { .. } => code::NOT_FOUND,
                 DaemonError::NotFused(_) => code::NOT_FOUND,
+                DaemonError::Params(_) => code::INVALID_PARAMS,
+                DaemonError::Calibrating(_) => code::BUSY,
+                DaemonError::NoCalibration => code::NOT_FOUND,
+                DaemonError::CalibrationExists { .. } => code::EXISTS,
             },
         }
     }

@@ -15,7 +15,7 @@ use crate::pipeline::live::{ScanMode, ScanSpec};
 pub const PROTOCOL_VERSION: u32 = 1;
 
 /// The events `events.subscribe` forwards.
-pub const EVENTS: [&str; 4] = ["scan.progress", "scan.state", "scan.mesh", "device.error"];
+pub const EVENTS: [&str; 6] = ["scan.progress", "scan.state", "scan.mesh", "device.error", "calib.progress", "calib.state"];
 
 /// One method call with its parameters.
 #[derive(Debug, Clone, PartialEq)]
@@ -28,6 +28,53 @@ pub enum Call {
     ScanList,
     ScanGet { name: String },
     EventsSubscribe,
+    CalibCapture(CalibCaptureParams),
+    CalibStop,
+}
+
+/// `calib.capture`'s parameters as sent; what is left out takes the defaults below.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct CalibCaptureParams {
+    pub name: String,
+    /// `stereo` (default) or `turntable`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub kind: Option<String>,
+    /// Pairs to keep: default 20 (stereo), 9 (turntable).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub count: Option<u64>,
+    /// Inner corners, `9x6` by default.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub board: Option<String>,
+    pub square_mm: f64,
+    /// Lens model: 5 (default), 8 or 14 coefficients.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model: Option<u64>,
+    /// Turntable: the sweep, ± degrees (default 45).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sweep_deg: Option<f64>,
+    /// Stereo: pairs looked at before giving up (default 40 × count).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_pairs: Option<u64>,
+}
+
+impl CalibCaptureParams {
+    const KEYS: [&'static str; 8] = ["name", "kind", "count", "board", "square_mm", "model", "sweep_deg", "max_pairs"];
+
+    /// The capture these parameters ask for, defaults filled in (checked where it starts).
+    pub fn to_spec(&self) -> crate::daemon::calibration::CaptureSpec {
+        let kind = self.kind.clone().unwrap_or_else(|| "stereo".into());
+        let count = self.count.map_or(if kind == "turntable" { 9 } else { 20 }, |n| usize::try_from(n).unwrap_or(usize::MAX));
+        crate::daemon::calibration::CaptureSpec {
+            name: self.name.clone(),
+            count,
+            board: self.board.clone().unwrap_or_else(|| "9x6".into()),
+            square_mm: self.square_mm,
+            model: self.model.map_or(5, |m| u32::try_from(m).unwrap_or(0)),
+            sweep_deg: self.sweep_deg.unwrap_or(45.0),
+            max_pairs: self.max_pairs.map_or(count.saturating_mul(40), |n| usize::try_from(n).unwrap_or(usize::MAX)),
+            kind,
+        }
+    }
 }
 
 /// `scan.start`'s parameters as sent; what is left out comes from the daemon's config.
@@ -98,6 +145,22 @@ impl Call {
                     max_views: p.u64("max_views")?,
                 })
             }
+            "calib.stop" => none().map(|_| Call::CalibStop)?,
+            "calib.capture" => {
+                let p = Params::new(req, &CalibCaptureParams::KEYS)?;
+                let name = p.str("name")?.ok_or_else(|| ControlError::Params("calib.capture: `name` is required".into()))?.to_string();
+                let square_mm = p.f64("square_mm")?.ok_or_else(|| ControlError::Params("calib.capture: `square_mm` (the printed square's side, mm) is required".into()))?;
+                Call::CalibCapture(CalibCaptureParams {
+                    name,
+                    kind: p.str("kind")?.map(str::to_string),
+                    count: p.u64("count")?,
+                    board: p.str("board")?.map(str::to_string),
+                    square_mm,
+                    model: p.u64("model")?,
+                    sweep_deg: p.f64("sweep_deg")?,
+                    max_pairs: p.u64("max_pairs")?,
+                })
+            }
             other => return Err(ControlError::MethodNotFound(other.to_string())),
         })
     }
@@ -113,6 +176,8 @@ impl Call {
             Call::ScanList => "scan.list",
             Call::ScanGet { .. } => "scan.get",
             Call::EventsSubscribe => "events.subscribe",
+            Call::CalibCapture(_) => "calib.capture",
+            Call::CalibStop => "calib.stop",
         }
     }
 
@@ -121,13 +186,14 @@ impl Call {
         match self {
             Call::ScanStart(p) => serde_json::to_value(p).expect("parameters serialise"),
             Call::ScanGet { name } => json!({ "name": name }),
+            Call::CalibCapture(p) => serde_json::to_value(p).expect("parameters serialise"),
             _ => Value::Object(Map::new()),
         }
     }
 
     /// Whether the call changes what the daemon does (only controlling peers may).
     pub fn controls(&self) -> bool {
-        matches!(self, Call::ScanStart(_) | Call::ScanStop | Call::ScanMesh)
+        matches!(self, Call::ScanStart(_) | Call::ScanStop | Call::ScanMesh | Call::CalibCapture(_) | Call::CalibStop)
     }
 }
 

@@ -303,6 +303,8 @@ fn dispatch(daemon: &Arc<Daemon>, call: Call, may_control: bool, who: &str) -> R
             Ok(json!(ScanList { scans }))
         }
         Call::ScanGet { name } => daemon.get_scan(&name).map_err(of),
+        Call::CalibCapture(p) => daemon.start_calibration(p.to_spec()).map_err(of),
+        Call::CalibStop => daemon.stop_calibration().map_err(of),
         Call::EventsSubscribe => unreachable!("answered on the connection's own task"),
     }
 }

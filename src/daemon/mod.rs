@@ -13,6 +13,7 @@
 //! (hw-sim cameras, firmware on a pty), `replay` (a recording); everything after
 //! [`Devices`] is the same code for all three.
 
+pub mod calibration;
 pub mod config;
 pub mod throughput;
 
@@ -55,6 +56,15 @@ pub enum DaemonError {
     NotFused(String),
     #[error("no scan named {name} in {state_dir}")]
     NoSuchScan { name: String, state_dir: PathBuf },
+    /// A request's parameters are out of bounds (the message names the one and its range).
+    #[error("{0}")]
+    Params(String),
+    #[error("calibration {0} is capturing; stop it first (calib.stop)")]
+    Calibrating(String),
+    #[error("no calibration is capturing")]
+    NoCalibration,
+    #[error("a calibration named {name} exists already ({dir}); choose another name")]
+    CalibrationExists { name: String, dir: PathBuf },
 }
 
 /// Why the configured devices could not be opened.
@@ -177,7 +187,7 @@ pub fn list_manifests(state_dir: &Path) -> Vec<(String, Value)> {
     let Ok(entries) = std::fs::read_dir(state_dir) else { return out };
     for e in entries.flatten() {
         let name = e.file_name().to_string_lossy().to_string();
-        if !e.path().is_dir() || validate_name(&name).is_err() {
+        if !e.path().is_dir() || validate_name(&name).is_err() || name == calibration::CALIBRATIONS {
             continue;
         }
         out.push((name.clone(), read_manifest(&e.path())));
@@ -230,11 +240,13 @@ fn open_backend(config: &Config) -> Result<Devices, DeviceError> {
 }
 
 struct Inner {
-    /// None while a scan holds them or after they failed.
+    /// None while a scan or a calibration holds them, or after they failed.
     devices: Option<Devices>,
     device_error: Option<String>,
     scan: Option<Arc<ScanShared>>,
     last: Option<(String, ScanEnd)>,
+    /// The calibration capturing, if any (`calib.capture`).
+    calib: Option<Arc<calibration::CaptureShared>>,
 }
 
 /// The daemon's state, shared by every connection.
@@ -265,7 +277,7 @@ impl Daemon {
             config,
             _lock: lock,
             events,
-            inner: Mutex::new(Inner { devices: Some(devices), device_error: None, scan: None, last: None }),
+            inner: Mutex::new(Inner { devices: Some(devices), device_error: None, scan: None, last: None, calib: None }),
             started: Instant::now(),
             scan_ended: tokio::sync::Notify::new(),
         }))
@@ -311,6 +323,7 @@ impl Daemon {
             "backend": self.config.backend.kind.name(),
             "state": if inner.scan.is_some() { "scanning" } else { "idle" },
             "scan": inner.scan.as_ref().map(|s| s.progress()),
+            "calibration": inner.calib.as_ref().map(|c| c.progress()),
             "last_scan": inner.last.as_ref().map(|(name, end)| json!({"name": name, "status": end.status, "reason": end.reason})),
             "devices_ok": inner.device_error.is_none(),
             "device_error": inner.device_error,
@@ -366,27 +379,15 @@ impl Daemon {
         let name = spec.name.clone();
         let mode = spec.mode;
         let dir = self.config.daemon.state_dir.join(&name);
-        let mut inner = self.inner.lock().unwrap();
-        if let Some(s) = &inner.scan {
-            return Err(DaemonError::Busy(s.spec.name.clone()));
+        if name == calibration::CALIBRATIONS {
+            return Err(DaemonError::Params(format!("scan.start: `{name}` is the folder of the daemon's calibrations; choose another name")));
         }
+        let mut inner = self.inner.lock().unwrap();
+        Self::check_idle(&inner)?;
         if dir.exists() {
             return Err(DaemonError::Exists { name, dir });
         }
-        // A replay starts from its first frame every time; failed devices get another try.
-        if inner.devices.is_none() || self.config.backend.kind == BackendKind::Replay {
-            inner.devices = None;
-            match open_backend(&self.config) {
-                Ok(devices) => {
-                    inner.devices = Some(devices);
-                    inner.device_error = None;
-                }
-                Err(e) => {
-                    inner.device_error = Some(e.to_string());
-                    return Err(DaemonError::Devices(e));
-                }
-            }
-        }
+        self.ensure_devices(&mut inner)?;
         // Room for a scan's first views, and a folder that says what it is from the start:
         // a scan that cannot even begin is refused here, not reported later as "unknown".
         let state = &self.config.daemon.state_dir;
@@ -416,6 +417,36 @@ impl Daemon {
             daemon.scan_finished(devices, &shared, end);
         });
         Ok(ScanStarted { name, dir, mode: mode.name().to_string(), step_deg: (mode == ScanMode::Step).then_some(spec.step_deg), total_deg: spec.total_deg, views_planned: views })
+    }
+
+    /// Busy when a scan or a calibration holds the devices.
+    fn check_idle(inner: &Inner) -> Result<(), DaemonError> {
+        if let Some(s) = &inner.scan {
+            return Err(DaemonError::Busy(s.spec.name.clone()));
+        }
+        if let Some(c) = &inner.calib {
+            return Err(DaemonError::Calibrating(c.spec.name.clone()));
+        }
+        Ok(())
+    }
+
+    /// Opens the devices when they are closed (a replay starts from its first frame every
+    /// time; failed devices get another try).
+    fn ensure_devices(&self, inner: &mut Inner) -> Result<(), DaemonError> {
+        if inner.devices.is_none() || self.config.backend.kind == BackendKind::Replay {
+            inner.devices = None;
+            match open_backend(&self.config) {
+                Ok(devices) => {
+                    inner.devices = Some(devices);
+                    inner.device_error = None;
+                }
+                Err(e) => {
+                    inner.device_error = Some(e.to_string());
+                    return Err(DaemonError::Devices(e));
+                }
+            }
+        }
+        Ok(())
     }
 
     fn scan_finished(&self, devices: Devices, shared: &ScanShared, end: ScanEnd) {
@@ -475,11 +506,11 @@ impl Daemon {
         }
     }
 
-    /// Waits until no scan runs (graceful shutdown).
+    /// Waits until no scan runs and no calibration captures (graceful shutdown).
     pub async fn wait_idle(&self) {
         loop {
             let ended = self.scan_ended.notified();
-            if self.current_scan().is_none() {
+            if self.current_scan().is_none() && self.inner.lock().unwrap().calib.is_none() {
                 return;
             }
             ended.await;

@@ -56,6 +56,24 @@ pub trait StereoSource: Send {
     fn pairing(&self) -> Option<PairStats> {
         None
     }
+    /// Puts a calibration board in front of a simulated rig (`Some`) or takes it away
+    /// (`None`); `true` when this source did. Real cameras answer `false`: in a lab a person
+    /// holds the board.
+    fn show_target(&mut self, _target: Option<TargetScene>) -> bool {
+        false
+    }
+}
+
+/// A calibration board in front of a simulated rig ([`StereoSource::show_target`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TargetScene {
+    /// Inner corners along a row, and rows.
+    pub cols: usize,
+    pub rows: usize,
+    pub square_mm: f64,
+    /// Standing on the turntable (it turns with the table), else held up and moved to a new
+    /// pose about once a second.
+    pub on_table: bool,
 }
 
 /// Something that turns the object. Angles are spinscan's `table_deg`: counterclockwise

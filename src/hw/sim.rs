@@ -44,12 +44,24 @@ pub struct SimCameras {
     calib: StereoCalib,
     /// Ground truth of the last delivered frame (for recordings with `gt/`).
     last: Option<hw_sim::RenderedPair>,
+    /// A calibration board shown instead of the object ([`StereoSource::show_target`]).
+    target: Option<super::sim_target::TargetMode>,
+    /// Frame rate and pacing of the target's frames (the object's come from `camera`).
+    fps: f64,
+    paced: bool,
 }
 
 impl SimCameras {
     pub fn new(camera: hw_sim::SimStereoCamera) -> SimCameras {
         let calib = calib_of(&camera.renderer().scene().rig);
-        SimCameras { camera, calib, last: None }
+        SimCameras { camera, calib, last: None, target: None, fps: 15.0, paced: false }
+    }
+
+    /// The rate a shown calibration board is delivered at, and whether in real time.
+    pub fn with_pace(mut self, fps: f64, paced: bool) -> SimCameras {
+        self.fps = fps;
+        self.paced = paced;
+        self
     }
 
     /// The rendered pair behind the last frame: its ground-truth pose and disparity.
@@ -71,7 +83,16 @@ impl StereoSource for SimCameras {
         &self.calib
     }
 
+    fn show_target(&mut self, target: Option<super::TargetScene>) -> bool {
+        let seed = self.camera.renderer().scene().seed;
+        self.target = target.map(|t| super::sim_target::TargetMode::new(&self.camera.renderer().scene().rig, &t, self.fps, self.paced, seed));
+        true
+    }
+
     fn next_frame(&mut self) -> Result<Option<StereoFrame>, CaptureError> {
+        if let Some(t) = &mut self.target {
+            return Ok(Some(t.frame(self.camera.angle().get())));
+        }
         let f = self.camera.next_frame().map_err(|e| match e {
             hw_sim::SimCameraError::NoFrame { camera, waited_ms } => CaptureError::NoFrame { camera: camera.to_string(), waited_ms },
             hw_sim::SimCameraError::Disconnected { camera } => CaptureError::Disconnected { camera: camera.to_string() },
@@ -196,7 +217,7 @@ impl SimLab {
         let timing = hw_sim::Timing { fps, ..Default::default() };
         let camera = hw_sim::SimStereoCamera::new(renderer, timing, angle).realtime(s.realtime);
         let driver = HorusTurntable::open(emulator.port_path(), driver)?;
-        Ok(SimLab { cameras: SimCameras::new(camera), turntable: SimTurntable { driver, _emulator: emulator } })
+        Ok(SimLab { cameras: SimCameras::new(camera).with_pace(fps, s.realtime), turntable: SimTurntable { driver, _emulator: emulator } })
     }
 }
 

@@ -149,3 +149,61 @@ fn board_on_table(b: &hw_sim::Chessboard) -> hw_sim::Pose {
     let width = (b.cols as f64 - 1.0) * b.square_mm;
     hw_sim::Pose { r, t: [-width / 2.0 + 1.3 * b.square_mm, y1, 1.2 * b.square_mm] }
 }
+
+/// A board in front of the simulated cameras during a daemon's calibration capture: held
+/// up and moved to a new pose about once a second, or standing on the turntable.
+pub struct TargetMode {
+    renderer: hw_sim::TargetRenderer,
+    board: hw_sim::Chessboard,
+    /// Held: the poses it is moved through; on the table: the table's pose and the board's on it.
+    held: Vec<hw_sim::Pose>,
+    table: Option<(hw_sim::Pose, hw_sim::Pose)>,
+    frames: u64,
+    period: std::time::Duration,
+    last: Option<std::time::Instant>,
+    seed: u64,
+}
+
+impl TargetMode {
+    /// The board `scene` describes, for `rig`, delivered at `fps` when `paced`.
+    pub fn new(rig: &hw_sim::Rig, scene: &super::TargetScene, fps: f64, paced: bool, seed: u64) -> TargetMode {
+        let board = hw_sim::Chessboard { cols: scene.cols, rows: scene.rows, square_mm: scene.square_mm };
+        let (held, table) = if scene.on_table {
+            let (cam_from_table, _) = table_geometry(rig, &board);
+            (Vec::new(), Some((cam_from_table, board_on_table(&board))))
+        } else {
+            // Far enough that the board fits both images whatever its size.
+            let size = (board.cols.max(board.rows) as f64 + 3.0) * board.square_mm;
+            let distance = (size * rig.left.fx / (0.45 * rig.width as f64)).max(300.0);
+            (hw_sim::target::stereo_poses(rig, &board, 40, distance, seed), None)
+        };
+        let period = if paced && fps > 0.0 { std::time::Duration::from_secs_f64(1.0 / fps) } else { std::time::Duration::ZERO };
+        TargetMode { renderer: hw_sim::TargetRenderer::new(*rig), board, held, table, frames: 0, period, last: None, seed }
+    }
+
+    /// The next pair at the table's angle `table_deg`.
+    pub fn frame(&mut self, table_deg: f64) -> StereoFrame {
+        if let Some(last) = self.last {
+            if let Some(wait) = self.period.checked_sub(last.elapsed()) {
+                std::thread::sleep(wait);
+            }
+        }
+        self.last = Some(std::time::Instant::now());
+        let pose = match (&self.table, self.held.is_empty()) {
+            (Some((cam_from_table, table_from_board)), _) => {
+                let turn = hw_sim::Pose { r: hw_sim::math::rotation([0.0, 1.0, 0.0], table_deg.to_radians()), t: [0.0; 3] };
+                cam_from_table.compose(&turn).compose(table_from_board)
+            }
+            // A new pose every 15 frames (about a second at the cameras' rate).
+            (None, false) => self.held[(self.frames / 15) as usize % self.held.len()],
+            // No pose keeps the board in view: it stays out of sight.
+            (None, true) => hw_sim::Pose { r: hw_sim::math::IDENTITY, t: [0.0, 0.0, -1000.0] },
+        };
+        let pair = self.renderer.render(&self.board, &pose, 1.5, self.seed.wrapping_add(self.frames));
+        let t = super::frame::monotonic_ns();
+        let picture = |data: Vec<u8>| Picture::Raw { width: pair.width, height: pair.height, channels: 1, data };
+        let frame = StereoFrame { seq: self.frames, left: picture(pair.left), right: picture(pair.right), t_left_ns: t, t_right_ns: t, table_deg: Some(table_deg) };
+        self.frames += 1;
+        frame
+    }
+}
