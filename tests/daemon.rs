@@ -275,3 +275,66 @@ fn the_cli_drives_the_daemon() {
     assert_eq!(out.status.code(), Some(5));
     assert!(String::from_utf8_lossy(&out.stderr).contains("cannot connect to spinscand"));
 }
+
+/// The lab's calibration workflow on the simulated lab: the rig from a board held up to the
+/// cameras, then the axis from the board standing on the table, each kept pair recorded and
+/// the results under `calibrations/NAME/`; a second capture, a scan meanwhile and bad
+/// parameters are refused with their codes.
+#[test]
+fn calibration_capture_through_the_socket() {
+    let dir = support::temp_dir("daemon-calib");
+    let config = support::daemon::small_config(&dir, "");
+    let text = std::fs::read_to_string(&config).unwrap().replace("width = 160", "width = 320").replace("height = 120", "height = 240");
+    std::fs::write(&config, text).unwrap();
+    let d = Daemon::start_config(&dir, &config, &[]);
+    let (mut c, _) = Client::connect(&d.socket);
+    c.ok("events.subscribe", json!({}));
+    let (code, msg) = c.error_code("calib.capture", json!({"name": "rig", "kind": "spiral", "square_mm": 20}));
+    assert_eq!(code, -32602, "{msg}");
+    assert!(msg.contains("`kind`"), "{msg}");
+    let (code, _) = c.error_code("calib.capture", json!({"name": "rig"}));
+    assert_eq!(code, -32602, "square_mm is required");
+
+    let started = c.ok("calib.capture", json!({"name": "rig", "count": 6, "square_mm": 20}));
+    assert_eq!(started["count"], 6);
+    let (code, msg) = c.error_code("scan.start", json!({"name": "during"}));
+    assert_eq!(code, -32000, "{msg}");
+    assert!(msg.contains("calibration rig is capturing"), "{msg}");
+    let (code, _) = c.error_code("calib.capture", json!({"name": "other", "square_mm": 20}));
+    assert_eq!(code, -32000);
+    let end = until_calibrated(&mut c, "rig");
+    assert_eq!(end["status"], "complete", "{end}");
+    assert_eq!(end["result"]["pairs"], 6);
+    assert!(end["result"]["rms_stereo"].as_f64().unwrap() < 0.2, "{end}");
+    let folder = d.state.join("calibrations/rig");
+    let calib = spinscan::calib::StereoCalib::load(&folder.join("calib.yaml")).unwrap();
+    assert!((calib.t_mm.norm() - 60.0).abs() < 0.5, "{}", calib.t_mm);
+    assert_eq!(jsonl(&folder.join("pairs/frames.jsonl")).len(), 6);
+    assert!(c.events.iter().any(|e| e["method"] == "calib.progress" && e["params"]["kept"] == 3));
+    // Calibrations are not scans.
+    assert_eq!(c.ok("scan.list", json!({}))["scans"], json!([]));
+
+    c.ok("calib.capture", json!({"name": "axis", "kind": "turntable", "count": 5, "sweep_deg": 40, "square_mm": 20}));
+    let end = until_calibrated(&mut c, "axis");
+    assert_eq!(end["status"], "complete", "{end}");
+    let dir_up = end["result"]["axis_dir"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect::<Vec<_>>();
+    // The simulated cameras look down 12°: up is (0, −cos 12°, −sin 12°) in the camera frame.
+    let want = [0.0, -(12f64.to_radians().cos()), -(12f64.to_radians().sin())];
+    let cos = dir_up.iter().zip(want).map(|(a, b)| a * b).sum::<f64>();
+    assert!(cos.acos().to_degrees() < 0.2, "{dir_up:?}");
+    let frames = jsonl(&d.state.join("calibrations/axis/pairs/frames.jsonl"));
+    let angles: Vec<f64> = frames.iter().map(|f| f["table_deg"].as_f64().unwrap()).collect();
+    assert!((angles[0] + 40.0).abs() < 0.1 && (angles[4] - 40.0).abs() < 0.1, "{angles:?}");
+    let (code, _) = c.error_code("calib.capture", json!({"name": "axis", "square_mm": 20}));
+    assert_eq!(code, -32004, "the name is taken");
+}
+
+fn until_calibrated(c: &mut Client, name: &str) -> Value {
+    loop {
+        let v = c.line();
+        c.events.push(v.clone());
+        if v["method"] == "calib.state" && v["params"]["name"] == name && v["params"]["status"] != "running" {
+            return v["params"].clone();
+        }
+    }
+}

@@ -207,8 +207,10 @@ pub fn stereo_poses(rig: &Rig, board: &Chessboard, count: usize, distance_mm: f6
     };
     let mut attempts = 0;
     while out.len() < count && attempts < count * 400 {
+        // Slots in turn per attempt: one no pose can fill (the board too large for a corner
+        // of both images) is skipped, not retried for ever.
+        let slot = attempts % 9;
         attempts += 1;
-        let slot = out.len() % 9;
         let (gx, gy) = ((slot % 3) as f64 - 1.0, (slot / 3) as f64 - 1.0);
         let z = distance_mm * (0.85 + 0.3 * rng.unit());
         // Where the board's centre should be: a third of the way from the centre to the edge

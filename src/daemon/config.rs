@@ -121,6 +121,9 @@ pub struct CameraSection {
     /// The rig's calibration (recording spec `calib.yaml`, or OpenCV intrinsics.yml +
     /// extrinsics.yml named by the intrinsics file).
     pub calibration: PathBuf,
+    /// The turntable's axis (`turntable.yaml` from `spinscan calibrate turntable`); empty =
+    /// none: scans then estimate it from the views.
+    pub turntable_axis: PathBuf,
     pub width: u32,
     pub height: u32,
     pub fps: u32,
@@ -147,6 +150,7 @@ impl Default for CameraSection {
             left: "/dev/spinscan-left".into(),
             right: "/dev/spinscan-right".into(),
             calibration: "/etc/spinscan/calib.yaml".into(),
+            turntable_axis: PathBuf::new(),
             width: 640,
             height: 480,
             fps: 15,
@@ -426,6 +430,9 @@ impl Config {
         if let Err(e) = crate::hw::sim::check_object(&self.sim.object) {
             return bad("sim.object", e.to_string());
         }
+        if let Err(e) = self.turntable_axis() {
+            return bad("cameras.turntable_axis", e);
+        }
         Ok(())
     }
 
@@ -457,7 +464,22 @@ impl Config {
             record: true,
             pace_hz: (config.backend.kind == BackendKind::Replay && config.backend.replay_paced).then_some(config.cameras.fps as f64),
             register_newest_when_behind: false,
+            // Checked by `validate`; a file gone since is a warning and no axis.
+            calibrated_axis: config.turntable_axis().unwrap_or_else(|e| {
+                tracing::warn!("cameras.turntable_axis: {e}; scans estimate the axis from the views");
+                None
+            }),
         }
+    }
+
+    /// The calibrated turntable axis, when `cameras.turntable_axis` names one.
+    pub fn turntable_axis(&self) -> Result<Option<crate::recording::TurntableAxis>, String> {
+        let path = &self.cameras.turntable_axis;
+        if path.as_os_str().is_empty() {
+            return Ok(None);
+        }
+        let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e} (expected a turntable.yaml from `spinscan calibrate turntable`, or \"\" for none)", path.display()))?;
+        crate::recording::TurntableAxis::parse(path, &text).map(Some).map_err(|e| e.to_string())
     }
 
     /// The socket's permission bits.

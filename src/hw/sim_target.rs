@@ -174,7 +174,7 @@ impl TargetMode {
         } else {
             // Far enough that the board fits both images whatever its size.
             let size = (board.cols.max(board.rows) as f64 + 3.0) * board.square_mm;
-            let distance = (size * rig.left.fx / (0.45 * rig.width as f64)).max(300.0);
+            let distance = (size * rig.left.fx / (0.4 * rig.width as f64)).max(300.0);
             (hw_sim::target::stereo_poses(rig, &board, 40, distance, seed), None)
         };
         let period = if paced && fps > 0.0 { std::time::Duration::from_secs_f64(1.0 / fps) } else { std::time::Duration::ZERO };
@@ -194,8 +194,8 @@ impl TargetMode {
                 let turn = hw_sim::Pose { r: hw_sim::math::rotation([0.0, 1.0, 0.0], table_deg.to_radians()), t: [0.0; 3] };
                 cam_from_table.compose(&turn).compose(table_from_board)
             }
-            // A new pose every 15 frames (about a second at the cameras' rate).
-            (None, false) => self.held[(self.frames / 15) as usize % self.held.len()],
+            // A new pose about every second at the cameras' rate (every other frame unpaced).
+            (None, false) => self.held[(self.frames / if self.period.is_zero() { 2 } else { 15 }) as usize % self.held.len()],
             // No pose keeps the board in view: it stays out of sight.
             (None, true) => hw_sim::Pose { r: hw_sim::math::IDENTITY, t: [0.0, 0.0, -1000.0] },
         };

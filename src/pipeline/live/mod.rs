@@ -80,6 +80,11 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
             Ok(w) => w,
             Err(e) => return ScanEnd::failed(ScanError::RecordingStart(e)),
         };
+        if let Some(axis) = &settings.calibrated_axis {
+            if let Err(e) = writer.write_turntable(axis, false) {
+                return ScanEnd::failed(ScanError::RecordingStart(e));
+            }
+        }
         let sh = shared.clone();
         Some(
             std::thread::Builder::new()
@@ -253,6 +258,7 @@ mod tests {
             record: true,
             pace_hz: None,
             register_newest_when_behind: false,
+            calibrated_axis: None,
         };
         let end = run(&mut devices, shared, &settings);
         assert_eq!(end.status, "failed");
@@ -389,6 +395,7 @@ mod tests {
             record: false,
             pace_hz: None,
             register_newest_when_behind: false,
+            calibrated_axis: None,
         };
         capture::capture(&mut devices, &shared, first, &jobs, &jobs_rx, &notes, &recorder, &settings).unwrap();
         let angles: Vec<Option<f64>> = jobs_rx.try_iter().map(|j| j.frame.table_deg).collect();

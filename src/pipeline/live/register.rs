@@ -48,7 +48,7 @@ fn register_all(
     shared: &Arc<ScanShared>,
     settings: &PipelineSettings,
 ) -> Result<(), ScanError> {
-    let mut registrar = settings.registration.clone().map(|p| crate::pipeline::registrar(p, None, store));
+    let mut registrar = settings.registration.clone().map(|p| crate::pipeline::registrar(p, settings.calibrated_axis.as_ref(), store));
     // The live surface (fusion.rs): registered views, fused as their poses are published.
     let live = match (&registrar, ModelOptions::default().mesh) {
         (Some(_), Some(params)) => Some(LiveFusion::start(shared.clone(), params, REGISTER_NICE + 2)),

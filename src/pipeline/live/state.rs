@@ -184,6 +184,9 @@ pub struct PipelineSettings {
     /// When registration is behind, register only the newest view (always so in continuous
     /// scans; step scans register every view unless this is set).
     pub register_newest_when_behind: bool,
+    /// The calibrated turntable axis: registration uses it, and the recording keeps it as
+    /// its `turntable.yaml` (so a replay does too).
+    pub calibrated_axis: Option<crate::recording::TurntableAxis>,
 }
 
 /// Live counters of a scan, read by `status` and `scan.progress`.
