@@ -4,7 +4,7 @@
 
 use serde::Serialize;
 
-use super::board::{self, BoardCorners, BoardSize, DetectParams};
+use super::board::{self, BoardCorners, BoardSize, DetectFailure, DetectParams};
 use super::solve::{self, board_points, LensModel, SolveError, StereoSolution, TargetView};
 use crate::stereo::GrayView;
 
@@ -27,16 +27,27 @@ pub struct FoundPair {
     pub right: BoardCorners,
 }
 
+/// Why a pair was not kept: the image(s) without a board, and why.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PairRejected {
+    #[error("{name}: {why}")]
+    One { name: String, why: DetectFailure },
+    #[error("{left} and {right}: {why}")]
+    BothAlike { left: String, right: String, why: DetectFailure },
+    #[error("{left}: {left_why}; {right}: {right_why}")]
+    Both { left: String, left_why: DetectFailure, right: String, right_why: DetectFailure },
+}
+
 /// Finds the board in both images of a pair; the error names the image(s) and why.
-pub fn find_pair(job: &StereoJob, left_name: &str, left: &GrayView, right_name: &str, right: &GrayView) -> Result<FoundPair, String> {
+pub fn find_pair(job: &StereoJob, left_name: &str, left: &GrayView, right_name: &str, right: &GrayView) -> Result<FoundPair, PairRejected> {
     let l = board::detect(left, job.board, &job.detect);
     let r = board::detect(right, job.board, &job.detect);
     match (l, r) {
         (Ok(left), Ok(right)) => Ok(FoundPair { left_name: left_name.to_string(), right_name: right_name.to_string(), left, right }),
-        (Err(e), Ok(_)) => Err(format!("{left_name}: {e}")),
-        (Ok(_), Err(e)) => Err(format!("{right_name}: {e}")),
-        (Err(a), Err(b)) if a == b => Err(format!("{left_name} and {right_name}: {a}")),
-        (Err(a), Err(b)) => Err(format!("{left_name}: {a}; {right_name}: {b}")),
+        (Err(why), Ok(_)) => Err(PairRejected::One { name: left_name.to_string(), why }),
+        (Ok(_), Err(why)) => Err(PairRejected::One { name: right_name.to_string(), why }),
+        (Err(a), Err(b)) if a == b => Err(PairRejected::BothAlike { left: left_name.to_string(), right: right_name.to_string(), why: a }),
+        (Err(left_why), Err(right_why)) => Err(PairRejected::Both { left: left_name.to_string(), left_why, right: right_name.to_string(), right_why }),
     }
 }
 

@@ -11,6 +11,7 @@
 pub mod board;
 pub mod distortion;
 pub mod filestorage;
+mod grid;
 pub mod job;
 pub mod lm;
 pub mod solve;

@@ -286,7 +286,7 @@ pub fn cmd_stereo(a: StereoArgs) -> Result<(), Failure> {
             Ok(p) => found.push(p),
             Err(why) => {
                 tracing::warn!("{why} — pair left out");
-                rejected.push((ln, rn, why));
+                rejected.push((ln, rn, why.to_string()));
             }
         }
     }

@@ -107,7 +107,7 @@ pub struct DemoArgs {
 }
 
 /// `sim render --target`.
-#[derive(Clone, Copy, clap::ValueEnum)]
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum TargetArg {
     Chessboard,
     ChessboardOnTable,
@@ -167,7 +167,7 @@ fn render_target(a: &SimRenderArgs, target: TargetArg) -> Result<(), Failure> {
             TargetArg::Chessboard => TargetKind::Chessboard,
             TargetArg::ChessboardOnTable => TargetKind::ChessboardOnTable,
         },
-        board: hw_sim::Chessboard { cols: a.board.cols, rows: a.board.rows, square_mm: a.square_mm },
+        board: spinscan::hw::TargetScene { cols: a.board.cols, rows: a.board.rows, square_mm: a.square_mm, on_table: target == TargetArg::ChessboardOnTable },
         frames: a.frames,
         ideal: a.ideal,
         seed: a.seed,

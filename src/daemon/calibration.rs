@@ -31,6 +31,37 @@ use crate::stereo::GrayView;
 /// The folder under the state folder that holds calibrations (not a scan name).
 pub const CALIBRATIONS: &str = "calibrations";
 
+/// Why a calibration capture could not start, or ended without a result.
+#[derive(Debug, thiserror::Error)]
+pub enum CaptureError {
+    #[error(transparent)]
+    Board(#[from] crate::calib::board::BoardSizeError),
+    #[error("{0}")]
+    Name(#[from] crate::pipeline::live::SpecError),
+    #[error("`{key}` must be {expected}, got {got}")]
+    Param { key: &'static str, expected: String, got: String },
+    #[error("pair {seq}: {source}")]
+    Decode { seq: u64, source: crate::hw::DecodeError },
+    #[error("pair {seq}: its images differ in size")]
+    Size { seq: u64 },
+    #[error("cameras: {0}")]
+    Cameras(#[from] crate::hw::CaptureError),
+    #[error("turntable: {0}")]
+    Turntable(#[from] crate::hw::TurntableError),
+    #[error("this backend has no turntable to turn the board with")]
+    NoTurntable,
+    #[error("cannot record the pairs: {0}")]
+    Record(#[from] crate::recording::RecordingError),
+    #[error("boards found in {found} of {seen} pairs (needs at least {needed}){}", .last.as_ref().map(|r| format!("; the last pair rejected: {r}")).unwrap_or_default())]
+    TooFew { found: usize, seen: usize, needed: usize, last: Option<String> },
+    #[error(transparent)]
+    Solve(#[from] crate::calib::solve::SolveError),
+    #[error(transparent)]
+    Axis(#[from] crate::calib::turntable::AxisError),
+    #[error("cannot write {path}: {source}")]
+    Write { path: PathBuf, source: std::io::Error },
+}
+
 /// `calib.capture`'s parameters, checked.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CaptureSpec {
@@ -49,32 +80,33 @@ pub struct CaptureSpec {
 
 impl CaptureSpec {
     /// The board size, parsed.
-    pub fn board_size(&self) -> Result<BoardSize, String> {
-        self.board.parse()
+    pub fn board_size(&self) -> Result<BoardSize, CaptureError> {
+        Ok(self.board.parse()?)
     }
 
     /// Checks every field; the error names it and what it takes.
-    pub fn validate(&self) -> Result<(), String> {
-        crate::pipeline::live::validate_name(&self.name).map_err(|e| e.to_string())?;
+    pub fn validate(&self) -> Result<(), CaptureError> {
+        crate::pipeline::live::validate_name(&self.name)?;
         self.board_size()?;
+        let bad = |key: &'static str, expected: String, got: String| Err(CaptureError::Param { key, expected, got });
         if !matches!(self.kind.as_str(), "stereo" | "turntable") {
-            return Err(format!("`kind` must be \"stereo\" or \"turntable\", got {:?}", self.kind));
+            return bad("kind", "\"stereo\" or \"turntable\"".into(), format!("{:?}", self.kind));
         }
         if !(self.square_mm.is_finite() && self.square_mm > 0.0 && self.square_mm < 1000.0) {
-            return Err(format!("`square_mm` must be the printed square's side in mm (0 … 1000), got {}", self.square_mm));
+            return bad("square_mm", "the printed square's side in mm (0 … 1000)".into(), self.square_mm.to_string());
         }
         let least = if self.kind == "stereo" { MIN_VIEWS } else { 3 };
         if !(least..=500).contains(&self.count) {
-            return Err(format!("`count` must be {least} … 500 pairs, got {}", self.count));
+            return bad("count", format!("{least} … 500 pairs"), self.count.to_string());
         }
         if LensModel::from_count(self.model).is_none() {
-            return Err(format!("`model` must be 5, 8 or 14 coefficients, got {}", self.model));
+            return bad("model", "5, 8 or 14 coefficients".into(), self.model.to_string());
         }
         if !(self.sweep_deg.is_finite() && (10.0..=170.0).contains(&self.sweep_deg)) {
-            return Err(format!("`sweep_deg` must be 10 … 170 degrees, got {}", self.sweep_deg));
+            return bad("sweep_deg", "10 … 170 degrees".into(), self.sweep_deg.to_string());
         }
         if self.max_pairs < self.count {
-            return Err(format!("`max_pairs` ({}) must be at least `count` ({})", self.max_pairs, self.count));
+            return bad("max_pairs", format!("at least `count` ({})", self.count), self.max_pairs.to_string());
         }
         Ok(())
     }
@@ -132,8 +164,8 @@ pub struct CaptureEnd {
     pub result: Value,
 }
 
-fn gray(p: &Picture) -> Result<(usize, usize, Vec<u8>), String> {
-    let (w, h, rgb) = p.to_rgb().map_err(|e| e.to_string())?;
+fn gray(seq: u64, p: &Picture) -> Result<(usize, usize, Vec<u8>), CaptureError> {
+    let (w, h, rgb) = p.to_rgb().map_err(|source| CaptureError::Decode { seq, source })?;
     Ok((w, h, crate::io::rgb_to_gray(&rgb)))
 }
 
@@ -145,16 +177,17 @@ fn moved(a: &[[f64; 2]], b: &[[f64; 2]]) -> f64 {
 /// Runs the capture on `devices` to its end (the devices are the daemon's for its duration).
 pub fn run(devices: &mut Devices, shared: &CaptureShared) -> CaptureEnd {
     let spec = &shared.spec;
+    let failed = |e: CaptureError| CaptureEnd { status: "failed", reason: Some(e.to_string()), result: Value::Null };
     let board = match spec.board_size() {
         Ok(b) => b,
-        Err(e) => return CaptureEnd { status: "failed", reason: Some(e), result: Value::Null },
+        Err(e) => return failed(e),
     };
     let model = LensModel::from_count(spec.model).unwrap_or(LensModel::Five);
     let job = StereoJob { board, square_mm: spec.square_mm, model, detect: DetectParams::default() };
     let calib = devices.source.calibration().clone();
     let mut writer = match RecordingWriter::create(&shared.dir.join("pairs"), &calib) {
         Ok(w) => w,
-        Err(e) => return CaptureEnd { status: "failed", reason: Some(format!("cannot record the pairs: {e}")), result: Value::Null },
+        Err(e) => return failed(e.into()),
     };
     let on_table = spec.kind == "turntable";
     let simulated = devices.source.show_target(Some(TargetScene { cols: board.cols, rows: board.rows, square_mm: spec.square_mm, on_table }));
@@ -171,7 +204,7 @@ pub fn run(devices: &mut Devices, shared: &CaptureShared) -> CaptureEnd {
     }
     let (found, rejected, tables, size) = match end {
         Ok(v) => v,
-        Err(e) => return CaptureEnd { status: "failed", reason: Some(e), result: Value::Null },
+        Err(e) => return failed(e),
     };
     let interrupted = shared.stopped();
     let status = if interrupted { "interrupted" } else { "complete" };
@@ -179,7 +212,7 @@ pub fn run(devices: &mut Devices, shared: &CaptureShared) -> CaptureEnd {
     let solved = if on_table { solve_axis(shared, &job, &calib, &found, &tables) } else { solve_rig(shared, &job, size, &found, &rejected) };
     match solved {
         Ok(result) => CaptureEnd { status, reason, result },
-        Err(e) => CaptureEnd { status: "failed", reason: Some(e), result: Value::Null },
+        Err(e) => failed(e),
     }
 }
 
@@ -187,7 +220,7 @@ pub fn run(devices: &mut Devices, shared: &CaptureShared) -> CaptureEnd {
 /// kept ones, and the image size.
 type Captured = (Vec<FoundPair>, Vec<(String, String, String)>, Vec<f64>, (u32, u32));
 
-fn capture(devices: &mut Devices, shared: &CaptureShared, job: &StereoJob, writer: &mut RecordingWriter, on_table: bool) -> Result<Captured, String> {
+fn capture(devices: &mut Devices, shared: &CaptureShared, job: &StereoJob, writer: &mut RecordingWriter, on_table: bool) -> Result<Captured, CaptureError> {
     let spec = &shared.spec;
     let (mut found, mut rejected, mut tables) = (Vec::new(), Vec::new(), Vec::new());
     let mut size = (0u32, 0u32);
@@ -195,13 +228,13 @@ fn capture(devices: &mut Devices, shared: &CaptureShared, job: &StereoJob, write
     let mut last_reason: Option<String> = None;
     let angles: Vec<f64> = (0..spec.count).map(|k| -spec.sweep_deg + 2.0 * spec.sweep_deg * k as f64 / (spec.count - 1).max(1) as f64).collect();
     if on_table && devices.turntable.is_none() {
-        return Err("this backend has no turntable to turn the board with".into());
+        return Err(CaptureError::NoTurntable);
     }
     while found.len() < spec.count && !shared.stopped() {
         let table_deg = if on_table {
             let Some(&target) = angles.get(seen) else { break };
             let t = devices.turntable.as_mut().expect("checked above");
-            Some(t.move_to(target).map_err(|e| format!("turntable: {e}"))?)
+            Some(t.move_to(target)?)
         } else {
             if seen >= spec.max_pairs {
                 break;
@@ -209,7 +242,7 @@ fn capture(devices: &mut Devices, shared: &CaptureShared, job: &StereoJob, write
             None
         };
         let frame = if on_table { devices.source.fresh_frame() } else { devices.source.next_frame() };
-        let mut frame: StereoFrame = match frame.map_err(|e| format!("cameras: {e}"))? {
+        let mut frame: StereoFrame = match frame? {
             Some(f) => f,
             None => break,
         };
@@ -217,17 +250,22 @@ fn capture(devices: &mut Devices, shared: &CaptureShared, job: &StereoJob, write
         if table_deg.is_some() {
             frame.table_deg = table_deg;
         }
-        let (names, pair) = match (gray(&frame.left), gray(&frame.right)) {
-            (Ok(l), Ok(r)) => ((format!("left {}", frame.seq), format!("right {}", frame.seq)), (l, r)),
+        let (names, pair) = match (gray(frame.seq, &frame.left), gray(frame.seq, &frame.right)) {
+            (Ok(l), Ok(r)) if (l.0, l.1) == (r.0, r.1) => ((format!("left {}", frame.seq), format!("right {}", frame.seq)), (l, r)),
+            (Ok(_), Ok(_)) => {
+                last_reason = Some(CaptureError::Size { seq: frame.seq }.to_string());
+                shared.update(found.len(), seen, last_reason.as_deref(), json!({}));
+                continue;
+            }
             (Err(e), _) | (_, Err(e)) => {
-                last_reason = Some(format!("pair {}: {e}", frame.seq));
+                last_reason = Some(e.to_string());
                 shared.update(found.len(), seen, last_reason.as_deref(), json!({}));
                 continue;
             }
         };
         let (l, r) = pair;
-        let lv = GrayView::new(l.0, l.1, &l.2).ok_or("a frame of the wrong size")?;
-        let rv = GrayView::new(r.0, r.1, &r.2).ok_or("a frame of the wrong size")?;
+        let lv = GrayView::new(l.0, l.1, &l.2).expect("decoded to its size");
+        let rv = GrayView::new(r.0, r.1, &r.2).expect("decoded to its size");
         match job::find_pair(job, &names.0, &lv, &names.1, &rv) {
             Ok(p) => {
                 // Held by hand: keep a pair only once the board has moved (5 % of the image
@@ -236,7 +274,7 @@ fn capture(devices: &mut Devices, shared: &CaptureShared, job: &StereoJob, write
                 if still {
                     continue;
                 }
-                writer.append(&frame).map_err(|e| format!("cannot record pair {}: {e}", frame.seq))?;
+                writer.append(&frame)?;
                 size = (l.0 as u32, l.1 as u32);
                 tables.push(frame.table_deg.unwrap_or(0.0));
                 found.push(p);
@@ -244,31 +282,30 @@ fn capture(devices: &mut Devices, shared: &CaptureShared, job: &StereoJob, write
             }
             Err(why) => {
                 if on_table {
-                    rejected.push((names.0, names.1, why.clone()));
+                    rejected.push((names.0, names.1, why.to_string()));
                 }
-                last_reason = Some(why);
+                last_reason = Some(why.to_string());
             }
         }
         shared.update(found.len(), seen, last_reason.as_deref(), json!({"table_deg": frame.table_deg}));
     }
     if found.len() < spec.count && !shared.stopped() {
-        let why = last_reason.map(|r| format!("; the last pair rejected: {r}")).unwrap_or_default();
         let least = if on_table { 3 } else { MIN_VIEWS };
         if found.len() < least {
-            return Err(format!("boards found in {} of {seen} pairs (needs at least {least}){why}", found.len()));
+            return Err(CaptureError::TooFew { found: found.len(), seen, needed: least, last: last_reason });
         }
-        tracing::warn!("only {} of {} pairs kept after {seen} seen{why}; solving with those", found.len(), spec.count);
+        tracing::warn!("only {} of {} pairs kept after {seen} seen; solving with those", found.len(), spec.count);
     }
     Ok((found, rejected, tables, size))
 }
 
-fn write(shared: &CaptureShared, file: &str, text: &str) -> Result<(), String> {
+fn write(shared: &CaptureShared, file: &str, text: &str) -> Result<(), CaptureError> {
     let path = shared.dir.join(file);
-    crate::io::write_atomic(&path, text.as_bytes()).map_err(|e| format!("cannot write {}: {e}", path.display()))
+    crate::io::write_atomic(&path, text.as_bytes()).map_err(|source| CaptureError::Write { path, source })
 }
 
-fn solve_rig(shared: &CaptureShared, job: &StereoJob, size: (u32, u32), found: &[FoundPair], rejected: &[(String, String, String)]) -> Result<Value, String> {
-    let (sol, report) = job::calibrate(job, size, found, rejected).map_err(|e| e.to_string())?;
+fn solve_rig(shared: &CaptureShared, job: &StereoJob, size: (u32, u32), found: &[FoundPair], rejected: &[(String, String, String)]) -> Result<Value, CaptureError> {
+    let (sol, report) = job::calibrate(job, size, found, rejected)?;
     write(shared, "calib.yaml", &job::calib_yaml(&sol))?;
     write(shared, "report.json", &serde_json::to_string_pretty(&report).expect("plain numbers"))?;
     Ok(json!({
@@ -278,14 +315,14 @@ fn solve_rig(shared: &CaptureShared, job: &StereoJob, size: (u32, u32), found: &
     }))
 }
 
-fn solve_axis(shared: &CaptureShared, job: &StereoJob, calib: &crate::calib::StereoCalib, found: &[FoundPair], tables: &[f64]) -> Result<Value, String> {
+fn solve_axis(shared: &CaptureShared, job: &StereoJob, calib: &crate::calib::StereoCalib, found: &[FoundPair], tables: &[f64]) -> Result<Value, CaptureError> {
     let object = board_points(job.board.cols, job.board.rows, job.square_mm);
     let pairs: Vec<TablePair> = found
         .iter()
         .zip(tables)
         .map(|(p, &deg)| TablePair { table_deg: deg, left: TargetView { object: object.clone(), image: p.left.points.clone() }, right: TargetView { object: object.clone(), image: p.right.points.clone() } })
         .collect();
-    let fit = fit_axis(calib, &pairs).map_err(|e| e.to_string())?;
+    let fit = fit_axis(calib, &pairs)?;
     let axis = TurntableAxis { axis_point_mm: fit.point_mm.into(), axis_dir: fit.dir.into(), source: "calibrated".into() };
     write(shared, "turntable.yaml", &format!("{}rms_px: {:.6}\npairs: {}\n", axis.to_yaml(), fit.rms_px, pairs.len()))?;
     let report = json!({

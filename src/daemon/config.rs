@@ -431,7 +431,7 @@ impl Config {
             return bad("sim.object", e.to_string());
         }
         if let Err(e) = self.turntable_axis() {
-            return bad("cameras.turntable_axis", e);
+            return bad("cameras.turntable_axis", format!("{e} (expected a turntable.yaml from `spinscan calibrate turntable`, or \"\" for none)"));
         }
         Ok(())
     }
@@ -473,13 +473,13 @@ impl Config {
     }
 
     /// The calibrated turntable axis, when `cameras.turntable_axis` names one.
-    pub fn turntable_axis(&self) -> Result<Option<crate::recording::TurntableAxis>, String> {
+    pub fn turntable_axis(&self) -> Result<Option<crate::recording::TurntableAxis>, crate::recording::RecordingError> {
         let path = &self.cameras.turntable_axis;
         if path.as_os_str().is_empty() {
             return Ok(None);
         }
-        let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e} (expected a turntable.yaml from `spinscan calibrate turntable`, or \"\" for none)", path.display()))?;
-        crate::recording::TurntableAxis::parse(path, &text).map(Some).map_err(|e| e.to_string())
+        let text = std::fs::read_to_string(path).map_err(|source| crate::recording::RecordingError::Io { path: path.clone(), source })?;
+        crate::recording::TurntableAxis::parse(path, &text).map(Some)
     }
 
     /// The socket's permission bits.

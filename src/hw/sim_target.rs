@@ -13,8 +13,8 @@ use std::path::Path;
 use serde_json::json;
 
 use super::frame::{Picture, StereoFrame};
-use super::sim::{calib_of, SimError};
-use crate::recording::{RecordingWriter, TurntableAxis};
+use super::sim::{board_on_table, calib_of, table_geometry, SimError};
+use crate::recording::RecordingWriter;
 
 /// Which target recording.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -29,7 +29,8 @@ pub enum TargetKind {
 #[derive(Debug, Clone)]
 pub struct TargetOptions {
     pub kind: TargetKind,
-    pub board: hw_sim::Chessboard,
+    /// The board: inner corners along a row, rows, and the square's side in mm.
+    pub board: super::TargetScene,
     pub frames: usize,
     pub ideal: bool,
     pub seed: u64,
@@ -45,7 +46,7 @@ impl Default for TargetOptions {
     fn default() -> Self {
         TargetOptions {
             kind: TargetKind::Chessboard,
-            board: hw_sim::Chessboard { cols: 9, rows: 6, square_mm: 20.0 },
+            board: super::TargetScene { cols: 9, rows: 6, square_mm: 20.0, on_table: false },
             frames: 20,
             ideal: false,
             seed: 1,
@@ -66,7 +67,7 @@ pub fn render_target_recording(opts: &TargetOptions, out: &Path, progress: &mut 
     if w < 160 || h < 120 {
         return Err(SimError::Option { what: "image size", expected: "at least 160×120 for a target", got: format!("{w}×{h}") });
     }
-    let b = opts.board;
+    let b = hw_sim::Chessboard { cols: opts.board.cols, rows: opts.board.rows, square_mm: opts.board.square_mm };
     if b.cols < 3 || b.rows < 3 || !(b.square_mm > 0.0 && b.square_mm.is_finite()) {
         return Err(SimError::Option { what: "the board", expected: "at least 3×3 inner corners and a positive square size", got: format!("{}×{}, {} mm", b.cols, b.rows, b.square_mm) });
     }
@@ -124,86 +125,4 @@ pub fn render_target_recording(opts: &TargetOptions, out: &Path, progress: &mut 
     }
     crate::io::write_atomic(&corners_path, corners.as_bytes()).map_err(|e| io(&corners_path, e))?;
     Ok(())
-}
-
-/// The lab's table seen from the rig (as the scan recordings' lab, aimed at the board's
-/// middle), and the true axis in the left camera frame.
-fn table_geometry(rig: &hw_sim::Rig, b: &hw_sim::Chessboard) -> (hw_sim::Pose, TurntableAxis) {
-    let (_, _, _, y1) = b.extent();
-    let height = y1 + 2.0 * b.square_mm;
-    // A flat stand-in object as tall as the board: only its bounds aim the cameras.
-    let object = hw_sim::Mesh { vertices: vec![[-50.0, 0.0, 0.0], [50.0, 0.0, 0.0], [0.0, height as f32, 0.0]], triangles: vec![[0, 1, 2]] };
-    let mut scene = hw_sim::SceneConfig::realistic(object);
-    scene.rig = *rig;
-    let (point, dir) = scene.axis_in_left_camera();
-    (scene.cam_from_table(), TurntableAxis { axis_point_mm: point, axis_dir: dir, source: "ground truth".into() })
-}
-
-/// The board standing upright on the table, its face towards the cameras at table angle 0,
-/// its lower edge on the table surface, off the axis by a little more than a square each way
-/// (so the corners' circles differ in radius).
-fn board_on_table(b: &hw_sim::Chessboard) -> hw_sim::Pose {
-    let (_, _, _, y1) = b.extent();
-    // Board x along table x, board y down (−table y), board z into the board (−table z).
-    let r = [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]];
-    let width = (b.cols as f64 - 1.0) * b.square_mm;
-    hw_sim::Pose { r, t: [-width / 2.0 + 1.3 * b.square_mm, y1, 1.2 * b.square_mm] }
-}
-
-/// A board in front of the simulated cameras during a daemon's calibration capture: held
-/// up and moved to a new pose about once a second, or standing on the turntable.
-pub struct TargetMode {
-    renderer: hw_sim::TargetRenderer,
-    board: hw_sim::Chessboard,
-    /// Held: the poses it is moved through; on the table: the table's pose and the board's on it.
-    held: Vec<hw_sim::Pose>,
-    table: Option<(hw_sim::Pose, hw_sim::Pose)>,
-    frames: u64,
-    period: std::time::Duration,
-    last: Option<std::time::Instant>,
-    seed: u64,
-}
-
-impl TargetMode {
-    /// The board `scene` describes, for `rig`, delivered at `fps` when `paced`.
-    pub fn new(rig: &hw_sim::Rig, scene: &super::TargetScene, fps: f64, paced: bool, seed: u64) -> TargetMode {
-        let board = hw_sim::Chessboard { cols: scene.cols, rows: scene.rows, square_mm: scene.square_mm };
-        let (held, table) = if scene.on_table {
-            let (cam_from_table, _) = table_geometry(rig, &board);
-            (Vec::new(), Some((cam_from_table, board_on_table(&board))))
-        } else {
-            // Far enough that the board fits both images whatever its size.
-            let size = (board.cols.max(board.rows) as f64 + 3.0) * board.square_mm;
-            let distance = (size * rig.left.fx / (0.4 * rig.width as f64)).max(300.0);
-            (hw_sim::target::stereo_poses(rig, &board, 40, distance, seed), None)
-        };
-        let period = if paced && fps > 0.0 { std::time::Duration::from_secs_f64(1.0 / fps) } else { std::time::Duration::ZERO };
-        TargetMode { renderer: hw_sim::TargetRenderer::new(*rig), board, held, table, frames: 0, period, last: None, seed }
-    }
-
-    /// The next pair at the table's angle `table_deg`.
-    pub fn frame(&mut self, table_deg: f64) -> StereoFrame {
-        if let Some(last) = self.last {
-            if let Some(wait) = self.period.checked_sub(last.elapsed()) {
-                std::thread::sleep(wait);
-            }
-        }
-        self.last = Some(std::time::Instant::now());
-        let pose = match (&self.table, self.held.is_empty()) {
-            (Some((cam_from_table, table_from_board)), _) => {
-                let turn = hw_sim::Pose { r: hw_sim::math::rotation([0.0, 1.0, 0.0], table_deg.to_radians()), t: [0.0; 3] };
-                cam_from_table.compose(&turn).compose(table_from_board)
-            }
-            // A new pose about every second at the cameras' rate (every other frame unpaced).
-            (None, false) => self.held[(self.frames / if self.period.is_zero() { 2 } else { 15 }) as usize % self.held.len()],
-            // No pose keeps the board in view: it stays out of sight.
-            (None, true) => hw_sim::Pose { r: hw_sim::math::IDENTITY, t: [0.0, 0.0, -1000.0] },
-        };
-        let pair = self.renderer.render(&self.board, &pose, 1.5, self.seed.wrapping_add(self.frames));
-        let t = super::frame::monotonic_ns();
-        let picture = |data: Vec<u8>| Picture::Raw { width: pair.width, height: pair.height, channels: 1, data };
-        let frame = StereoFrame { seq: self.frames, left: picture(pair.left), right: picture(pair.right), t_left_ns: t, t_right_ns: t, table_deg: Some(table_deg) };
-        self.frames += 1;
-        frame
-    }
 }
