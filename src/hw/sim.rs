@@ -86,7 +86,7 @@ impl StereoSource for SimCameras {
 
     fn show_target(&mut self, target: Option<super::TargetScene>) -> bool {
         let seed = self.camera.renderer().scene().seed;
-        self.target = target.map(|t| TargetMode::new(&self.camera.renderer().scene().rig, &t, self.fps, self.paced, seed));
+        self.target = target.map(|t| TargetMode::new(self.camera.renderer().scene(), &t, self.fps, self.paced, seed));
         true
     }
 
@@ -380,12 +380,14 @@ pub struct TargetMode {
 }
 
 impl TargetMode {
-    /// The board `scene` describes, for `rig`, delivered at `fps` when `paced`.
-    pub fn new(rig: &hw_sim::Rig, scene: &super::TargetScene, fps: f64, paced: bool, seed: u64) -> TargetMode {
-        let board = hw_sim::Chessboard { cols: scene.cols, rows: scene.rows, square_mm: scene.square_mm };
-        let (held, table) = if scene.on_table {
-            let (cam_from_table, _) = table_geometry(rig, &board);
-            (Vec::new(), Some((cam_from_table, board_on_table(&board))))
+    /// The board `target` describes, in front of `scene`'s rig (standing on its table),
+    /// delivered at `fps` when `paced`.
+    pub fn new(scene: &hw_sim::SceneConfig, target: &super::TargetScene, fps: f64, paced: bool, seed: u64) -> TargetMode {
+        let rig = &scene.rig;
+        let board = hw_sim::Chessboard { cols: target.cols, rows: target.rows, square_mm: target.square_mm };
+        let (held, table) = if target.on_table {
+            // The lab's own table, as the scans see it: the axis calibrated is theirs.
+            (Vec::new(), Some((scene.cam_from_table(), board_on_table(&board))))
         } else {
             // Far enough that the board fits both images whatever its size.
             let size = (board.cols.max(board.rows) as f64 + 3.0) * board.square_mm;
