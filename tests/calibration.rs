@@ -212,3 +212,33 @@ fn the_simulated_rig_and_turntable_are_recovered() {
     eprintln!("axis direction {:.4}°, point {:.3} mm from the fitted axis", angle_deg(gd, td), off.norm());
     assert!(angle_deg(gd, td) < 0.1 && off.norm() < 0.5);
 }
+
+/// A board out of focus is named as such, not as a wrong board size.
+#[test]
+fn a_blurred_board_is_named_blurred() {
+    let rig = hw_sim::Rig::ideal(640, 480, 700.0, 60.0);
+    let board = hw_sim::Chessboard { cols: 9, rows: 6, square_mm: 20.0 };
+    let pose = hw_sim::Pose { r: hw_sim::math::IDENTITY, t: [-80.0, -50.0, 450.0] };
+    let pair = hw_sim::TargetRenderer::new(rig).render(&board, &pose, 0.5, 1);
+    let size = BoardSize { cols: 9, rows: 6 };
+    let sharp = detect(&GrayView::new(640, 480, &pair.left).unwrap(), size, &DetectParams::default()).unwrap();
+    // Defocus: three passes of a 9-pixel box filter each way (σ ≈ 4.5 px).
+    let mut img: Vec<f32> = pair.left.iter().map(|&v| f32::from(v)).collect();
+    for _ in 0..3 {
+        for (w, h, stride, step) in [(640usize, 480usize, 640usize, 1usize), (480, 640, 1, 640)] {
+            let src = img.clone();
+            for line in 0..h {
+                for i in 0..w {
+                    let (lo, hi) = (i.saturating_sub(4), (i + 4).min(w - 1));
+                    let sum: f32 = (lo..=hi).map(|k| src[line * stride + k * step]).sum();
+                    img[line * stride + i * step] = sum / (hi - lo + 1) as f32;
+                }
+            }
+        }
+    }
+    let blurred: Vec<u8> = img.iter().map(|v| v.round() as u8).collect();
+    let err = detect(&GrayView::new(640, 480, &blurred).unwrap(), size, &DetectParams::default()).unwrap_err();
+    eprintln!("sharp edges {:.2} px on {:.1} px squares; blurred: {err}", sharp.edge_px, sharp.spacing_px);
+    assert!(matches!(err, spinscan::calib::board::DetectFailure::Blurred { .. }), "{err}");
+    assert!(err.to_string().starts_with("board too blurred"), "{err}");
+}

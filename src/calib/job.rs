@@ -154,6 +154,13 @@ fn coverage_pct(outlines: &[[[f64; 2]; 4]], size: (u32, u32)) -> f64 {
     100.0 * covered as f64 / (CELLS * CELLS) as f64
 }
 
+/// The share of each image (left, right) the boards of `found` cover so far, percent.
+pub fn coverage(found: &[FoundPair], board: BoardSize, size: (u32, u32)) -> (f64, f64) {
+    let lo: Vec<_> = found.iter().map(|p| outline(&p.left, board)).collect();
+    let ro: Vec<_> = found.iter().map(|p| outline(&p.right, board)).collect();
+    (coverage_pct(&lo, size), coverage_pct(&ro, size))
+}
+
 /// Solves the rig from the pairs found and writes the report; `rejected` are the pairs left
 /// out, with their reasons, in the order they came (listed after the pairs used).
 pub fn calibrate(job: &StereoJob, size: (u32, u32), found: &[FoundPair], rejected: &[(String, String, String)]) -> Result<(StereoSolution, StereoReport), SolveError> {

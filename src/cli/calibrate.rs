@@ -487,7 +487,8 @@ pub fn cmd_capture(a: CaptureArgs) -> Result<(), Failure> {
             "calib.progress" => {
                 let last = p["last_rejection"].as_str().map(|r| format!(" — last pair: {r}")).unwrap_or_default();
                 let table = p["table_deg"].as_f64().filter(|_| a.kind == "turntable").map(|d| format!(", table {d:.1}°")).unwrap_or_default();
-                progress::show(format!("{}: kept {}/{} pairs, {} seen{table}{last}", a.name, p["kept"], p["count"], p["seen"]));
+                let cover = p["coverage_left_pct"].as_f64().filter(|_| a.kind == "stereo").map(|c| format!(", boards cover {c:.0} % of the left image")).unwrap_or_default();
+                progress::show(format!("{}: kept {}/{} pairs, {} seen{cover}{table}{last}", a.name, p["kept"], p["count"], p["seen"]));
             }
             "calib.state" if p["status"] != "running" => {
                 progress::finish();

@@ -287,7 +287,8 @@ fn capture(devices: &mut Devices, shared: &CaptureShared, job: &StereoJob, write
                 last_reason = Some(why.to_string());
             }
         }
-        shared.update(found.len(), seen, last_reason.as_deref(), json!({"table_deg": frame.table_deg}));
+        let (cl, cr) = job::coverage(&found, job.board, (l.0 as u32, l.1 as u32));
+        shared.update(found.len(), seen, last_reason.as_deref(), json!({"table_deg": frame.table_deg, "coverage_left_pct": cl, "coverage_right_pct": cr}));
     }
     if found.len() < spec.count && !shared.stopped() {
         let least = if on_table { 3 } else { MIN_VIEWS };
