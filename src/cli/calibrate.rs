@@ -293,10 +293,8 @@ pub fn cmd_stereo(a: StereoArgs) -> Result<(), Failure> {
     progress::finish();
     println!("boards found in {} of {total} pairs", found.len());
     let Some(size) = size.filter(|_| found.len() >= MIN_VIEWS) else {
-        return Err(input(format!(
-            "boards found in {} of {total} pairs; a calibration needs at least {MIN_VIEWS} (see the reasons above)",
-            found.len()
-        )));
+        let see = if rejected.is_empty() { "" } else { " (the reasons the others were left out are above)" };
+        return Err(input(format!("boards found in {} of {total} pairs; a calibration needs at least {MIN_VIEWS}{see}", found.len())));
     };
     let (sol, report) = job::calibrate(&job, size, &found, &rejected).map_err(|e| match e {
         SolveError::TooFewViews { .. } | SolveError::Degenerate => input(e),

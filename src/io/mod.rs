@@ -38,11 +38,9 @@ pub fn load_image(path: &Path) -> Result<LoadedImage, ImageIoError> {
     // The format from the bytes, not the name: a PNG saved as `.jpg` still loads, and a
     // file that is no image says so.
     let read = |e: String| ImageIoError::Read { path: path.to_path_buf(), what: e };
-    let reader = image::ImageReader::open(path).map_err(|e| read(e.to_string()))?.with_guessed_format().map_err(|e| read(e.to_string()))?;
-    if reader.format().is_none() {
-        return Err(read("not a PNG, JPEG or PNM image".into()));
-    }
-    let img = reader.decode().map_err(|e| read(e.to_string()))?;
+    let bytes = std::fs::read(path).map_err(|e| read(e.to_string()))?;
+    let format = image::guess_format(&bytes).map_err(|_| read("not a PNG, JPEG or PNM image (its first bytes are no image signature)".into()))?;
+    let img = image::load_from_memory_with_format(&bytes, format).map_err(|e| read(e.to_string()))?;
     let rgb = img.to_rgb8();
     let (w, h) = (rgb.width() as usize, rgb.height() as usize);
     if w == 0 || h == 0 {
