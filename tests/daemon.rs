@@ -168,13 +168,16 @@ fn bad_requests_get_json_rpc_errors_and_the_connection_survives() {
 }
 
 /// Starts a 2° step scan (180 views) and returns once `views` of them are matched.
+/// Starts a scan and returns once `views` views are matched and as many pairs are on disk
+/// (the recorder runs below the matchers' priority and may lag on a loaded machine).
 fn start_and_wait_views(d: &Daemon, name: &str, views: u64) {
     let (mut c, _) = Client::connect(&d.socket);
     c.ok("events.subscribe", json!({}));
     c.ok("scan.start", json!({"name": name, "step_deg": 2}));
     loop {
         let v = c.line();
-        if v["method"] == "scan.progress" && v["params"]["views"].as_u64().unwrap() >= views {
+        let p = &v["params"];
+        if v["method"] == "scan.progress" && p["views"].as_u64().unwrap() >= views && p["recorded"].as_u64().unwrap() >= views {
             return;
         }
     }
