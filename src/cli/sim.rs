@@ -27,7 +27,9 @@ pub struct SimRenderArgs {
     /// A calibration target instead of an object: `chessboard` (the board held at varied
     /// poses, for `calibrate stereo`) or `chessboard-on-table` (the board standing on the
     /// turntable as it turns, for `calibrate turntable`). The truth is under gt/.
-    #[arg(long, conflicts_with_all = ["object", "mesh"])]
+    /// With `chessboard-on-table`, `--object NAME` sets the lab up as for that object's
+    /// recordings (the cameras aimed at its middle), so the axis calibrated is theirs.
+    #[arg(long, conflicts_with = "mesh")]
     pub target: Option<TargetArg>,
     /// Target: inner corners of the board, along a row × rows.
     #[arg(long, default_value = "9x6", requires = "target")]
@@ -161,6 +163,9 @@ pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
 }
 
 fn render_target(a: &SimRenderArgs, target: TargetArg) -> Result<(), Failure> {
+    if a.object.is_some() && target == TargetArg::Chessboard {
+        return Err(input("--object with --target chessboard: a held board needs no object (--object goes with chessboard-on-table: the lab of that object's recordings)"));
+    }
     use spinscan::hw::sim_target::{render_target_recording, TargetKind, TargetOptions};
     let opts = TargetOptions {
         kind: match target {
@@ -174,6 +179,7 @@ fn render_target(a: &SimRenderArgs, target: TargetArg) -> Result<(), Failure> {
         noise_sigma: a.noise,
         distance_mm: a.distance_mm,
         sweep_deg: a.sweep_deg,
+        object: a.object.clone(),
         ..TargetOptions::default()
     };
     let t0 = Instant::now();

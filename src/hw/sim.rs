@@ -341,17 +341,23 @@ pub fn render_recording(opts: &RenderOptions, out: &std::path::Path, progress: &
     Ok(crate::recording::Recording::open(out)?)
 }
 
-/// The lab's table seen from the rig (as the scan recordings' lab, aimed at the board's
-/// middle), and the true axis in the left camera frame.
-pub(super) fn table_geometry(rig: &hw_sim::Rig, b: &hw_sim::Chessboard) -> (hw_sim::Pose, TurntableAxis) {
-    let (_, _, _, y1) = b.extent();
-    let height = y1 + 2.0 * b.square_mm;
-    // A flat stand-in object as tall as the board: only its bounds aim the cameras.
-    let object = hw_sim::Mesh { vertices: vec![[-50.0, 0.0, 0.0], [50.0, 0.0, 0.0], [0.0, height as f32, 0.0]], triangles: vec![[0, 1, 2]] };
+/// The lab's table seen from the rig, and the true axis in the left camera frame: the lab
+/// of `object`'s recordings (its cameras aimed at that object's middle), or, without one,
+/// aimed at the board's middle.
+pub(super) fn table_geometry(rig: &hw_sim::Rig, b: &hw_sim::Chessboard, object: Option<&str>) -> Result<(hw_sim::Pose, TurntableAxis), SimError> {
+    let object = match object {
+        Some(name) => hw_sim::Mesh::builtin(name, 2_000)?,
+        None => {
+            let (_, _, _, y1) = b.extent();
+            let height = y1 + 2.0 * b.square_mm;
+            // A flat stand-in object as tall as the board: only its bounds aim the cameras.
+            hw_sim::Mesh { vertices: vec![[-50.0, 0.0, 0.0], [50.0, 0.0, 0.0], [0.0, height as f32, 0.0]], triangles: vec![[0, 1, 2]] }
+        }
+    };
     let mut scene = hw_sim::SceneConfig::realistic(object);
     scene.rig = *rig;
     let (point, dir) = scene.axis_in_left_camera();
-    (scene.cam_from_table(), TurntableAxis { axis_point_mm: point, axis_dir: dir, source: "ground truth".into() })
+    Ok((scene.cam_from_table(), TurntableAxis { axis_point_mm: point, axis_dir: dir, source: "ground truth".into() }))
 }
 
 /// The board standing upright on the table, its face towards the cameras at table angle 0,

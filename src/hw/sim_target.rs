@@ -40,6 +40,9 @@ pub struct TargetOptions {
     pub distance_mm: f64,
     /// Table angles from −sweep to +sweep, degrees (`ChessboardOnTable`).
     pub sweep_deg: f64,
+    /// `ChessboardOnTable`: the lab of this built-in object's recordings (`sim render
+    /// --object NAME`, cameras aimed at its middle), so the axis calibrated is theirs.
+    pub object: Option<String>,
 }
 
 impl Default for TargetOptions {
@@ -54,6 +57,7 @@ impl Default for TargetOptions {
             image_size: (640, 480),
             distance_mm: 600.0,
             sweep_deg: 50.0,
+            object: None,
         }
     }
 }
@@ -95,7 +99,7 @@ pub fn render_target_recording(opts: &TargetOptions, out: &Path, progress: &mut 
             (p, vec![None; n])
         }
         TargetKind::ChessboardOnTable => {
-            let (cam_from_table, axis) = table_geometry(&rig, &b);
+            let (cam_from_table, axis) = table_geometry(&rig, &b, opts.object.as_deref())?;
             writer.write_turntable(&axis, true)?;
             let table_from_board = board_on_table(&b);
             let angles: Vec<f64> = (0..opts.frames).map(|k| -opts.sweep_deg + 2.0 * opts.sweep_deg * k as f64 / (opts.frames - 1) as f64).collect();
