@@ -162,6 +162,8 @@ pub struct CaptureEnd {
     pub status: &'static str,
     pub reason: Option<String>,
     pub result: Value,
+    /// A camera or the turntable failed: the daemon reopens the devices before next use.
+    pub device_failed: bool,
 }
 
 fn gray(seq: u64, p: &Picture) -> Result<(usize, usize, Vec<u8>), CaptureError> {
@@ -177,7 +179,12 @@ fn moved(a: &[[f64; 2]], b: &[[f64; 2]]) -> f64 {
 /// Runs the capture on `devices` to its end (the devices are the daemon's for its duration).
 pub fn run(devices: &mut Devices, shared: &CaptureShared) -> CaptureEnd {
     let spec = &shared.spec;
-    let failed = |e: CaptureError| CaptureEnd { status: "failed", reason: Some(e.to_string()), result: Value::Null };
+    let failed = |e: CaptureError| CaptureEnd {
+        device_failed: matches!(e, CaptureError::Cameras(_) | CaptureError::Turntable(_)),
+        status: "failed",
+        reason: Some(e.to_string()),
+        result: Value::Null,
+    };
     let board = match spec.board_size() {
         Ok(b) => b,
         Err(e) => return failed(e),
@@ -211,7 +218,7 @@ pub fn run(devices: &mut Devices, shared: &CaptureShared) -> CaptureEnd {
     let reason = interrupted.then(|| format!("stopped by calib.stop with {} of {} pairs kept", found.len(), spec.count));
     let solved = if on_table { solve_axis(shared, &job, &calib, &found, &tables) } else { solve_rig(shared, &job, size, &found, &rejected) };
     match solved {
-        Ok(result) => CaptureEnd { status, reason, result },
+        Ok(result) => CaptureEnd { status, reason, result, device_failed: false },
         Err(e) => failed(e),
     }
 }
@@ -272,13 +279,14 @@ fn capture(devices: &mut Devices, shared: &CaptureShared, job: &StereoJob, write
                 // width on average), so twenty pairs are twenty poses.
                 let still = !on_table && found.last().is_some_and(|q: &FoundPair| moved(&q.left.points, &p.left.points) < 0.05 * l.0 as f64);
                 if still {
-                    continue;
+                    last_reason = Some("the board has not moved since the last pair kept: hold it at a new pose".into());
+                } else {
+                    writer.append(&frame)?;
+                    size = (l.0 as u32, l.1 as u32);
+                    tables.push(frame.table_deg.unwrap_or(0.0));
+                    found.push(p);
+                    last_reason = None;
                 }
-                writer.append(&frame)?;
-                size = (l.0 as u32, l.1 as u32);
-                tables.push(frame.table_deg.unwrap_or(0.0));
-                found.push(p);
-                last_reason = None;
             }
             Err(why) => {
                 if on_table {
@@ -385,7 +393,15 @@ impl super::Daemon {
             s => tracing::warn!(calibration = %name, status = s, reason = end.reason.as_deref().unwrap_or(""), "calibration ended"),
         }
         let mut inner = self.inner.lock().unwrap();
-        inner.devices = Some(devices);
+        if end.device_failed {
+            let why = end.reason.clone().unwrap_or_default();
+            self.emit("device.error", json!({"message": why, "calibration": name}));
+            inner.device_error = Some(why);
+            // Reopened at the next scan.start or calib.capture.
+            drop(devices);
+        } else {
+            inner.devices = Some(devices);
+        }
         inner.calib = None;
         drop(inner);
         manifest["name"] = json!(name);
