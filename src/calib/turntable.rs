@@ -53,6 +53,8 @@ pub enum AxisError {
     NarrowSweep { span: f64 },
     #[error("the board's poses do not turn about one axis (their rotations disagree by {deg:.1}°): did the board move on the table, or is --calib the wrong rig?")]
     NotARotation { deg: f64 },
+    #[error("the board's poses do not determine an axis ({0}): did the table turn between the pairs?")]
+    Degenerate(&'static str),
 }
 
 fn project(k: &Matrix3<f64>, d: &Distortion, p: &Vector3<f64>) -> [f64; 2] {
@@ -164,7 +166,7 @@ pub fn fit_axis(calib: &StereoCalib, pairs: &[TablePair]) -> Result<AxisFit, Axi
         return Err(AxisError::NarrowSweep { span: hi - lo });
     }
     // 1. Each pair's pose.
-    let starts: Vec<Vec<f64>> = pairs.iter().map(|p| initial_pose(calib, &p.left).map(|v| v.to_vec()).ok_or(AxisError::TooFewPairs { found: 0 })).collect::<Result<_, _>>()?;
+    let starts: Vec<Vec<f64>> = pairs.iter().map(|p| initial_pose(calib, &p.left).map(|v| v.to_vec()).ok_or(AxisError::Degenerate("a board's corners give no pose"))).collect::<Result<_, _>>()?;
     let poses = lm::solve(&PairPose { calib, pairs }, Vec::new(), starts, 50).blocks;
     let poses: Vec<(Rotation3<f64>, Vector3<f64>)> = poses.iter().map(|b| pose(b)).collect();
     // 2. The axis's start from the relative rotations.
@@ -179,7 +181,7 @@ pub fn fit_axis(calib: &StereoCalib, pairs: &[TablePair]) -> Result<AxisFit, Axi
         }
     }
     if dir.norm() < 1e-12 {
-        return Err(AxisError::NotARotation { deg: 0.0 });
+        return Err(AxisError::Degenerate("no pose turned from the first"));
     }
     let dir0 = dir.normalize();
     // (I − R_k) c = t_k − R_k t_0, with c's component along the axis pinned to the board's.
@@ -199,7 +201,7 @@ pub fn fit_axis(calib: &StereoCalib, pairs: &[TablePair]) -> Result<AxisFit, Axi
     }
     ata += dir0 * dir0.transpose();
     atb += dir0 * dir0.dot(&centre0);
-    let point0 = ata.try_inverse().map(|inv| inv * atb).ok_or(AxisError::NotARotation { deg: 0.0 })?;
+    let point0 = ata.try_inverse().map(|inv| inv * atb).ok_or(AxisError::Degenerate("no point on the axis fits the turns"))?;
     // 3. The joint fit.
     let e1 = dir0.cross(&if dir0.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() }).normalize();
     let e2 = dir0.cross(&e1);
@@ -232,4 +234,66 @@ pub fn fit_axis(calib: &StereoCalib, pairs: &[TablePair]) -> Result<AxisFit, Axi
     }
     let rms_px = (all.iter().map(|x| x * x).sum::<f64>() / (all.len() / 2) as f64).sqrt();
     Ok(AxisFit { point_mm: point, dir, rms_px, pairs: per })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::calib::solve::board_points;
+    use crate::calib::{Camera, Distortion};
+
+    fn rig() -> StereoCalib {
+        let k = Matrix3::new(700.0, 0.0, 319.5, 0.0, 700.0, 239.5, 0.0, 0.0, 1.0);
+        let cam = Camera { k, distortion: Distortion::new(&[-0.1, 0.05, 0.0, 0.0, 0.0]).unwrap() };
+        StereoCalib { left: cam.clone(), right: cam, r: Matrix3::identity(), t_mm: Vector3::new(-60.0, 0.0, 0.0), image_size: Some((640, 480)) }
+    }
+
+    /// Pairs of a 9 × 6 board turning about `dir` through `point` at `angles`; `moved` turns
+    /// one pair's board by an extra 10° (the board slid on the table).
+    fn pairs(calib: &StereoCalib, point: Vector3<f64>, dir: Vector3<f64>, angles: &[f64], moved: Option<usize>) -> Vec<TablePair> {
+        let obj = board_points(9, 6, 20.0);
+        let (r0, t0) = (Rotation3::from_axis_angle(&Vector3::x_axis(), 0.2), Vector3::new(-80.0, -40.0, 470.0));
+        angles
+            .iter()
+            .enumerate()
+            .map(|(k, &deg)| {
+                let extra = if moved == Some(k) { 10.0 } else { 0.0 };
+                let turn = Rotation3::from_axis_angle(&Unit::new_normalize(dir), (deg + extra).to_radians());
+                let view = |right: bool| TargetView {
+                    object: obj.clone(),
+                    image: obj
+                        .iter()
+                        .map(|o| {
+                            let x = turn * (r0 * Vector3::new(o[0], o[1], o[2]) + t0 - point) + point;
+                            let (cam, x) = if right { (&calib.right, calib.r * x + calib.t_mm) } else { (&calib.left, x) };
+                            project(&cam.k, &cam.distortion, &x)
+                        })
+                        .collect(),
+                };
+                TablePair { table_deg: deg, left: view(false), right: view(true) }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_axis_is_recovered_from_exact_corners() {
+        let calib = rig();
+        let (point, dir) = (Vector3::new(5.0, 60.0, 480.0), Vector3::new(0.02, -0.97, -0.22).normalize());
+        let angles: Vec<f64> = (0..7).map(|k| -30.0 + 10.0 * k as f64).collect();
+        let fit = fit_axis(&calib, &pairs(&calib, point, dir, &angles, None)).unwrap();
+        assert!(fit.dir.dot(&dir) > (1e-4f64).to_radians().cos(), "{}", fit.dir);
+        let off = (point - fit.point_mm) - fit.dir * fit.dir.dot(&(point - fit.point_mm));
+        assert!(off.norm() < 1e-3 && fit.rms_px < 1e-4, "{off} {}", fit.rms_px);
+    }
+
+    #[test]
+    fn a_narrow_sweep_and_a_board_that_slid_are_refused() {
+        let calib = rig();
+        let (point, dir) = (Vector3::new(5.0, 60.0, 480.0), Vector3::new(0.0, -0.98, -0.2).normalize());
+        let narrow = fit_axis(&calib, &pairs(&calib, point, dir, &[0.0, 5.0, 10.0], None)).unwrap_err();
+        assert!(matches!(narrow, AxisError::NarrowSweep { .. }), "{narrow}");
+        let angles: Vec<f64> = (0..7).map(|k| -30.0 + 10.0 * k as f64).collect();
+        let slid = fit_axis(&calib, &pairs(&calib, point, dir, &angles, Some(3))).unwrap_err();
+        assert!(matches!(slid, AxisError::NotARotation { .. }), "{slid}");
+    }
 }
