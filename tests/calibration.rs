@@ -242,3 +242,33 @@ fn a_blurred_board_is_named_blurred() {
     assert!(matches!(err, spinscan::calib::board::DetectFailure::Blurred { .. }), "{err}");
     assert!(err.to_string().starts_with("board too blurred"), "{err}");
 }
+
+/// A board held in front of a cluttered scene (Middlebury's Teddy: toys, text, a
+/// chequered cloth's worth of saddles) is still found where it is.
+#[test]
+fn a_board_is_found_in_a_cluttered_scene() {
+    let teddy = spinscan::io::load_image(&support::shared_data("middlebury-stereo").join("teddy/im2.png")).unwrap();
+    let (w, h) = (teddy.width, teddy.height);
+    let rig = hw_sim::Rig::ideal(w, h, 450.0, 60.0);
+    let board = hw_sim::Chessboard { cols: 9, rows: 6, square_mm: 12.0 };
+    let pose = hw_sim::Pose { r: hw_sim::math::rotation([0.3, 1.0, 0.1], 0.5), t: [-40.0, -20.0, 400.0] };
+    let pair = hw_sim::TargetRenderer::new(rig).render(&board, &pose, 1.0, 3);
+    // The board (inside its outline, projected) where the renderer drew it, Teddy elsewhere.
+    let (x0, y0, x1, y1) = board.extent();
+    let outline: Vec<(f64, f64)> = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)].iter().map(|&(x, y)| rig.left.project(pose.apply([x, y, 0.0]))).collect();
+    let inside = |x: f64, y: f64| {
+        let side = |k: usize| {
+            let (a, b) = (outline[k], outline[(k + 1) % 4]);
+            (b.0 - a.0) * (y - a.1) - (b.1 - a.1) * (x - a.0)
+        };
+        let s: Vec<f64> = (0..4).map(side).collect();
+        s.iter().all(|&v| v >= 0.0) || s.iter().all(|&v| v <= 0.0)
+    };
+    let img: Vec<u8> = (0..w * h).map(|i| if inside((i % w) as f64, (i / w) as f64) { pair.left[i] } else { teddy.gray[i] }).collect();
+    let found = detect(&GrayView::new(w, h, &img).unwrap(), BoardSize { cols: 9, rows: 6 }, &DetectParams::default()).unwrap();
+    let worst = found.points.iter().zip(&pair.left_corners).map(|(p, t)| {
+        let t = t.unwrap();
+        ((p[0] - t.0).powi(2) + (p[1] - t.1).powi(2)).sqrt()
+    }).fold(0.0, f64::max);
+    assert!(worst < 0.3, "worst corner {worst} px off");
+}

@@ -93,7 +93,8 @@ pub struct BoardCorners {
     pub points: Vec<[f64; 2]>,
     /// Median distance between neighbouring corners, pixels.
     pub spacing_px: f64,
-    /// Median 10–90 % width of the edges between squares, pixels (a blur measure).
+    /// Median 10–90 % width of the edges between squares, pixels (a blur measure; 0 when
+    /// no edge had contrast enough to measure).
     pub edge_px: f64,
 }
 
@@ -450,7 +451,8 @@ fn finish(img: &GrayView, board: BoardSize, c: &[Candidate], grid: Grid, params:
         }
     }
     widths.sort_by(f64::total_cmp);
-    let edge_px = widths.get(widths.len() / 2).copied().unwrap_or(f64::INFINITY);
+    // No edge with a measurable step (a faint board): not judged, reported as 0.
+    let edge_px = widths.get(widths.len() / 2).copied().unwrap_or(0.0);
     if edge_px > params.max_blur * spacing {
         return Err(DetectFailure::Blurred { edge_px, spacing_px: spacing });
     }

@@ -78,7 +78,9 @@ pub(super) fn find_grid(c: &[Candidate], board: Shape) -> Result<Grid, GridMiss>
     let mut used = vec![false; c.len()];
     let mut largest = (0usize, 0usize);
     let mut too_large: Option<(usize, usize)> = None;
-    for seed in 0..c.len().min(60) {
+    // The strongest candidates seed grids (a board's corners are high-contrast junctions;
+    // a cluttered scene may still put a few hundred saddles ahead of some of them).
+    for seed in 0..c.len().min(300) {
         if used[seed] {
             continue;
         }
