@@ -242,7 +242,8 @@ mod tests {
     #[test]
     fn calls_round_trip_through_the_wire_form() {
         let start = Call::ScanStart(ScanStartParams { name: "vase".into(), mode: Some("continuous".into()), total_deg: Some(90.0), ..Default::default() });
-        for c in [Call::Status, Call::ScanStop, Call::ScanGet { name: "vase".into() }, start] {
+        let calib = Call::CalibCapture(CalibCaptureParams { name: "rig".into(), kind: Some("turntable".into()), square_mm: 24.0, count: Some(9), ..Default::default() });
+        for c in [Call::Status, Call::ScanStop, Call::ScanGet { name: "vase".into() }, start, calib, Call::CalibStop] {
             let line = json!({"jsonrpc": "2.0", "id": 1, "method": c.method(), "params": c.params()}).to_string();
             assert_eq!(call(&line).unwrap(), c);
         }
