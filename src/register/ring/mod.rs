@@ -25,6 +25,11 @@
 //! surface cannot fix a rotation (a surface of revolution about the axis), ICP keeps the
 //! seed along it and the view's report carries the warning.
 //!
+//! With a calibrated axis and the table's angles, a view's pose is the turntable's (the
+//! table's angle about that axis), published at once; ICP still runs (its steps feed the
+//! final check between the turntable's poses and the registered ones, and the seeds of
+//! views without an angle), and the block step leaves such views alone: they have no drift.
+//!
 //! ## Per-view cost
 //! Every view is registered as it comes, within a camera's frame period: its target (the
 //! chain's next step, the long steps, and the model in the block step, seen from the
@@ -469,7 +474,13 @@ impl Registrar {
             }
         }
         let prev_pose = self.poses.last().map(|p| p.first_from_view).unwrap_or_else(Isometry3::identity);
-        let pose = unit(prev_pose * prev_from_view);
+        // A calibrated axis with the table's angles places a view better than a chain of ICP
+        // steps (module docs); the final check still decides between the two, so a table
+        // that slipped costs only this scan's live poses.
+        let pose = match (self.params.calibrated_axis, table_deg, self.poses.first().and_then(|p| p.table_deg)) {
+            (Some((point, up)), Some(now), Some(first)) => rotation_about_axis(&point, &up, -(now - first)),
+            _ => unit(prev_pose * prev_from_view),
+        };
         self.turned_deg = match (table_deg, self.poses.first().and_then(|p| p.table_deg)) {
             (Some(now), Some(first)) => (now - first).abs(),
             _ => self.turned_deg + prev_from_view.rotation.angle().to_degrees(),
@@ -613,7 +624,10 @@ impl Registrar {
         }
         let block = std::mem::take(&mut self.block);
         let mut outcome = None;
-        if !self.model.is_empty() {
+        // Views placed by a calibrated axis and the table's angles have no drift for a block
+        // step to take out (and ICP onto the model is the less precise of the two).
+        let by_table = self.params.calibrated_axis.is_some() && self.poses.first().is_some_and(|p| p.table_deg.is_some()) && block.iter().all(|(k, _)| self.poses[*k].table_deg.is_some());
+        if !self.model.is_empty() && !by_table {
             match self.block_icp(&block) {
                 Ok(r) if r.fitness >= self.params.min_fitness => {
                     for (k, _) in &block {
