@@ -107,6 +107,10 @@ fn bad_inputs_give_one_clear_line() {
     std::fs::write(&broken, text.replace("   rows: 3\n   cols: 1", "   rows: 2\n   cols: 1")).unwrap();
     check_bad_input(&["points", "--calib", broken.to_str().unwrap(), "--left", l, "--right", r, "-o", out], "`T`");
 
+    let axis = dir.join("turntable.yaml");
+    std::fs::write(&axis, "axis_dir: [0, -1, 0]\n").unwrap();
+    check_bad_input(&["replay", dir.to_str().unwrap(), "-o", out, "--turntable", axis.to_str().unwrap()], "axis_point_mm");
+
     let empty = support::temp_dir("cli-bad-empty");
     check_bad_input(&["points", "--calib", empty.to_str().unwrap(), "--left", l, "--right", r, "-o", out], "holds no calibration");
 }

@@ -34,9 +34,20 @@ pub struct ReplayArgs {
     pub reg: RegistrationArgs,
     #[command(flatten)]
     pub assist: AssistModeArgs,
+    /// Register with this calibrated turntable axis (a turntable.yaml from `spinscan
+    /// calibrate turntable`) instead of the recording's own turntable.yaml, if any.
+    #[arg(long, value_name = "FILE")]
+    pub turntable: Option<PathBuf>,
 }
 
 pub fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
+    let turntable_axis = match &a.turntable {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).map_err(|e| input(format!("--turntable {}: {e} (expected a turntable.yaml from `spinscan calibrate turntable`)", path.display())))?;
+            Some(spinscan::recording::TurntableAxis::parse(path, &text).map_err(input)?)
+        }
+        None => None,
+    };
     let rec = Recording::open(&a.dir).map_err(input)?;
     if let Some(line) = rec.torn_line {
         eprintln!("replay: warning: skipped the torn last line {line} of {}", a.dir.join("frames.jsonl").display());
@@ -57,6 +68,7 @@ pub fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
         segment: !a.no_segment,
         plate,
         assist: a.assist.params(!a.reg.no_register)?,
+        turntable_axis,
         ..a.reg.options(PipelineOptions {
             alpha: a.rect.alpha,
             min_disparity: a.matching.min_disparity,

@@ -69,6 +69,9 @@ pub struct ReplayOptions {
     /// Registration-assisted matching (needs `registration`; None: every frame searches the
     /// full range).
     pub assist: Option<AssistParams>,
+    /// A calibrated turntable axis to register with instead of the recording's own
+    /// `turntable.yaml` (`spinscan calibrate turntable`'s, for a recording made before it).
+    pub turntable_axis: Option<TurntableAxis>,
 }
 
 impl ReplayOptions {
@@ -94,7 +97,11 @@ pub struct ReplaySummary {
 /// the recording has one.
 pub fn run_recording(recording: crate::recording::Recording, out: &Path, opts: &ReplayOptions, progress: &mut dyn FnMut(usize, u64, f64)) -> Result<ReplaySummary, ReplayError> {
     let dir = recording.dir.clone();
-    let mut inputs = RegistrationInputs { calibrated_axis: TurntableAxis::read_calibrated(&dir).map_err(|e| ReplayError::SideFile(format!("calibrated turntable axis: {e}")))?, ..Default::default() };
+    let calibrated_axis = match &opts.turntable_axis {
+        Some(axis) => Some(axis.clone()),
+        None => TurntableAxis::read_calibrated(&dir).map_err(|e| ReplayError::SideFile(format!("calibrated turntable axis: {e}")))?,
+    };
+    let mut inputs = RegistrationInputs { calibrated_axis, ..Default::default() };
     if opts.registration.is_some() {
         let gt = crate::recording::read_gt_poses(&dir).map_err(|e| ReplayError::SideFile(format!("ground truth: {e}")))?;
         inputs.gt_poses = match gt {
