@@ -202,7 +202,7 @@ fn initial_focal(homographies: &[Matrix3<f64>], size: (u32, u32)) -> Option<(f64
 }
 
 /// A view's pose from its homography and the camera matrix (distortion ignored).
-fn pose_from_homography(h: &Matrix3<f64>, k: &Matrix3<f64>) -> Option<[f64; 6]> {
+pub(super) fn pose_from_homography(h: &Matrix3<f64>, k: &Matrix3<f64>) -> Option<[f64; 6]> {
     let kinv = k.try_inverse()?;
     let m = kinv * h;
     let lambda = 1.0 / m.column(0).norm();

@@ -19,7 +19,7 @@
 use nalgebra::{Matrix3, Rotation3, Unit, Vector3};
 
 use super::lm::{self, BlockProblem};
-use super::solve::{homography, TargetView};
+use super::solve::{homography, pose_from_homography, TargetView};
 use super::{Distortion, StereoCalib};
 
 /// One pair of a board on the table.
@@ -142,18 +142,7 @@ fn initial_pose(calib: &StereoCalib, view: &TargetView) -> Option<[f64; 6]> {
             })
             .collect(),
     };
-    let h = homography(&norm)?;
-    let lambda = 1.0 / h.column(0).norm();
-    let sign = if h[(2, 2)] * lambda < 0.0 { -1.0 } else { 1.0 };
-    let (r1, r2, t) = (h.column(0) * lambda * sign, h.column(1) * lambda * sign, h.column(2) * lambda * sign);
-    let m = Matrix3::from_columns(&[r1, r2, r1.cross(&r2)]);
-    let svd = m.svd(true, true);
-    let mut r = svd.u? * svd.v_t?;
-    if r.determinant() < 0.0 {
-        r = -r;
-    }
-    let rv = Rotation3::from_matrix_unchecked(r).scaled_axis();
-    Some([rv.x, rv.y, rv.z, t.x, t.y, t.z])
+    pose_from_homography(&homography(&norm)?, &Matrix3::identity())
 }
 
 /// Fits the turntable axis to the pairs (the board found in both images of each).

@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 
 use clap::{Args, Subcommand};
 
+use super::daemon::{connect, daemon_err};
 use super::{exit, input, output, progress, Failure};
 use spinscan::calib::board::{BoardSize, DetectParams};
 use spinscan::calib::job::{self, FoundPair, StereoJob};
@@ -231,10 +232,14 @@ fn pair_files(left: Vec<(PathBuf, String)>, right: Vec<(PathBuf, String)>) -> Re
 
 /// The pairs of a recording folder, from its frames.jsonl (its calibration is not needed).
 fn recording_pairs(dir: &Path) -> Result<Vec<(PathBuf, PathBuf)>, Failure> {
+    Ok(recording_frames(dir)?.into_iter().map(|f| (dir.join(f.left), dir.join(f.right))).collect())
+}
+
+/// The lines of a recording's frames.jsonl (its calibration is not needed).
+fn recording_frames(dir: &Path) -> Result<Vec<spinscan::recording::FrameEntry>, Failure> {
     let path = dir.join("frames.jsonl");
     let text = std::fs::read_to_string(&path).map_err(|e| input(format!("{}: {e} (expected a recording folder with frames.jsonl)", path.display())))?;
-    let (frames, _) = spinscan::recording::parse_frames(&path, &text).map_err(input)?;
-    Ok(frames.into_iter().map(|f| (dir.join(f.left), dir.join(f.right))).collect())
+    Ok(spinscan::recording::parse_frames(&path, &text).map_err(input)?.0)
 }
 
 fn name_of(p: &Path) -> String {
@@ -319,8 +324,7 @@ pub fn cmd_turntable(a: TurntableArgs) -> Result<(), Failure> {
         tracing::warn!("no --calib: using the recording's own calibration ({}); give the one `calibrate stereo` wrote if that is not it", calib_path.display());
     }
     let path = a.recording.join("frames.jsonl");
-    let text = std::fs::read_to_string(&path).map_err(|e| input(format!("{}: {e} (expected a recording folder with frames.jsonl)", path.display())))?;
-    let (frames, _) = spinscan::recording::parse_frames(&path, &text).map_err(input)?;
+    let frames = recording_frames(&a.recording)?;
     let object = board_points(job.board.cols, job.board.rows, job.square_mm);
     let mut pairs = Vec::new();
     let mut names = Vec::new();
@@ -418,37 +422,13 @@ fn print_report(r: &job::StereoReport) {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn wildcards_report_what_they_matched() {
-        assert_eq!(wildcard(b"left*.jpg", b"left07.jpg"), Some(b"07".to_vec()));
-        assert_eq!(wildcard(b"l?ft*.jpg", b"left07.jpg"), Some(b"e07".to_vec()));
-        assert_eq!(wildcard(b"left*.jpg", b"right07.jpg"), None);
-        assert_eq!(wildcard(b"*", b""), Some(Vec::new()));
-    }
-
-    #[test]
-    fn names_sort_by_their_numbers() {
-        let mut v = vec!["img10.png", "img2.png", "img1.png"];
-        v.sort_by(|a, b| natural(a, b));
-        assert_eq!(v, ["img1.png", "img2.png", "img10.png"]);
-    }
-}
-
-fn daemon_failure(e: spinscan::control::client::ClientError) -> Failure {
-    Failure { code: exit::DAEMON, message: e.to_string() }
-}
 
 pub fn cmd_capture(a: CaptureArgs) -> Result<(), Failure> {
-    use spinscan::control::client::Client;
     use spinscan::control::protocol::CalibCaptureParams;
-    let mut c = Client::connect(&a.socket.socket).map_err(daemon_failure)?;
+    let mut c = connect(&a.socket)?;
     if a.watch {
         // Subscribe first so no event of this capture is missed.
-        c.subscribe().map_err(daemon_failure)?;
+        c.subscribe().map_err(daemon_err)?;
     }
     let params = CalibCaptureParams {
         name: a.name.clone(),
@@ -460,7 +440,7 @@ pub fn cmd_capture(a: CaptureArgs) -> Result<(), Failure> {
         sweep_deg: Some(a.sweep_deg),
         max_pairs: None,
     };
-    let started = c.calib_capture(&params).map_err(daemon_failure)?;
+    let started = c.calib_capture(&params).map_err(daemon_err)?;
     eprintln!(
         "calibration {} ({}) started: keeping {} pairs, folder {}",
         a.name,
@@ -474,9 +454,9 @@ pub fn cmd_capture(a: CaptureArgs) -> Result<(), Failure> {
     if !a.watch {
         return Ok(());
     }
-    c.set_timeout(None).map_err(daemon_failure)?;
+    c.set_timeout(None).map_err(daemon_err)?;
     loop {
-        let n = c.next_notification().map_err(daemon_failure)?;
+        let n = c.next_notification().map_err(daemon_err)?;
         let p = &n.params;
         if p["name"].as_str() != Some(a.name.as_str()) {
             continue;
@@ -532,8 +512,28 @@ pub fn cmd_capture(a: CaptureArgs) -> Result<(), Failure> {
 }
 
 pub fn cmd_stop(s: super::daemon::SocketArg) -> Result<(), Failure> {
-    let mut c = spinscan::control::client::Client::connect(&s.socket).map_err(daemon_failure)?;
-    let v = c.calib_stop().map_err(daemon_failure)?;
+    let mut c = connect(&s)?;
+    let v = c.calib_stop().map_err(daemon_err)?;
     println!("stopping calibration {} after its current pair; what it kept is solved", v["name"].as_str().unwrap_or("?"));
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn wildcards_report_what_they_matched() {
+        assert_eq!(wildcard(b"left*.jpg", b"left07.jpg"), Some(b"07".to_vec()));
+        assert_eq!(wildcard(b"l?ft*.jpg", b"left07.jpg"), Some(b"e07".to_vec()));
+        assert_eq!(wildcard(b"left*.jpg", b"right07.jpg"), None);
+        assert_eq!(wildcard(b"*", b""), Some(Vec::new()));
+    }
+
+    #[test]
+    fn names_sort_by_their_numbers() {
+        let mut v = vec!["img10.png", "img2.png", "img1.png"];
+        v.sort_by(|a, b| natural(a, b));
+        assert_eq!(v, ["img1.png", "img2.png", "img10.png"]);
+    }
 }

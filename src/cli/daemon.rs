@@ -80,11 +80,11 @@ pub struct ScanStartArgs {
     pub socket: SocketArg,
 }
 
-fn daemon_err(e: ClientError) -> Failure {
+pub(super) fn daemon_err(e: ClientError) -> Failure {
     Failure { code: EXIT_DAEMON, message: e.to_string() }
 }
 
-fn connect(s: &SocketArg) -> Result<Client, Failure> {
+pub(super) fn connect(s: &SocketArg) -> Result<Client, Failure> {
     Client::connect(&s.socket).map_err(daemon_err)
 }
 

@@ -393,15 +393,7 @@ impl super::Daemon {
             s => tracing::warn!(calibration = %name, status = s, reason = end.reason.as_deref().unwrap_or(""), "calibration ended"),
         }
         let mut inner = self.inner.lock().unwrap();
-        if end.device_failed {
-            let why = end.reason.clone().unwrap_or_default();
-            self.emit("device.error", json!({"message": why, "calibration": name}));
-            inner.device_error = Some(why);
-            // Reopened at the next scan.start or calib.capture.
-            drop(devices);
-        } else {
-            inner.devices = Some(devices);
-        }
+        self.return_devices(&mut inner, devices, end.device_failed.then(|| end.reason.clone().unwrap_or_default()), ("calibration", &name));
         inner.calib = None;
         drop(inner);
         manifest["name"] = json!(name);

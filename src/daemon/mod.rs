@@ -449,6 +449,22 @@ impl Daemon {
         Ok(())
     }
 
+    /// Gives the devices of a scan or a calibration (`job`: "scan" or "calibration", and its
+    /// name) back, or, when one failed (`failure`: why), drops them — they are reopened at
+    /// the next start — and says so in a `device.error` event.
+    fn return_devices(&self, inner: &mut Inner, devices: Devices, failure: Option<String>, job: (&str, &str)) {
+        match failure {
+            Some(why) => {
+                let mut params = json!({"message": why});
+                params[job.0] = json!(job.1);
+                self.emit("device.error", params);
+                inner.device_error = Some(why);
+                drop(devices);
+            }
+            None => inner.devices = Some(devices),
+        }
+    }
+
     fn scan_finished(&self, devices: Devices, shared: &ScanShared, end: ScanEnd) {
         let name = shared.spec.name.clone();
         match end.status {
@@ -457,15 +473,7 @@ impl Daemon {
         }
         let mut inner = self.inner.lock().unwrap();
         let device_failed = end.status == "failed" && end.reason.as_deref().is_some_and(|r| r.contains("camera") || r.contains("turntable"));
-        if device_failed {
-            let why = end.reason.clone().unwrap_or_default();
-            self.emit("device.error", json!({"message": why, "scan": name}));
-            inner.device_error = Some(why);
-            // Reopened at the next scan.start.
-            drop(devices);
-        } else {
-            inner.devices = Some(devices);
-        }
+        self.return_devices(&mut inner, devices, device_failed.then(|| end.reason.clone().unwrap_or_default()), ("scan", &name));
         inner.scan = None;
         inner.last = Some((name.clone(), end.clone()));
         drop(inner);
