@@ -312,7 +312,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         .into_iter()
         .map(|(k, (mode, granularity))| {
             let store = Arc::new(PoseStore::new());
-            let registrar = (mode != AssistMode::None).then(|| crate::pipeline::registrar(opts.registration.clone(), calibrated.as_ref(), store.clone()));
+            let registrar = (mode != AssistMode::None).then(|| crate::pipeline::registrar(opts.registration.clone(), calibrated.as_ref(), None, store.clone()));
             let row = Row::new(matchers[k].method, mode, granularity);
             RowState { pipe: k, row, assistant: pipes[k].assistant(AssistParams { mode, granularity, ..opts.assist.clone() }), store, registrar }
         })

@@ -87,12 +87,22 @@ pub struct Assist<'a> {
     pub poses: &'a PoseSnapshot,
 }
 
-/// A registrar seeded with the recording's calibrated turntable axis, where it has one.
-pub fn registrar(mut params: RegistrationParams, calibrated_axis: Option<&TurntableAxis>, store: Arc<PoseStore>) -> Registrar {
+/// A registrar seeded with the recording's calibrated turntable axis, where it has one, and
+/// with the rig's rectified left camera for the texture tracks (`rect`; None keeps the
+/// camera `params` has).
+pub fn registrar(mut params: RegistrationParams, calibrated_axis: Option<&TurntableAxis>, rect: Option<&Rectification>, store: Arc<PoseStore>) -> Registrar {
+    if let Some(rect) = rect {
+        params.track_camera = track_camera(rect);
+    }
     if let Some(axis) = calibrated_axis {
         params.calibrated_axis = Some((nalgebra::Vector3::from(axis.axis_point_mm), nalgebra::Vector3::from(axis.axis_dir)));
     }
     Registrar::new(params, store)
+}
+
+/// The rectified left camera as the texture tracks see it (`register::tracks`).
+pub fn track_camera(rect: &Rectification) -> Option<crate::register::tracks::TrackCamera> {
+    crate::register::tracks::TrackCamera::new(rect.r1, rect.q)
 }
 
 /// Everything one view produced.

@@ -139,7 +139,7 @@ pub fn run(
     let mut pipe = Pipeline::new(&calib, (w as u32, h as u32), opts.pipeline.clone()).map_err(|source| ReplayError::Pipeline { seq: first.seq, source })?;
     let mut results = ResultsWriter::create(out, &source.describe(), pipe.rect.disparity_sign)?;
     let store = Arc::new(PoseStore::new());
-    let mut registrar = opts.registration.clone().map(|p| super::registrar(p, inputs.calibrated_axis.as_ref(), store.clone()));
+    let mut registrar = opts.registration.clone().map(|p| super::registrar(p, inputs.calibrated_axis.as_ref(), Some(&pipe.rect), store.clone()));
     // Assistance needs the registered motion: without registration every frame is full range.
     let mut assistant = match (&opts.assist, &registrar) {
         (Some(a), Some(_)) => Some(pipe.assistant(a.clone())),
@@ -194,7 +194,7 @@ impl Run<'_> {
                 gt_frames += 1;
             }
             if let Some(reg) = self.registrar.as_deref_mut() {
-                if let (Some((fitness, rmse)), Some(a)) = (register_view(reg, &frame, &view.cloud, &mut entry), self.assistant.as_deref_mut()) {
+                if let (Some((fitness, rmse)), Some(a)) = (register_view(reg, &frame, &view, &mut entry), self.assistant.as_deref_mut()) {
                     a.observe_registration(seq, fitness, rmse);
                 }
                 self.results.write_poses(reg.poses())?;

@@ -21,6 +21,7 @@ use crate::register::denoise::{keep_mask, DenoiseParams};
 use crate::register::posestore::ViewPose;
 use crate::register::ring::{LoopClosure, Registrar};
 use crate::register::surface::{quantile, Surface};
+use crate::register::tracks::TrackImage;
 use crate::register::voxel::VoxelModel;
 use crate::stereo::DisparityMap;
 
@@ -277,11 +278,14 @@ impl ResultsWriter {
 /// Registers one view and notes how into its `report.json` entry; the ICP fitness and RMSE
 /// when ICP ran (for the assistant's self-correction). A view that cannot be registered is
 /// noted and skipped, not fatal.
-pub fn register_view(reg: &mut Registrar, frame: &StereoFrame, cloud: &PointCloud, entry: &mut Value) -> Option<(f64, f64)> {
+pub fn register_view(reg: &mut Registrar, frame: &StereoFrame, view: &View, entry: &mut Value) -> Option<(f64, f64)> {
     let seq = frame.seq;
-    match reg.add_view(seq, frame.table_deg, cloud) {
+    match reg.add_view(seq, frame.table_deg, &view.cloud) {
         Ok(r) => {
+            let image = TrackImage { rgb: &view.left_rgb, disparity: view.disparity.values(), width: view.disparity.width, height: view.disparity.height };
+            let track_ms = reg.track_view(seq, image);
             entry["register_ms"] = json!(r.register_ms);
+            entry["track_ms"] = json!(track_ms);
             entry["publish_ms"] = json!(r.publish_ms);
             entry["register_split_ms"] = json!(r.split);
             // The pose as published when the view was registered (what the matchers read);

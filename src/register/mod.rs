@@ -11,6 +11,7 @@
 //! view's. Units are the caller's (spinscan's own clouds are millimetres).
 
 pub mod axis;
+pub mod bundle;
 pub mod cells;
 pub mod denoise;
 pub mod grid;
@@ -23,6 +24,7 @@ pub mod refine;
 pub mod ring;
 pub mod surface;
 pub mod target;
+pub mod tracks;
 pub mod voxel;
 
 use nalgebra::{Isometry3, Matrix3, Matrix4, Rotation3, Translation3, UnitQuaternion, Vector3};

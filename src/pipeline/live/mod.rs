@@ -107,8 +107,15 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
         None
     };
 
+    let mut settings = settings.clone();
     let sign = match Pipeline::new(&calib, size, settings.pipeline.clone()) {
-        Ok(p) => p.rect.disparity_sign,
+        Ok(p) => {
+            // The registration thread tracks texture in the rectified left images.
+            if let Some(r) = settings.registration.as_mut() {
+                r.track_camera = crate::pipeline::track_camera(&p.rect);
+            }
+            p.rect.disparity_sign
+        }
         Err(e) => return ScanEnd::failed(ScanError::Pipeline(e)),
     };
     let results = match ResultsWriter::create(&dir, &devices.source.describe(), sign) {
@@ -149,7 +156,7 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
     };
 
     // Capture, on this thread.
-    let captured = capture::capture(devices, &shared, first, &job_tx, &job_rx, &note_tx, &rec_tx, settings);
+    let captured = capture::capture(devices, &shared, first, &job_tx, &job_rx, &note_tx, &rec_tx, &settings);
     drop((job_tx, job_rx, note_tx, view_tx, rec_tx));
     for m in matchers {
         let _ = m.join();

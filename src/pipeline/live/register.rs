@@ -48,7 +48,7 @@ fn register_all(
     shared: &Arc<ScanShared>,
     settings: &PipelineSettings,
 ) -> Result<(), ScanError> {
-    let mut registrar = settings.registration.clone().map(|p| crate::pipeline::registrar(p, settings.calibrated_axis.as_ref(), store));
+    let mut registrar = settings.registration.clone().map(|p| crate::pipeline::registrar(p, settings.calibrated_axis.as_ref(), None, store));
     // The live surface (fusion.rs): registered views, fused as their poses are published.
     let live = match (&registrar, ModelOptions::default().mesh) {
         (Some(_), Some(params)) => Some(LiveFusion::start(shared.clone(), params, REGISTER_NICE + 2)),
@@ -72,7 +72,7 @@ fn register_all(
                     entry["register_skipped"] = json!(format!("newer views were waiting and this one was captured more than {} ms ago (registration is behind; the newest view is registered)", SKIP_AFTER.as_millis()));
                     c.register_skipped.fetch_add(1, Ordering::Relaxed);
                 } else if let Some(reg) = registrar.as_mut() {
-                    if let Some((fitness, rmse)) = register_view(reg, &frame_meta, &view.cloud, &mut entry) {
+                    if let Some((fitness, rmse)) = register_view(reg, &frame_meta, &view, &mut entry) {
                         for o in &observers {
                             let _ = o.send((frame_meta.seq, fitness, rmse));
                         }

@@ -74,108 +74,22 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Vector3};
 
 use super::axis::{estimate_axis, explained_degeneracy, AxisEstimate};
-use super::icp::{icp, IcpParams, IcpResult, Target};
+use super::icp::{icp, IcpResult, Target};
 use super::posestore::{PoseStore, ViewPose};
-use super::refine::{AxisFit, RefineParams, RefineView};
+use super::refine::{AxisFit, RefineView};
 use super::voxel::VoxelModel;
 pub use super::loops::{distribute_loop_error, distribute_loop_error_weighted, edge_variance, register_ring, RingEdge, RingResult};
 use super::grid::RangeGrid;
 use super::{rotation_about_axis, subsample_indices, RegisterError};
 use crate::cloud::PointCloud;
+pub use params::RegistrationParams;
 
 mod closing;
+mod params;
 #[cfg(test)]
 mod tests;
+mod texture;
 mod turntable;
-
-/// Settings of sequence registration; distances in the clouds' units (mm for views).
-#[derive(Debug, Clone)]
-pub struct RegistrationParams {
-    pub icp: IcpParams,
-    /// m of Algorithm 1: views per block registered to the model (0 = no block step).
-    pub block: usize,
-    /// At most this many points of each view kept as an ICP target.
-    pub max_target_points: usize,
-    /// Voxel of the running model used by the block step.
-    pub model_voxel: f64,
-    /// Close the loop when the views complete a turn.
-    pub close_loop: bool,
-    /// Views on each side of the closing edge.
-    pub loop_views: usize,
-    /// Replace the poses with the turntable's predictions when they all agree (see the
-    /// module docs).
-    pub turntable_poses: bool,
-    /// Largest disagreement, degrees, of a pairwise registration with the turntable's
-    /// predicted step beyond the typical step's (a slip), and of the typical step itself
-    /// unless the turntable's poses fit the views better, for which the predictions are used.
-    pub max_turntable_deviation_deg: f64,
-    /// ICP results below this fitness are not trusted: the seed is kept and a warning given.
-    pub min_fitness: f64,
-    /// Estimate the axis once the poses span this much rotation, degrees.
-    pub axis_min_span_deg: f64,
-    /// Every `axis_long_step_every`-th view is also registered to the earlier view about this
-    /// many degrees before it (at most 32 views back), and the axis is estimated from those
-    /// long steps (0 = off: the axis comes from the chained poses).
-    pub axis_baseline_deg: f64,
-    pub axis_long_step_every: usize,
-    /// A calibrated axis (point, unit up), when the recording has one.
-    pub calibrated_axis: Option<(Vector3<f64>, Vector3<f64>)>,
-    /// The turntable refinement at the end of a scan without a calibrated axis
-    /// (`register::refine`): the axis fitted to every view at once.
-    pub refine: RefineParams,
-    /// Points of each view kept for the refinement.
-    pub refine_points: usize,
-    /// A refined axis whose direction is known to this many degrees (one standard deviation)
-    /// or better gives turntable poses; a less certain one only when its poses put the views
-    /// onto each other better than the registered ones (see the module docs).
-    pub max_axis_sigma_deg: f64,
-    /// Per-view targets (the chain, the long steps, the block step) are range grids paired
-    /// by projection ([`super::grid`]): a few distance computations per query and no tree to
-    /// build per view. False: exact nearest neighbours on a cell grid (loop closure and the
-    /// symmetry test always use those, the refinement a k-d tree).
-    pub projective: bool,
-}
-
-impl Default for RegistrationParams {
-    /// For spinscan's millimetre views: point-to-plane ICP with pairs up to 8 mm apart,
-    /// 4000 source points per view and at most 12 iterations, 40 000 target points, Huber weights beyond 1 mm; blocks of
-    /// m = 5; a 2 mm running model; loop closure on, one view a side; turntable poses when every step agrees to 1.5°; fitness below 0.3 distrusted; the axis
-    /// estimated after 9° of turn.
-    fn default() -> Self {
-        let mut icp = IcpParams::new(8.0);
-        icp.max_source_points = 4000;
-        icp.kernel = super::Kernel::Huber(1.0);
-        // A smooth, nearly symmetric object (the egg) never converges: its clouds' camera-fixed
-        // errors drag the turn towards "no motion" a little every iteration. 12 iterations
-        // bound that drift and the time; well-shaped views converge in 8–11 (the torus).
-        // Measured on 120-view rings: the final poses as good or better than with 20 or 50.
-        icp.max_iterations = 12;
-        // Converged once a step moves less than 0.006° and 1e-4 of the view's size (≈ 4 µm):
-        // the live poses are refined at the end of the scan anyway.
-        icp.min_step_rad = 1e-4;
-        icp.min_step_rel = 1e-4;
-
-        RegistrationParams {
-            icp,
-            block: 5,
-            max_target_points: 40_000,
-            model_voxel: 2.0,
-            close_loop: true,
-            loop_views: 1,
-            turntable_poses: true,
-            max_turntable_deviation_deg: 1.5,
-            min_fitness: 0.3,
-            axis_min_span_deg: 9.0,
-            axis_baseline_deg: 24.0,
-            axis_long_step_every: 4,
-            calibrated_axis: None,
-            refine: RefineParams::default(),
-            refine_points: 1500,
-            max_axis_sigma_deg: 0.05,
-            projective: true,
-        }
-    }
-}
 
 /// How one view was registered.
 #[derive(Debug, Clone)]
@@ -295,6 +209,7 @@ pub struct Registrar {
     refine_scores: Option<(f64, f64)>,
     /// Steps whose free rotation was looked at with exact pairs so far.
     symmetry_tests: usize,
+    texture: texture::Texture,
 }
 
 /// `t` with its rotation renormalised: chained products drift from unit length (by ≈ 1e-8 a
@@ -313,7 +228,7 @@ const MAX_KEPT: usize = 360;
 impl Registrar {
     pub fn new(params: RegistrationParams, store: std::sync::Arc<PoseStore>) -> Registrar {
         let model = VoxelModel::new(params.model_voxel);
-        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, steps: Vec::new(), step_variance: Vec::new(), kept: Vec::new(), kept_index: Vec::new(), kept_stride: 1, refined: None, refine_errors: Vec::new(), refine_scores: None, symmetry_tests: 0 }
+        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, steps: Vec::new(), step_variance: Vec::new(), kept: Vec::new(), kept_index: Vec::new(), kept_stride: 1, refined: None, refine_errors: Vec::new(), refine_scores: None, symmetry_tests: 0, texture: Default::default() }
     }
 
     /// The latest pose of every view.
@@ -691,6 +606,8 @@ impl Registrar {
         let from_poses = self.axis.as_ref().map(|a| (a.point, a.dir));
         self.update_axis_from(true);
         self.refine_axis(from_poses);
+        self.fit_axis_to_texture();
+        if let Some(f) = &self.texture.fit { self.refined = Some(f.clone()); }
         self.fit_turntable();
         self.store.publish(self.poses.clone());
         Ok(closure)
