@@ -388,6 +388,8 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
         _ => None,
     };
 
+    // The axis fitted to the views' points (also when the texture tracks' axis replaced it).
+    let points_fit = reg.points_axis().or(reg.refined_axis().filter(|f| f.tracks.is_none()));
     let mut section = json!({
         "views": poses.len(),
         "model_points": cloud.len(),
@@ -400,14 +402,20 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
             "steps": f.steps, "rms_deviation_deg": f.rms_deviation_deg, "max_deviation_deg": f.max_deviation_deg, "worst_seq": f.worst_seq,
             "applied": f.applied, "axis_source": f.axis_source, "kept_because": f.kept_because,
             "axis_sigma_deg": f.refined.as_ref().map(|r| r.sigma_dir_deg), "axis_point_sigma_mm": f.refined.as_ref().map(|r| r.sigma_point_mm),
-            "axis_fit_rms_mm": f.refined.as_ref().map(|r| r.rms_mm), "axis_fit_pairs": f.refined.as_ref().map(|r| r.pairs),
+            "axis_fit_rms_mm": points_fit.map(|r| r.rms_mm), "axis_fit_pairs": points_fit.map(|r| r.pairs),
+            "axis_fit_tracks": f.refined.as_ref().and_then(|r| r.tracks).map(|t| t.tracks), "axis_fit_rms_px": f.refined.as_ref().and_then(|r| r.tracks).map(|t| t.rms_px),
             "turntable_score_mm": f.scores.map(|s| s.0), "registered_score_mm": f.scores.map(|s| s.1),
         })),
         "pose_source": if reg.turntable_fit().is_some_and(|f| f.applied) { "turntable" } else { "registration" },
     });
     // The axis fitted to every view when there is one, else the one estimated from the poses.
     let axis = match (reg.refined_axis(), reg.estimated_axis()) {
-        (Some(f), _) => Some((f.point, f.dir, json!({"method": "refined", "sigma_deg": f.sigma_dir_deg, "point_sigma_mm": f.sigma_point_mm, "fit_rms_mm": f.rms_mm, "pairs": f.pairs}))),
+        (Some(f), _) => Some((f.point, f.dir, match (&f.tracks, points_fit) {
+            (Some(t), Some(p)) => json!({"method": "tracked", "sigma_deg": f.sigma_dir_deg, "point_sigma_mm": f.sigma_point_mm, "tracks": t.tracks, "observations": t.observations, "fit_rms_px": t.rms_px,
+                "points_fit": {"dir": p.dir.as_slice(), "point_mm": p.point.as_slice(), "sigma_deg": p.sigma_dir_deg, "fit_rms_mm": p.rms_mm, "pairs": p.pairs, "deg_from_tracked": p.dir.angle(&f.dir).to_degrees()}}),
+            (Some(t), None) => json!({"method": "tracked", "sigma_deg": f.sigma_dir_deg, "point_sigma_mm": f.sigma_point_mm, "tracks": t.tracks, "observations": t.observations, "fit_rms_px": t.rms_px}),
+            (None, _) => json!({"method": "refined", "sigma_deg": f.sigma_dir_deg, "point_sigma_mm": f.sigma_point_mm, "fit_rms_mm": f.rms_mm, "pairs": f.pairs, "texture_note": reg.texture_note()}),
+        })),
         (None, Some(a)) => Some((a.point, a.dir, json!({"method": "poses", "rms_axis_deg": a.rms_axis_deg, "rms_offset_mm": a.rms_offset, "views": a.views}))),
         (None, None) => None,
     };

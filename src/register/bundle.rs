@@ -16,7 +16,7 @@
 
 use nalgebra::{Isometry3, Matrix2, Matrix3, Matrix3x4, Matrix4, SymmetricEigen, Vector3, Vector4};
 
-use super::refine::AxisFit;
+use super::refine::{AxisFit, TrackFigures};
 use super::tracks::{TrackCamera, TrackObs};
 use super::{rotation_about_axis, RegisterError};
 
@@ -243,7 +243,8 @@ pub fn fit_axis_to_tracks(obs: &[TrackObs], table_deg: &[f64], camera: &TrackCam
     }
     let dir = if line.dir.dot(&init.1) < 0.0 { -line.dir } else { line.dir };
     let point = line.point + dir * dir.dot(&(init.0 - line.point));
-    Ok(AxisFit { point, dir, sigma_dir_deg, sigma_point_mm, rms_mm: (ss / count.max(1) as f64).sqrt(), pairs: tracks.len(), correspondences: count })
+    let figures = TrackFigures { tracks: tracks.len(), observations: count, rms_px: (ss / count.max(1) as f64).sqrt() };
+    Ok(AxisFit { point, dir, sigma_dir_deg, sigma_point_mm, rms_mm: f64::NAN, pairs: 0, correspondences: 0, tracks: Some(figures) })
 }
 
 #[cfg(test)]

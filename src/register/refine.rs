@@ -70,10 +70,25 @@ pub struct AxisFit {
     /// of the position across the axis, mm.
     pub sigma_dir_deg: f64,
     pub sigma_point_mm: f64,
-    /// RMS point-to-plane distance of the last round's correspondences, mm.
+    /// RMS point-to-plane distance of the last round's correspondences, mm (NaN for an axis
+    /// fitted to texture tracks).
     pub rms_mm: f64,
+    /// Pairs of views and correspondences of the last round (0 for an axis fitted to
+    /// texture tracks).
     pub pairs: usize,
     pub correspondences: usize,
+    /// Set when the axis was fitted to texture tracks (`register::bundle`) instead.
+    pub tracks: Option<TrackFigures>,
+}
+
+/// How an axis fitted to texture tracks was found.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackFigures {
+    /// Tracks used and their observations.
+    pub tracks: usize,
+    pub observations: usize,
+    /// RMS of the tracked places' residuals (x and y), pixels.
+    pub rms_px: f64,
 }
 
 /// `|x|` of an angle difference taken into (−180°, 180°].
@@ -300,7 +315,7 @@ impl<'a> RefineSet<'a> {
         // The point nearest the initial one, the initial direction's sign.
         let dir = if line.dir.dot(&init.1) < 0.0 { -line.dir } else { line.dir };
         let point = line.point + dir * dir.dot(&(init.0 - line.point));
-        Ok(AxisFit { point, dir, sigma_dir_deg, sigma_point_mm, rms_mm: rms, pairs: pairs.len(), correspondences: count })
+        Ok(AxisFit { point, dir, sigma_dir_deg, sigma_point_mm, rms_mm: rms, pairs: pairs.len(), correspondences: count, tracks: None })
     }
 }
 

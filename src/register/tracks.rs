@@ -87,10 +87,10 @@ pub struct TrackParams {
 }
 
 impl Default for TrackParams {
-    /// 11 × 11 windows, ±6 px around the predicted place, one new track per 12 × 12 cell,
+    /// 11 × 11 windows, ±4 px around the predicted place, one new track per 12 × 12 cell,
     /// correlation ≥ 0.9.
     fn default() -> Self {
-        TrackParams { half_window: 5, search_px: 6, cell_px: 12, min_ncc: 0.9, min_corner: 300.0 }
+        TrackParams { half_window: 5, search_px: 4, cell_px: 12, min_ncc: 0.9, min_corner: 300.0 }
     }
 }
 
@@ -118,6 +118,8 @@ pub struct TrackImage<'a> {
 /// The previous view, kept to track from.
 struct Previous {
     gray: Vec<f32>,
+    /// Central differences of `gray` along x and y (0 on the border).
+    grad: (Vec<f32>, Vec<f32>),
     disparity: Vec<f32>,
     width: usize,
     height: usize,
@@ -184,7 +186,8 @@ impl Tracker {
         let gray: Vec<f32> = image.rgb.chunks_exact(3).map(|c| 0.299 * c[0] as f32 + 0.587 * c[1] as f32 + 0.114 * c[2] as f32).collect();
         let view = self.table_deg.len() as u32;
         self.table_deg.push(table_deg);
-        let current = Previous { gray, disparity: image.disparity.to_vec(), width: image.width, height: image.height };
+        let grad = gradients(&gray, image.width, image.height);
+        let current = Previous { gray, grad, disparity: image.disparity.to_vec(), width: image.width, height: image.height };
         let mut kept = Vec::with_capacity(self.active.len());
         if let (Some(prev), Some(motion)) = (&self.previous, new_from_prev) {
             if prev.width == current.width && prev.height == current.height {
@@ -236,7 +239,7 @@ impl Tracker {
         let dx = parabola(at(i - 1, j), s, at(i + 1, j));
         let dy = parabola(at(i, j - 1), s, at(i, j + 1));
         let (px, py) = ((cx - r + i as i64) as f64 + dx, (cy - r + j as i64) as f64 + dy);
-        let (nx, ny, warp) = refine(template, &cur.gray, cur.width, cur.height, (px, py), track.warp, hw)?;
+        let (nx, ny, warp) = refine(template, cur, (px, py), track.warp, hw)?;
         let nd = bilinear(&cur.disparity, cur.width, cur.height, nx, ny)?;
         Some((nx, ny, nd, warp))
     }
@@ -301,12 +304,12 @@ fn parabola(l: f64, c: f64, r: f64) -> f64 {
 /// foreshortens the window, and light falling differently across it shifts a plain
 /// correlation's peak. None when the place wanders more than a pixel from `start` or the
 /// shape degenerates.
-fn refine(template: &[f64], gray: &[f32], width: usize, height: usize, start: (f64, f64), warp: [f64; 4], hw: i64) -> Option<(f64, f64, [f64; 4])> {
+fn refine(template: &[f64], image: &Previous, start: (f64, f64), warp: [f64; 4], hw: i64) -> Option<(f64, f64, [f64; 4])> {
     // Unknowns: x, y, the warp's a, b, c, e, and the ramp's slopes along u and v.
     let (mut x, mut y, mut w) = (start.0, start.1, warp);
     let scale = 1.0 / hw.max(1) as f64;
     for _ in 0..8 {
-        let (win, gx, gy) = warped_window(gray, width, height, (x, y), w, hw)?;
+        let (win, gx, gy) = warped_window(image, (x, y), w, hw)?;
         let mut h = nalgebra::SMatrix::<f64, 8, 8>::zeros();
         let mut g = nalgebra::SVector::<f64, 8>::zeros();
         let mut k = 0;
@@ -329,7 +332,7 @@ fn refine(template: &[f64], gray: &[f32], width: usize, height: usize, start: (f
         if (x - start.0).abs() > 1.0 || (y - start.1).abs() > 1.0 || w.iter().any(|v| v.abs() > 0.5) {
             return None;
         }
-        if step[0] * step[0] + step[1] * step[1] < 1e-6 {
+        if step[0] * step[0] + step[1] * step[1] < 1e-4 {
             break;
         }
     }
@@ -338,17 +341,29 @@ fn refine(template: &[f64], gray: &[f32], width: usize, height: usize, start: (f
 
 /// The normalised window centred on `(x, y)` with the affine shape `warp` (see
 /// [`Active::warp`]), and its derivatives along the image's x and y.
-fn warped_window(gray: &[f32], width: usize, height: usize, (x, y): (f64, f64), warp: [f64; 4], hw: i64) -> Option<(Vec<f64>, Vec<f64>, Vec<f64>)> {
+fn warped_window(image: &Previous, (x, y): (f64, f64), warp: [f64; 4], hw: i64) -> Option<(Vec<f64>, Vec<f64>, Vec<f64>)> {
     let n = ((2 * hw + 1) * (2 * hw + 1)) as usize;
     let (mut win, mut gx, mut gy) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
+    let (width, height) = (image.width, image.height);
     for v in -hw..=hw {
         for u in -hw..=hw {
             let (uf, vf) = (u as f64, v as f64);
             let px = x + (1.0 + warp[0]) * uf + warp[1] * vf;
             let py = y + warp[2] * uf + (1.0 + warp[3]) * vf;
-            win.push(sample(gray, width, height, px, py)?);
-            gx.push(sample(gray, width, height, px + 0.5, py)? - sample(gray, width, height, px - 0.5, py)?);
-            gy.push(sample(gray, width, height, px, py + 0.5)? - sample(gray, width, height, px, py - 0.5)?);
+            if !(px >= 1.0 && py >= 1.0) {
+                return None;
+            }
+            let (x0, y0) = (px as usize, py as usize);
+            if x0 + 2 >= width || y0 + 2 >= height {
+                return None;
+            }
+            let (fx, fy) = (px - x0 as f64, py - y0 as f64);
+            let i = y0 * width + x0;
+            let taps = [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy];
+            let at = |img: &[f32]| taps[0] * img[i] as f64 + taps[1] * img[i + 1] as f64 + taps[2] * img[i + width] as f64 + taps[3] * img[i + width + 1] as f64;
+            win.push(at(&image.gray));
+            gx.push(at(&image.grad.0));
+            gy.push(at(&image.grad.1));
         }
     }
     let mean = win.iter().sum::<f64>() / n as f64;
@@ -362,18 +377,17 @@ fn warped_window(gray: &[f32], width: usize, height: usize, (x, y): (f64, f64), 
     Some((win, gx, gy))
 }
 
-/// Bilinear grey value at `(x, y)`, None outside.
-fn sample(gray: &[f32], width: usize, height: usize, x: f64, y: f64) -> Option<f64> {
-    if !(x >= 0.0 && y >= 0.0) {
-        return None;
+/// Central differences along x and y (0 on the image's border).
+fn gradients(gray: &[f32], width: usize, height: usize) -> (Vec<f32>, Vec<f32>) {
+    let (mut gx, mut gy) = (vec![0.0; gray.len()], vec![0.0; gray.len()]);
+    for y in 1..height.saturating_sub(1) {
+        for x in 1..width - 1 {
+            let i = y * width + x;
+            gx[i] = 0.5 * (gray[i + 1] - gray[i - 1]);
+            gy[i] = 0.5 * (gray[i + width] - gray[i - width]);
+        }
     }
-    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
-    if x0 + 1 >= width || y0 + 1 >= height {
-        return None;
-    }
-    let (fx, fy) = (x - x0 as f64, y - y0 as f64);
-    let g = |xx: usize, yy: usize| gray[yy * width + xx] as f64;
-    Some((g(x0, y0) * (1.0 - fx) + g(x0 + 1, y0) * fx) * (1.0 - fy) + (g(x0, y0 + 1) * (1.0 - fx) + g(x0 + 1, y0 + 1) * fx) * fy)
+    (gx, gy)
 }
 
 /// Bilinear value at `(x, y)`; None when any of the four neighbours is missing (NaN) or

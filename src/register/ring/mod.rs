@@ -139,9 +139,10 @@ pub struct TurntableFit {
     pub worst_seq: u64,
     /// The predictions replaced the registered poses.
     pub applied: bool,
-    /// "calibrated", or "refined" (fitted to every view at the end of the scan).
+    /// "calibrated", "refined" (fitted to every view's points at the end of the scan) or
+    /// "tracked" (fitted to the texture tracks then).
     pub axis_source: &'static str,
-    /// The refined axis's uncertainty and fit (None with a calibrated axis).
+    /// The fitted axis's uncertainty and fit (None with a calibrated axis).
     pub refined: Option<AxisFit>,
     /// How well the refined axis's turntable poses and the registered poses put the views
     /// onto each other, mm (lower is better): (turntable, registered).
@@ -606,8 +607,6 @@ impl Registrar {
         let from_poses = self.axis.as_ref().map(|a| (a.point, a.dir));
         self.update_axis_from(true);
         self.refine_axis(from_poses);
-        self.fit_axis_to_texture();
-        if let Some(f) = &self.texture.fit { self.refined = Some(f.clone()); }
         self.fit_turntable();
         self.store.publish(self.poses.clone());
         Ok(closure)

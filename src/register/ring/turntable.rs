@@ -69,6 +69,23 @@ impl Registrar {
             }
         }
         if let Some(fit) = &best {
+            tracing::info!("turntable refinement: the axis fitted to {} views in {:.1} s (direction ±{:.3}°, fit RMS {:.2} mm)", self.kept.len(), started.elapsed().as_secs_f64(), fit.sigma_dir_deg, fit.rms_mm);
+        }
+        // The axis fitted to the texture tracks, started from the points' fit (else from the
+        // axis estimated from the poses), replaces it when it is known to within
+        // `max_axis_sigma_deg`: the points' fit carries the stereo clouds' bias.
+        let start = best.as_ref().map(|f| (f.point, f.dir)).or_else(|| self.axis.as_ref().map(|a| (a.point, a.dir)));
+        match start.and_then(|s| self.fit_axis_to_texture(s)) {
+            Some(Ok(tracked)) if tracked.sigma_dir_deg <= self.params.max_axis_sigma_deg => self.texture.points_fit = best.replace(tracked),
+            Some(Ok(tracked)) => {
+                let why = format!("the axis fitted to the texture tracks is known only to ±{:.3}° (more than {:.3}°): the axis fitted to the views' points is used", tracked.sigma_dir_deg, self.params.max_axis_sigma_deg);
+                tracing::info!("{why}");
+                self.texture.note = Some(why);
+            }
+            Some(Err(why)) => self.texture.note = Some(why),
+            None => {}
+        }
+        if let Some(fit) = &best {
             // The turntable's poses of the kept views against the registered ones, by one
             // measure.
             let first_deg = self.kept[0].table_deg;
@@ -77,7 +94,6 @@ impl Registrar {
             let turned: Vec<Isometry3<f64>> = self.kept.iter().map(|v| rotation_about_axis(&fit.point, &fit.dir, -(v.table_deg - first_deg))).collect();
             let registered: Vec<Isometry3<f64>> = self.kept_index.iter().map(|&k| base.inverse() * self.poses[k].first_from_view).collect();
             self.refine_scores = Some((set.score(&turned, &self.params.refine), set.score(&registered, &self.params.refine)));
-            tracing::info!("turntable refinement: the axis fitted to {} views in {:.1} s (direction ±{:.3}°, fit RMS {:.2} mm)", self.kept.len(), started.elapsed().as_secs_f64(), fit.sigma_dir_deg, fit.rms_mm);
         }
         self.refined = best;
     }
@@ -89,7 +105,7 @@ impl Registrar {
         let Some(first_deg) = self.poses.first().and_then(|p| p.table_deg) else { return };
         let (axis, source) = match (self.params.calibrated_axis, self.refined.as_ref()) {
             (Some(a), _) => (a, "calibrated"),
-            (None, Some(f)) => ((f.point, f.dir), "refined"),
+            (None, Some(f)) => ((f.point, f.dir), if f.tracks.is_some() { "tracked" } else { "refined" }),
             (None, None) => {
                 if self.params.turntable_poses && !self.refine_errors.is_empty() {
                     tracing::warn!("the turntable's axis could not be fitted to the views ({}): keeping the registered poses", self.refine_errors.join("; "));
@@ -110,12 +126,12 @@ impl Registrar {
         }
         let (worst_seq, max) = worst_step(&devs);
         let rms = (devs.iter().map(|d| d.1 * d.1).sum::<f64>() / devs.len() as f64).sqrt();
-        let refined = if source == "refined" { self.refined.clone() } else { None };
+        let refined = if source != "calibrated" { self.refined.clone() } else { None };
         let kept_because = if !self.params.turntable_poses {
             Some("turntable poses are off".to_string())
         } else if let (Some(f), Some((turned, registered))) = (refined.as_ref().filter(|f| !(f.sigma_dir_deg <= self.params.max_axis_sigma_deg)), self.refine_scores.filter(|(t, r)| !(t < r))) {
             Some(format!("the turntable's axis is known only to ±{:.3}° (more than {:.3}°), and its poses put the views onto each other no better than the registered ones ({turned:.3} against {registered:.3} mm)", f.sigma_dir_deg, self.params.max_axis_sigma_deg))
-        } else if source == "refined" && self.refine_scores.is_none() {
+        } else if source != "calibrated" && self.refine_scores.is_none() {
             Some("the turntable's poses could not be scored against the registered ones".to_string())
         } else {
             steps_disagree(&devs, (worst_seq, max), self.params.max_turntable_deviation_deg, scores_of(source, self.refine_scores))
@@ -140,9 +156,10 @@ fn worst_step(devs: &[(u64, f64)]) -> (u64, f64) {
     devs.iter().copied().fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a })
 }
 
-/// The refinement's scores (turntable, registered) when the axis was refined.
+/// The refinement's scores (turntable, registered) when the axis was fitted at the end of
+/// the scan (to the views' points or to the texture tracks).
 fn scores_of(source: &str, scores: Option<(f64, f64)>) -> Option<(f64, f64)> {
-    if source == "refined" {
+    if source != "calibrated" {
         scores
     } else {
         None
