@@ -345,6 +345,11 @@ pub struct RegistrationArgs {
     /// (by default the turntable's predictions about the estimated axis replace them then).
     #[arg(long)]
     pub no_turntable_poses: bool,
+    /// Fit the turntable's axis to the views' points only, without tracking the object's
+    /// texture from view to view (by default an axis fitted to the texture tracks replaces
+    /// the points' fit when it is known well enough; docs/registration.md).
+    #[arg(long)]
+    pub no_texture_tracks: bool,
 }
 
 impl RegistrationArgs {
@@ -371,6 +376,9 @@ impl RegistrationArgs {
             r.block = self.block_views;
             r.close_loop = !self.no_loop_closure;
             r.turntable_poses = !self.no_turntable_poses;
+            if self.no_texture_tracks {
+                r.tracks = None;
+            }
             let method = self.icp_method.parse().map_err(input)?;
             let keep = r.icp.clone();
             r.icp = IcpParams { method, ..IcpParams::new(self.icp_max_distance) };

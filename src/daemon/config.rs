@@ -257,11 +257,14 @@ pub struct ScanSection {
     pub register: bool,
     /// Registration keeps at most this many points of each view (subsampled), 0 = all.
     pub register_max_points: usize,
+    /// Track the object's texture from view to view and fit the turntable's axis to the
+    /// tracks at the end of a scan without a calibrated axis (docs/registration.md).
+    pub texture_tracks: bool,
 }
 
 impl Default for ScanSection {
     fn default() -> Self {
-        ScanSection { step_deg: 2.0, total_deg: 360.0, queue_depth: 16, matcher_threads: 0, register: true, register_max_points: 20_000 }
+        ScanSection { step_deg: 2.0, total_deg: 360.0, queue_depth: 16, matcher_threads: 0, register: true, register_max_points: 20_000, texture_tracks: true }
     }
 }
 
@@ -450,6 +453,9 @@ impl Config {
                 // Both ends of ICP: the view moved (source) and the view it lands on (target).
                 p.max_target_points = config.scan.register_max_points;
                 p.icp.max_source_points = p.icp.max_source_points.min(config.scan.register_max_points);
+            }
+            if !config.scan.texture_tracks {
+                p.tracks = None;
             }
             p
         });
