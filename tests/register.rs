@@ -252,13 +252,22 @@ fn a_simulated_turn_replays_into_poses_model_and_axis() {
     let truth = spinscan::recording::TurntableAxis::parse(&truth_path, &std::fs::read_to_string(&truth_path).unwrap()).unwrap();
     assert_eq!(est.source, "estimated");
     let (a, b) = (Vector3::from(est.axis_dir), Vector3::from(truth.axis_dir));
-    assert!(a.dot(&b) > 0.999, "estimated axis {a:?}, true {b:?}");
+    // Fitted to the texture tracks: within 0.2° of the truth (the views' points alone gave
+    // 0.3° here, 0.1–0.2° at 640 × 480: docs/registration.md).
+    let off = a.dot(&b).clamp(-1.0, 1.0).acos().to_degrees();
+    assert!(off < 0.2, "estimated axis {a:?} is {off:.3}° from the true {b:?}");
     let offset = Vector3::from(est.axis_point_mm) - Vector3::from(truth.axis_point_mm);
     assert!((offset - b * b.dot(&offset)).norm() < 5.0, "axis point off the true line by {:?}", offset - b * b.dot(&offset));
 
-    // The axis was refined against every view, and the report says how well it is known;
-    // the views' own distance to the surface stands beside the model's.
-    assert_eq!(reg["turntable_fit"]["axis_source"], "refined", "{reg}");
+    // The axis was fitted to the texture tracks (the fit to every view's points beside it),
+    // and the report says how well it is known; the views' own distance to the surface
+    // stands beside the model's.
+    assert_eq!(reg["turntable_fit"]["axis_source"], "tracked", "{reg}");
+    assert_eq!(reg["axis"]["method"], "tracked", "{reg}");
+    assert!(reg["axis"]["tracks"].as_u64().unwrap() > 100 && reg["axis"]["fit_rms_px"].as_f64().unwrap() < 0.5, "{reg}");
+    assert!(reg["axis"]["points_fit"]["fit_rms_mm"].as_f64().is_some(), "{reg}");
+    let final_median = reg["gt_pose_err_deg"]["final"]["median"].as_f64().unwrap();
+    assert!(final_median < 0.15, "final poses a median {final_median:.3}° from the truth: {reg}");
     assert!(reg["turntable_fit"]["axis_sigma_deg"].as_f64().is_some_and(|s| s.is_finite() && s > 0.0), "{reg}");
     assert!(reg["turntable_fit"]["turntable_score_mm"].as_f64().is_some() && reg["turntable_fit"]["registered_score_mm"].as_f64().is_some(), "{reg}");
     // The model is the fused surface's measured vertices: nearer the true surface than the
@@ -316,4 +325,21 @@ fn a_smooth_symmetric_object_cannot_fool_the_axis() {
     let dir = reg["axis"]["dir"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect::<Vec<_>>();
     let off = Vector3::new(dir[0], dir[1], dir[2]).normalize().dot(&Vector3::from(truth.axis_dir)).clamp(-1.0, 1.0).acos().to_degrees();
     assert!(off < 1.0, "axis {off:.2}° from the truth: {reg}");
+}
+
+#[test]
+fn a_ball_is_turned_by_its_texture_not_by_its_shape() {
+    // ICP cannot see a ball turn: every step registers as almost no turn, and the axis fitted
+    // to the views' points lay 65° off at 640 × 480. The texture tracked from view to view
+    // follows the table's angles about the true axis, so the turntable's poses are used.
+    let (_dir, rec_dir, _, reg) = replay_turn("register-ball", "sphere");
+    assert_eq!(reg["turntable_fit"]["axis_source"], "tracked", "{reg}");
+    assert_eq!(reg["pose_source"], "turntable", "{reg}");
+    let truth_path = rec_dir.join("gt/turntable.yaml");
+    let truth = spinscan::recording::TurntableAxis::parse(&truth_path, &std::fs::read_to_string(&truth_path).unwrap()).unwrap();
+    let dir = reg["axis"]["dir"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect::<Vec<_>>();
+    let off = Vector3::new(dir[0], dir[1], dir[2]).normalize().dot(&Vector3::from(truth.axis_dir)).clamp(-1.0, 1.0).acos().to_degrees();
+    assert!(off < 0.2, "axis {off:.3}° from the truth: {reg}");
+    let median = reg["gt_pose_err_deg"]["final"]["median"].as_f64().unwrap();
+    assert!(median < 0.2, "final poses a median {median:.3}° from the truth: {reg}");
 }

@@ -20,6 +20,10 @@ use super::refine::{AxisFit, TrackFigures};
 use super::tracks::{TrackCamera, TrackObs};
 use super::{rotation_about_axis, RegisterError};
 
+/// A view is confirmed by the tracks (see [`TrackFigures::views_unconfirmed`]) when at least
+/// this many observations of tracks that started earlier fall in it.
+const MIN_VIEW_OBSERVATIONS: usize = 10;
+
 /// Settings of [`fit_axis_to_tracks`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct BundleParams {
@@ -233,17 +237,33 @@ pub fn fit_axis_to_tracks(obs: &[TrackObs], table_deg: &[f64], camera: &TrackCam
     };
     let count: usize = tracks.iter().map(|t| t.obs.len()).sum();
     // RMS of the places' residuals, pixels.
+    // Per view, the places of tracks that started in an earlier view: how far they are from
+    // where the table's angle about the line puts them.
     let mut ss = 0.0;
+    let mut per_view: Vec<Vec<f64>> = vec![Vec::new(); table_deg.len()];
     for (t, point) in tracks.iter().zip(&points) {
         for &i in &t.obs {
             if let Some((r, _)) = residual(&line, t, i, point) {
-                ss += (r.x * r.x + r.y * r.y) * p.sigma_px * p.sigma_px / 2.0;
+                let off2 = (r.x * r.x + r.y * r.y) * p.sigma_px * p.sigma_px;
+                ss += off2 / 2.0;
+                if obs[i].view as usize != t.reference {
+                    per_view[obs[i].view as usize].push(off2.sqrt());
+                }
             }
+        }
+    }
+    let (mut worst_view_px, mut views_unconfirmed) = (0.0f64, 0usize);
+    for offs in per_view.iter_mut().skip(1) {
+        if offs.len() < MIN_VIEW_OBSERVATIONS {
+            views_unconfirmed += 1;
+        } else {
+            offs.sort_by(f64::total_cmp);
+            worst_view_px = worst_view_px.max(offs[offs.len() / 2]);
         }
     }
     let dir = if line.dir.dot(&init.1) < 0.0 { -line.dir } else { line.dir };
     let point = line.point + dir * dir.dot(&(init.0 - line.point));
-    let figures = TrackFigures { tracks: tracks.len(), observations: count, rms_px: (ss / count.max(1) as f64).sqrt() };
+    let figures = TrackFigures { tracks: tracks.len(), observations: count, rms_px: (ss / count.max(1) as f64).sqrt(), worst_view_px, views_unconfirmed };
     Ok(AxisFit { point, dir, sigma_dir_deg, sigma_point_mm, rms_mm: f64::NAN, pairs: 0, correspondences: 0, tracks: Some(figures) })
 }
 
@@ -263,22 +283,29 @@ mod tests {
         let cam = camera();
         let truth = (Vector3::new(5.0, -10.0, 450.0), Vector3::new(0.02, -0.97, -0.2).normalize());
         let angles: Vec<f64> = (0..50).map(|k| 3.0 * k as f64).collect();
-        let mut obs = Vec::new();
         let mut seed = 7u64;
         let mut noise = || {
             seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 0.5
+            ((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 0.2
         };
-        for t in 0..200u32 {
-            let (a, b) = (t as f64 * 0.37, t as f64 * 1.13);
-            let base = truth.0 + Vector3::new(40.0 * a.cos() * b.sin(), 40.0 * a.sin() * b.sin(), -40.0 * b.cos().abs());
-            let first = (t as usize * 7) % 20;
-            for v in first..(first + 24).min(angles.len()) {
-                let m = rotation_about_axis(&truth.0, &truth.1, angles[v] - angles[0]);
-                let q = cam.project(&(m * nalgebra::Point3::from(base)).coords).unwrap();
-                obs.push(TrackObs { track: t, view: v as u32, x: (q.x + noise()) as f32, y: (q.y + noise()) as f32, d: (q.z + noise()) as f32 });
+        // `slip`: from view 30 on, the object sits 2° further round than the table says.
+        let mut ring = |slip: bool| {
+            let mut obs = Vec::new();
+            for t in 0..400u32 {
+                let (a, b) = (t as f64 * 0.37, t as f64 * 1.13);
+                let base = truth.0 + Vector3::new(40.0 * a.cos() * b.sin(), 40.0 * a.sin() * b.sin(), -40.0 * b.cos().abs());
+                let first = (t as usize * 7) % 27;
+                for v in first..(first + 24).min(angles.len()) {
+                    let extra = if slip && v >= 30 { 2.0 } else { 0.0 };
+                    let m = rotation_about_axis(&truth.0, &truth.1, angles[v] - angles[0] + extra);
+                    let q = cam.project(&(m * nalgebra::Point3::from(base)).coords).unwrap();
+                    obs.push(TrackObs { track: t, view: v as u32, x: (q.x + noise()) as f32, y: (q.y + noise()) as f32, d: (q.z + noise()) as f32 });
+                }
             }
-        }
+            obs
+        };
+        let obs = ring(false);
+        let slipped = ring(true);
         // Started 1° and 3 mm off.
         let tilt = nalgebra::UnitQuaternion::from_scaled_axis(Vector3::new(1.0f64.to_radians(), 0.0, 0.0));
         let init = (truth.0 + Vector3::new(3.0, 0.0, 0.0), tilt * truth.1);
@@ -287,6 +314,11 @@ mod tests {
         let off = (fit.point - truth.0 - truth.1 * truth.1.dot(&(fit.point - truth.0))).norm();
         assert!(err < 0.02 && off < 0.2, "direction {err}° off, point {off} mm off (σ {}°)", fit.sigma_dir_deg);
         assert!(fit.sigma_dir_deg < 0.05 && fit.sigma_dir_deg > 0.0, "σ {}", fit.sigma_dir_deg);
+        let t = fit.tracks.unwrap();
+        assert!(t.rms_px < 0.2 && t.worst_view_px < 0.15 && t.views_unconfirmed == 0, "{t:?}");
+        // An object that moved on the table: the views after it stand out.
+        let moved = fit_axis_to_tracks(&slipped, &angles, &cam, init, &BundleParams::default()).unwrap().tracks.unwrap();
+        assert!(moved.worst_view_px > 0.4, "{moved:?}");
         // Too few tracks: a clear error.
         let few: Vec<TrackObs> = obs.iter().filter(|o| o.track < 5).copied().collect();
         let err = fit_axis_to_tracks(&few, &angles, &cam, init, &BundleParams::default()).unwrap_err().to_string();

@@ -89,6 +89,13 @@ pub struct TrackFigures {
     pub observations: usize,
     /// RMS of the tracked places' residuals (x and y), pixels.
     pub rms_px: f64,
+    /// The largest, over the views, of the median distance between where a view's tracked
+    /// places are and where the table's angle about the axis puts them (tracks that started
+    /// in an earlier view), pixels: a view where the object moved on the table stands out.
+    pub worst_view_px: f64,
+    /// Views after the first that fewer than ten such places fall in (their turn is not
+    /// confirmed by the texture).
+    pub views_unconfirmed: usize,
 }
 
 /// `|x|` of an angle difference taken into (−180°, 180°].

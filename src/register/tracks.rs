@@ -188,32 +188,87 @@ impl Tracker {
         self.table_deg.push(table_deg);
         let grad = gradients(&gray, image.width, image.height);
         let current = Previous { gray, grad, disparity: image.disparity.to_vec(), width: image.width, height: image.height };
-        let mut kept = Vec::with_capacity(self.active.len());
+        let mut kept = Vec::new();
         if let (Some(prev), Some(motion)) = (&self.previous, new_from_prev) {
             if prev.width == current.width && prev.height == current.height {
-                for a in &self.active {
-                    if let Some((nx, ny, nd, warp)) = self.follow(prev, &current, motion, a) {
-                        self.obs.push(TrackObs { track: a.id, view, x: nx as f32, y: ny as f32, d: nd as f32 });
-                        kept.push(Active { id: a.id, x: nx, y: ny, template: a.template.clone(), warp });
+                let guesses: Vec<Option<(f64, f64)>> = self.active.iter().map(|a| self.predict(prev, motion, a)).collect();
+                kept = self.follow_all(&current, &guesses, (0.0, 0.0));
+                // Most tracks lost: the motion was off by more than the search (a step ICP
+                // could not see, before the axis seeds it). Find the image's shift from a
+                // sample of tracks searched far, and follow again from there.
+                if kept.len() * 2 < self.active.len() && self.active.len() >= 20 {
+                    if let Some(shift) = self.coarse_shift(&current, &guesses) {
+                        let again = self.follow_all(&current, &guesses, shift);
+                        if again.len() > kept.len() {
+                            kept = again;
+                        }
                     }
                 }
             }
         }
+        let kept: Vec<Active> = kept
+            .into_iter()
+            .map(|(k, (x, y, d, warp))| {
+                let a = &self.active[k];
+                self.obs.push(TrackObs { track: a.id, view, x: x as f32, y: y as f32, d: d as f32 });
+                Active { id: a.id, x, y, template: a.template.clone(), warp }
+            })
+            .collect();
         self.active = kept;
         self.start_tracks(&current, view);
         self.previous = Some(current);
     }
 
-    /// Where the point at `(x, y)` of `prev` is in `cur`: `(x, y, d)`, or None.
-    fn follow(&self, prev: &Previous, cur: &Previous, motion: &Isometry3<f64>, track: &Active) -> Option<(f64, f64, f64, [f64; 4])> {
-        let (x, y, template) = (track.x, track.y, &track.template[..]);
-        let hw = self.params.half_window as i64;
+    /// Where the previous view's motion puts `track` in the new view.
+    fn predict(&self, prev: &Previous, motion: &Isometry3<f64>, track: &Active) -> Option<(f64, f64)> {
+        let d = bilinear(&prev.disparity, prev.width, prev.height, track.x, track.y)?;
+        let p = self.camera.unproject(track.x, track.y, d)?;
+        let guess = self.camera.project(&(motion * nalgebra::Point3::from(p)).coords)?;
+        Some((guess.x, guess.y))
+    }
+
+    /// Every track found near its guess moved by `shift`: (index into the active tracks,
+    /// its place, disparity and window shape).
+    fn follow_all(&self, cur: &Previous, guesses: &[Option<(f64, f64)>], shift: (f64, f64)) -> Vec<(usize, (f64, f64, f64, [f64; 4]))> {
         let r = self.params.search_px as i64;
-        let d = bilinear(&prev.disparity, prev.width, prev.height, x, y)?;
-        let p = self.camera.unproject(x, y, d)?;
-        let moved = motion * nalgebra::Point3::from(p);
-        let guess = self.camera.project(&moved.coords)?;
-        let (cx, cy) = (guess.x.round() as i64, guess.y.round() as i64);
+        (self.active.iter().zip(guesses).enumerate())
+            .filter_map(|(k, (a, g))| {
+                let (gx, gy) = (*g)?;
+                let (px, py, _) = self.search(cur, &a.template, (gx + shift.0, gy + shift.1), r)?;
+                let (nx, ny, warp) = refine(&a.template, cur, (px, py), a.warp, self.params.half_window as i64)?;
+                let nd = bilinear(&cur.disparity, cur.width, cur.height, nx, ny)?;
+                Some((k, (nx, ny, nd, warp)))
+            })
+            .collect()
+    }
+
+    /// The median shift between where up to 40 tracks were guessed and where a search of
+    /// ±`REACQUIRE_PX` finds them; None when fewer than 5 are found.
+    fn coarse_shift(&self, cur: &Previous, guesses: &[Option<(f64, f64)>]) -> Option<(f64, f64)> {
+        let stride = (self.active.len() / 40).max(1);
+        let mut shifts: Vec<(f64, f64)> = (self.active.iter().zip(guesses).step_by(stride))
+            .filter_map(|(a, g)| {
+                let g = (*g)?;
+                let (px, py, _) = self.search(cur, &a.template, g, REACQUIRE_PX)?;
+                Some((px - g.0, py - g.1))
+            })
+            .collect();
+        if shifts.len() < 5 {
+            return None;
+        }
+        let mid = shifts.len() / 2;
+        shifts.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let dx = shifts[mid].0;
+        shifts.sort_by(|a, b| a.1.total_cmp(&b.1));
+        Some((dx, shifts[mid].1))
+    }
+
+    /// The best correlation of `template` within ±`r` pixels of `guess`, to sub-pixel by a
+    /// parabola: `(x, y, ncc)`; None below `min_ncc`, on the search's border, or too near
+    /// the image's.
+    fn search(&self, cur: &Previous, template: &[f64], guess: (f64, f64), r: i64) -> Option<(f64, f64, f64)> {
+        let hw = self.params.half_window as i64;
+        let (cx, cy) = (guess.0.round() as i64, guess.1.round() as i64);
         let (w, h) = (cur.width as i64, cur.height as i64);
         if cx - r - hw - 1 < 0 || cy - r - hw - 1 < 0 || cx + r + hw + 1 >= w || cy + r + hw + 1 >= h {
             return None;
@@ -223,8 +278,7 @@ impl Tracker {
         let mut best = (f64::NEG_INFINITY, 0usize, 0usize);
         for j in 0..side {
             for i in 0..side {
-                let (px, py) = (cx - r + i as i64, cy - r + j as i64);
-                let s = ncc_at(template, &cur.gray, cur.width, px, py, hw);
+                let s = ncc_at(template, &cur.gray, cur.width, cx - r + i as i64, cy - r + j as i64, hw);
                 scores[j * side + i] = s;
                 if s > best.0 {
                     best = (s, i, j);
@@ -238,10 +292,7 @@ impl Tracker {
         let at = |i: usize, j: usize| scores[j * side + i];
         let dx = parabola(at(i - 1, j), s, at(i + 1, j));
         let dy = parabola(at(i, j - 1), s, at(i, j + 1));
-        let (px, py) = ((cx - r + i as i64) as f64 + dx, (cy - r + j as i64) as f64 + dy);
-        let (nx, ny, warp) = refine(template, cur, (px, py), track.warp, hw)?;
-        let nd = bilinear(&cur.disparity, cur.width, cur.height, nx, ny)?;
-        Some((nx, ny, nd, warp))
+        Some(((cx - r + i as i64) as f64 + dx, (cy - r + j as i64) as f64 + dy, s))
     }
 
     /// Starts a track in each cell of the grid that holds none, at its strongest corner.
@@ -286,6 +337,9 @@ impl Tracker {
         }
     }
 }
+
+/// How far, pixels each way, a sample of tracks is searched when most were lost.
+const REACQUIRE_PX: i64 = 32;
 
 /// The vertex offset of a parabola through three equally spaced values, within ±0.5.
 fn parabola(l: f64, c: f64, r: f64) -> f64 {
@@ -519,14 +573,27 @@ mod tests {
         }
     }
 
-    /// A textured plane at 500 mm, its texture moved by `shift` pixels.
+    /// A textured plane at 500 mm, its texture moved by `shift` pixels: random blobs about
+    /// 4 px across (value noise, smoothly interpolated), so that no pattern repeats.
     fn textured(width: usize, height: usize, shift: f64) -> (Vec<u8>, Vec<f32>) {
+        let (gw, gh) = (width / 4 + 8, height / 4 + 4);
+        let mut seed = 12345u64;
+        let grid: Vec<f64> = (0..gw * gh)
+            .map(|_| {
+                seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                (seed >> 11) as f64 / (1u64 << 53) as f64
+            })
+            .collect();
+        let smooth = |t: f64| t * t * (3.0 - 2.0 * t);
         let mut rgb = vec![0u8; width * height * 3];
         for y in 0..height {
             for x in 0..width {
-                let u = x as f64 - shift;
-                let v = 128.0 + 50.0 * (u * 0.31).sin() * (y as f64 * 0.23).cos() + 40.0 * ((u * 0.07 + y as f64 * 0.11).sin());
-                rgb[(y * width + x) * 3..][..3].fill(v.clamp(0.0, 255.0) as u8);
+                let (u, v) = ((x as f64 - shift) / 4.0 + 4.0, y as f64 / 4.0 + 1.0);
+                let (i, j) = (u.floor() as usize, v.floor() as usize);
+                let (fx, fy) = (smooth(u - i as f64), smooth(v - j as f64));
+                let g = |a: usize, b: usize| grid[b * gw + a];
+                let n = (g(i, j) * (1.0 - fx) + g(i + 1, j) * fx) * (1.0 - fy) + (g(i, j + 1) * (1.0 - fx) + g(i + 1, j + 1) * fx) * fy;
+                rgb[(y * width + x) * 3..][..3].fill((48.0 + 160.0 * n) as u8);
             }
         }
         (rgb, vec![96.0; width * height])
@@ -534,7 +601,7 @@ mod tests {
 
     #[test]
     fn tracks_follow_texture_moved_by_the_step_and_to_sub_pixel() {
-        let (w, h) = (160, 120);
+        let (w, h) = (320, 240);
         let mut tracker = Tracker::new(camera(), TrackParams::default());
         let (a, da) = textured(w, h, 0.0);
         tracker.add(TrackImage { rgb: &a, disparity: &da, width: w, height: h }, 0.0, None);
@@ -547,11 +614,19 @@ mod tests {
         let first: std::collections::HashMap<u32, TrackObs> = tracker.observations().iter().filter(|o| o.view == 0).map(|o| (o.track, *o)).collect();
         let moved: Vec<f64> = tracker.observations().iter().filter(|o| o.view == 1 && first.contains_key(&o.track)).map(|o| (o.x - first[&o.track].x) as f64).collect();
         assert!(moved.len() * 10 >= started * 8, "{} of {started} tracks followed", moved.len());
-        let worst = moved.iter().map(|m| (m - 2.4).abs()).fold(0.0, f64::max);
+        let mut errs: Vec<f64> = moved.iter().map(|m| (m - 2.4).abs()).collect();
+        errs.sort_by(f64::total_cmp);
+        let worst = errs[errs.len() - 1];
         assert!(worst < 0.15, "shift found to within {worst} px");
+        // A step the motion missed by 10 px (beyond the ±4 px search): the tracks are found
+        // again from the shift a sample of them shows.
+        let (c, dc) = textured(w, h, 12.4);
+        tracker.add(TrackImage { rgb: &c, disparity: &dc, width: w, height: h }, 6.0, Some(&step));
+        let followed = tracker.observations().iter().filter(|o| o.view == 2 && first.contains_key(&o.track)).count();
+        assert!(followed * 10 >= moved.len() * 7, "{followed} of {} tracks found again", moved.len());
         // Without motion the tracks end; new ones start.
-        tracker.add(TrackImage { rgb: &b, disparity: &db, width: w, height: h }, 6.0, None);
-        assert!(tracker.observations().iter().filter(|o| o.view == 2).all(|o| !first.contains_key(&o.track)));
-        assert_eq!(tracker.table_deg(), &[0.0, 3.0, 6.0]);
+        tracker.add(TrackImage { rgb: &c, disparity: &dc, width: w, height: h }, 9.0, None);
+        assert!(tracker.observations().iter().filter(|o| o.view == 3).all(|o| !first.contains_key(&o.track)));
+        assert_eq!(tracker.table_deg(), &[0.0, 3.0, 6.0, 9.0]);
     }
 }
