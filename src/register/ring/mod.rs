@@ -55,7 +55,9 @@
 //! With table angles recorded, every view's pose is also predicted by the turntable: a turn
 //! of −(θ_k − θ_first) about the axis — calibrated, or, without a calibration, fitted to every
 //! view at once at the end of the scan (`register::refine`, started from the axis estimated
-//! from the poses and from ICP's symmetry axis). Stereo views register to each other only to
+//! from the poses and from ICP's symmetry axis) and then to the object's texture tracked from
+//! view to view (`texture.rs`: `register::tracks`, `register::bundle`), whose axis replaces
+//! the points' fit when it is known to within `max_axis_sigma_deg`. Stereo views register to each other only to
 //! about 0.1°–0.4° per pair on the simulated rig (the clouds' own errors: Open3D lands in the
 //! same place), and the chain wanders by up to a degree mid-ring, while the refined axis is
 //! good to a few hundredths of a degree. So [`Registrar::finish`] replaces the poses with the
@@ -67,7 +69,10 @@
 //! `max_axis_sigma_deg`, or refined with poses that put the views onto each other better than
 //! the registered ones; otherwise it keeps the registered poses and says why. (Steps, not
 //! whole poses, are compared: a slip shows as one step that disagrees, while the chain's slow
-//! wander would fail a whole-pose test on good data.)
+//! wander would fail a whole-pose test on good data.) Texture tracks that follow the table's
+//! angles about their axis in every view show that the object turned by those angles: the
+//! turntable's poses are then used whatever ICP's steps say (a ball, which ICP cannot see
+//! turn); an object that moved on the table shows in the tracks of the views after it.
 
 use std::time::Instant;
 

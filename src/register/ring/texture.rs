@@ -10,6 +10,7 @@ use super::Registrar;
 use crate::register::bundle::fit_axis_to_tracks;
 use crate::register::refine::AxisFit;
 use crate::register::tracks::{TrackImage, Tracker};
+use crate::register::RegisterError;
 
 /// The tracks, and what became of the axis fitted to them.
 #[derive(Default)]
@@ -55,7 +56,7 @@ impl Registrar {
 
     /// The axis fitted to the texture tracks from `start` = (point, direction); None when
     /// nothing was tracked.
-    pub(super) fn fit_axis_to_texture(&self, start: (Vector3<f64>, Vector3<f64>)) -> Option<Result<AxisFit, String>> {
+    pub(super) fn fit_axis_to_texture(&self, start: (Vector3<f64>, Vector3<f64>)) -> Option<Result<AxisFit, RegisterError>> {
         let tracker = self.texture.tracker.as_ref()?;
         let started = Instant::now();
         let fit = fit_axis_to_tracks(tracker.observations(), tracker.table_deg(), tracker.camera(), start, &self.params.bundle);
@@ -67,6 +68,6 @@ impl Registrar {
             Ok(_) => {}
             Err(e) => tracing::info!("texture tracks: no axis ({e})"),
         }
-        Some(fit.map_err(|e| format!("no axis from the texture tracks: {e}")))
+        Some(fit)
     }
 }

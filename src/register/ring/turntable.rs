@@ -82,7 +82,7 @@ impl Registrar {
                 tracing::info!("{why}");
                 self.texture.note = Some(why);
             }
-            Some(Err(why)) => self.texture.note = Some(why),
+            Some(Err(e)) => self.texture.note = Some(format!("no axis from the texture tracks: {e}")),
             None => {}
         }
         if let Some(fit) = &best {
