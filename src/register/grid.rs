@@ -219,6 +219,11 @@ fn cell_of(p: &[f32; 3], lo: [f32; 2], inv_pitch: f32, width: usize, height: usi
 /// of two rows of `A − λI`). None when that eigenvalue is not separated from the next (a
 /// line or an isotropic blob has no normal) or the matrix is not finite.
 pub fn smallest_eigenvector(a: &[f64; 6]) -> Option<[f64; 3]> {
+    smallest_eigenpair(a).map(|(v, _)| v)
+}
+
+/// [`smallest_eigenvector`] and its eigenvalue.
+pub fn smallest_eigenpair(a: &[f64; 6]) -> Option<([f64; 3], f64)> {
     let [a00, a01, a02, a11, a12, a22] = *a;
     let scale = a.iter().fold(0f64, |m, v| m.max(v.abs()));
     if !(scale > 0.0 && scale.is_finite()) {
@@ -252,7 +257,7 @@ pub fn smallest_eigenvector(a: &[f64; 6]) -> Option<[f64; 3]> {
     if !(len > 0.0) {
         return None;
     }
-    Some([best[0] / len, best[1] / len, best[2] / len])
+    Some(([best[0] / len, best[1] / len, best[2] / len], smallest * scale))
 }
 
 #[cfg(test)]
