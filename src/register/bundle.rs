@@ -16,7 +16,7 @@
 
 use nalgebra::{Isometry3, Matrix2, Matrix3, Matrix3x4, Matrix4, SymmetricEigen, Vector3, Vector4};
 
-use super::refine::{AxisFit, TrackFigures};
+use super::refine::{AxisFit, Line, TrackFigures};
 use super::tracks::{TrackCamera, TrackObs};
 use super::{rotation_about_axis, RegisterError};
 
@@ -51,28 +51,10 @@ impl Default for BundleParams {
     }
 }
 
-/// The axis as parameters around a base line: tilts `(x0, x1)` of the direction along two
-/// unit vectors across it, shifts `(x2, x3)` of the point along them.
-#[derive(Clone, Copy)]
-struct Line {
-    point: Vector3<f64>,
-    dir: Vector3<f64>,
-    u: Vector3<f64>,
-    v: Vector3<f64>,
-}
-
-impl Line {
-    fn new(point: Vector3<f64>, dir: Vector3<f64>) -> Line {
-        let dir = dir.normalize();
-        let seed = if dir.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
-        let u = dir.cross(&seed).normalize();
-        let v = dir.cross(&u);
-        Line { point, dir, u, v }
-    }
-
-    fn moved(&self, x: &Vector4<f64>) -> Line {
-        Line::new(self.point + self.u * x[2] + self.v * x[3], (self.dir + self.u * x[0] + self.v * x[1]).normalize())
-    }
+/// The line moved by the parameters `x` (see `register::refine`'s `Line`).
+fn moved_line(line: &Line, x: &Vector4<f64>) -> Line {
+    let (point, dir) = line.moved(x);
+    Line::new(point, dir)
 }
 
 /// One track: its observations (indices into the observations used) and its point, in its
@@ -158,7 +140,7 @@ pub fn fit_axis_to_tracks(obs: &[TrackObs], table_deg: &[f64], camera: &TrackCam
                 for (k, &st) in steps.iter().enumerate() {
                     let mut e = Vector4::zeros();
                     e[k] = st;
-                    if let (Some((rp, _)), Some((rm, _))) = (residual(&l.moved(&e), t, i, point), residual(&l.moved(&(-e)), t, i, point)) {
+                    if let (Some((rp, _)), Some((rm, _))) = (residual(&moved_line(l, &e), t, i, point), residual(&moved_line(l, &(-e)), t, i, point)) {
                         ja.set_column(k, &((rp - rm) / (2.0 * st)));
                     }
                 }
@@ -199,7 +181,7 @@ pub fn fit_axis_to_tracks(obs: &[TrackObs], table_deg: &[f64], camera: &TrackCam
                 inverses.push(ui);
             }
             let Some(da) = s.lu().solve(&(-rhs)) else { break };
-            let new_line = line.moved(&da);
+            let new_line = moved_line(&line, &da);
             let moved_points: Vec<Vector3<f64>> = points.iter().zip(&last.per_track).zip(&inverses).map(|((pt, (_, w, gx)), ui)| pt - ui * (gx + w * da)).collect();
             if total_cost(&new_line, &moved_points) < last.cost {
                 line = new_line;
@@ -270,11 +252,7 @@ pub fn fit_axis_to_tracks(obs: &[TrackObs], table_deg: &[f64], camera: &TrackCam
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn camera() -> TrackCamera {
-        let q = Matrix4::new(1.0, 0.0, 0.0, -320.0, 0.0, 1.0, 0.0, -240.0, 0.0, 0.0, 0.0, 800.0, 0.0, 0.0, 1.0 / 60.0, 0.0);
-        TrackCamera::new(Matrix3::identity(), q).unwrap()
-    }
+    use crate::register::tracks::tests::camera;
 
     /// Points on a 40 mm ball about a tilted axis 450 mm away, seen over 40 views 3° apart
     /// with noise on the places and a bias on the disparities.

@@ -137,16 +137,17 @@ struct Corr {
 
 /// The axis as parameters around a base line: tilts `(x0, x1)` of the direction along two
 /// unit vectors across it, shifts `(x2, x3)` of the point along them.
+/// (Also the line of `register::bundle`.)
 #[derive(Clone, Copy)]
-struct Line {
-    point: Vector3<f64>,
-    dir: Vector3<f64>,
+pub(super) struct Line {
+    pub(super) point: Vector3<f64>,
+    pub(super) dir: Vector3<f64>,
     u: Vector3<f64>,
     v: Vector3<f64>,
 }
 
 impl Line {
-    fn new(point: Vector3<f64>, dir: Vector3<f64>) -> Line {
+    pub(super) fn new(point: Vector3<f64>, dir: Vector3<f64>) -> Line {
         let dir = dir.normalize();
         let seed = if dir.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
         let u = dir.cross(&seed).normalize();
@@ -154,7 +155,7 @@ impl Line {
         Line { point, dir, u, v }
     }
 
-    fn moved(&self, x: &Vector4<f64>) -> (Vector3<f64>, Vector3<f64>) {
+    pub(super) fn moved(&self, x: &Vector4<f64>) -> (Vector3<f64>, Vector3<f64>) {
         ((self.point + self.u * x[2] + self.v * x[3]), (self.dir + self.u * x[0] + self.v * x[1]).normalize())
     }
 }

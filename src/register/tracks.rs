@@ -549,11 +549,12 @@ fn window_on_object(disparity: &[f32], width: usize, x: usize, y: usize, hw: usi
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
 
-    fn camera() -> TrackCamera {
-        // f = 800, cx = 320, cy = 240, baseline 60 mm: OpenCV's Q for positive disparities.
+    /// f = 800, principal point (320, 240), baseline 60 mm: OpenCV's `Q` for positive
+    /// disparities, no rotation (also `register::bundle`'s tests).
+    pub(in crate::register) fn camera() -> TrackCamera {
         let q = Matrix4::new(1.0, 0.0, 0.0, -320.0, 0.0, 1.0, 0.0, -240.0, 0.0, 0.0, 0.0, 800.0, 0.0, 0.0, 1.0 / 60.0, 0.0);
         TrackCamera::new(Matrix3::identity(), q).unwrap()
     }
