@@ -16,6 +16,8 @@ use crate::register::RegisterError;
 #[derive(Default)]
 pub(super) struct Texture {
     tracker: Option<Tracker>,
+    /// The view the tracker saw last.
+    last_seq: Option<u64>,
     /// The axis fitted to the views' points, when the tracks' axis replaced it.
     pub(super) points_fit: Option<AxisFit>,
     /// Why there is no axis from the tracks, or why it was not used.
@@ -37,7 +39,10 @@ impl Registrar {
         let n = self.poses.len();
         let Some(last) = self.poses.last().filter(|p| p.seq == seq) else { return 0.0 };
         let Some(table_deg) = last.table_deg else { return 0.0 };
-        let new_from_prev = (n >= 2).then(|| last.first_from_view.inverse() * self.poses[n - 2].first_from_view);
+        // The step from the view tracked last: None (the tracks end) when a view between was
+        // not tracked (no table angle).
+        let new_from_prev = (n >= 2 && self.texture.last_seq == Some(self.poses[n - 2].seq)).then(|| last.first_from_view.inverse() * self.poses[n - 2].first_from_view);
+        self.texture.last_seq = Some(seq);
         let tracker = self.texture.tracker.get_or_insert_with(|| Tracker::new(camera, params.clone()));
         tracker.add(image, table_deg, new_from_prev.as_ref());
         started.elapsed().as_secs_f64() * 1e3
