@@ -2,7 +2,8 @@
 //! point removal, the voxel-merged model, the shared pose store, turntable axis estimation
 //! and loop closure.
 //!
-//! Everything here is pure computation on point sets; [`crate::pipeline`] wires it to
+//! Everything here is pure computation on point sets (and, for the texture tracks of
+//! `tracks`, on the views' rectified left images and disparity maps); [`crate::pipeline`] wires it to
 //! recordings and results folders, and `spinscan register` to PLY files ([`crate::io::poses`]
 //! reads and writes its pose files).
 //!
