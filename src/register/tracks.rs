@@ -133,7 +133,7 @@ struct Active {
     y: f64,
     /// The window where the track started, normalised: every later view is matched against
     /// it (matching each view against the last one drifts).
-    template: std::rc::Rc<Vec<f64>>,
+    template: std::sync::Arc<Vec<f64>>,
     /// The window's affine shape in the previous view: `[a, b, c, e]` of
     /// `(x + (1 + a)·u + b·v, y + c·u + (1 + e)·v)` for window offsets `(u, v)`.
     warp: [f64; 4],
@@ -331,7 +331,7 @@ impl Tracker {
                     let id = self.next_id;
                     self.next_id += 1;
                     self.obs.push(TrackObs { track: id, view, x: x as f32, y: y as f32, d: cur.disparity[y * w + x] });
-                    self.active.push(Active { id, x: x as f64, y: y as f64, template: std::rc::Rc::new(template), warp: [0.0; 4] });
+                    self.active.push(Active { id, x: x as f64, y: y as f64, template: std::sync::Arc::new(template), warp: [0.0; 4] });
                 }
             }
         }

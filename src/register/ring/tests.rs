@@ -49,3 +49,13 @@ fn both_kinds_of_target_follow_the_turn() {
         }
     }
 }
+
+/// A registrar (with its texture tracker) can be handed to another thread: the daemon builds
+/// one per scan on its registration thread, and a caller may build it elsewhere.
+#[test]
+fn a_registrar_can_move_to_another_thread() {
+    fn send<T: Send>(_: &T) {}
+    let reg = Registrar::new(RegistrationParams::default(), std::sync::Arc::new(PoseStore::new()));
+    send(&reg);
+    assert_eq!(std::thread::spawn(move || reg.poses().len()).join().unwrap(), 0);
+}
