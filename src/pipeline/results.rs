@@ -410,11 +410,15 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
     });
     // The axis fitted to every view when there is one, else the one estimated from the poses.
     let axis = match (reg.refined_axis(), reg.estimated_axis()) {
-        (Some(f), _) => Some((f.point, f.dir, match (&f.tracks, points_fit) {
-            (Some(t), Some(p)) => json!({"method": "tracked", "sigma_deg": f.sigma_dir_deg, "point_sigma_mm": f.sigma_point_mm, "tracks": t.tracks, "observations": t.observations, "fit_rms_px": t.rms_px, "worst_view_px": t.worst_view_px, "views_unconfirmed": t.views_unconfirmed,
-                "points_fit": {"dir": p.dir.as_slice(), "point_mm": p.point.as_slice(), "sigma_deg": p.sigma_dir_deg, "fit_rms_mm": p.rms_mm, "pairs": p.pairs, "deg_from_tracked": p.dir.angle(&f.dir).to_degrees()}}),
-            (Some(t), None) => json!({"method": "tracked", "sigma_deg": f.sigma_dir_deg, "point_sigma_mm": f.sigma_point_mm, "tracks": t.tracks, "observations": t.observations, "fit_rms_px": t.rms_px, "worst_view_px": t.worst_view_px, "views_unconfirmed": t.views_unconfirmed}),
-            (None, _) => json!({"method": "refined", "sigma_deg": f.sigma_dir_deg, "point_sigma_mm": f.sigma_point_mm, "fit_rms_mm": f.rms_mm, "pairs": f.pairs, "texture_note": reg.texture_note()}),
+        (Some(f), _) => Some((f.point, f.dir, match &f.tracks {
+            Some(t) => {
+                let mut about = json!({"method": "tracked", "sigma_deg": f.sigma_dir_deg, "point_sigma_mm": f.sigma_point_mm, "tracks": t.tracks, "observations": t.observations, "fit_rms_px": t.rms_px, "worst_view_px": t.worst_view_px, "views_unconfirmed": t.views_unconfirmed});
+                if let Some(p) = points_fit {
+                    about["points_fit"] = json!({"dir": p.dir.as_slice(), "point_mm": p.point.as_slice(), "sigma_deg": p.sigma_dir_deg, "fit_rms_mm": p.rms_mm, "pairs": p.pairs, "deg_from_tracked": p.dir.angle(&f.dir).to_degrees()});
+                }
+                about
+            }
+            None => json!({"method": "refined", "sigma_deg": f.sigma_dir_deg, "point_sigma_mm": f.sigma_point_mm, "fit_rms_mm": f.rms_mm, "pairs": f.pairs, "texture_note": reg.texture_note()}),
         })),
         (None, Some(a)) => Some((a.point, a.dir, json!({"method": "poses", "rms_axis_deg": a.rms_axis_deg, "rms_offset_mm": a.rms_offset, "views": a.views}))),
         (None, None) => None,

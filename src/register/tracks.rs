@@ -320,14 +320,14 @@ impl Tracker {
                         if !cur.disparity[y * w + x].is_finite() || !window_on_object(&cur.disparity, w, x, y, self.params.half_window) {
                             continue;
                         }
-                        let score = corner_score(&cur.gray, w, x, y, 2);
+                        let score = corner_score(&cur.grad, w, x, y, 2);
                         if score >= self.params.min_corner && best.is_none_or(|b| score > b.0) {
                             best = Some((score, x, y));
                         }
                     }
                 }
-                if let Some(template) = best.and_then(|(_, x, y)| window(&cur.gray, w, h, x as f64, y as f64, self.params.half_window as i64)) {
-                    let (_, x, y) = best.expect("a window needs a best pixel");
+                let Some((_, x, y)) = best else { continue };
+                if let Some(template) = window(&cur.gray, w, x, y, self.params.half_window) {
                     let id = self.next_id;
                     self.next_id += 1;
                     self.obs.push(TrackObs { track: id, view, x: x as f32, y: y as f32, d: cur.disparity[y * w + x] });
@@ -463,25 +463,10 @@ fn bilinear(values: &[f32], width: usize, height: usize, x: f64, y: f64) -> Opti
     Some((v[0] * (1.0 - fx) + v[1] * fx) * (1.0 - fy) + (v[2] * (1.0 - fx) + v[3] * fx) * fy)
 }
 
-/// The zero-mean, unit-norm window of side `2·hw + 1` centred on `(x, y)`, sampled
-/// bilinearly; None near the border or on a flat window.
-fn window(gray: &[f32], width: usize, height: usize, x: f64, y: f64, hw: i64) -> Option<Vec<f64>> {
-    let mut v = Vec::with_capacity(((2 * hw + 1) * (2 * hw + 1)) as usize);
-    for j in -hw..=hw {
-        for i in -hw..=hw {
-            let (px, py) = (x + i as f64, y + j as f64);
-            if px < 0.0 || py < 0.0 {
-                return None;
-            }
-            let (x0, y0) = (px.floor() as usize, py.floor() as usize);
-            if x0 + 1 >= width || y0 + 1 >= height {
-                return None;
-            }
-            let (fx, fy) = (px - x0 as f64, py - y0 as f64);
-            let g = |xx: usize, yy: usize| gray[yy * width + xx] as f64;
-            v.push((g(x0, y0) * (1.0 - fx) + g(x0 + 1, y0) * fx) * (1.0 - fy) + (g(x0, y0 + 1) * (1.0 - fx) + g(x0 + 1, y0 + 1) * fx) * fy);
-        }
-    }
+/// The zero-mean, unit-norm window of side `2·hw + 1` centred on the pixel `(x, y)`, which
+/// lies at least `hw` pixels inside the image; None on a flat window.
+fn window(gray: &[f32], width: usize, x: usize, y: usize, hw: usize) -> Option<Vec<f64>> {
+    let mut v: Vec<f64> = (y - hw..=y + hw).flat_map(|yy| gray[yy * width + x - hw..=yy * width + x + hw].iter().map(|&g| g as f64)).collect();
     normalise(&mut v).then_some(v)
 }
 
@@ -527,13 +512,12 @@ fn ncc_at(template: &[f64], gray: &[f32], width: usize, x: i64, y: i64, hw: i64)
 }
 
 /// The smaller eigenvalue of the structure tensor over the window of half-side `hw` at
-/// `(x, y)` (central differences).
-fn corner_score(gray: &[f32], width: usize, x: usize, y: usize, hw: usize) -> f64 {
+/// `(x, y)`, from the image's central differences ([`gradients`]).
+fn corner_score((grad_x, grad_y): &(Vec<f32>, Vec<f32>), width: usize, x: usize, y: usize, hw: usize) -> f64 {
     let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
     for yy in y - hw..=y + hw {
         for xx in x - hw..=x + hw {
-            let gx = (gray[yy * width + xx + 1] - gray[yy * width + xx - 1]) as f64 * 0.5;
-            let gy = (gray[(yy + 1) * width + xx] - gray[(yy - 1) * width + xx]) as f64 * 0.5;
+            let (gx, gy) = (grad_x[yy * width + xx] as f64, grad_y[yy * width + xx] as f64);
             a += gx * gx;
             b += gx * gy;
             c += gy * gy;
