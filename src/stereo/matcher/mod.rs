@@ -252,15 +252,16 @@ impl StereoMatcher {
             totals
         } else {
             let params = self.params.clone();
-            self.correlate(&params, left, right, intervals, out)
+            self.correlate(&params, left, right, intervals, out, false)
         };
         self.speckle_filter(out, &mut totals);
         totals
     }
 
     /// The correlation matcher (`bm`) with `params` over the whole of checked inputs, without
-    /// the speckle filter.
-    fn correlate(&mut self, params: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
+    /// the speckle filter; `tiles_always` sends every tile row down the narrow-band path
+    /// (see [`StripeInput::tiles_always`]).
+    fn correlate(&mut self, params: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap, tiles_always: bool) -> MatchStats {
         let (w, h) = (left.width, left.height);
         let geo = Geometry::new(params, w, h);
 
@@ -273,7 +274,7 @@ impl StereoMatcher {
         self.stripes.resize_with(threads, StripeScratch::default);
         // Stripes start on tile rows (see `BAND_TILE`).
         let rows_per = h.div_ceil(threads).next_multiple_of(TILE_H);
-        let input = StripeInput::new(params, geo, &self.left_pf, &self.right_pf_rev, intervals);
+        let input = StripeInput { tiles_always, ..StripeInput::new(params, geo, &self.left_pf, &self.right_pf_rev, intervals) };
         let mut totals = MatchStats { prefilter_ns, ..MatchStats::default() };
         let out_chunks = out.values_mut().chunks_mut(rows_per * w);
         let stats: Vec<MatchStats> = std::thread::scope(|scope| {
@@ -340,7 +341,7 @@ impl StereoMatcher {
         if (corr.width, corr.height) != (w, h) {
             corr = DisparityMap::new(w, h);
         }
-        let stats = self.correlate(&bm, left, right, &iv, &mut corr);
+        let stats = self.correlate(&bm, left, right, &iv, &mut corr, true);
         totals.evaluated += stats.evaluated;
         for (d, &c) in out.values_mut().iter_mut().zip(corr.values()) {
             if d.is_nan() {
@@ -514,7 +515,7 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
     out: &mut [f32],
     s: &mut StripeScratch,
 ) -> MatchStats {
-    let StripeInput { p, g, lpf, rrev, intervals, slack } = input;
+    let StripeInput { p, g, lpf, rrev, intervals, slack, tiles_always } = input;
     let Geometry { w, n, wp, .. } = g;
     s.cs.resize(wp * n, 0);
     for v in [&mut s.band_lo, &mut s.need_lo] {
@@ -543,7 +544,7 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
     s.tex_row.resize(w.next_multiple_of(TILE_W), 0);
 
     // The narrow-band path needs AVX2; a tile row takes it when its tiles' bands are narrow
-    // on average (the full range stays on the row path).
+    // on average (the full range stays on the row path), or always when `tiles_always`.
     let tile_path_ok = AVX2;
     if tile_path_ok {
         let tiles = w.div_ceil(TILE_W);
@@ -572,7 +573,7 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         let out_row = &mut out[(y - y0) * w..][..w];
         if (y - y0) % TILE_H == 0 {
             let mean_band = tile_bands(g, intervals, y..(y + TILE_H).min(y_end), &mut s.clip_lo, &mut s.clip_hi, &mut s.tile_lo, &mut s.tile_hi, &mut s.tile_px, &mut s.tile_cols);
-            narrow = tile_path_ok && mean_band <= (n / 2) as f64;
+            narrow = tile_path_ok && (tiles_always || mean_band <= (n / 2) as f64);
         }
         // Only the row's searched span is worked on: rows and columns of background cost
         // (almost) nothing.
