@@ -11,7 +11,7 @@
 use nalgebra::{Matrix3, Vector3};
 
 use super::motion;
-use super::region::{ceil, floor, for_each_set, round_row, MaskRows};
+use super::region::{ceil, floor, for_each_set, round_row, MaskRows, Region};
 use super::{Assistant, Plan};
 use crate::stereo::DisparityIntervals;
 
@@ -141,7 +141,7 @@ impl Assistant {
             bin += 1;
         }
         let reach_f = ((bin + 1) as f32 * 0.5).min(max_rho);
-        let reach = reach_f.ceil() as i64;
+        let reach = reach_f.ceil() as usize;
         for y in region.ys() {
             if row_rho_max[y - region.y0] <= reach_f {
                 continue;
@@ -175,54 +175,22 @@ impl Assistant {
         let mut pixels = Vec::new();
         let mut union_holes = false;
         let (r0, r1) = (range.0 as f32, range.1 as f32);
+        let spheres = Spheres { rho, d: prev_d, w, region };
+        #[cfg(target_arch = "x86_64")]
+        let avx2 = std::is_x86_feature_detected!("avx2");
         for y in region.ys() {
             pixels.clear();
             for_each_set(&union_needed[y * w + region.x0..y * w + region.x1], |k| pixels.push(region.x0 + k));
             for &x in &pixels {
                 let j = y * w + x;
-                let (xi, yi) = (x as i64, y as i64);
-                let (sx0, sx1) = ((xi - reach).max(region.x0 as i64) as usize, ((xi + reach).min(region.x1 as i64 - 1) + 1) as usize);
-                // Per lane of GATHER columns, reduced at the end: fixed-width lanes vectorise
-                // (the row of spheres, 2·reach + 1 wide, is taken GATHER at a time).
-                let (mut a, mut b) = ([f32::INFINITY; GATHER], [f32::NEG_INFINITY; GATHER]);
-                for sy in (yi - reach).max(region.y0 as i64)..=(yi + reach).min(region.y1 as i64 - 1) {
-                    let dy2 = ((yi - sy) * (yi - sy)) as f32;
-                    let row = sy as usize * w;
-                    for c0 in (sx0..sx1).step_by(GATHER) {
-                        let (at, len) = (row + c0, (sx1 - c0).min(GATHER));
-                        // Whole lanes read in place where the map allows (no copy of a
-                        // varying length); the lanes past the region's columns are NaN.
-                        let (mut r_l, d_l): ([f32; GATHER], [f32; GATHER]) = match (rho.get(at..at + GATHER), prev_d.get(at..at + GATHER)) {
-                            (Some(r), Some(d)) => (r.try_into().expect("GATHER lanes"), d.try_into().expect("GATHER lanes")),
-                            _ => {
-                                let (mut r_l, mut d_l) = ([f32::NAN; GATHER], [0f32; GATHER]);
-                                r_l[..len].copy_from_slice(&rho[at..at + len]);
-                                d_l[..len].copy_from_slice(&prev_d[at..at + len]);
-                                (r_l, d_l)
-                            }
-                        };
-                        for (k, r) in r_l.iter_mut().enumerate() {
-                            *r = if k < len { *r } else { f32::NAN };
-                        }
-                        // Branch-free: left pixel x lies on the sphere's left chord of row y
-                        // when |x − sx| ≤ c = √(r² − dy²); the right chord maps it to
-                        // d_prev + (x − sx) ± c. NaN (no point, or past the row) fails the
-                        // comparison.
-                        // (Differences of small integers in i32, converted in vector lanes.)
-                        let dx0 = x as i32 - c0 as i32;
-                        for k in 0..GATHER {
-                            let (r, dx) = (r_l[k], (dx0 - k as i32) as f32);
-                            let c2 = r * r - dy2;
-                            let c = c2.max(0.0).sqrt();
-                            let inside = c2 >= 0.0 && dx.abs() <= c;
-                            let base = d_l[k] + dx;
-                            a[k] = if inside && base - c < a[k] { base - c } else { a[k] };
-                            b[k] = if inside && base + c > b[k] { base + c } else { b[k] };
-                        }
-                    }
-                }
-                let (a, b) = (a.iter().fold(lo[j], |m, &v| if v < m { v } else { m }), b.iter().fold(hi[j], |m, &v| if v > m { v } else { m }));
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: the CPU has AVX2 (checked above).
+                let (a, b) = if avx2 { unsafe { spheres.gather_avx2(x, y, reach) } } else { spheres.gather(x, y, reach) };
+                #[cfg(not(target_arch = "x86_64"))]
+                let (a, b) = spheres.gather(x, y, reach);
+                let (a, b) = (if a < lo[j] { a } else { lo[j] }, if b > hi[j] { b } else { hi[j] });
                 lo[j] = a;
+                hi[j] = b;
                 hi[j] = b;
                 union_px += (a <= b) as usize;
                 if let Some(out) = out.as_mut() {
@@ -240,6 +208,145 @@ impl Assistant {
         plan.union_px = union_px;
         if let (Some(out), true) = (out, union_holes) {
             out.holes.sort_unstable_by_key(|&(x, y)| (y, x));
+        }
+    }
+}
+
+/// The previous frame's spheres, for case 2: each point's projected radius ρ (NaN where
+/// there is no point) and disparity, full-size maps valid inside `region`.
+#[derive(Clone, Copy)]
+struct Spheres<'a> {
+    rho: &'a [f32],
+    d: &'a [f32],
+    w: usize,
+    region: Region,
+}
+
+impl Spheres<'_> {
+    /// The hull `(lo, hi)` of the chords on row `y` of the spheres within `reach` rows and
+    /// columns of left pixel `(x, y)` (inside the region) whose left projections hold it:
+    /// `d_s + (x − x_s) ± c`, `c = √(ρ² − (y − y_s)²)`, for the spheres with `|x − x_s| ≤ c`;
+    /// `(+∞, −∞)` where none does. Branch-free per lane of [`GATHER`] columns, reduced at the
+    /// end (fixed-width lanes vectorise).
+    fn gather(&self, x: usize, y: usize, reach: usize) -> (f32, f32) {
+        let Spheres { rho, d, w, region } = *self;
+        let (sx0, sx1) = (x.saturating_sub(reach).max(region.x0), (x + reach + 1).min(region.x1));
+        let (mut a, mut b) = ([f32::INFINITY; GATHER], [f32::NEG_INFINITY; GATHER]);
+        for sy in y.saturating_sub(reach).max(region.y0)..(y + reach + 1).min(region.y1) {
+            let dy2 = ((y as i64 - sy as i64) * (y as i64 - sy as i64)) as f32;
+            for c0 in (sx0..sx1).step_by(GATHER) {
+                let (at, len) = (sy * w + c0, (sx1 - c0).min(GATHER));
+                let (mut r_l, mut d_l) = ([f32::NAN; GATHER], [0f32; GATHER]);
+                r_l[..len].copy_from_slice(&rho[at..at + len]);
+                d_l[..len].copy_from_slice(&d[at..at + len]);
+                // Left pixel x lies on the sphere's left chord of row y when |x − x_s| ≤ c; the
+                // right chord maps it to d_s + (x − x_s) ± c. NaN (no point, or past the
+                // columns) fails the comparison.
+                let dx0 = x as i32 - c0 as i32;
+                for k in 0..GATHER {
+                    let (r, dx) = (r_l[k], (dx0 - k as i32) as f32);
+                    let c2 = r * r - dy2;
+                    let c = c2.max(0.0).sqrt();
+                    let inside = c2 >= 0.0 && dx.abs() <= c;
+                    let base = d_l[k] + dx;
+                    a[k] = if inside && base - c < a[k] { base - c } else { a[k] };
+                    b[k] = if inside && base + c > b[k] { base + c } else { b[k] };
+                }
+            }
+        }
+        let a = a.iter().fold(f32::INFINITY, |m, &v| if v < m { v } else { m });
+        let b = b.iter().fold(f32::NEG_INFINITY, |m, &v| if v > m { v } else { m });
+        (a, b)
+    }
+
+    /// [`Spheres::gather`] in AVX2 registers: the same operations on the same lanes (no fused
+    /// multiply-add), so the same hull to the bit.
+    ///
+    /// # Safety
+    /// The CPU supports AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn gather_avx2(&self, x: usize, y: usize, reach: usize) -> (f32, f32) {
+        use std::arch::x86_64::*;
+        let Spheres { rho, d, w, region } = *self;
+        let (sx0, sx1) = (x.saturating_sub(reach).max(region.x0), (x + reach + 1).min(region.x1));
+        let (inf, ninf, nan, zero) = (_mm256_set1_ps(f32::INFINITY), _mm256_set1_ps(f32::NEG_INFINITY), _mm256_set1_ps(f32::NAN), _mm256_setzero_ps());
+        let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+        let (mut a, mut b) = (inf, ninf);
+        let mut c0 = sx0;
+        while c0 < sx1 {
+            let len = (sx1 - c0).min(GATHER);
+            // Lanes k < len hold the columns c0 + k; the others read as no point.
+            let valid = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_set1_epi32(len as i32), lane));
+            let dx = _mm256_cvtepi32_ps(_mm256_sub_epi32(_mm256_set1_epi32(x as i32 - c0 as i32), lane));
+            let adx = _mm256_andnot_ps(_mm256_set1_ps(-0.0), dx);
+            for sy in y.saturating_sub(reach).max(region.y0)..(y + reach + 1).min(region.y1) {
+                let dy2 = _mm256_set1_ps(((y as i64 - sy as i64) * (y as i64 - sy as i64)) as f32);
+                let at = sy * w + c0;
+                let (r, dd) = if at + GATHER <= rho.len() && at + GATHER <= d.len() {
+                    // SAFETY: at + GATHER is within both maps (checked).
+                    unsafe { (_mm256_loadu_ps(rho.as_ptr().add(at)), _mm256_loadu_ps(d.as_ptr().add(at))) }
+                } else {
+                    // The maps' last columns: a lane-by-lane copy.
+                    let (mut r_l, mut d_l) = ([f32::NAN; GATHER], [0f32; GATHER]);
+                    r_l[..len].copy_from_slice(&rho[at..at + len]);
+                    d_l[..len].copy_from_slice(&d[at..at + len]);
+                    // SAFETY: arrays of GATHER = 8 floats.
+                    unsafe { (_mm256_loadu_ps(r_l.as_ptr()), _mm256_loadu_ps(d_l.as_ptr())) }
+                };
+                let r = _mm256_blendv_ps(nan, r, valid);
+                let c2 = _mm256_sub_ps(_mm256_mul_ps(r, r), dy2);
+                // `max` takes the second operand where c2 is NaN: 0, as `f32::max` does.
+                let c = _mm256_sqrt_ps(_mm256_max_ps(c2, zero));
+                let inside = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(c2, zero), _mm256_cmp_ps::<_CMP_LE_OQ>(adx, c));
+                let base = _mm256_add_ps(dd, dx);
+                a = _mm256_min_ps(a, _mm256_blendv_ps(inf, _mm256_sub_ps(base, c), inside));
+                b = _mm256_max_ps(b, _mm256_blendv_ps(ninf, _mm256_add_ps(base, c), inside));
+            }
+            c0 += GATHER;
+        }
+        let (mut la, mut lb) = ([0f32; GATHER], [0f32; GATHER]);
+        // SAFETY: arrays of GATHER = 8 floats.
+        unsafe {
+            _mm256_storeu_ps(la.as_mut_ptr(), a);
+            _mm256_storeu_ps(lb.as_mut_ptr(), b);
+        }
+        (la.iter().fold(f32::INFINITY, |m, &v| if v < m { v } else { m }), lb.iter().fold(f32::NEG_INFINITY, |m, &v| if v > m { v } else { m }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The AVX2 gather against the portable one, bit for bit, on random spheres (radii around
+    /// the reach, points missing, pixels at the region's and the map's edges).
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn the_avx2_gather_is_the_portable_one() {
+        if !std::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let mut rand = crate::testing::xorshift(777);
+        let (w, h) = (53, 29);
+        for round in 0..20 {
+            let rho: Vec<f32> = (0..w * h).map(|_| if rand() % 5 == 0 { f32::NAN } else { 0.5 + (rand() % 1000) as f32 / 180.0 }).collect();
+            let d: Vec<f32> = rho.iter().map(|r| if r.is_nan() { f32::NAN } else { (rand() % 12_000) as f32 / 100.0 }).collect();
+            let region = if round % 2 == 0 { Region { x0: 0, x1: w, y0: 0, y1: h } } else { Region { x0: 3, x1: w - 5, y0: 2, y1: h - 1 } };
+            let s = Spheres { rho: &rho, d: &d, w, region };
+            let mut inside = 0;
+            for y in region.ys() {
+                for x in region.xs() {
+                    for reach in [1, 3, 4, 9] {
+                        let (a, b) = s.gather(x, y, reach);
+                        // SAFETY: AVX2 checked above.
+                        let (va, vb) = unsafe { s.gather_avx2(x, y, reach) };
+                        assert_eq!((a.to_bits(), b.to_bits()), (va.to_bits(), vb.to_bits()), "({x}, {y}), reach {reach}, {region:?}");
+                        inside += (a <= b) as usize;
+                    }
+                }
+            }
+            assert!(inside > 1000, "the spheres reach pixels ({inside})");
         }
     }
 }
