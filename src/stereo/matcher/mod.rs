@@ -324,18 +324,13 @@ impl StereoMatcher {
         let bm = crate::stereo::MatchParams { method: Method::Bm, uniqueness_ratio: 0, texture_threshold: 0, lr_max_diff: None, speckle_window: 0, ..(**p).clone() }.validate().expect("the sgm parameters with the correlation's tests off are valid");
         let mut iv = std::mem::replace(&mut self.refine_intervals, DisparityIntervals::empty(0, 0));
         (iv.width, iv.height) = (w, h);
-        iv.lo.clear();
-        iv.hi.clear();
-        for &d in out.values() {
-            // Unmatched pixels search nothing.
-            let (lo, hi) = if d.is_nan() {
-                (1, 0)
-            } else {
-                let r = d.round() as i32;
-                ((r - 2).clamp(dmin, dmax) as i16, (r + 2).clamp(dmin, dmax) as i16)
-            };
-            iv.lo.push(lo);
-            iv.hi.push(hi);
+        iv.lo.resize(w * h, 0);
+        iv.hi.resize(w * h, 0);
+        // Branch-free, so that it vectorises; unmatched pixels search nothing.
+        for ((&d, lo), hi) in out.values().iter().zip(iv.lo.iter_mut()).zip(iv.hi.iter_mut()) {
+            let (r, matched) = (round_half_away(d), !d.is_nan());
+            *lo = if matched { (r - 2).clamp(dmin, dmax) as i16 } else { 1 };
+            *hi = if matched { (r + 2).clamp(dmin, dmax) as i16 } else { 0 };
         }
         let mut corr = std::mem::replace(&mut self.refine_out, DisparityMap::new(0, 0));
         if (corr.width, corr.height) != (w, h) {
@@ -344,14 +339,11 @@ impl StereoMatcher {
         let stats = self.correlate(&bm, left, right, &iv, &mut corr, true);
         totals.evaluated += stats.evaluated;
         for (d, &c) in out.values_mut().iter_mut().zip(corr.values()) {
-            if d.is_nan() {
-                continue;
-            }
-            if !c.is_nan() && (c - *d).abs() <= 1.0 {
-                *d = c;
-            } else if masked {
-                *d = f32::NAN;
-            }
+            // Branch-free. NaN fails every comparison: an unmatched pixel stays unmatched, and
+            // a missing correlation disagrees.
+            let agrees = (c - *d).abs() <= 1.0;
+            let kept = if masked { f32::NAN } else { *d };
+            *d = if agrees { c } else { kept };
         }
         (self.refine_intervals, self.refine_out) = (iv, corr);
     }
@@ -420,6 +412,16 @@ impl StereoMatcher {
         }
         totals.matched = out.valid_count();
     }
+}
+
+/// `d.round() as i32` (halves away from zero) without a libm call (the baseline x86-64 target
+/// has no rounding instruction); exact for |d| < 2²³, and NaN gives 0, as the cast does.
+#[inline(always)]
+fn round_half_away(d: f32) -> i32 {
+    let t = d as i32;
+    // d − trunc(d) is exact in f32 for |d| < 2²³.
+    let frac = d - t as f32;
+    t + (frac >= 0.5) as i32 - (frac <= -0.5) as i32
 }
 
 /// OpenCV BM's x-Sobel prefilter, clipped to ±cap and offset by cap, written with
