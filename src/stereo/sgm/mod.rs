@@ -262,24 +262,34 @@ impl Sgm {
         self.off.resize(w * h + 1, 0);
         let mut total = 0usize;
         for y in 0..h {
+            let row = y * w..(y + 1) * w;
+            let (ilo, ihi) = (&iv.lo[row.clone()], &iv.hi[row.clone()]);
+            let (band_a, band_m) = (&mut self.band_a[row.clone()], &mut self.band_m[row.clone()]);
+            let (lo_out, hi_out) = (&mut self.lo[row.clone()], &mut self.hi[row.clone()]);
+            // Branch-free, so that it vectorises: the clipped interval, its block band (m = 0
+            // where nothing is searched) and its indices.
             for x in 0..w {
-                let i = y * w + x;
-                let lo = (iv.lo[i] as i32).max(dmin).max(x as i32 - w as i32 + 1);
-                let hi = (iv.hi[i] as i32).min(dmax).min(x as i32);
-                self.off[i] = total;
-                if lo > hi {
-                    self.band_m[i] = 0;
-                    continue;
-                }
-                let (klo, khi) = ((lo - dmin) as usize, (hi - dmin) as usize);
-                let a = klo / LANES * LANES;
-                let m = (khi / LANES + 1) * LANES - a;
-                (self.band_a[i], self.band_m[i], self.lo[i], self.hi[i]) = (a as u16, m as u16, klo as u16, khi as u16);
-                total += m;
-                if keep.contains(&y) {
-                    stats.searched += 1;
-                    stats.evaluated += m as u64;
-                }
+                let lo = (ilo[x] as i32).max(dmin).max(x as i32 - w as i32 + 1);
+                let hi = (ihi[x] as i32).min(dmax).min(x as i32);
+                let searched = lo <= hi;
+                let (klo, khi) = ((lo - dmin) as u32, (hi - dmin) as u32);
+                let a = klo / LANES as u32 * LANES as u32;
+                let m = (khi / LANES as u32 + 1) * LANES as u32 - a;
+                band_a[x] = if searched { a as u16 } else { 0 };
+                band_m[x] = if searched { m as u16 } else { 0 };
+                lo_out[x] = if searched { klo as u16 } else { 0 };
+                hi_out[x] = if searched { khi as u16 } else { 0 };
+            }
+            let off = &mut self.off[row];
+            let mut row_total = 0usize;
+            for (o, &m) in off.iter_mut().zip(band_m.iter()) {
+                *o = total + row_total;
+                row_total += m as usize;
+            }
+            total += row_total;
+            if keep.contains(&y) {
+                stats.searched += band_m.iter().filter(|&&m| m > 0).count();
+                stats.evaluated += row_total as u64;
             }
         }
         self.off[w * h] = total;
