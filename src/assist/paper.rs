@@ -191,7 +191,6 @@ impl Assistant {
                 let (a, b) = (if a < lo[j] { a } else { lo[j] }, if b > hi[j] { b } else { hi[j] });
                 lo[j] = a;
                 hi[j] = b;
-                hi[j] = b;
                 union_px += (a <= b) as usize;
                 if let Some(out) = out.as_mut() {
                     // Clipped, then rounded outwards, as `round_row` does.
@@ -226,8 +225,8 @@ impl Spheres<'_> {
     /// The hull `(lo, hi)` of the chords on row `y` of the spheres within `reach` rows and
     /// columns of left pixel `(x, y)` (inside the region) whose left projections hold it:
     /// `d_s + (x − x_s) ± c`, `c = √(ρ² − (y − y_s)²)`, for the spheres with `|x − x_s| ≤ c`;
-    /// `(+∞, −∞)` where none does. Branch-free per lane of [`GATHER`] columns, reduced at the
-    /// end (fixed-width lanes vectorise).
+    /// `(+∞, −∞)` where none does. Per lane of [`GATHER`] columns, reduced at the end (the
+    /// portable version of [`Spheres::gather_avx2`], for other CPUs).
     fn gather(&self, x: usize, y: usize, reach: usize) -> (f32, f32) {
         let Spheres { rho, d, w, region } = *self;
         let (sx0, sx1) = (x.saturating_sub(reach).max(region.x0), (x + reach + 1).min(region.x1));

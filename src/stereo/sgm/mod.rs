@@ -272,9 +272,11 @@ impl Sgm {
                 let lo = (ilo[x] as i32).max(dmin).max(x as i32 - w as i32 + 1);
                 let hi = (ihi[x] as i32).min(dmax).min(x as i32);
                 let searched = lo <= hi;
-                let (klo, khi) = ((lo - dmin) as u32, (hi - dmin) as u32);
+                // (Kept from overflowing where nothing is searched — its values are not
+                // used; where something is, lo ≥ dmin and a ≤ khi, so they change nothing.)
+                let (klo, khi) = ((lo - dmin).max(0) as u32, (hi - dmin).max(0) as u32);
                 let a = klo / LANES as u32 * LANES as u32;
-                let m = (khi / LANES as u32 + 1) * LANES as u32 - a;
+                let m = ((khi / LANES as u32 + 1) * LANES as u32).saturating_sub(a);
                 band_a[x] = if searched { a as u16 } else { 0 };
                 band_m[x] = if searched { m as u16 } else { 0 };
                 lo_out[x] = if searched { klo as u16 } else { 0 };

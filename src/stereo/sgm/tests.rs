@@ -205,3 +205,30 @@ fn negative_disparities_are_found_too() {
     assert_eq!(stats.searched, w * h);
     assert!(stats.evaluated < (w * h * 32) as u64);
 }
+
+/// Pixels whose interval is empty once clipped to the image (the first columns when the
+/// range starts above zero; intervals entirely past the right image's edge, negative
+/// disparities) search nothing and stay unmatched — without overflowing on the way (debug
+/// builds check the arithmetic).
+#[test]
+fn intervals_emptied_by_the_image_border_search_nothing() {
+    let (w, h) = (64, 20);
+    let (l, r) = pair(w, h, |_, _| 12.0);
+    let p = MatchParams { method: Method::Sgm, min_disparity: 20, num_disparities: 32, speckle_window: 0, threads: 1, ..MatchParams::default() }.validate().unwrap();
+    let (out, stats) = run(&p, &l, &r, w, h, &DisparityIntervals::full(w, h, 20, 51));
+    for y in 0..h {
+        for x in 0..20 {
+            assert!(out.get(x, y).is_none(), "({x}, {y}) has no right pixel in range");
+        }
+    }
+    assert_eq!(stats.searched, (w - 20) * h);
+    // Negative disparities: the interval −40 … −30 leaves the image for x > w − 31.
+    let p = MatchParams { method: Method::Sgm, min_disparity: -63, num_disparities: 64, speckle_window: 0, threads: 1, ..MatchParams::default() }.validate().unwrap();
+    let (out, stats) = run(&p, &l, &r, w, h, &DisparityIntervals::full(w, h, -40, -30));
+    for y in 0..h {
+        for x in w - 30..w {
+            assert!(out.get(x, y).is_none(), "({x}, {y}) has no right pixel in range");
+        }
+    }
+    assert_eq!(stats.searched, (w - 30) * h);
+}
