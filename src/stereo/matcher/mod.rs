@@ -25,7 +25,8 @@
 //! to blocks. Runs of pixels and columns sharing one range go through tight AVX2 loops. Tile
 //! rows ([`TILE_W`] × [`TILE_H`] tiles) whose bands — the union of a tile's intervals — are
 //! narrow take the narrow-band path (`tiles.rs`, the pixels in the vector lanes), which gives
-//! the same results.
+//! the same results: narrow means at most half the range, or at most [`TILE_PATH_BAND`]
+//! disparities, where that path is the faster even over the full range.
 //!
 //! # The left–right check with left intervals only
 //! The right image gets no intervals of its own: the candidate set of a right pixel `x_r` is
@@ -71,6 +72,13 @@ pub enum MatchError {
 /// (the crop and the threads' stripes start on tile boundaries): a caller that gives every
 /// pixel of a tile the same interval gives the narrow-band path one band per tile.
 pub const BAND_TILE: (usize, usize) = (TILE_W, TILE_H);
+
+/// Tile rows whose tiles search at most this many disparities on average take the
+/// narrow-band path even over the full range: measured with both paths on the Middlebury
+/// pairs (one thread, docs/matcher.md), it was the faster up to 64 disparities (Tsukuba's 16:
+/// 2.2 against 6.2 ms; Teddy's 64: 7.9 against 14.9 ms) and the slower at 128 (Reindeer:
+/// 37.3 against 30.8 ms).
+const TILE_PATH_BAND: usize = 64;
 
 /// Rows each semi-global stripe adds above and below its own: where its vertical paths start.
 const SGM_OVERLAP: usize = 32;
@@ -546,7 +554,8 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
     s.tex_row.resize(w.next_multiple_of(TILE_W), 0);
 
     // The narrow-band path needs AVX2; a tile row takes it when its tiles' bands are narrow
-    // on average (the full range stays on the row path), or always when `tiles_always`.
+    // on average — at most half the range, or at most TILE_PATH_BAND — or always when
+    // `tiles_always`. (A full range over 64 disparities stays on the row path.)
     let tile_path_ok = AVX2;
     if tile_path_ok {
         let tiles = w.div_ceil(TILE_W);
@@ -575,7 +584,7 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         let out_row = &mut out[(y - y0) * w..][..w];
         if (y - y0) % TILE_H == 0 {
             let mean_band = tile_bands(g, intervals, y..(y + TILE_H).min(y_end), &mut s.clip_lo, &mut s.clip_hi, &mut s.tile_lo, &mut s.tile_hi, &mut s.tile_px, &mut s.tile_cols);
-            narrow = tile_path_ok && (tiles_always || mean_band <= (n / 2) as f64);
+            narrow = tile_path_ok && (tiles_always || mean_band <= (n / 2).max(TILE_PATH_BAND) as f64);
         }
         // Only the row's searched span is worked on: rows and columns of background cost
         // (almost) nothing.

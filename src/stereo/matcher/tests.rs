@@ -361,3 +361,30 @@ fn rounding_without_libm_is_the_cast_of_round() {
         assert_eq!(super::round_half_away(d), d.round() as i32, "{d}");
     }
 }
+
+#[test]
+fn full_ranges_up_to_the_tile_band_match_as_the_row_path_does() {
+    // Over at most `TILE_PATH_BAND` disparities the full range takes the narrow-band path
+    // (faster there): it must give exactly the row path's map, for ranges that are and are
+    // not whole blocks of 16, negative ones, and the smallest and largest windows.
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        for (n, min_disparity, block) in [(16u32, 0, 9), (20, 0, 9), (37, -5, 3), (48, -30, 15), (64, 0, 31), (64, 2, 7)] {
+            assert!(n as usize <= super::TILE_PATH_BAND);
+            let (w, h) = (150, 50);
+            let (l, r) = shifted_pair(w, h, |x, _| 8 + x / 40);
+            let (lv, rv) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap());
+            // (No speckle filter: the stripe runs compared below leave it to `compute`.)
+            let p = MatchParams { num_disparities: n, min_disparity, block, threads: 1, speckle_window: 0, ..Default::default() }.validate().unwrap();
+            let mut m = StereoMatcher::new(p);
+            let iv = m.full_intervals(w, h, None);
+            let rows = run_path::<false, false>(&mut m, lv, rv, &iv);
+            let tiles = run_path::<true, false>(&mut m, lv, rv, &iv);
+            assert!(same_map(&rows, &tiles), "n = {n}, min {min_disparity}, block {block}");
+            assert!(rows.iter().filter(|v| !v.is_nan()).count() > w * h / 3, "n = {n}: the pair is matched");
+            let mut out = DisparityMap::new(w, h);
+            m.compute(lv, rv, &iv, &mut out).unwrap();
+            assert!(same_map(out.values(), &rows), "compute differs, n = {n}");
+        }
+    }
+}
