@@ -76,8 +76,8 @@ pub const BAND_TILE: (usize, usize) = (TILE_W, TILE_H);
 /// Tile rows whose tiles search at most this many disparities on average take the
 /// narrow-band path even over the full range: measured with both paths on the Middlebury
 /// pairs (one thread, docs/matcher.md), it was the faster up to 64 disparities (Tsukuba's 16:
-/// 2.2 against 6.2 ms; Teddy's 64: 7.9 against 14.9 ms) and the slower at 128 (Reindeer:
-/// 37.3 against 30.8 ms).
+/// 2.2 against 6.2 ms; Teddy's 64: 7.9 against 14.9 ms), and not reliably so at 128 (once
+/// the slower, Reindeer 37.3 against 30.8 ms; once about even).
 const TILE_PATH_BAND: usize = 64;
 
 /// Rows each semi-global stripe adds above and below its own: where its vertical paths start.
@@ -260,16 +260,15 @@ impl StereoMatcher {
             totals
         } else {
             let params = self.params.clone();
-            self.correlate(&params, left, right, intervals, out, false)
+            self.correlate(&params, left, right, intervals, out)
         };
         self.speckle_filter(out, &mut totals);
         totals
     }
 
     /// The correlation matcher (`bm`) with `params` over the whole of checked inputs, without
-    /// the speckle filter; `tiles_always` sends every tile row down the narrow-band path
-    /// (see [`StripeInput::tiles_always`]).
-    fn correlate(&mut self, params: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap, tiles_always: bool) -> MatchStats {
+    /// the speckle filter.
+    fn correlate(&mut self, params: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
         let (w, h) = (left.width, left.height);
         let geo = Geometry::new(params, w, h);
 
@@ -282,7 +281,7 @@ impl StereoMatcher {
         self.stripes.resize_with(threads, StripeScratch::default);
         // Stripes start on tile rows (see `BAND_TILE`).
         let rows_per = h.div_ceil(threads).next_multiple_of(TILE_H);
-        let input = StripeInput { tiles_always, ..StripeInput::new(params, geo, &self.left_pf, &self.right_pf_rev, intervals) };
+        let input = StripeInput::new(params, geo, &self.left_pf, &self.right_pf_rev, intervals);
         let mut totals = MatchStats { prefilter_ns, ..MatchStats::default() };
         let out_chunks = out.values_mut().chunks_mut(rows_per * w);
         let stats: Vec<MatchStats> = std::thread::scope(|scope| {
@@ -344,7 +343,7 @@ impl StereoMatcher {
         if (corr.width, corr.height) != (w, h) {
             corr = DisparityMap::new(w, h);
         }
-        let stats = self.correlate(&bm, left, right, &iv, &mut corr, true);
+        let stats = self.correlate(&bm, left, right, &iv, &mut corr);
         totals.evaluated += stats.evaluated;
         for (d, &c) in out.values_mut().iter_mut().zip(corr.values()) {
             // Branch-free. NaN fails every comparison: an unmatched pixel stays unmatched, and
@@ -525,7 +524,7 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
     out: &mut [f32],
     s: &mut StripeScratch,
 ) -> MatchStats {
-    let StripeInput { p, g, lpf, rrev, intervals, slack, tiles_always } = input;
+    let StripeInput { p, g, lpf, rrev, intervals, slack } = input;
     let Geometry { w, n, wp, .. } = g;
     s.cs.resize(wp * n, 0);
     for v in [&mut s.band_lo, &mut s.need_lo] {
@@ -554,8 +553,8 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
     s.tex_row.resize(w.next_multiple_of(TILE_W), 0);
 
     // The narrow-band path needs AVX2; a tile row takes it when its tiles' bands are narrow
-    // on average — at most half the range, or at most TILE_PATH_BAND — or always when
-    // `tiles_always`. (A full range over 64 disparities stays on the row path.)
+    // on average — at most half the range, or at most TILE_PATH_BAND (so SGM's ±2
+    // refinement always does). A full range over 64 disparities stays on the row path.
     let tile_path_ok = AVX2;
     if tile_path_ok {
         let tiles = w.div_ceil(TILE_W);
@@ -584,7 +583,7 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         let out_row = &mut out[(y - y0) * w..][..w];
         if (y - y0) % TILE_H == 0 {
             let mean_band = tile_bands(g, intervals, y..(y + TILE_H).min(y_end), &mut s.clip_lo, &mut s.clip_hi, &mut s.tile_lo, &mut s.tile_hi, &mut s.tile_px, &mut s.tile_cols);
-            narrow = tile_path_ok && (tiles_always || mean_band <= (n / 2).max(TILE_PATH_BAND) as f64);
+            narrow = tile_path_ok && mean_band <= (n / 2).max(TILE_PATH_BAND) as f64;
         }
         // Only the row's searched span is worked on: rows and columns of background cost
         // (almost) nothing.

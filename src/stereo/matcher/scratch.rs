@@ -132,10 +132,6 @@ pub(super) struct StripeInput<'a> {
     pub(super) intervals: &'a DisparityIntervals,
     /// The same rows with the slack around them, for the narrow-band path's chunked loads.
     pub(super) slack: Slack<'a>,
-    /// Every tile row takes the narrow-band path (where the CPU has it), however wide its
-    /// bands: SGM's refinement searches ±2 around each winner, where the row path would still
-    /// work through whole blocks of 16 (the maps are the same either way).
-    pub(super) tiles_always: bool,
 }
 
 impl<'a> StripeInput<'a> {
@@ -151,7 +147,6 @@ impl<'a> StripeInput<'a> {
             rrev: &right[PF_SLACK..PF_SLACK + nr],
             intervals,
             slack: Slack { left, right },
-            tiles_always: false,
         }
     }
 }

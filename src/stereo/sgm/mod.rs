@@ -283,14 +283,15 @@ impl Sgm {
                 hi_out[x] = if searched { khi as u16 } else { 0 };
             }
             let off = &mut self.off[row];
-            let mut row_total = 0usize;
+            let (mut row_total, mut row_searched) = (0usize, 0usize);
             for (o, &m) in off.iter_mut().zip(band_m.iter()) {
                 *o = total + row_total;
                 row_total += m as usize;
+                row_searched += (m > 0) as usize;
             }
             total += row_total;
             if keep.contains(&y) {
-                stats.searched += band_m.iter().filter(|&&m| m > 0).count();
+                stats.searched += row_searched;
                 stats.evaluated += row_total as u64;
             }
         }
