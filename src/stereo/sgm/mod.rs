@@ -341,15 +341,25 @@ impl Sgm {
             let py = if up { y + 1 } else { y.wrapping_sub(1) };
             let has_prev_row = py < h;
             let mut h_live = false;
-            for step_x in 0..w {
+            let mut step_x = 0;
+            while step_x < w {
                 let x = if up { w - 1 - step_x } else { step_x };
                 let i = y * w + x;
                 let m = self.band_m[i] as usize;
                 if m == 0 {
                     h_live = false;
+                    step_x += 1;
                     continue;
                 }
                 let a = self.band_a[i] as usize;
+                #[cfg(target_arch = "x86_64")]
+                if AVX2 && !eight && h_live && has_prev_row && self.h_prev.band[0] == (a as u16, m as u16) {
+                    let len = self.run::<AVX2>(p, g, y, step_x, up);
+                    if len > 0 {
+                        step_x += len;
+                        continue;
+                    }
+                }
                 let fresh = From { around: &self.fresh[a..a + m + 2], min: 0, jump: 0 };
                 let hf = if h_live { From { around: self.h_prev.around(0, n, a, m), min: self.h_prev.min[0], jump: self.h_prev.min[0] + p2 } } else { fresh };
                 let mut vf = [fresh; 3];
@@ -378,11 +388,88 @@ impl Sgm {
                 }
                 std::mem::swap(&mut self.h_prev, &mut self.h_cur);
                 h_live = true;
+                step_x += 1;
             }
             std::mem::swap(&mut self.vert_prev, &mut self.vert_cur);
             if up && keep.contains(&y) {
                 self.select_row::<AVX2>(p, g, y, &mut out[y * w..][..w], stats);
             }
         }
+    }
+
+    /// Four paths, from the pixel at `step_x` of row `y`'s sweep on (a row with a previous
+    /// row in the pass): the run of pixels whose band is the previous pixel's (`h_prev`,
+    /// live) and whose previous row's pixel searched the same band, stepped by [`simd::run`] (no bookkeeping per pixel, the row path kept in
+    /// registers); returns its length (0: none, the pixel takes the general step).
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn run<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, y: usize, step_x: usize, up: bool) -> usize {
+        let Geo { w, n, .. } = g;
+        let x0 = if up { w - 1 - step_x } else { step_x };
+        let band = self.h_prev.band[0];
+        let (a, m) = (band.0 as usize, band.1 as usize);
+        let blocks = m / LANES;
+        if blocks > 8 {
+            return 0;
+        }
+        let mut len = 0;
+        while step_x + len < w {
+            let x = if up { w - 1 - step_x - len } else { step_x + len };
+            let i = y * w + x;
+            // (The previous row's pixel searched that band: its slot holds it, not a stale one.)
+            let q = if up { i + w } else { i - w };
+            if (self.band_a[i], self.band_m[i]) != band || (self.band_a[q], self.band_m[q]) != band {
+                break;
+            }
+            self.vert_cur[1].prepare(x, n, a, m);
+            len += 1;
+        }
+        if len == 0 {
+            return 0;
+        }
+        let dir: isize = if up { -1 } else { 1 };
+        let i0 = y * w + x0;
+        let off = self.off[i0];
+        // The run's packed costs and sums, and its slots, from its first to its last pixel.
+        let span = (len - 1) * m;
+        let (first, last) = if up { (off - span, off + m) } else { (off, off + span + m) };
+        let (costs, sums) = (&self.cost[first..last], &mut self.sum[first..last]);
+        let stride = n + 2;
+        let slots = if up { (x0 + 1 - len) * stride..(x0 + 1) * stride } else { x0 * stride..(x0 + len) * stride };
+        let (vp, vc) = (&self.vert_prev[1], &mut self.vert_cur[1]);
+        let (prev, cur) = (&vp.vals[slots.clone()], &mut vc.vals[slots]);
+        let mins = if up { x0 + 1 - len..x0 + 1 } else { x0..x0 + len };
+        let (prev_min, cur_min) = (&vp.min[mins.clone()], &mut vc.min[mins]);
+        // Pointers to the run's first pixel inside those slices (the last one when the sweep
+        // goes right to left).
+        let (k0, s0) = if up { (span, (len - 1) * stride) } else { (0, 0) };
+        let mk = if up { len - 1 } else { 0 };
+        let rows = simd::RunRows {
+            prev: prev[s0 + a..].as_ptr(),
+            prev_min: prev_min[mk..].as_ptr(),
+            cur: cur[s0 + a + 1..].as_mut_ptr(),
+            cur_min: cur_min[mk..].as_mut_ptr(),
+            stride,
+        };
+        let h_min = self.h_prev.min[0];
+        let h = self.h_prev.band_mut(0, n, a, m);
+        let (c, s) = (costs[k0..].as_ptr(), sums[k0..].as_mut_ptr());
+        // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the slices above
+        // hold every pixel of the run (costs and sums `len · m`, slots `len · stride` with the
+        // band inside each, minima `len`), walked along `dir` from the pointers.
+        let last_min = unsafe {
+            match blocks {
+                1 => simd::run::<1>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                2 => simd::run::<2>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                3 => simd::run::<3>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                4 => simd::run::<4>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                5 => simd::run::<5>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                6 => simd::run::<6>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                7 => simd::run::<7>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                _ => simd::run::<8>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+            }
+        };
+        self.h_prev.min[0] = last_min;
+        len
     }
 }

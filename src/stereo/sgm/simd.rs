@@ -191,3 +191,91 @@ pub(super) unsafe fn costs(px: super::census::Pixel, start: usize, out: &mut [u8
         b += LANES;
     }
 }
+
+/// One path's previous values of a run's pixels, and where its new values go.
+pub(super) struct RunRows {
+    /// The previous row's slot of the run's first pixel at disparity index `a − 1` (its
+    /// values around the band); the next pixel's slot is `stride` further along `dir`.
+    pub(super) prev: *const u16,
+    pub(super) prev_min: *const u16,
+    /// The current row's slot of the first pixel at index `a` (the band), and its minimum.
+    pub(super) cur: *mut u16,
+    pub(super) cur_min: *mut u16,
+    pub(super) stride: usize,
+}
+
+/// [`super::step`] over a run of `len` pixels of one row that share one band of `B` blocks,
+/// whose previous pixels along the row and in the previous row searched that same band: the
+/// path along the row (from `h`, its previous values over the band, and their minimum)
+/// stays in registers from pixel to pixel, and the path from the previous row reads and
+/// writes `v`. Pixel `k`'s costs and sums are at `k · dir · 16B` from `c` and `sum` (packed
+/// offsets of equal bands); its vertical slots `k · dir · stride` from the first. Returns the
+/// row path's values (in `h`) and minimum at the last pixel. The values outside the band
+/// are `UNREACHED` on both paths (bands are equal), as [`step`] would read them.
+///
+/// # Safety
+/// The CPU supports AVX2; every pointer addresses what is described above for all `len`
+/// pixels (`prev` reads `16B + 2` values, `cur` writes `16B`).
+#[target_feature(enable = "avx2")]
+#[inline]
+#[allow(clippy::too_many_arguments)]
+pub(super) unsafe fn run<const B: usize>(c: *const u8, sum: *mut u16, dir: isize, len: usize, v: &RunRows, h: &mut [u16], h_min: u16, p1: u16, p2: u16, add: bool) -> u16 {
+    assert!(h.len() == B * LANES);
+    let m = (B * LANES) as isize;
+    let p1v = _mm256_set1_epi16(p1 as i16);
+    let p2v = _mm256_set1_epi16(p2 as i16);
+    let unreached = _mm256_set1_epi16(super::UNREACHED as i16);
+    let mut hv = [_mm256_setzero_si256(); B];
+    for (b, r) in hv.iter_mut().enumerate() {
+        // SAFETY: h holds B blocks.
+        *r = unsafe { _mm256_loadu_si256(h.as_ptr().add(b * LANES) as *const __m256i) };
+    }
+    let mut hbase = _mm256_set1_epi16(h_min as i16);
+    let mut last_min = h_min;
+    for k in 0..len as isize {
+        // SAFETY: the caller's contract, for pixel k < len.
+        unsafe {
+            let (cp, sp) = (c.offset(k * dir * m), sum.offset(k * dir * m));
+            let slot = k * dir * v.stride as isize;
+            let (vp, vc) = (v.prev.offset(slot), v.cur.offset(slot));
+            let vbase = _mm256_set1_epi16(*v.prev_min.offset(k * dir) as i16);
+            let vjump = _mm256_add_epi16(vbase, p2v);
+            let hjump = _mm256_add_epi16(hbase, p2v);
+            let (mut vmn, mut hmn) = (unreached, unreached);
+            let mut nh = [_mm256_setzero_si256(); B];
+            for b in 0..B {
+                let cc = _mm256_cvtepu8_epi16(_mm_loadu_si128(cp.add(b * LANES) as *const __m128i));
+                let q = vp.add(b * LANES);
+                let (l, mid, r) = (_mm256_loadu_si256(q as *const __m256i), _mm256_loadu_si256(q.add(1) as *const __m256i), _mm256_loadu_si256(q.add(2) as *const __m256i));
+                let best = _mm256_min_epu16(_mm256_min_epu16(mid, _mm256_add_epi16(l, p1v)), _mm256_min_epu16(_mm256_add_epi16(r, p1v), vjump));
+                let vv = _mm256_sub_epi16(_mm256_add_epi16(cc, best), vbase);
+                _mm256_storeu_si256(vc.add(b * LANES) as *mut __m256i, vv);
+                vmn = _mm256_min_epu16(vmn, vv);
+                // The row path: its values shifted by one lane across the blocks in registers.
+                let (hp, hn) = (if b > 0 { hv[b - 1] } else { unreached }, if b + 1 < B { hv[b + 1] } else { unreached });
+                let hm = hv[b];
+                let l = _mm256_alignr_epi8::<14>(hm, _mm256_permute2x128_si256::<0x21>(hp, hm));
+                let r = _mm256_alignr_epi8::<2>(_mm256_permute2x128_si256::<0x21>(hm, hn), hm);
+                let best = _mm256_min_epu16(_mm256_min_epu16(hm, _mm256_add_epi16(l, p1v)), _mm256_min_epu16(_mm256_add_epi16(r, p1v), hjump));
+                let hh = _mm256_sub_epi16(_mm256_add_epi16(cc, best), hbase);
+                nh[b] = hh;
+                hmn = _mm256_min_epu16(hmn, hh);
+                let s = _mm256_add_epi16(vv, hh);
+                let s = if add { _mm256_add_epi16(s, _mm256_loadu_si256(sp.add(b * LANES) as *const __m256i)) } else { s };
+                _mm256_storeu_si256(sp.add(b * LANES) as *mut __m256i, s);
+            }
+            *v.cur_min.offset(k * dir) = hmin(vmn);
+            hv = nh;
+            // The row minimum, broadcast without leaving the vector registers.
+            let half = _mm_min_epu16(_mm256_castsi256_si128(hmn), _mm256_extracti128_si256::<1>(hmn));
+            let pos = _mm_minpos_epu16(half);
+            hbase = _mm256_broadcastw_epi16(pos);
+            last_min = _mm_extract_epi16::<0>(pos) as u16;
+        }
+    }
+    for (b, r) in hv.iter().enumerate() {
+        // SAFETY: h holds B blocks.
+        unsafe { _mm256_storeu_si256(h.as_mut_ptr().add(b * LANES) as *mut __m256i, *r) };
+    }
+    last_min
+}
