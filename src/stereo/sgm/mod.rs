@@ -145,6 +145,11 @@ pub(super) struct Sgm {
     fresh: Vec<u16>,
     /// Per right pixel of the row: its cheapest winning splat as `sum << 32 | x`.
     right_best: Vec<u64>,
+    /// Per pixel of the row being selected: its winning disparity and the numerator and
+    /// denominator of its sub-pixel step (`select.rs`).
+    fit_di: Vec<i32>,
+    fit_num: Vec<i32>,
+    fit_den: Vec<i32>,
 }
 
 /// The geometry of one call: image size, the padded range and the right rows' padding.
@@ -243,6 +248,9 @@ impl Sgm {
         self.fresh.clear();
         self.fresh.resize(n + 2, UNREACHED);
         self.right_best.resize(w, 0);
+        for v in [&mut self.fit_di, &mut self.fit_num, &mut self.fit_den] {
+            v.resize(w, 0);
+        }
         let vals = out.values_mut();
         vals.fill(f32::NAN);
         self.pass::<AVX2>(p, g, left.data, false, keep.clone(), vals, &mut stats);
@@ -413,15 +421,16 @@ impl Sgm {
             return 0;
         }
         let mut len = 0;
+        let (band_a, band_m, cur) = (&self.band_a, &self.band_m, &mut self.vert_cur[1]);
         while step_x + len < w {
             let x = if up { w - 1 - step_x - len } else { step_x + len };
             let i = y * w + x;
             // (The previous row's pixel searched that band: its slot holds it, not a stale one.)
             let q = if up { i + w } else { i - w };
-            if (self.band_a[i], self.band_m[i]) != band || (self.band_a[q], self.band_m[q]) != band {
+            if (band_a[i], band_m[i]) != band || (band_a[q], band_m[q]) != band {
                 break;
             }
-            self.vert_cur[1].prepare(x, n, a, m);
+            cur.prepare(x, n, a, m);
             len += 1;
         }
         if len == 0 {

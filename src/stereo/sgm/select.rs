@@ -17,15 +17,16 @@ fn min_of<const AVX2: bool>(s: &[u16], a: usize, lo: usize, hi: usize, skip: (us
     masked_min(s, a, lo, hi, skip)
 }
 
-/// The first disparity index in `lo ..= hi` whose sum is `best`.
+/// The smallest sum over `lo ..= hi` and the first disparity index holding it.
 #[inline(always)]
-fn position_of<const AVX2: bool>(s: &[u16], a: usize, lo: usize, hi: usize, best: u16) -> usize {
+fn min_and_position<const AVX2: bool>(s: &[u16], a: usize, lo: usize, hi: usize) -> (u16, usize) {
     #[cfg(target_arch = "x86_64")]
     if AVX2 {
-        // SAFETY: as in `min_of`.
-        return unsafe { super::simd::first_at(s, a, lo, hi, best) };
+        // SAFETY: as in `min_of`; a searched pixel's interval is not empty.
+        return unsafe { super::simd::min_at(s, a, lo, hi) };
     }
-    first_at(s, a, lo, hi, best)
+    let best = masked_min(s, a, lo, hi, (1, 0));
+    (best, first_at(s, a, lo, hi, best))
 }
 
 /// Portable [`min_of`].
@@ -43,7 +44,8 @@ fn masked_min(s: &[u16], a: usize, lo: usize, hi: usize, skip: (usize, usize)) -
     mn.into_iter().fold(u16::MAX, u16::min)
 }
 
-/// Portable [`position_of`].
+/// The first disparity index in `lo ..= hi` whose sum is `best` (the portable half of
+/// [`min_and_position`]).
 #[inline(always)]
 fn first_at(s: &[u16], a: usize, lo: usize, hi: usize, best: u16) -> usize {
     for b in (0..s.len()).step_by(LANES) {
@@ -75,6 +77,11 @@ impl Sgm {
         let Geo { w, dmin, .. } = g;
         let uniq = p.uniqueness_ratio;
         self.right_best.fill(u64::MAX);
+        // Per pixel the winner and the terms of its fit, `d = di + num / den` (den = 0: no
+        // match); the divisions then run over the row in vector lanes, not one per pixel
+        // behind the next.
+        let (di_row, num_row, den_row) = (&mut self.fit_di[..w], &mut self.fit_num[..w], &mut self.fit_den[..w]);
+        den_row.fill(0);
         for x in 0..w {
             let i = y * w + x;
             let m = self.band_m[i] as usize;
@@ -83,8 +90,7 @@ impl Sgm {
             }
             let (a, lo, hi) = (self.band_a[i] as usize, self.lo[i] as usize, self.hi[i] as usize);
             let s = &self.sum[self.off[i]..][..m];
-            let best = min_of::<AVX2>(s, a, lo, hi, (1, 0));
-            let bk = position_of::<AVX2>(s, a, lo, hi, best);
+            let (best, bk) = min_and_position::<AVX2>(s, a, lo, hi);
             if uniq > 0 {
                 let rival = min_of::<AVX2>(s, a, lo, hi, (bk.saturating_sub(1), bk + 1));
                 if (rival as u32) * (100 - uniq) < best as u32 * 100 {
@@ -95,15 +101,21 @@ impl Sgm {
             let xr = (x as i32 - di) as usize;
             // The cheapest splat wins; ties go to the smaller x, i.e. the smaller disparity.
             self.right_best[xr] = self.right_best[xr].min((best as u64) << 32 | x as u64);
-            let mut d = di as f32;
-            if p.subpixel && bk > lo && bk < hi {
+            di_row[x] = di;
+            (num_row[x], den_row[x]) = if p.subpixel && bk > lo && bk < hi {
                 // Equiangular (V-shaped) fit: census sums rise about linearly away from the
                 // minimum (docs/matcher.md: the parabola and a correlation-cost fit measured).
                 let (s0, s2) = (s[bk - 1 - a] as i32, s[bk + 1 - a] as i32);
                 let rise = (s0.max(s2) - best as i32).max(1);
-                d += (s0 - s2) as f32 / (2 * rise) as f32;
-            }
-            out[x] = d;
+                (s0 - s2, 2 * rise)
+            } else {
+                // d + 0 / 1 = d exactly.
+                (0, 1)
+            };
+        }
+        for x in 0..w {
+            let d = di_row[x] as f32 + num_row[x] as f32 / den_row[x].max(1) as f32;
+            out[x] = if den_row[x] != 0 { d } else { f32::NAN };
         }
         let t0 = std::time::Instant::now();
         for x in 0..w {

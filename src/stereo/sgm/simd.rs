@@ -1,6 +1,7 @@
-//! AVX2 copies of the hot loops (the path step, the masked minimum and its position): sixteen
-//! 16-bit lanes per instruction, the same integer arithmetic as the portable versions, so
-//! both give the same map (`the_portable_build_gives_the_same_map`).
+//! AVX2 copies of the hot loops (the path step and its runs, the masked minimum and its
+//! position, the costs): sixteen 16-bit lanes per instruction, the same integer arithmetic
+//! as the portable versions, so both give the same map
+//! (`the_portable_build_gives_the_same_map`).
 
 use std::arch::x86_64::*;
 
@@ -108,25 +109,37 @@ pub(super) unsafe fn masked_min(s: &[u16], a: usize, lo: usize, hi: usize, skip:
     hmin(mn)
 }
 
-/// [`super::select::first_at`] on AVX2.
+/// [`super::select::masked_min`] and [`super::select::first_at`] in one pass (no lanes
+/// skipped): the smallest sum over `lo ..= hi` and the first disparity index holding it. Each
+/// lane keeps its smallest value and the index where it first appeared; the smallest index
+/// among the lanes holding the minimum is the first.
 ///
 /// # Safety
-/// As [`masked_min`].
+/// As [`masked_min`]; the interval is not empty.
 #[target_feature(enable = "avx2")]
 #[inline]
-pub(super) unsafe fn first_at(s: &[u16], a: usize, lo: usize, hi: usize, best: u16) -> usize {
-    assert!(s.len() % LANES == 0);
-    let target = _mm256_set1_epi16(best as i16);
+pub(super) unsafe fn min_at(s: &[u16], a: usize, lo: usize, hi: usize) -> (u16, usize) {
+    assert!(s.len() % LANES == 0 && lo <= hi);
+    let ones = _mm256_set1_epi16(-1);
+    let lanes = _mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    let (below, above) = (_mm256_set1_epi16(lo as i16 - 1), _mm256_set1_epi16(hi as i16 + 1));
+    let (mut mn, mut at) = (ones, ones);
     for (b, blk) in s.chunks_exact(LANES).enumerate() {
         // SAFETY: a block of LANES u16.
         let v = unsafe { _mm256_loadu_si256(blk.as_ptr() as *const __m256i) };
-        let hit = _mm256_and_si256(_mm256_cmpeq_epi16(v, target), inside(a + b * LANES, lo, hi, (1, 0)));
-        let bits = _mm256_movemask_epi8(hit) as u32;
-        if bits != 0 {
-            return a + b * LANES + (bits.trailing_zeros() / 2) as usize;
-        }
+        let k = _mm256_add_epi16(_mm256_set1_epi16((a + b * LANES) as i16), lanes);
+        let keep = _mm256_and_si256(_mm256_cmpgt_epi16(k, below), _mm256_cmpgt_epi16(above, k));
+        let v = _mm256_or_si256(_mm256_and_si256(keep, v), _mm256_andnot_si256(keep, ones));
+        let lower = _mm256_min_epu16(v, mn);
+        // Strictly smaller (unsigned): the minimum changed; an equal value keeps the earlier k.
+        let changed = _mm256_xor_si256(_mm256_cmpeq_epi16(lower, mn), ones);
+        at = _mm256_blendv_epi8(at, k, changed);
+        mn = lower;
     }
-    lo
+    let best = hmin(mn);
+    let holds = _mm256_cmpeq_epi16(mn, _mm256_set1_epi16(best as i16));
+    let first = hmin(_mm256_or_si256(_mm256_and_si256(holds, at), _mm256_andnot_si256(holds, ones)));
+    (best, first as usize)
 }
 
 /// [`super::census::costs`] on AVX2 for a whole number of blocks: sixteen Hamming distances
