@@ -116,8 +116,20 @@ pub(super) struct Pixel<'a> {
     pub cl: u64,
     pub il: u8,
     pub cr_row: &'a [u64],
+    /// The same words split: their low 32 bits and their two high bits (bits 32 and 33).
+    pub cr_lo: &'a [u32],
+    pub cr_hi: &'a [u8],
     pub ir_row: &'a [u8],
     pub cap: u8,
+}
+
+/// The census words' low 32 bits and their two high bits (a window of 34 bits), for the
+/// vector costs: eight words per register instead of four.
+pub(super) fn split(words: &[u64], lo: &mut Vec<u32>, hi: &mut Vec<u8>) {
+    lo.clear();
+    lo.extend(words.iter().map(|&w| w as u32));
+    hi.clear();
+    hi.extend(words.iter().map(|&w| (w >> 32) as u8));
 }
 
 /// Costs of a left pixel for consecutive disparities: `out[k]` against the right pixel at
@@ -169,12 +181,46 @@ mod tests {
         let mut out = [0u8; 4];
         // Right pixels 5, 4, 3, 2.
         let levels = [0u8; 10];
-        costs(Pixel { cl: 0, il: 0, cr_row: &cr, ir_row: &levels, cap: 0 }, 5, &mut out);
+        let (mut cr_lo, mut cr_hi) = (Vec::new(), Vec::new());
+        split(&cr, &mut cr_lo, &mut cr_hi);
+        costs(Pixel { cl: 0, il: 0, cr_row: &cr, cr_lo: &cr_lo, cr_hi: &cr_hi, ir_row: &levels, cap: 0 }, 5, &mut out);
         assert_eq!(out, [5, 4, 3, 2]);
         // The intensity term, capped: levels 7 · i against a left level of 20.
         let levels: Vec<u8> = (0..10).map(|i| 7 * i).collect();
-        costs(Pixel { cl: 0, il: 20, cr_row: &cr, ir_row: &levels, cap: 10 }, 5, &mut out);
+        costs(Pixel { cl: 0, il: 20, cr_row: &cr, cr_lo: &cr_lo, cr_hi: &cr_hi, ir_row: &levels, cap: 10 }, 5, &mut out);
         assert_eq!(out, [5 + 10, 4 + 8, 3 + 1, 2 + 6]);
+    }
+
+    /// The vector costs (the words split into 32 and 2 bits) are the portable ones, over
+    /// words that use all 34 bits.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn the_vector_costs_are_the_portable_ones() {
+        if !std::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let cr: Vec<u64> = (0..80).map(|_| next() & ((1u64 << (CENSUS_W * CENSUS_H - 1)) - 1)).collect();
+        let levels: Vec<u8> = (0..80).map(|_| next() as u8).collect();
+        let (mut cr_lo, mut cr_hi) = (Vec::new(), Vec::new());
+        split(&cr, &mut cr_lo, &mut cr_hi);
+        for (start, m) in [(15, 16), (47, 32), (79, 48), (60, 16)] {
+            for _ in 0..20 {
+                let (cl, il, cap) = (next() & ((1u64 << (CENSUS_W * CENSUS_H - 1)) - 1), next() as u8, (next() % 101) as u8);
+                let px = Pixel { cl, il, cr_row: &cr, cr_lo: &cr_lo, cr_hi: &cr_hi, ir_row: &levels, cap };
+                let (mut want, mut got) = (vec![0u8; m], vec![0u8; m]);
+                costs(px, start, &mut want);
+                // SAFETY: AVX2 checked above; the words start + 1 − m ..= start exist.
+                unsafe { super::super::simd::costs(px, start, &mut got) };
+                assert_eq!(got, want, "start {start}, {m} disparities");
+            }
+        }
     }
 
     #[test]

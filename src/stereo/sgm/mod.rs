@@ -121,6 +121,9 @@ pub(super) struct Sgm {
     /// The right census, each row padded by replication so that every disparity of every
     /// block has a right pixel.
     census_r: Vec<u64>,
+    /// `census_r` split into its low 32 bits and its two high bits ([`census::split`]).
+    census_r_lo: Vec<u32>,
+    census_r_hi: Vec<u8>,
     /// The right image's grey levels matched to the left's, padded as `census_r`.
     levels_r: Vec<u8>,
     /// Per pixel: the aggregated band (first disparity index, multiple of [`LANES`], and
@@ -238,6 +241,7 @@ impl Sgm {
         let t0 = std::time::Instant::now();
         census::transform(left.data, w, h, (0, 0), &mut self.census_l);
         census::transform(right.data, w, h, (pad_l, pad_r), &mut self.census_r);
+        census::split(&self.census_r, &mut self.census_r_lo, &mut self.census_r_hi);
         census::pad_rows(right.data, w, h, (pad_l, pad_r), levels, &mut self.levels_r);
         let mut stats = MatchStats { prefilter_ns: t0.elapsed().as_nanos() as u64, ..MatchStats::default() };
         self.bands(p, g, intervals, keep.clone(), &mut stats);
@@ -326,6 +330,7 @@ impl Sgm {
                 let cl = &self.census_l[y * w..][..w];
                 let il = &left[y * w..][..w];
                 let (cr_row, ir_row) = (&self.census_r[y * g.wr..][..g.wr], &self.levels_r[y * g.wr..][..g.wr]);
+                let (cr_lo, cr_hi) = (&self.census_r_lo[y * g.wr..][..g.wr], &self.census_r_hi[y * g.wr..][..g.wr]);
                 for x in 0..w {
                     let i = y * w + x;
                     let m = self.band_m[i] as usize;
@@ -334,7 +339,7 @@ impl Sgm {
                         // in the padded row.
                         let d0 = g.dmin + self.band_a[i] as i32;
                         let (start, out) = ((x as i32 + g.pad_l as i32 - d0) as usize, &mut self.cost[self.off[i]..][..m]);
-                        let px = census::Pixel { cl: cl[x], il: il[x], cr_row, ir_row, cap: p.sgm_ad_cap };
+                        let px = census::Pixel { cl: cl[x], il: il[x], cr_row, cr_lo, cr_hi, ir_row, cap: p.sgm_ad_cap };
                         #[cfg(target_arch = "x86_64")]
                         if AVX2 {
                             // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU.

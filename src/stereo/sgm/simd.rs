@@ -143,62 +143,61 @@ pub(super) unsafe fn min_at(s: &[u16], a: usize, lo: usize, hi: usize) -> (u16, 
 }
 
 /// [`super::census::costs`] on AVX2 for a whole number of blocks: sixteen Hamming distances
-/// per step (nibble table popcount, summed per word), plus sixteen capped level differences,
-/// written as bytes.
+/// per step — the low 32 bits of eight words per register (nibble table popcount, the bytes
+/// of each word summed by two multiply-adds), the two high bits of all sixteen by one table
+/// lookup — plus sixteen capped level differences, written as bytes.
 ///
 /// # Safety
-/// The CPU supports AVX2; `out.len()` is a multiple of [`LANES`] and `px.cr_row[start + 1 −
-/// out.len() ..= start]` and `px.ir_row[…]` (the same range) exist.
+/// The CPU supports AVX2; `out.len()` is a multiple of [`LANES`] and `px.cr_lo[start + 1 −
+/// out.len() ..= start]`, `px.cr_hi[…]` and `px.ir_row[…]` (the same range) exist.
 #[target_feature(enable = "avx2")]
 #[inline]
 pub(super) unsafe fn costs(px: super::census::Pixel, start: usize, out: &mut [u8]) {
     let m = out.len();
-    let cr_row = px.cr_row;
-    assert!(m % LANES == 0 && start < cr_row.len() && start < px.ir_row.len() && start + 1 >= m);
-    let left = _mm256_set1_epi64x(px.cl as i64);
+    let (lo_row, hi_row) = (px.cr_lo, px.cr_hi);
+    assert!(m % LANES == 0 && start < lo_row.len() && start < hi_row.len() && start < px.ir_row.len() && start + 1 >= m);
+    let left_lo = _mm256_set1_epi32(px.cl as u32 as i32);
+    let left_hi = _mm_set1_epi8((px.cl >> 32) as u8 as i8);
     let (level, cap) = (_mm_set1_epi8(px.il as i8), _mm_set1_epi8(px.cap as i8));
     let reverse = _mm_setr_epi8(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
     let nibble = _mm256_setr_epi8(0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4, 0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4);
-    let low = _mm256_set1_epi8(0x0f);
-    let count = |v: __m256i| -> __m256i {
-        let x = _mm256_xor_si256(v, left);
+    let two_bits = _mm_setr_epi8(0, 1, 1, 2, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0);
+    let (low, ones) = (_mm256_set1_epi8(0x0f), _mm256_set1_epi8(1));
+    // Bit counts per byte of eight words, then per 16-bit half (multiply-add with ones).
+    let halves = |v: __m256i| -> __m256i {
+        let x = _mm256_xor_si256(v, left_lo);
         let lo = _mm256_shuffle_epi8(nibble, _mm256_and_si256(x, low));
         let hi = _mm256_shuffle_epi8(nibble, _mm256_and_si256(_mm256_srli_epi16::<4>(x), low));
-        _mm256_sad_epu8(_mm256_add_epi8(lo, hi), _mm256_setzero_si256())
+        _mm256_maddubs_epi16(_mm256_add_epi8(lo, hi), ones)
     };
-    // After the packs below, the low 128 bits hold the counts of disparities (k = 15, 14, 11,
-    // 10, 7, 6, 3, 2, 13, 12, 9, 8, 5, 4, 1, 0) of the block (k = 0 the word at `top`): this
-    // puts them back in order.
-    let order = _mm_setr_epi8(15, 14, 7, 6, 13, 12, 5, 4, 11, 10, 3, 2, 9, 8, 1, 0);
+    // After the horizontal add, the pack and the permute below, the sixteen counts of words
+    // p0 … p15 (p0 the word at `top − 15`) lie in the order p0–p3, p8–p11, p4–p7, p12–p15;
+    // disparity k is word p(15 − k).
+    let order = _mm_setr_epi8(15, 14, 13, 12, 7, 6, 5, 4, 11, 10, 9, 8, 3, 2, 1, 0);
     let mut b = 0;
     while b < m {
         // Words top − 15 … top hold disparities b + 15 … b (the right pixel moves left).
         let top = start - b;
-        let base = cr_row.as_ptr().add(top - 15);
         // SAFETY: top − 15 ≥ start + 1 − m ≥ 0 and top ≤ start, asserted above.
-        let (w0, w1, w2, w3) = unsafe {
+        let (w0, w1, hb, ir) = unsafe {
+            let base = lo_row.as_ptr().add(top - 15);
             (
                 _mm256_loadu_si256(base as *const __m256i),
-                _mm256_loadu_si256(base.add(4) as *const __m256i),
                 _mm256_loadu_si256(base.add(8) as *const __m256i),
-                _mm256_loadu_si256(base.add(12) as *const __m256i),
+                _mm_loadu_si128(hi_row.as_ptr().add(top - 15) as *const __m128i),
+                _mm_loadu_si128(px.ir_row.as_ptr().add(top - 15) as *const __m128i),
             )
         };
-        // Counts per 64-bit lane: w0 = words top − 15 … top − 12, i.e. k = 15 … 12.
-        let (c0, c1, c2, c3) = (count(w0), count(w1), count(w2), count(w3));
-        let p01 = _mm256_packus_epi32(c0, c1);
-        let p23 = _mm256_packus_epi32(c2, c3);
-        let bytes = _mm256_packus_epi16(p01, p23);
-        // Per 128-bit half the useful bytes are 0, 2, 4, 6, 8, 10, 12, 14; gather them into
-        // the low 8 bytes of each half, then both halves into the low 128 bits.
-        let even = _mm256_shuffle_epi8(bytes, _mm256_setr_epi8(0, 2, 4, 6, 8, 10, 12, 14, -1, -1, -1, -1, -1, -1, -1, -1, 0, 2, 4, 6, 8, 10, 12, 14, -1, -1, -1, -1, -1, -1, -1, -1));
-        let joined = _mm256_castsi256_si128(_mm256_permute4x64_epi64::<0b1000>(even));
-        let bits = _mm_shuffle_epi8(joined, order);
+        // Per 128-bit half: the sums of p0–p3 and p8–p11 (low), p4–p7 and p12–p15 (high).
+        let sums = _mm256_hadd_epi16(halves(w0), halves(w1));
+        let packed = _mm256_packus_epi16(sums, sums);
+        let joined = _mm256_castsi256_si128(_mm256_permute4x64_epi64::<0b1000>(packed));
+        let low_bits = _mm_shuffle_epi8(joined, order);
+        let high_bits = _mm_shuffle_epi8(two_bits, _mm_shuffle_epi8(_mm_xor_si128(hb, left_hi), reverse));
         // Levels top − 15 … top, reversed to disparities b … b + 15: |il − ir| capped.
-        // SAFETY: the same range as the census words, asserted above.
-        let ir = _mm_shuffle_epi8(unsafe { _mm_loadu_si128(px.ir_row.as_ptr().add(top - 15) as *const __m128i) }, reverse);
+        let ir = _mm_shuffle_epi8(ir, reverse);
         let diff = _mm_or_si128(_mm_subs_epu8(level, ir), _mm_subs_epu8(ir, level));
-        let res = _mm_adds_epu8(bits, _mm_min_epu8(diff, cap));
+        let res = _mm_adds_epu8(_mm_add_epi8(low_bits, high_bits), _mm_min_epu8(diff, cap));
         // SAFETY: b + LANES ≤ m.
         unsafe { _mm_storeu_si128(out.as_mut_ptr().add(b) as *mut __m128i, res) };
         b += LANES;
