@@ -29,6 +29,14 @@
 //! Pass one goes down the image, left to right, with the paths from the left and above
 //! (and the upper left and upper right); pass two goes up, right to left, with the others,
 //! and selects each row as soon as its sums are complete.
+//!
+//! # Runs
+//! With four paths, a run of pixels that share one band with the pixel before them on the
+//! row and with their pixels in the previous row — the whole row at full range, patches of
+//! an assisted map — is stepped by one AVX2 kernel ([`simd::run`]): the row path's values
+//! stay in registers from pixel to pixel, and nothing is looked up per pixel (the
+//! bookkeeping of the general step cost more than its arithmetic at one or two blocks).
+//! The sums are the general step's, to the bit.
 
 use std::ops::Range;
 
