@@ -191,38 +191,6 @@ mod tests {
         assert_eq!(out, [5 + 10, 4 + 8, 3 + 1, 2 + 6]);
     }
 
-    /// The vector costs (the words split into 32 and 2 bits) are the portable ones, over
-    /// words that use all 34 bits.
-    #[cfg(target_arch = "x86_64")]
-    #[test]
-    fn the_vector_costs_are_the_portable_ones() {
-        if !std::is_x86_feature_detected!("avx2") {
-            return;
-        }
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut next = move || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            state
-        };
-        let cr: Vec<u64> = (0..80).map(|_| next() & ((1u64 << (CENSUS_W * CENSUS_H - 1)) - 1)).collect();
-        let levels: Vec<u8> = (0..80).map(|_| next() as u8).collect();
-        let (mut cr_lo, mut cr_hi) = (Vec::new(), Vec::new());
-        split(&cr, &mut cr_lo, &mut cr_hi);
-        for (start, m) in [(15, 16), (47, 32), (79, 48), (60, 16)] {
-            for _ in 0..20 {
-                let (cl, il, cap) = (next() & ((1u64 << (CENSUS_W * CENSUS_H - 1)) - 1), next() as u8, (next() % 101) as u8);
-                let px = Pixel { cl, il, cr_row: &cr, cr_lo: &cr_lo, cr_hi: &cr_hi, ir_row: &levels, cap };
-                let (mut want, mut got) = (vec![0u8; m], vec![0u8; m]);
-                costs(px, start, &mut want);
-                // SAFETY: AVX2 checked above; the words start + 1 − m ..= start exist.
-                unsafe { super::super::simd::costs(px, start, &mut got) };
-                assert_eq!(got, want, "start {start}, {m} disparities");
-            }
-        }
-    }
-
     #[test]
     fn the_right_levels_are_matched_to_the_left_gain_and_offset() {
         let left: Vec<u8> = (0..400).map(|i| (40 + (i * 37) % 150) as u8).collect();
