@@ -435,6 +435,20 @@ impl Sgm {
         }
         let mut len = 0;
         let (band_a, band_m, cur) = (&self.band_a, &self.band_m, &mut self.vert_cur[1]);
+        // The rest of the row at once when this row, the previous one and the slots to be
+        // written all hold the band there (the full range: every row but the first), checked
+        // without a branch per pixel; else pixel by pixel up to the first that does not.
+        let rest = if up { 0..x0 + 1 } else { x0..w };
+        let (row, prev_row) = (y * w..(y + 1) * w, if up { (y + 1) * w..(y + 2) * w } else { (y - 1) * w..y * w });
+        let all = |v: &[u16], want: u16| v.iter().fold(true, |ok, &b| ok & (b == want));
+        if all(&band_a[row.clone()][rest.clone()], band.0)
+            && all(&band_m[row][rest.clone()], band.1)
+            && all(&band_a[prev_row.clone()][rest.clone()], band.0)
+            && all(&band_m[prev_row][rest.clone()], band.1)
+            && cur.band[rest.clone()].iter().fold(true, |ok, &b| ok & (b == band))
+        {
+            len = rest.len();
+        }
         while step_x + len < w {
             let x = if up { w - 1 - step_x - len } else { step_x + len };
             let i = y * w + x;
