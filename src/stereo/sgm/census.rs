@@ -116,7 +116,16 @@ pub(super) struct Pixel<'a> {
     pub cl: u64,
     pub il: u8,
     pub cr_row: &'a [u64],
-    /// The same words split: their low 32 bits and their two high bits (bits 32 and 33).
+    pub ir_row: &'a [u8],
+    pub cap: u8,
+}
+
+/// Consecutive left pixels of one band (their census words and levels) and the right row,
+/// its census words split ([`split`]), for the vector costs.
+#[derive(Clone, Copy)]
+pub(super) struct Run<'a> {
+    pub cl: &'a [u64],
+    pub il: &'a [u8],
     pub cr_lo: &'a [u32],
     pub cr_hi: &'a [u8],
     pub ir_row: &'a [u8],
@@ -181,13 +190,11 @@ mod tests {
         let mut out = [0u8; 4];
         // Right pixels 5, 4, 3, 2.
         let levels = [0u8; 10];
-        let (mut cr_lo, mut cr_hi) = (Vec::new(), Vec::new());
-        split(&cr, &mut cr_lo, &mut cr_hi);
-        costs(Pixel { cl: 0, il: 0, cr_row: &cr, cr_lo: &cr_lo, cr_hi: &cr_hi, ir_row: &levels, cap: 0 }, 5, &mut out);
+        costs(Pixel { cl: 0, il: 0, cr_row: &cr, ir_row: &levels, cap: 0 }, 5, &mut out);
         assert_eq!(out, [5, 4, 3, 2]);
         // The intensity term, capped: levels 7 · i against a left level of 20.
         let levels: Vec<u8> = (0..10).map(|i| 7 * i).collect();
-        costs(Pixel { cl: 0, il: 20, cr_row: &cr, cr_lo: &cr_lo, cr_hi: &cr_hi, ir_row: &levels, cap: 10 }, 5, &mut out);
+        costs(Pixel { cl: 0, il: 20, cr_row: &cr, ir_row: &levels, cap: 10 }, 5, &mut out);
         assert_eq!(out, [5 + 10, 4 + 8, 3 + 1, 2 + 6]);
     }
 

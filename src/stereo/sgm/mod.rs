@@ -339,23 +339,38 @@ impl Sgm {
                 let il = &left[y * w..][..w];
                 let (cr_row, ir_row) = (&self.census_r[y * g.wr..][..g.wr], &self.levels_r[y * g.wr..][..g.wr]);
                 let (cr_lo, cr_hi) = (&self.census_r_lo[y * g.wr..][..g.wr], &self.census_r_hi[y * g.wr..][..g.wr]);
-                for x in 0..w {
+                // Runs of pixels of one band at once (their costs are packed one after the
+                // other; the right pixel of each moves one column on).
+                let mut x = 0;
+                while x < w {
                     let i = y * w + x;
-                    let m = self.band_m[i] as usize;
-                    if m > 0 {
-                        // Right pixel of disparity index k: x − dmin − k, at x − dmin − k + pad_l
-                        // in the padded row.
-                        let d0 = g.dmin + self.band_a[i] as i32;
-                        let (start, out) = ((x as i32 + g.pad_l as i32 - d0) as usize, &mut self.cost[self.off[i]..][..m]);
-                        let px = census::Pixel { cl: cl[x], il: il[x], cr_row, cr_lo, cr_hi, ir_row, cap: p.sgm_ad_cap };
-                        #[cfg(target_arch = "x86_64")]
-                        if AVX2 {
-                            // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU.
-                            unsafe { simd::costs(px, start, out) };
-                            continue;
-                        }
-                        census::costs(px, start, out);
+                    let (a, m) = (self.band_a[i], self.band_m[i] as usize);
+                    if m == 0 {
+                        x += 1;
+                        continue;
                     }
+                    let mut len = 1;
+                    while x + len < w && self.band_m[i + len] as usize == m && self.band_a[i + len] == a {
+                        len += 1;
+                    }
+                    // Right pixel of disparity index k: x − dmin − k, at x − dmin − k + pad_l in
+                    // the padded row.
+                    let start = (x as i32 + g.pad_l as i32 - g.dmin - a as i32) as usize;
+                    let out = &mut self.cost[self.off[i]..][..len * m];
+                    #[cfg(target_arch = "x86_64")]
+                    if AVX2 {
+                        let run = census::Run { cl: &cl[x..x + len], il: &il[x..x + len], cr_lo, cr_hi, ir_row, cap: p.sgm_ad_cap };
+                        // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the
+                        // padded right rows hold every disparity of every band.
+                        unsafe { simd::costs(run, start, m, out) };
+                        x += len;
+                        continue;
+                    }
+                    for (k, out) in out.chunks_exact_mut(m).enumerate() {
+                        let px = census::Pixel { cl: cl[x + k], il: il[x + k], cr_row, ir_row, cap: p.sgm_ad_cap };
+                        census::costs(px, start + k, out);
+                    }
+                    x += len;
                 }
             }
             // The previous row of the vertical paths (none at the first row of the pass).

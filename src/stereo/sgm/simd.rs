@@ -142,65 +142,72 @@ pub(super) unsafe fn min_at(s: &[u16], a: usize, lo: usize, hi: usize) -> (u16, 
     (best, first as usize)
 }
 
-/// [`super::census::costs`] on AVX2 for a whole number of blocks: sixteen Hamming distances
-/// per step — the low 32 bits of eight words per register (nibble table popcount, the bytes
-/// of each word summed by two multiply-adds), the two high bits of all sixteen by one table
-/// lookup — plus sixteen capped level differences, written as bytes.
+/// [`super::census::costs`] on AVX2 for a run of consecutive left pixels of one band (`m`
+/// disparities, a whole number of blocks; pixel k's right words end at `start + k`, its
+/// costs at `out[k · m ..]`): sixteen Hamming distances per step — the low 32 bits of eight
+/// words per register (nibble table popcount, the bytes of each word summed by two
+/// multiply-adds), the two high bits of all sixteen by one table lookup — plus sixteen
+/// capped level differences, written as bytes.
 ///
 /// # Safety
-/// The CPU supports AVX2; `out.len()` is a multiple of [`LANES`] and `px.cr_lo[start + 1 −
-/// out.len() ..= start]`, `px.cr_hi[…]` and `px.ir_row[…]` (the same range) exist.
+/// The CPU supports AVX2; `m` is a multiple of [`LANES`], `out.len()` is `m` times the
+/// run's length, and `run.cr_lo[start + 1 − m ..= start + len − 1]`, `run.cr_hi[…]` and
+/// `run.ir_row[…]` (the same range) exist.
 #[target_feature(enable = "avx2")]
 #[inline]
-pub(super) unsafe fn costs(px: super::census::Pixel, start: usize, out: &mut [u8]) {
-    let m = out.len();
-    let (lo_row, hi_row) = (px.cr_lo, px.cr_hi);
-    assert!(m % LANES == 0 && start < lo_row.len() && start < hi_row.len() && start < px.ir_row.len() && start + 1 >= m);
-    let left_lo = _mm256_set1_epi32(px.cl as u32 as i32);
-    let left_hi = _mm_set1_epi8((px.cl >> 32) as u8 as i8);
-    let (level, cap) = (_mm_set1_epi8(px.il as i8), _mm_set1_epi8(px.cap as i8));
+pub(super) unsafe fn costs(run: super::census::Run, start: usize, m: usize, out: &mut [u8]) {
+    let len = run.cl.len();
+    let (lo_row, hi_row) = (run.cr_lo, run.cr_hi);
+    assert!(m % LANES == 0 && m > 0 && run.il.len() == len && out.len() == len * m && start + 1 >= m);
+    assert!(len == 0 || (start + len - 1 < lo_row.len() && start + len - 1 < hi_row.len() && start + len - 1 < run.ir_row.len()));
+    let cap = _mm_set1_epi8(run.cap as i8);
     let reverse = _mm_setr_epi8(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
     let nibble = _mm256_setr_epi8(0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4, 0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4);
     let two_bits = _mm_setr_epi8(0, 1, 1, 2, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0);
     let (low, ones) = (_mm256_set1_epi8(0x0f), _mm256_set1_epi8(1));
-    // Bit counts per byte of eight words, then per 16-bit half (multiply-add with ones).
-    let halves = |v: __m256i| -> __m256i {
-        let x = _mm256_xor_si256(v, left_lo);
-        let lo = _mm256_shuffle_epi8(nibble, _mm256_and_si256(x, low));
-        let hi = _mm256_shuffle_epi8(nibble, _mm256_and_si256(_mm256_srli_epi16::<4>(x), low));
-        _mm256_maddubs_epi16(_mm256_add_epi8(lo, hi), ones)
-    };
     // After the horizontal add, the pack and the permute below, the sixteen counts of words
     // p0 … p15 (p0 the word at `top − 15`) lie in the order p0–p3, p8–p11, p4–p7, p12–p15;
     // disparity k is word p(15 − k).
     let order = _mm_setr_epi8(15, 14, 13, 12, 7, 6, 5, 4, 11, 10, 9, 8, 3, 2, 1, 0);
-    let mut b = 0;
-    while b < m {
-        // Words top − 15 … top hold disparities b + 15 … b (the right pixel moves left).
-        let top = start - b;
-        // SAFETY: top − 15 ≥ start + 1 − m ≥ 0 and top ≤ start, asserted above.
-        let (w0, w1, hb, ir) = unsafe {
-            let base = lo_row.as_ptr().add(top - 15);
-            (
-                _mm256_loadu_si256(base as *const __m256i),
-                _mm256_loadu_si256(base.add(8) as *const __m256i),
-                _mm_loadu_si128(hi_row.as_ptr().add(top - 15) as *const __m128i),
-                _mm_loadu_si128(px.ir_row.as_ptr().add(top - 15) as *const __m128i),
-            )
+    for (k, (&cl, &il)) in run.cl.iter().zip(run.il).enumerate() {
+        let left_lo = _mm256_set1_epi32(cl as u32 as i32);
+        let left_hi = _mm_set1_epi8((cl >> 32) as u8 as i8);
+        let level = _mm_set1_epi8(il as i8);
+        // Bit counts per byte of eight words, then per 16-bit half (multiply-add with ones).
+        let halves = |v: __m256i| -> __m256i {
+            let x = _mm256_xor_si256(v, left_lo);
+            let lo = _mm256_shuffle_epi8(nibble, _mm256_and_si256(x, low));
+            let hi = _mm256_shuffle_epi8(nibble, _mm256_and_si256(_mm256_srli_epi16::<4>(x), low));
+            _mm256_maddubs_epi16(_mm256_add_epi8(lo, hi), ones)
         };
-        // Per 128-bit half: the sums of p0–p3 and p8–p11 (low), p4–p7 and p12–p15 (high).
-        let sums = _mm256_hadd_epi16(halves(w0), halves(w1));
-        let packed = _mm256_packus_epi16(sums, sums);
-        let joined = _mm256_castsi256_si128(_mm256_permute4x64_epi64::<0b1000>(packed));
-        let low_bits = _mm_shuffle_epi8(joined, order);
-        let high_bits = _mm_shuffle_epi8(two_bits, _mm_shuffle_epi8(_mm_xor_si128(hb, left_hi), reverse));
-        // Levels top − 15 … top, reversed to disparities b … b + 15: |il − ir| capped.
-        let ir = _mm_shuffle_epi8(ir, reverse);
-        let diff = _mm_or_si128(_mm_subs_epu8(level, ir), _mm_subs_epu8(ir, level));
-        let res = _mm_adds_epu8(_mm_add_epi8(low_bits, high_bits), _mm_min_epu8(diff, cap));
-        // SAFETY: b + LANES ≤ m.
-        unsafe { _mm_storeu_si128(out.as_mut_ptr().add(b) as *mut __m128i, res) };
-        b += LANES;
+        let mut b = 0;
+        while b < m {
+            // Words top − 15 … top hold disparities b + 15 … b (the right pixel moves left).
+            let top = start + k - b;
+            // SAFETY: top − 15 ≥ start + 1 − m ≥ 0 and top ≤ start + len − 1, asserted above.
+            let (w0, w1, hb, ir) = unsafe {
+                let base = lo_row.as_ptr().add(top - 15);
+                (
+                    _mm256_loadu_si256(base as *const __m256i),
+                    _mm256_loadu_si256(base.add(8) as *const __m256i),
+                    _mm_loadu_si128(hi_row.as_ptr().add(top - 15) as *const __m128i),
+                    _mm_loadu_si128(run.ir_row.as_ptr().add(top - 15) as *const __m128i),
+                )
+            };
+            // Per 128-bit half: the sums of p0–p3 and p8–p11 (low), p4–p7 and p12–p15 (high).
+            let sums = _mm256_hadd_epi16(halves(w0), halves(w1));
+            let packed = _mm256_packus_epi16(sums, sums);
+            let joined = _mm256_castsi256_si128(_mm256_permute4x64_epi64::<0b1000>(packed));
+            let low_bits = _mm_shuffle_epi8(joined, order);
+            let high_bits = _mm_shuffle_epi8(two_bits, _mm_shuffle_epi8(_mm_xor_si128(hb, left_hi), reverse));
+            // Levels top − 15 … top, reversed to disparities b … b + 15: |il − ir| capped.
+            let ir = _mm_shuffle_epi8(ir, reverse);
+            let diff = _mm_or_si128(_mm_subs_epu8(level, ir), _mm_subs_epu8(ir, level));
+            let res = _mm_adds_epu8(_mm_add_epi8(low_bits, high_bits), _mm_min_epu8(diff, cap));
+            // SAFETY: k · m + b + LANES ≤ len · m = out.len().
+            unsafe { _mm_storeu_si128(out.as_mut_ptr().add(k * m + b) as *mut __m128i, res) };
+            b += LANES;
+        }
     }
 }
 

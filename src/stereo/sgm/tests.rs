@@ -247,8 +247,8 @@ fn intervals_emptied_by_the_image_border_search_nothing() {
     assert_eq!(stats.searched, (w - 30) * h);
 }
 
-/// The vector costs (the words split into 32 and 2 bits) are the portable ones, over
-/// words that use all 34 bits.
+/// The vector costs (the words split into 32 and 2 bits, a run of pixels at once) are the
+/// portable ones, over words that use all 34 bits.
 #[cfg(target_arch = "x86_64")]
 #[test]
 fn the_vector_costs_are_the_portable_ones() {
@@ -262,20 +262,24 @@ fn the_vector_costs_are_the_portable_ones() {
         state ^= state << 17;
         state
     };
-    let cr: Vec<u64> = (0..80).map(|_| next() & ((1u64 << (census::CENSUS_W * census::CENSUS_H - 1)) - 1)).collect();
+    let bits = (1u64 << (census::CENSUS_W * census::CENSUS_H - 1)) - 1;
+    let cr: Vec<u64> = (0..80).map(|_| next() & bits).collect();
     let levels: Vec<u8> = (0..80).map(|_| next() as u8).collect();
     let (mut cr_lo, mut cr_hi) = (Vec::new(), Vec::new());
     census::split(&cr, &mut cr_lo, &mut cr_hi);
-    for (start, m) in [(15, 16), (47, 32), (79, 48), (60, 16)] {
-        for _ in 0..20 {
-            let (cl, il, cap) = (next() & ((1u64 << (census::CENSUS_W * census::CENSUS_H - 1)) - 1), next() as u8, (next() % 101) as u8);
-            let px = census::Pixel { cl, il, cr_row: &cr, cr_lo: &cr_lo, cr_hi: &cr_hi, ir_row: &levels, cap };
-            let (mut want, mut got) = (vec![0u8; m], vec![0u8; m]);
-            census::costs(px, start, &mut want);
-            // SAFETY: AVX2 checked above; the words start + 1 − m ..= start exist.
-            unsafe { super::simd::costs(px, start, &mut got) };
-            assert_eq!(got, want, "start {start}, {m} disparities");
+    // (first right word of the run's first pixel, disparities, pixels)
+    for (start, m, len) in [(15, 16, 1), (47, 32, 3), (60, 48, 20), (31, 16, 49)] {
+        let cl: Vec<u64> = (0..len).map(|_| next() & bits).collect();
+        let il: Vec<u8> = (0..len).map(|_| next() as u8).collect();
+        let cap = (next() % 101) as u8;
+        let mut want = vec![0u8; len * m];
+        for (k, out) in want.chunks_exact_mut(m).enumerate() {
+            census::costs(census::Pixel { cl: cl[k], il: il[k], cr_row: &cr, ir_row: &levels, cap }, start + k, out);
         }
+        let mut got = vec![0u8; len * m];
+        let run = census::Run { cl: &cl, il: &il, cr_lo: &cr_lo, cr_hi: &cr_hi, ir_row: &levels, cap };
+        // SAFETY: AVX2 checked above; the words start + 1 − m ..= start + len − 1 exist.
+        unsafe { super::simd::costs(run, start, m, &mut got) };
+        assert_eq!(got, want, "start {start}, {m} disparities, {len} pixels");
     }
 }
-
