@@ -435,8 +435,9 @@ impl Sgm {
 
     /// Four paths, from the pixel at `step_x` of row `y`'s sweep on (a row with a previous
     /// row in the pass): the run of pixels whose band is the previous pixel's (`h_prev`,
-    /// live) and whose previous row's pixel searched the same band, stepped by [`simd::run`] (no bookkeeping per pixel, the row path kept in
-    /// registers); returns its length (0: none, the pixel takes the general step).
+    /// live) and whose previous row's pixel searched the same band, stepped by
+    /// [`simd::run`] (no bookkeeping per pixel, the row path kept in registers); returns its
+    /// length (0: none, the pixel takes the general step).
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     fn run<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, y: usize, step_x: usize, up: bool) -> usize {
