@@ -30,7 +30,8 @@ pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), out
     // branch.
     let wp = w + 2 * rx;
     let mut padded = vec![0u8; wp * CENSUS_H];
-    let mut planes = vec![0u8; 8 * w];
+    // 34 comparisons: five byte planes (the word's bytes 5–7 stay zero).
+    let mut planes = vec![0u8; (CENSUS_W * CENSUS_H - 1).div_ceil(8) * w];
     for y in 0..h {
         for (j, dst) in padded.chunks_mut(wp).enumerate() {
             let sy = (y + j).saturating_sub(ry).min(h - 1);
@@ -63,12 +64,9 @@ pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), out
         let (p0, rest) = planes.split_at(w);
         let (p1, rest) = rest.split_at(w);
         let (p2, rest) = rest.split_at(w);
-        let (p3, rest) = rest.split_at(w);
-        let (p4, rest) = rest.split_at(w);
-        let (p5, rest) = rest.split_at(w);
-        let (p6, p7) = rest.split_at(w);
+        let (p3, p4) = rest.split_at(w);
         for (x, o) in row[pad.0..pad.0 + w].iter_mut().enumerate() {
-            *o = u64::from_le_bytes([p0[x], p1[x], p2[x], p3[x], p4[x], p5[x], p6[x], p7[x]]);
+            *o = u64::from_le_bytes([p0[x], p1[x], p2[x], p3[x], p4[x], 0, 0, 0]);
         }
         let (first, last) = (row[pad.0], row[pad.0 + w - 1]);
         row[..pad.0].fill(first);
