@@ -349,7 +349,11 @@ impl Sgm {
                         x += 1;
                         continue;
                     }
-                    let mut len = 1;
+                    // (The rest of the row at once when it all holds the band — the full range —
+                    // checked without a branch per pixel.)
+                    let rest = i..(y + 1) * w;
+                    let same = |v: &[u16], want: u16| v.iter().fold(true, |ok, &b| ok & (b == want));
+                    let mut len = if same(&self.band_a[rest.clone()], a) && same(&self.band_m[rest], m as u16) { w - x } else { 1 };
                     while x + len < w && self.band_m[i + len] as usize == m && self.band_a[i + len] == a {
                         len += 1;
                     }
