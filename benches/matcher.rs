@@ -1,6 +1,8 @@
 //! `cargo bench --bench matcher [-- FILTER]`: times the matcher (full range and narrow
-//! intervals, per pixel and per tile) on the Middlebury pairs in `../shared/data` when
-//! present, and on a simulated pair always. Prints min and median milliseconds per case over repeated runs.
+//! intervals, per pixel and per tile; both methods, `bm` and `sgm`, each with its defaults)
+//! on the Middlebury pairs in `../shared/data` when present, and on a simulated pair always.
+//! Prints min and median milliseconds per case over repeated runs; `-- sgm` runs the
+//! semi-global cases alone.
 //!
 //! For the side-by-side comparison with OpenCV use `../shared/bench/peer_stereo.py` with
 //! `--eval-cmd "spinscan disparity … --threads 1 --repeat 5 -o {out}"` (see README).
@@ -9,8 +11,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use spinscan::io::load_image;
-use spinscan::stereo::{DisparityIntervals, DisparityMap, GrayView, MatchParams, StereoMatcher};
+use spinscan::stereo::{DisparityIntervals, DisparityMap, GrayView, MatchParams, Method, StereoMatcher};
 
+#[derive(Clone)]
 struct Case {
     name: String,
     width: usize,
@@ -105,10 +108,13 @@ fn main() {
     let filter: Option<String> = std::env::args().skip(1).find(|a| !a.starts_with('-'));
     println!("{:<34} {:>9} {:>9} {:>10}", "case", "min ms", "median ms", "search px");
     for case in cases() {
-        for threads in [1, 2] {
-            let params = MatchParams { num_disparities: case.num_disparities, threads, ..Default::default() }.validate().unwrap();
+        for (method, threads) in [(Method::Bm, 1), (Method::Bm, 2), (Method::Sgm, 1), (Method::Sgm, 2)] {
+            let params = MatchParams { num_disparities: case.num_disparities, threads, ..MatchParams::for_method(method) }.validate().unwrap();
             let mut m = StereoMatcher::new(params);
             let (w, h) = (case.width, case.height);
+            // `bm` cases keep their names; `sgm` ones are prefixed.
+            let case_name = if method == Method::Bm { case.name.clone() } else { format!("sgm {}", case.name) };
+            let case = Case { name: case_name, ..case.clone() };
             let pair = (GrayView::new(w, h, &case.left).unwrap(), GrayView::new(w, h, &case.right).unwrap());
             let full = m.full_intervals(w, h, None);
             run(&mut m, pair, &full, &format!("{} full t{threads}", case.name), filter.as_deref());
