@@ -32,8 +32,8 @@
 //!
 //! # Runs
 //! With four paths, a run of pixels that share one band with the pixel before them on the
-//! row and with their pixels in the previous row — the whole row at full range, patches of
-//! an assisted map — is stepped by one AVX2 kernel ([`simd::run`]): the row path's values
+//! row, and whose pixels in the previous row searched — the whole row at full range, patches
+//! of an assisted map — is stepped by one AVX2 kernel ([`simd::run`]): the row path's values
 //! stay in registers from pixel to pixel, and nothing is looked up per pixel (the
 //! bookkeeping of the general step cost more than its arithmetic at one or two blocks).
 //! The sums are the general step's, to the bit.
@@ -439,7 +439,7 @@ impl Sgm {
 
     /// Four paths, from the pixel at `step_x` of row `y`'s sweep on (a row with a previous
     /// row in the pass): the run of pixels whose band is the previous pixel's (`h_prev`,
-    /// live) and whose previous row's pixel searched the same band, stepped by
+    /// live) and whose previous row's pixel searched (any band), stepped by
     /// [`simd::run`] (no bookkeeping per pixel, the row path kept in registers); returns its
     /// length (0: none, the pixel takes the general step).
     #[cfg(target_arch = "x86_64")]
@@ -455,16 +455,16 @@ impl Sgm {
         }
         let mut len = 0;
         let (band_a, band_m, cur) = (&self.band_a, &self.band_m, &mut self.vert_cur[1]);
-        // The rest of the row at once when this row, the previous one and the slots to be
-        // written all hold the band there (the full range: every row but the first), checked
-        // without a branch per pixel; else pixel by pixel up to the first that does not.
+        // The rest of the row at once when this row and the slots to be written all hold the
+        // band there and every pixel of the previous row searched (the full range: every row
+        // but the first), checked without a branch per pixel; else pixel by pixel up to the
+        // first that does not.
         let rest = if up { 0..x0 + 1 } else { x0..w };
         let (row, prev_row) = (y * w..(y + 1) * w, if up { (y + 1) * w..(y + 2) * w } else { (y - 1) * w..y * w });
         let all = |v: &[u16], want: u16| v.iter().fold(true, |ok, &b| ok & (b == want));
         if all(&band_a[row.clone()][rest.clone()], band.0)
             && all(&band_m[row][rest.clone()], band.1)
-            && all(&band_a[prev_row.clone()][rest.clone()], band.0)
-            && all(&band_m[prev_row][rest.clone()], band.1)
+            && band_m[prev_row][rest.clone()].iter().fold(true, |ok, &b| ok & (b > 0))
             && cur.band[rest.clone()].iter().fold(true, |ok, &b| ok & (b == band))
         {
             len = rest.len();
@@ -472,9 +472,10 @@ impl Sgm {
         while step_x + len < w {
             let x = if up { w - 1 - step_x - len } else { step_x + len };
             let i = y * w + x;
-            // (The previous row's pixel searched that band: its slot holds it, not a stale one.)
+            // (The previous row's pixel searched — its slot is live, not a stale one — over any
+            // band: outside its own band the slot holds `UNREACHED`, as the general step reads it.)
             let q = if up { i + w } else { i - w };
-            if (band_a[i], band_m[i]) != band || (band_a[q], band_m[q]) != band {
+            if (band_a[i], band_m[i]) != band || band_m[q] == 0 {
                 break;
             }
             cur.prepare(x, n, a, m);

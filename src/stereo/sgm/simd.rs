@@ -224,13 +224,15 @@ pub(super) struct RunRows {
 }
 
 /// [`super::step`] over a run of `len` pixels of one row that share one band of `B` blocks,
-/// whose previous pixels along the row and in the previous row searched that same band: the
-/// path along the row (from `h`, its previous values over the band, and their minimum)
-/// stays in registers from pixel to pixel, and the path from the previous row reads and
-/// writes `v`. Pixel `k`'s costs and sums are at `k · dir · 16B` from `c` and `sum` (packed
-/// offsets of equal bands); its vertical slots `k · dir · stride` from the first. Returns the
-/// row path's values (in `h`) and minimum at the last pixel. The values outside the band
-/// are `UNREACHED` on both paths (bands are equal), as [`step`] would read them.
+/// whose previous pixel along the row searched that same band and whose pixels in the
+/// previous row searched (any band): the path along the row (from `h`, its previous values
+/// over the band, and their minimum) stays in registers from pixel to pixel, and the path
+/// from the previous row reads and writes `v`. Pixel `k`'s costs and sums are at
+/// `k · dir · 16B` from `c` and `sum` (packed offsets of equal bands); its vertical slots
+/// `k · dir · stride` from the first. Returns the row path's values (in `h`) and minimum at
+/// the last pixel. Beside the band the row path's values are `UNREACHED` (equal bands), and
+/// a previous-row slot holds `UNREACHED` outside its own band: both read as [`step`] reads
+/// them.
 ///
 /// # Safety
 /// The CPU supports AVX2; every pointer addresses what is described above for all `len`
