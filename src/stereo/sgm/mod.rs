@@ -216,6 +216,13 @@ fn step_portable<const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut 
     mn.map(|v| v.into_iter().fold(u16::MAX, u16::min))
 }
 
+/// Every value of `v` is `want`: a fold without an early exit, so that it vectorises (the
+/// run checks below ask it of the rest of a row).
+#[inline(always)]
+fn all_eq<T: Copy + PartialEq>(v: &[T], want: T) -> bool {
+    v.iter().fold(true, |ok, &b| ok & (b == want))
+}
+
 impl Sgm {
     /// Matches checked inputs (same size, at least 2 × 1) over `intervals`, and keeps (writes
     /// and counts) the rows `keep` — the others only feed the paths; the speckle filter is the
@@ -352,8 +359,8 @@ impl Sgm {
                     // (The rest of the row at once when it all holds the band — the full range —
                     // checked without a branch per pixel.)
                     let rest = i..(y + 1) * w;
-                    let same = |v: &[u16], want: u16| v.iter().fold(true, |ok, &b| ok & (b == want));
-                    let mut len = if same(&self.band_a[rest.clone()], a) && same(&self.band_m[rest], m as u16) { w - x } else { 1 };
+                    let whole = all_eq(&self.band_a[rest.clone()], a) && all_eq(&self.band_m[rest], m as u16);
+                    let mut len = if whole { w - x } else { 1 };
                     while x + len < w && self.band_m[i + len] as usize == m && self.band_a[i + len] == a {
                         len += 1;
                     }
@@ -461,11 +468,10 @@ impl Sgm {
         // first that does not.
         let rest = if up { 0..x0 + 1 } else { x0..w };
         let (row, prev_row) = (y * w..(y + 1) * w, if up { (y + 1) * w..(y + 2) * w } else { (y - 1) * w..y * w });
-        let all = |v: &[u16], want: u16| v.iter().fold(true, |ok, &b| ok & (b == want));
-        if all(&band_a[row.clone()][rest.clone()], band.0)
-            && all(&band_m[row][rest.clone()], band.1)
+        if all_eq(&band_a[row.clone()][rest.clone()], band.0)
+            && all_eq(&band_m[row][rest.clone()], band.1)
             && band_m[prev_row][rest.clone()].iter().fold(true, |ok, &b| ok & (b > 0))
-            && cur.band[rest.clone()].iter().fold(true, |ok, &b| ok & (b == band))
+            && all_eq(&cur.band[rest.clone()], band)
         {
             len = rest.len();
         }
