@@ -18,13 +18,14 @@
 pub(super) const CENSUS_W: usize = 7;
 pub(super) const CENSUS_H: usize = 5;
 
-/// The census word of every pixel of `img` (`w × h`, row-major) into `out`, each row padded
-/// with `pad = (left, right)` copies of its first and last word.
+/// The census word of every pixel of `img` (`w × h`, row-major), row by row: `emit(y, row)`
+/// receives row `y` padded with `pad = (left, right)` copies of its first and last word.
+/// (Rows, not a whole image: the right census is kept split ([`split`]) on AVX2, and an
+/// image of `u64` words only to be split again was one more pass over memory.)
 #[inline(always)]
-pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), out: &mut Vec<u64>) {
+pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), mut emit: impl FnMut(usize, &[u64])) {
     let wo = pad.0 + w + pad.1;
-    out.clear();
-    out.resize(wo * h, 0);
+    let mut row = vec![0u64; wo];
     let (rx, ry) = (CENSUS_W / 2, CENSUS_H / 2);
     // Source rows padded left and right by rx replicated pixels, so the inner loop has no
     // branch.
@@ -60,7 +61,6 @@ pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), out
                 t += 1;
             }
         }
-        let row = &mut out[y * wo..][..wo];
         let (p0, rest) = planes.split_at(w);
         let (p1, rest) = rest.split_at(w);
         let (p2, rest) = rest.split_at(w);
@@ -71,7 +71,17 @@ pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), out
         let (first, last) = (row[pad.0], row[pad.0 + w - 1]);
         row[..pad.0].fill(first);
         row[pad.0 + w..].fill(last);
+        emit(y, &row);
     }
+}
+
+/// [`transform`]'s words into `out`, `w + pad.0 + pad.1` per row.
+#[inline(always)]
+pub(super) fn transform_into(img: &[u8], w: usize, h: usize, pad: (usize, usize), out: &mut Vec<u64>) {
+    let wo = pad.0 + w + pad.1;
+    // Every word is written below: no clearing (a fill of the whole image) unless it grows.
+    out.resize(wo * h, 0);
+    transform(img, w, h, pad, |y, row| out[y * wo..][..wo].copy_from_slice(row));
 }
 
 /// The map of the right image's grey levels onto the left's mean and standard deviation
@@ -131,12 +141,12 @@ pub(super) struct Run<'a> {
 }
 
 /// The census words' low 32 bits and their two high bits (a window of 34 bits), for the
-/// vector costs: eight words per register instead of four.
-pub(super) fn split(words: &[u64], lo: &mut Vec<u32>, hi: &mut Vec<u8>) {
-    lo.clear();
-    lo.extend(words.iter().map(|&w| w as u32));
-    hi.clear();
-    hi.extend(words.iter().map(|&w| (w >> 32) as u8));
+/// vector costs: eight words per register instead of four. `lo` and `hi` are as long as
+/// `words`.
+pub(super) fn split(words: &[u64], lo: &mut [u32], hi: &mut [u8]) {
+    for ((&w, lo), hi) in words.iter().zip(lo).zip(hi) {
+        (*lo, *hi) = (w as u32, (w >> 32) as u8);
+    }
 }
 
 /// Costs of a left pixel for consecutive disparities: `out[k]` against the right pixel at
@@ -162,8 +172,8 @@ mod tests {
         // A strictly increasing change of intensity (gain and offset) keeps every comparison.
         let brighter: Vec<u8> = img.iter().map(|&v| 2 * v + 1).collect();
         let (mut a, mut b) = (Vec::new(), Vec::new());
-        transform(&img, w, h, (0, 0), &mut a);
-        transform(&brighter, w, h, (0, 0), &mut b);
+        transform_into(&img, w, h, (0, 0), &mut a);
+        transform_into(&brighter, w, h, (0, 0), &mut b);
         assert_eq!(a, b);
         assert!(a.iter().any(|&v| v != 0));
         // Bit by bit at one interior pixel.
@@ -216,8 +226,8 @@ mod tests {
         let (w, h) = (10, 3);
         let img: Vec<u8> = (0..w * h).map(|i| ((i * 53) % 200) as u8).collect();
         let (mut plain, mut padded) = (Vec::new(), Vec::new());
-        transform(&img, w, h, (0, 0), &mut plain);
-        transform(&img, w, h, (3, 2), &mut padded);
+        transform_into(&img, w, h, (0, 0), &mut plain);
+        transform_into(&img, w, h, (3, 2), &mut padded);
         for y in 0..h {
             let row = &padded[y * (w + 5)..][..w + 5];
             assert_eq!(&row[3..3 + w], &plain[y * w..][..w]);

@@ -62,21 +62,34 @@ const UNREACHED: u16 = 0x7000;
 /// One row of a path's values: a slot of `n + 2` per pixel (`n` the padded range) —
 /// disparity index k at slot offset k + 1, `UNREACHED` at both ends and wherever the slot's
 /// pixel did not search — the band each slot holds, and each slot's minimum.
+///
+/// That holds of every slot at all times, also between passes and calls: a slot keeps the
+/// band it last held, and [`PathRow::prepare`] clears what lies outside the next one. So a
+/// pass does not clear its rows (which cost a memory fill of the whole row per pass, for the
+/// few slots an assisted map searches); only a change of `n` starts them afresh.
 #[derive(Default)]
 struct PathRow {
     vals: Vec<u16>,
     band: Vec<(u16, u16)>,
     min: Vec<u16>,
+    /// The padded range the slots are laid out for.
+    n: usize,
 }
 
 impl PathRow {
-    fn reset(&mut self, slots: usize, n: usize) {
-        self.vals.clear();
-        self.vals.resize(slots * (n + 2), UNREACHED);
-        self.band.clear();
-        self.band.resize(slots, (0, 0));
-        self.min.clear();
-        self.min.resize(slots, 0);
+    /// At least `slots` slots of range `n`: all `UNREACHED` where new, or when `n` changed.
+    fn fit(&mut self, slots: usize, n: usize) {
+        if self.n != n {
+            self.vals.clear();
+            self.band.clear();
+            self.min.clear();
+            self.n = n;
+        }
+        if self.band.len() < slots {
+            self.vals.resize(slots * (n + 2), UNREACHED);
+            self.band.resize(slots, (0, 0));
+            self.min.resize(slots, 0);
+        }
     }
 
     /// Slot `i` made ready for band `a … a + m`: what an earlier band left outside it becomes
@@ -127,9 +140,10 @@ struct From<'a> {
 pub(super) struct Sgm {
     census_l: Vec<u64>,
     /// The right census, each row padded by replication so that every disparity of every
-    /// block has a right pixel.
+    /// block has a right pixel (the portable costs' words).
     census_r: Vec<u64>,
-    /// `census_r` split into its low 32 bits and its two high bits ([`census::split`]).
+    /// The same split into its low 32 bits and its two high bits ([`census::split`]): the
+    /// AVX2 costs' words, in place of `census_r`.
     census_r_lo: Vec<u32>,
     census_r_hi: Vec<u8>,
     /// The right image's grey levels matched to the left's, padded as `census_r`.
@@ -254,9 +268,17 @@ impl Sgm {
         let pad_r = (-dmin).max(0) as usize;
         let g = Geo { w, h, n, dmin, pad_l, wr: pad_l + w + pad_r };
         let t0 = std::time::Instant::now();
-        census::transform(left.data, w, h, (0, 0), &mut self.census_l);
-        census::transform(right.data, w, h, (pad_l, pad_r), &mut self.census_r);
-        census::split(&self.census_r, &mut self.census_r_lo, &mut self.census_r_hi);
+        census::transform_into(left.data, w, h, (0, 0), &mut self.census_l);
+        // The right words as the costs read them: split on AVX2, whole words otherwise.
+        let wr = g.wr;
+        if AVX2 {
+            self.census_r_lo.resize(wr * h, 0);
+            self.census_r_hi.resize(wr * h, 0);
+            let (lo, hi) = (&mut self.census_r_lo, &mut self.census_r_hi);
+            census::transform(right.data, w, h, (pad_l, pad_r), |y, row| census::split(row, &mut lo[y * wr..][..wr], &mut hi[y * wr..][..wr]));
+        } else {
+            census::transform_into(right.data, w, h, (pad_l, pad_r), &mut self.census_r);
+        }
         census::pad_rows(right.data, w, h, (pad_l, pad_r), levels, &mut self.levels_r);
         let mut stats = MatchStats { prefilter_ns: t0.elapsed().as_nanos() as u64, ..MatchStats::default() };
         self.bands(p, g, intervals, keep.clone(), &mut stats);
@@ -334,18 +356,19 @@ impl Sgm {
         let (p1, p2) = (p.p1, p.p2);
         // Eight paths: all three from the previous row; four: only the one above (below).
         let eight = p.sgm_paths == 8;
-        for r in self.vert_prev.iter_mut().chain(self.vert_cur.iter_mut()) {
-            r.reset(w, n);
+        // (Four paths use the rows from straight above alone.)
+        let used = if eight { 0..3 } else { 1..2 };
+        for r in self.vert_prev[used.clone()].iter_mut().chain(self.vert_cur[used].iter_mut()) {
+            r.fit(w, n);
         }
-        self.h_prev.reset(1, n);
-        self.h_cur.reset(1, n);
+        self.h_prev.fit(1, n);
+        self.h_cur.fit(1, n);
         for step_y in 0..h {
             let y = if up { h - 1 - step_y } else { step_y };
             if !up {
                 let cl = &self.census_l[y * w..][..w];
                 let il = &left[y * w..][..w];
-                let (cr_row, ir_row) = (&self.census_r[y * g.wr..][..g.wr], &self.levels_r[y * g.wr..][..g.wr]);
-                let (cr_lo, cr_hi) = (&self.census_r_lo[y * g.wr..][..g.wr], &self.census_r_hi[y * g.wr..][..g.wr]);
+                let ir_row = &self.levels_r[y * g.wr..][..g.wr];
                 // Runs of pixels of one band at once (their costs are packed one after the
                 // other; the right pixel of each moves one column on).
                 let mut x = 0;
@@ -370,6 +393,7 @@ impl Sgm {
                     let out = &mut self.cost[self.off[i]..][..len * m];
                     #[cfg(target_arch = "x86_64")]
                     if AVX2 {
+                        let (cr_lo, cr_hi) = (&self.census_r_lo[y * g.wr..][..g.wr], &self.census_r_hi[y * g.wr..][..g.wr]);
                         let run = census::Run { cl: &cl[x..x + len], il: &il[x..x + len], cr_lo, cr_hi, ir_row, cap: p.sgm_ad_cap };
                         // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the
                         // padded right rows hold every disparity of every band.
@@ -377,6 +401,7 @@ impl Sgm {
                         x += len;
                         continue;
                     }
+                    let cr_row = &self.census_r[y * g.wr..][..g.wr];
                     for (k, out) in out.chunks_exact_mut(m).enumerate() {
                         let px = census::Pixel { cl: cl[x + k], il: il[x + k], cr_row, ir_row, cap: p.sgm_ad_cap };
                         census::costs(px, start + k, out);

@@ -265,7 +265,7 @@ fn the_vector_costs_are_the_portable_ones() {
     let bits = (1u64 << (census::CENSUS_W * census::CENSUS_H - 1)) - 1;
     let cr: Vec<u64> = (0..80).map(|_| next() & bits).collect();
     let levels: Vec<u8> = (0..80).map(|_| next() as u8).collect();
-    let (mut cr_lo, mut cr_hi) = (Vec::new(), Vec::new());
+    let (mut cr_lo, mut cr_hi) = (vec![0; cr.len()], vec![0; cr.len()]);
     census::split(&cr, &mut cr_lo, &mut cr_hi);
     // (first right word of the run's first pixel, disparities, pixels)
     for (start, m, len) in [(15, 16, 1), (47, 32, 3), (60, 48, 20), (31, 16, 49)] {
