@@ -464,7 +464,7 @@ impl Sgm {
             }
             std::mem::swap(&mut self.vert_prev, &mut self.vert_cur);
             if up && keep.contains(&y) {
-                self.select_row::<AVX2>(p, g, y, &mut out[y * w..][..w], stats);
+                self.select::<AVX2>(p, g, y, &mut out[y * w..][..w], stats);
             }
         }
     }

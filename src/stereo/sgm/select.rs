@@ -29,6 +29,20 @@ fn min_and_position<const AVX2: bool>(s: &[u16], a: usize, lo: usize, hi: usize)
     (best, first_at(s, a, lo, hi, best))
 }
 
+/// The smallest sum over `lo ..= hi`, the first disparity index holding it and, with
+/// `rival`, the smallest sum outside that index and its two neighbours (else `u16::MAX`).
+#[inline(always)]
+fn select<const AVX2: bool>(s: &[u16], a: usize, lo: usize, hi: usize, rival: bool) -> (u16, usize, u16) {
+    #[cfg(target_arch = "x86_64")]
+    if AVX2 && s.len() == LANES {
+        // SAFETY: as in `min_of`; the interval lies inside the pixel's band.
+        return unsafe { super::simd::select_block(s, a, lo, hi, rival) };
+    }
+    let (best, bk) = min_and_position::<AVX2>(s, a, lo, hi);
+    let second = if rival { min_of::<AVX2>(s, a, lo, hi, (bk.saturating_sub(1), bk + 1)) } else { u16::MAX };
+    (best, bk, second)
+}
+
 /// Portable [`min_of`].
 #[inline(always)]
 fn masked_min(s: &[u16], a: usize, lo: usize, hi: usize, skip: (usize, usize)) -> u16 {
@@ -62,7 +76,41 @@ fn first_at(s: &[u16], a: usize, lo: usize, hi: usize, best: u16) -> usize {
     lo
 }
 
+/// Whether left pixel `x` at disparity `di` fails the left–right check against the winning
+/// splats of the right row, `right` (`sum << 32 | x`, `u64::MAX`: none): its right pixel's
+/// winner lies more than `tol` away. As SGBM: a right pixel outside the image or without a
+/// splat says nothing.
+#[inline(always)]
+fn lr_fails(right: &[u64], x: usize, di: i32, tol: u32) -> bool {
+    let xr = x as i32 - di;
+    // (A negative `xr` wraps to an index past the row.)
+    let Some(&best) = right.get(xr as usize) else {
+        return false;
+    };
+    let d_right = (best as u32) as i32 - xr;
+    best != u64::MAX && (d_right - di).unsigned_abs() > tol
+}
+
 impl Sgm {
+    /// [`Sgm::select_row`], on AVX2 as a function of its own: inlined into the whole
+    /// matcher, the per-pixel helpers were left as calls and the loop's values on the stack
+    /// (LLVM's budget for that one large function spent).
+    #[inline(always)]
+    pub(super) fn select<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, y: usize, out: &mut [f32], stats: &mut MatchStats) {
+        #[cfg(target_arch = "x86_64")]
+        if AVX2 {
+            // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU.
+            return unsafe { self.select_row_avx2(p, g, y, out, stats) };
+        }
+        self.select_row::<false>(p, g, y, out, stats)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,popcnt")]
+    unsafe fn select_row_avx2(&mut self, p: &ValidMatchParams, g: Geo, y: usize, out: &mut [f32], stats: &mut MatchStats) {
+        self.select_row::<true>(p, g, y, out, stats)
+    }
+
     /// Winner, uniqueness, sub-pixel fit and left–right check of row `y`, whose sums are
     /// complete.
     ///
@@ -73,7 +121,7 @@ impl Sgm {
     /// was tried first: it compares aggregated sums of different left pixels, whose levels
     /// differ, and rejected 5–7 % of correct matches on Tsukuba (docs/matcher.md).
     #[inline(always)]
-    pub(super) fn select_row<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, y: usize, out: &mut [f32], stats: &mut MatchStats) {
+    fn select_row<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, y: usize, out: &mut [f32], stats: &mut MatchStats) {
         let Geo { w, dmin, .. } = g;
         let uniq = p.uniqueness_ratio;
         self.right_best.fill(u64::MAX);
@@ -90,12 +138,9 @@ impl Sgm {
             }
             let (a, lo, hi) = (self.band_a[i] as usize, self.lo[i] as usize, self.hi[i] as usize);
             let s = &self.sum[self.off[i]..][..m];
-            let (best, bk) = min_and_position::<AVX2>(s, a, lo, hi);
-            if uniq > 0 {
-                let rival = min_of::<AVX2>(s, a, lo, hi, (bk.saturating_sub(1), bk + 1));
-                if (rival as u32) * (100 - uniq) < best as u32 * 100 {
-                    continue;
-                }
+            let (best, bk, rival) = select::<AVX2>(s, a, lo, hi, uniq > 0);
+            if uniq > 0 && (rival as u32) * (100 - uniq) < best as u32 * 100 {
+                continue;
             }
             let di = dmin + bk as i32;
             let xr = (x as i32 - di) as usize;
@@ -125,16 +170,8 @@ impl Sgm {
             }
             stats.lr_candidates += 1;
             if let Some(tol) = p.lr_max_diff {
-                let fails = |di: i32| {
-                    let xr = x as i32 - di;
-                    // As SGBM: a right pixel outside the image or without a splat says nothing.
-                    if xr < 0 || xr >= w as i32 || self.right_best[xr as usize] == u64::MAX {
-                        return false;
-                    }
-                    let d_right = (self.right_best[xr as usize] as u32) as i32 - xr;
-                    (d_right - di).unsigned_abs() > tol
-                };
-                if fails(d.floor() as i32) && fails(d.ceil() as i32) {
+                let right = &self.right_best[..w];
+                if lr_fails(right, x, d.floor() as i32, tol) && lr_fails(right, x, d.ceil() as i32, tol) {
                     out[x] = f32::NAN;
                     continue;
                 }
@@ -145,3 +182,35 @@ impl Sgm {
     }
 }
 
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_block_selection_is_the_general_one() {
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            let mut state = 0x9e37_79b9_7f4a_7c15u64;
+            let mut next = move || {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                state
+            };
+            for case in 0..4000 {
+                // Few distinct values, so that ties and equal rivals are common.
+                let s: Vec<u16> = (0..LANES).map(|_| (next() % 6) as u16 * 100 + 40).collect();
+                let a = (next() % 4) as usize * LANES;
+                let lo = a + (next() % LANES as u64) as usize;
+                let hi = lo + (next() % (a + LANES - lo) as u64) as usize;
+                let best = masked_min(&s, a, lo, hi, (1, 0));
+                let bk = first_at(&s, a, lo, hi, best);
+                let rival = masked_min(&s, a, lo, hi, (bk.saturating_sub(1), bk + 1));
+                let got = select::<true>(&s, a, lo, hi, true);
+                assert_eq!(got, (best, bk, rival), "case {case}: {s:?}, a {a}, {lo} ..= {hi}");
+                assert_eq!(select::<true>(&s, a, lo, hi, false), (best, bk, u16::MAX));
+            }
+        }
+    }
+}

@@ -142,6 +142,36 @@ pub(super) unsafe fn min_at(s: &[u16], a: usize, lo: usize, hi: usize) -> (u16, 
     (best, first as usize)
 }
 
+/// The selection of a pixel whose band is one block (`s`: its [`LANES`] sums, from disparity
+/// index `a`), in registers: the smallest sum over `lo ..= hi`, the first index holding it,
+/// and (with `rival`) the smallest sum outside the winner and its two neighbours — what
+/// [`min_at`] and [`masked_min`] give, to the bit, without their loops over blocks.
+///
+/// # Safety
+/// The CPU supports AVX2; `s` holds [`LANES`] sums; `a ≤ lo ≤ hi < a + LANES`.
+#[target_feature(enable = "avx2")]
+#[inline]
+pub(super) unsafe fn select_block(s: &[u16], a: usize, lo: usize, hi: usize, rival: bool) -> (u16, usize, u16) {
+    assert!(s.len() == LANES && a <= lo && lo <= hi && hi < a + LANES);
+    let ones = _mm256_set1_epi16(-1);
+    let lanes = _mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    // SAFETY: a block of LANES u16, asserted above.
+    let v = unsafe { _mm256_loadu_si256(s.as_ptr() as *const __m256i) };
+    // Lane j is index a + j: inside the interval where lo − a ≤ j ≤ hi − a.
+    let (jlo, jhi) = ((lo - a) as i16, (hi - a) as i16);
+    let keep = _mm256_and_si256(_mm256_cmpgt_epi16(lanes, _mm256_set1_epi16(jlo - 1)), _mm256_cmpgt_epi16(_mm256_set1_epi16(jhi + 1), lanes));
+    // Outside: 0xFFFF, above every sum (at most 8 · (134 + 2000)).
+    let vm = _mm256_or_si256(v, _mm256_andnot_si256(keep, ones));
+    let best = hmin(vm);
+    let holds = _mm256_movemask_epi8(_mm256_cmpeq_epi16(vm, _mm256_set1_epi16(best as i16))) as u32;
+    let j = (holds.trailing_zeros() / 2) as i16;
+    if !rival {
+        return (best, a + j as usize, u16::MAX);
+    }
+    let near = _mm256_and_si256(_mm256_cmpgt_epi16(lanes, _mm256_set1_epi16(j - 2)), _mm256_cmpgt_epi16(_mm256_set1_epi16(j + 2), lanes));
+    (best, a + j as usize, hmin(_mm256_or_si256(vm, near)))
+}
+
 /// [`super::census::costs`] on AVX2 for a run of consecutive left pixels of one band (`m`
 /// disparities, a whole number of blocks; pixel k's right words end at `start + k`, its
 /// costs at `out[k · m ..]`): sixteen Hamming distances per step — the low 32 bits of eight
