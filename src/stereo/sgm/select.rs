@@ -130,14 +130,17 @@ impl Sgm {
         // behind the next.
         let (di_row, num_row, den_row) = (&mut self.fit_di[..w], &mut self.fit_num[..w], &mut self.fit_den[..w]);
         den_row.fill(0);
+        // The row's per-pixel records sliced once (not indexed through `self` per pixel).
+        let row = y * w..(y + 1) * w;
+        let (band_a, band_m, lo_row, hi_row, off_row) = (&self.band_a[row.clone()], &self.band_m[row.clone()], &self.lo[row.clone()], &self.hi[row.clone()], &self.off[row]);
+        let (sum, right_best) = (&self.sum[..], &mut self.right_best[..w]);
         for x in 0..w {
-            let i = y * w + x;
-            let m = self.band_m[i] as usize;
+            let m = band_m[x] as usize;
             if m == 0 {
                 continue;
             }
-            let (a, lo, hi) = (self.band_a[i] as usize, self.lo[i] as usize, self.hi[i] as usize);
-            let s = &self.sum[self.off[i]..][..m];
+            let (a, lo, hi) = (band_a[x] as usize, lo_row[x] as usize, hi_row[x] as usize);
+            let s = &sum[off_row[x]..][..m];
             let (best, bk, rival) = select::<AVX2>(s, a, lo, hi, uniq > 0);
             if uniq > 0 && (rival as u32) * (100 - uniq) < best as u32 * 100 {
                 continue;
@@ -145,7 +148,7 @@ impl Sgm {
             let di = dmin + bk as i32;
             let xr = (x as i32 - di) as usize;
             // The cheapest splat wins; ties go to the smaller x, i.e. the smaller disparity.
-            self.right_best[xr] = self.right_best[xr].min((best as u64) << 32 | x as u64);
+            right_best[xr] = right_best[xr].min((best as u64) << 32 | x as u64);
             di_row[x] = di;
             (num_row[x], den_row[x]) = if p.subpixel && bk > lo && bk < hi {
                 // Equiangular (V-shaped) fit: census sums rise about linearly away from the
