@@ -156,6 +156,9 @@ pub(super) struct Sgm {
     hi: Vec<u16>,
     /// Per pixel: offset of its costs and sums in `cost` and `sum`; one more entry at the end.
     off: Vec<usize>,
+    /// Per row: the columns from its first to its last searched pixel — where the passes and
+    /// the selection walk (an assisted crop's rows are half background).
+    span: Vec<Range<usize>>,
     /// Census costs and aggregated costs, packed.
     cost: Vec<u8>,
     sum: Vec<u16>,
@@ -309,6 +312,7 @@ impl Sgm {
             v.resize(w * h, 0);
         }
         self.off.resize(w * h + 1, 0);
+        self.span.resize(h, 0..0);
         let mut total = 0usize;
         for y in 0..h {
             let row = y * w..(y + 1) * w;
@@ -338,6 +342,9 @@ impl Sgm {
                 row_total += m as usize;
                 row_searched += (m > 0) as usize;
             }
+            let first = band_m.iter().position(|&m| m > 0);
+            let last = band_m.iter().rposition(|&m| m > 0);
+            self.span[y] = first.zip(last).map_or(0..0, |(a, b)| a..b + 1);
             total += row_total;
             if keep.contains(&y) {
                 stats.searched += row_searched;
@@ -371,19 +378,20 @@ impl Sgm {
                 let ir_row = &self.levels_r[y * g.wr..][..g.wr];
                 // Runs of pixels of one band at once (their costs are packed one after the
                 // other; the right pixel of each moves one column on).
-                let mut x = 0;
-                while x < w {
+                let end = self.span[y].end;
+                let mut x = self.span[y].start;
+                while x < end {
                     let i = y * w + x;
                     let (a, m) = (self.band_a[i], self.band_m[i] as usize);
                     if m == 0 {
                         x += 1;
                         continue;
                     }
-                    // (The rest of the row at once when it all holds the band — the full range —
+                    // (The rest of the span at once when it all holds the band — the full range —
                     // checked without a branch per pixel.)
-                    let rest = i..(y + 1) * w;
+                    let rest = i..y * w + end;
                     let whole = all_eq(&self.band_a[rest.clone()], a) && all_eq(&self.band_m[rest], m as u16);
-                    let mut len = if whole { w - x } else { 1 };
+                    let mut len = if whole { end - x } else { 1 };
                     while x + len < w && self.band_m[i + len] as usize == m && self.band_a[i + len] == a {
                         len += 1;
                     }
@@ -413,8 +421,10 @@ impl Sgm {
             let py = if up { y + 1 } else { y.wrapping_sub(1) };
             let has_prev_row = py < h;
             let mut h_live = false;
-            let mut step_x = 0;
-            while step_x < w {
+            // The steps of the row's span, in the pass's direction.
+            let span = self.span[y].clone();
+            let (mut step_x, end) = if up { (w - span.end, w - span.start) } else { (span.start, span.end) };
+            while step_x < end {
                 let x = if up { w - 1 - step_x } else { step_x };
                 let i = y * w + x;
                 let m = self.band_m[i] as usize;
@@ -487,11 +497,12 @@ impl Sgm {
         }
         let mut len = 0;
         let (band_a, band_m, cur) = (&self.band_a, &self.band_m, &mut self.vert_cur[1]);
-        // The rest of the row at once when this row and the slots to be written all hold the
+        // The rest of the row's span at once when this row and the slots to be written all hold the
         // band there and every pixel of the previous row searched (the full range: every row
         // but the first), checked without a branch per pixel; else pixel by pixel up to the
         // first that does not.
-        let rest = if up { 0..x0 + 1 } else { x0..w };
+        let span = &self.span[y];
+        let rest = if up { span.start..x0 + 1 } else { x0..span.end };
         let (row, prev_row) = (y * w..(y + 1) * w, if up { (y + 1) * w..(y + 2) * w } else { (y - 1) * w..y * w });
         if all_eq(&band_a[row.clone()][rest.clone()], band.0)
             && all_eq(&band_m[row][rest.clone()], band.1)

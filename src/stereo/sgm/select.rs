@@ -129,12 +129,15 @@ impl Sgm {
         // match); the divisions then run over the row in vector lanes, not one per pixel
         // behind the next.
         let (di_row, num_row, den_row) = (&mut self.fit_di[..w], &mut self.fit_num[..w], &mut self.fit_den[..w]);
-        den_row.fill(0);
+        // Nothing outside the row's span is searched: those pixels stay NaN (`out` comes
+        // filled with it).
+        let span = self.span[y].clone();
+        den_row[span.clone()].fill(0);
         // The row's per-pixel records sliced once (not indexed through `self` per pixel).
         let row = y * w..(y + 1) * w;
         let (band_a, band_m, lo_row, hi_row, off_row) = (&self.band_a[row.clone()], &self.band_m[row.clone()], &self.lo[row.clone()], &self.hi[row.clone()], &self.off[row]);
         let (sum, right_best) = (&self.sum[..], &mut self.right_best[..w]);
-        for x in 0..w {
+        for x in span.clone() {
             let m = band_m[x] as usize;
             if m == 0 {
                 continue;
@@ -161,12 +164,12 @@ impl Sgm {
                 (0, 1)
             };
         }
-        for x in 0..w {
+        for x in span.clone() {
             let d = di_row[x] as f32 + num_row[x] as f32 / den_row[x].max(1) as f32;
             out[x] = if den_row[x] != 0 { d } else { f32::NAN };
         }
         let t0 = std::time::Instant::now();
-        for x in 0..w {
+        for x in span {
             let d = out[x];
             if d.is_nan() {
                 continue;
