@@ -22,8 +22,10 @@ pub(super) const CENSUS_H: usize = 5;
 /// receives row `y` padded with `pad = (left, right)` copies of its first and last word.
 /// (Rows, not a whole image: the right census is kept split ([`split`]) on AVX2, and an
 /// image of `u64` words only to be split again was one more pass over memory.)
+///
+/// `planes_of` makes a row's comparisons: [`planes_row`] or a vector copy of it.
 #[inline(always)]
-pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), mut emit: impl FnMut(usize, &[u64])) {
+pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), planes_of: impl Fn(&[u8], usize, &mut [u8]), mut emit: impl FnMut(usize, &[u64])) {
     let wo = pad.0 + w + pad.1;
     let mut row = vec![0u64; wo];
     let (rx, ry) = (CENSUS_W / 2, CENSUS_H / 2);
@@ -42,25 +44,7 @@ pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), mut
             dst[..rx].fill(first);
             dst[rx + w..].fill(last);
         }
-        let centre = &padded[ry * wp + rx..][..w];
-        // Comparison t goes to bit t: built as eight byte planes (32 pixels per AVX2
-        // instruction), then interleaved into words.
-        planes.fill(0);
-        let mut t = 0;
-        for (j, src) in padded.chunks(wp).enumerate() {
-            for i in 0..CENSUS_W {
-                if i == rx && j == ry {
-                    continue;
-                }
-                let nb = &src[i..i + w];
-                let plane = &mut planes[t / 8 * w..][..w];
-                let bit = t % 8;
-                for ((o, &c), &n) in plane.iter_mut().zip(centre).zip(nb) {
-                    *o |= ((n < c) as u8) << bit;
-                }
-                t += 1;
-            }
-        }
+        planes_of(&padded, w, &mut planes);
         let (p0, rest) = planes.split_at(w);
         let (p1, rest) = rest.split_at(w);
         let (p2, rest) = rest.split_at(w);
@@ -75,13 +59,40 @@ pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), mut
     }
 }
 
+/// One row's comparisons: `padded` holds the window's `CENSUS_H` source rows, each padded by
+/// `CENSUS_W / 2` replicated pixels on both sides; comparison t (neighbour < centre, the
+/// neighbours in row-major order, the centre left out) goes to bit t % 8 of plane t / 8 of
+/// `planes` (five planes of `w` bytes). Byte planes: 32 pixels per AVX2 instruction where
+/// the compiler vectorises it, then interleaved into words.
+pub(super) fn planes_row(padded: &[u8], w: usize, planes: &mut [u8]) {
+    let (rx, ry) = (CENSUS_W / 2, CENSUS_H / 2);
+    let wp = w + 2 * rx;
+    let centre = &padded[ry * wp + rx..][..w];
+    planes.fill(0);
+    let mut t = 0;
+    for (j, src) in padded.chunks(wp).enumerate() {
+        for i in 0..CENSUS_W {
+            if i == rx && j == ry {
+                continue;
+            }
+            let nb = &src[i..i + w];
+            let plane = &mut planes[t / 8 * w..][..w];
+            let bit = t % 8;
+            for ((o, &c), &n) in plane.iter_mut().zip(centre).zip(nb) {
+                *o |= ((n < c) as u8) << bit;
+            }
+            t += 1;
+        }
+    }
+}
+
 /// [`transform`]'s words into `out`, `w + pad.0 + pad.1` per row.
 #[inline(always)]
-pub(super) fn transform_into(img: &[u8], w: usize, h: usize, pad: (usize, usize), out: &mut Vec<u64>) {
+pub(super) fn transform_into(img: &[u8], w: usize, h: usize, pad: (usize, usize), planes_of: impl Fn(&[u8], usize, &mut [u8]), out: &mut Vec<u64>) {
     let wo = pad.0 + w + pad.1;
     // Every word is written below: no clearing (a fill of the whole image) unless it grows.
     out.resize(wo * h, 0);
-    transform(img, w, h, pad, |y, row| out[y * wo..][..wo].copy_from_slice(row));
+    transform(img, w, h, pad, planes_of, |y, row| out[y * wo..][..wo].copy_from_slice(row));
 }
 
 /// The map of the right image's grey levels onto the left's mean and standard deviation
@@ -172,8 +183,8 @@ mod tests {
         // A strictly increasing change of intensity (gain and offset) keeps every comparison.
         let brighter: Vec<u8> = img.iter().map(|&v| 2 * v + 1).collect();
         let (mut a, mut b) = (Vec::new(), Vec::new());
-        transform_into(&img, w, h, (0, 0), &mut a);
-        transform_into(&brighter, w, h, (0, 0), &mut b);
+        transform_into(&img, w, h, (0, 0), planes_row, &mut a);
+        transform_into(&brighter, w, h, (0, 0), planes_row, &mut b);
         assert_eq!(a, b);
         assert!(a.iter().any(|&v| v != 0));
         // Bit by bit at one interior pixel.
@@ -226,8 +237,8 @@ mod tests {
         let (w, h) = (10, 3);
         let img: Vec<u8> = (0..w * h).map(|i| ((i * 53) % 200) as u8).collect();
         let (mut plain, mut padded) = (Vec::new(), Vec::new());
-        transform_into(&img, w, h, (0, 0), &mut plain);
-        transform_into(&img, w, h, (3, 2), &mut padded);
+        transform_into(&img, w, h, (0, 0), planes_row, &mut plain);
+        transform_into(&img, w, h, (3, 2), planes_row, &mut padded);
         for y in 0..h {
             let row = &padded[y * (w + 5)..][..w + 5];
             assert_eq!(&row[3..3 + w], &plain[y * w..][..w]);

@@ -271,16 +271,26 @@ impl Sgm {
         let pad_r = (-dmin).max(0) as usize;
         let g = Geo { w, h, n, dmin, pad_l, wr: pad_l + w + pad_r };
         let t0 = std::time::Instant::now();
-        census::transform_into(left.data, w, h, (0, 0), &mut self.census_l);
+        // The census comparisons: the AVX2 copy where the CPU has it.
+        let planes_of = |rows: &[u8], w: usize, planes: &mut [u8]| {
+            #[cfg(target_arch = "x86_64")]
+            if AVX2 {
+                // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; `transform`
+                // passes the window's rows and five planes of `w`.
+                return unsafe { simd::planes(rows, w, planes) };
+            }
+            census::planes_row(rows, w, planes)
+        };
+        census::transform_into(left.data, w, h, (0, 0), planes_of, &mut self.census_l);
         // The right words as the costs read them: split on AVX2, whole words otherwise.
         let wr = g.wr;
         if AVX2 {
             self.census_r_lo.resize(wr * h, 0);
             self.census_r_hi.resize(wr * h, 0);
             let (lo, hi) = (&mut self.census_r_lo, &mut self.census_r_hi);
-            census::transform(right.data, w, h, (pad_l, pad_r), |y, row| census::split(row, &mut lo[y * wr..][..wr], &mut hi[y * wr..][..wr]));
+            census::transform(right.data, w, h, (pad_l, pad_r), planes_of, |y, row| census::split(row, &mut lo[y * wr..][..wr], &mut hi[y * wr..][..wr]));
         } else {
-            census::transform_into(right.data, w, h, (pad_l, pad_r), &mut self.census_r);
+            census::transform_into(right.data, w, h, (pad_l, pad_r), planes_of, &mut self.census_r);
         }
         census::pad_rows(right.data, w, h, (pad_l, pad_r), levels, &mut self.levels_r);
         let mut stats = MatchStats { prefilter_ns: t0.elapsed().as_nanos() as u64, ..MatchStats::default() };

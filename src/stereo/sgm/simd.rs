@@ -5,6 +5,7 @@
 
 use std::arch::x86_64::*;
 
+use super::census::{CENSUS_H, CENSUS_W};
 use super::{From, LANES};
 
 /// [`super::step`] on AVX2.
@@ -170,6 +171,73 @@ pub(super) unsafe fn select_block(s: &[u16], a: usize, lo: usize, hi: usize, riv
     }
     let near = _mm256_and_si256(_mm256_cmpgt_epi16(lanes, _mm256_set1_epi16(j - 2)), _mm256_cmpgt_epi16(_mm256_set1_epi16(j + 2), lanes));
     (best, a + j as usize, hmin(_mm256_or_si256(vm, near)))
+}
+
+/// The census window's neighbours in comparison order (row-major, the centre left out), as
+/// (row, column) in the window.
+const NEIGHBOURS: [(usize, usize); CENSUS_W * CENSUS_H - 1] = {
+    let mut out = [(0, 0); CENSUS_W * CENSUS_H - 1];
+    let (mut t, mut j) = (0, 0);
+    while j < CENSUS_H {
+        let mut i = 0;
+        while i < CENSUS_W {
+            if !(i == CENSUS_W / 2 && j == CENSUS_H / 2) {
+                out[t] = (j, i);
+                t += 1;
+            }
+            i += 1;
+        }
+        j += 1;
+    }
+    out
+};
+
+/// [`super::census::planes_row`] on AVX2: 32 pixels at a time, each plane's eight
+/// comparisons gathered in a register and stored once (written as a loop over memory, the
+/// compiler ORs every comparison into the plane in memory, and shifts bytes it cannot shift).
+/// Unsigned `neighbour < centre` is a signed compare after flipping the top bits.
+///
+/// # Safety
+/// The CPU supports AVX2; `padded` holds `CENSUS_H` rows of `w + CENSUS_W − 1` bytes and
+/// `planes` five planes of `w`.
+#[target_feature(enable = "avx2")]
+#[inline]
+pub(super) unsafe fn planes(padded: &[u8], w: usize, planes: &mut [u8]) {
+    let (rx, ry) = (CENSUS_W / 2, CENSUS_H / 2);
+    let wp = w + 2 * rx;
+    assert!(padded.len() >= wp * CENSUS_H && planes.len() >= 5 * w);
+    let flip = _mm256_set1_epi8(i8::MIN);
+    let (src, dst) = (padded.as_ptr(), planes.as_mut_ptr());
+    let mut x = 0;
+    while x + 32 <= w {
+        // SAFETY: every load reads 32 bytes at column x + i ≤ w − 32 + 2 rx of a row of wp
+        // bytes, every store 32 bytes at x ≤ w − 32 of a plane of w.
+        unsafe {
+            let c = _mm256_xor_si256(_mm256_loadu_si256(src.add(ry * wp + rx + x) as *const __m256i), flip);
+            // One plane at a time, its comparisons ORed into one register (an array of five
+            // accumulators indexed by the comparison was kept in memory by the compiler).
+            for k in 0..5 {
+                let mut acc = _mm256_setzero_si256();
+                for (t, &(j, i)) in NEIGHBOURS.iter().enumerate().skip(8 * k).take(8) {
+                    let n = _mm256_xor_si256(_mm256_loadu_si256(src.add(j * wp + i + x) as *const __m256i), flip);
+                    acc = _mm256_or_si256(acc, _mm256_and_si256(_mm256_cmpgt_epi8(c, n), _mm256_set1_epi8((1u8 << (t % 8)) as i8)));
+                }
+                _mm256_storeu_si256(dst.add(k * w + x) as *mut __m256i, acc);
+            }
+        }
+        x += 32;
+    }
+    // The last columns one by one, the same comparisons.
+    for x in x..w {
+        let c = padded[ry * wp + rx + x];
+        let mut bytes = [0u8; 5];
+        for (t, &(j, i)) in NEIGHBOURS.iter().enumerate() {
+            bytes[t / 8] |= ((padded[j * wp + i + x] < c) as u8) << (t % 8);
+        }
+        for (k, b) in bytes.iter().enumerate() {
+            planes[k * w + x] = *b;
+        }
+    }
 }
 
 /// [`super::census::costs`] on AVX2 for a run of consecutive left pixels of one band (`m`

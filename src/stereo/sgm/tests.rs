@@ -283,3 +283,33 @@ fn the_vector_costs_are_the_portable_ones() {
         assert_eq!(got, want, "start {start}, {m} disparities, {len} pixels");
     }
 }
+
+#[test]
+#[cfg(target_arch = "x86_64")]
+fn the_vector_census_planes_are_the_portable_ones() {
+    if !std::is_x86_feature_detected!("avx2") {
+        return;
+    }
+    let mut state = 0x1234_5678_9abc_def1u64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state
+    };
+    let rows = census::CENSUS_H;
+    // Widths below, at and past one register of 32 pixels, with a tail; levels drawn from a
+    // few values so that equal neighbours (not below the centre) are common, and from both
+    // halves of the byte (the unsigned compare).
+    for w in [1, 5, 31, 32, 33, 64, 70, 97] {
+        let wp = w + census::CENSUS_W - 1;
+        for _ in 0..20 {
+            let padded: Vec<u8> = (0..wp * rows).map(|_| [0u8, 1, 127, 128, 129, 254, 255, 64][(next() % 8) as usize]).collect();
+            let (mut want, mut got) = (vec![0xaa; 5 * w], vec![0x55; 5 * w]);
+            census::planes_row(&padded, w, &mut want);
+            // SAFETY: AVX2 checked above; the rows and planes have the documented sizes.
+            unsafe { super::simd::planes(&padded, w, &mut got) };
+            assert_eq!(got, want, "width {w}");
+        }
+    }
+}
