@@ -28,7 +28,8 @@
 //! # Passes
 //! Pass one goes down the image, left to right, with the paths from the left and above
 //! (and the upper left and upper right); pass two goes up, right to left, with the others,
-//! and selects each row as soon as its sums are complete.
+//! and selects each row as soon as its sums are complete. Both walk each row only over its
+//! span, from its first to its last searched pixel.
 //!
 //! # Runs
 //! With four paths, a run of pixels that share one band with the pixel before them on the
