@@ -197,13 +197,7 @@ mod tests {
     fn one_block_selection_is_the_general_one() {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") {
-            let mut state = 0x9e37_79b9_7f4a_7c15u64;
-            let mut next = move || {
-                state ^= state << 13;
-                state ^= state >> 7;
-                state ^= state << 17;
-                state
-            };
+            let mut next = crate::testing::xorshift(0x9e37_79b9_7f4a_7c15);
             for case in 0..4000 {
                 // Few distinct values, so that ties and equal rivals are common.
                 let s: Vec<u16> = (0..LANES).map(|_| (next() % 6) as u16 * 100 + 40).collect();

@@ -255,13 +255,7 @@ fn the_vector_costs_are_the_portable_ones() {
     if !std::is_x86_feature_detected!("avx2") {
         return;
     }
-    let mut state = 0x2545_f491_4f6c_dd1du64;
-    let mut next = move || {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        state
-    };
+    let mut next = crate::testing::xorshift(0x2545_f491_4f6c_dd1d);
     let bits = (1u64 << (census::CENSUS_W * census::CENSUS_H - 1)) - 1;
     let cr: Vec<u64> = (0..80).map(|_| next() & bits).collect();
     let levels: Vec<u8> = (0..80).map(|_| next() as u8).collect();
@@ -290,13 +284,7 @@ fn the_vector_census_planes_are_the_portable_ones() {
     if !std::is_x86_feature_detected!("avx2") {
         return;
     }
-    let mut state = 0x1234_5678_9abc_def1u64;
-    let mut next = move || {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        state
-    };
+    let mut next = crate::testing::xorshift(0x1234_5678_9abc_def1);
     let rows = census::CENSUS_H;
     // Widths below, at and past one register of 32 pixels, with a tail; levels drawn from a
     // few values so that equal neighbours (not below the centre) are common, and from both
