@@ -508,10 +508,10 @@ impl Sgm {
         }
         let mut len = 0;
         let (band_a, band_m, cur) = (&self.band_a, &self.band_m, &mut self.vert_cur[1]);
-        // The rest of the row's span at once when this row and the slots to be written all hold the
-        // band there and every pixel of the previous row searched (the full range: every row
-        // but the first), checked without a branch per pixel; else pixel by pixel up to the
-        // first that does not.
+        // The rest of the row's span at once when this row and the slots to be written all
+        // hold the band there and every pixel of the previous row searched (the full range:
+        // every row but the first), checked without a branch per pixel; else pixel by pixel
+        // up to the first that does not.
         let span = &self.span[y];
         let rest = if up { span.start..x0 + 1 } else { x0..span.end };
         let (row, prev_row) = (y * w..(y + 1) * w, if up { (y + 1) * w..(y + 2) * w } else { (y - 1) * w..y * w });

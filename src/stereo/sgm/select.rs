@@ -92,9 +92,10 @@ fn lr_fails(right: &[u64], x: usize, di: i32, tol: u32) -> bool {
 }
 
 impl Sgm {
-    /// [`Sgm::select_row`], on AVX2 as a function of its own: inlined into the whole
-    /// matcher, the per-pixel helpers were left as calls and the loop's values on the stack
-    /// (LLVM's budget for that one large function spent).
+    /// [`Sgm::select_row`], on AVX2 compiled as a function of its own. Compiled only as part
+    /// of the whole matcher, its per-pixel helpers (`min_at`, `masked_min`) stayed calls, one
+    /// per pixel; on its own they are inlined into it (and LLVM may then inline it back
+    /// whole).
     #[inline(always)]
     pub(super) fn select<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, y: usize, out: &mut [f32], stats: &mut MatchStats) {
         #[cfg(target_arch = "x86_64")]
