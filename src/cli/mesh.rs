@@ -16,9 +16,14 @@ pub struct MeshArgs {
     /// and normals) or `.stl` (binary, geometry only).
     #[arg(short, long)]
     pub output: PathBuf,
-    /// Voxel side of the fused field, mm (smaller: finer detail, more memory and time).
+    /// Voxel side of the fused field, mm (smaller: finer detail, more memory and time). The
+    /// field uses a coarser voxel, 1.5 × the views' point spacing, where they are sampled
+    /// coarser than this (the mesh would be holes); `--exact-voxel` keeps it as given.
     #[arg(long, default_value_t = FuseParams::default().voxel_mm)]
     pub voxel_mm: f64,
+    /// Keep `--voxel-mm` even where the views are sampled coarser than it.
+    #[arg(long)]
+    pub exact_voxel: bool,
     /// Half-width of the band each point updates around the surface, in voxels.
     #[arg(long, default_value_t = FuseParams::default().truncation_voxels)]
     pub truncation_voxels: f64,
@@ -39,7 +44,7 @@ pub struct MeshArgs {
 }
 
 pub fn cmd_mesh(a: MeshArgs) -> Result<(), Failure> {
-    let params = FuseParams { voxel_mm: a.voxel_mm, truncation_voxels: a.truncation_voxels, fill: !a.no_fill, min_component_share: a.min_component_share, max_field_mib: a.max_field_mib, ..FuseParams::default() };
+    let params = FuseParams { voxel_mm: a.voxel_mm, truncation_voxels: a.truncation_voxels, fill: !a.no_fill, min_component_share: a.min_component_share, max_field_mib: a.max_field_mib, fit_to_sampling: !a.exact_voxel, ..FuseParams::default() };
     let result = mesh_results(&a.results, params, &a.output, |done, total| progress::show(format!("mesh: fused {done}/{total} views")));
     progress::finish();
     let (_, about) = result.map_err(|e| match e {
@@ -48,6 +53,9 @@ pub fn cmd_mesh(a: MeshArgs) -> Result<(), Failure> {
     })?;
     if let Some(w) = about["warning"].as_str() {
         tracing::warn!("{w}");
+    }
+    if about["voxel_fitted"] == true {
+        tracing::info!("the views' points are {:.2} mm apart: the field used {:.2} mm voxels, not {} mm (--exact-voxel keeps the voxel as given)", about["view_spacing_mm"].as_f64().unwrap_or(0.0), about["voxel_mm"].as_f64().unwrap_or(0.0), a.voxel_mm);
     }
     if let Some(path) = &a.json {
         spinscan::io::write_atomic(path, serde_json::to_string_pretty(&about).expect("plain numbers").as_bytes()).map_err(|e| output(format!("cannot write {}: {e}", path.display())))?;

@@ -328,7 +328,8 @@ pub struct RegistrationArgs {
     /// ICP method: point-to-plane or point-to-point (the paper's).
     #[arg(long, default_value = "point-to-plane")]
     pub icp_method: String,
-    /// Voxel side of the fused surface (mesh.ply, model.ply), mm.
+    /// Voxel side of the fused surface (mesh.ply, model.ply), mm; the mesh's field uses a
+    /// coarser one where the views are sampled coarser (docs/meshing.md).
     #[arg(long, default_value_t = 1.0)]
     pub voxel: f64,
     /// Do not fuse the views: no mesh.ply, and model.ply is the voxel-merged points (the

@@ -19,6 +19,9 @@ use crate::cloud::PointCloud;
 use crate::register::voxel::VoxelHasher;
 pub use mesh::{MeshStats, SurfaceMesh};
 
+/// Valid points a view needs for its spacing to be measured (and the voxel fitted to it).
+const MIN_FIT_POINTS: usize = 16;
+
 /// Voxels per block side.
 pub(crate) const SIDE: i32 = 8;
 const VOXELS: usize = (SIDE * SIDE * SIDE) as usize;
@@ -43,11 +46,22 @@ pub struct FuseParams {
     /// surface that would have needed one is left out (counted, and reported) rather than
     /// the process running out of memory (a tiny voxel on a large object).
     pub max_field_mib: f64,
+    /// Let the voxel grow to [`SAMPLING_VOXELS`] × the first view's point spacing where
+    /// that is coarser than `voxel_mm`: each point updates one column of voxels, so at a
+    /// voxel finer than the sampling most cubes have a corner no ray crossed, and the mesh
+    /// is holes (a low camera resolution, a large object). False keeps `voxel_mm` exactly.
+    pub fit_to_sampling: bool,
 }
+
+/// The voxel, in point spacings (median nearest-neighbour distance of the first view), that
+/// the field grows to when the views are sampled coarser than the voxel asked for
+/// ([`FuseParams::fit_to_sampling`]): 1 is the least at which every voxel column of a
+/// surface facing the camera holds a point; 1.5 also covers a lattice turned 45° to the grid.
+pub const SAMPLING_VOXELS: f64 = 1.5;
 
 impl Default for FuseParams {
     fn default() -> Self {
-        FuseParams { voxel_mm: 1.0, truncation_voxels: 4.0, fill: true, min_component_share: 0.05, depth_ref_mm: 500.0, max_field_mib: 1024.0 }
+        FuseParams { voxel_mm: 1.0, truncation_voxels: 4.0, fill: true, min_component_share: 0.05, depth_ref_mm: 500.0, max_field_mib: 1024.0, fit_to_sampling: true }
     }
 }
 
@@ -124,6 +138,9 @@ pub struct Tsdf {
     points: usize,
     /// Voxel updates refused because the budget was spent.
     refused: u64,
+    /// The first view's point spacing, mm, once a view with points came (the voxel is
+    /// fitted to it then, [`FuseParams::fit_to_sampling`]).
+    spacing: Option<f64>,
 }
 
 impl Tsdf {
@@ -133,7 +150,7 @@ impl Tsdf {
         let voxel = params.voxel_mm as f32;
         let trunc = (params.truncation_voxels * params.voxel_mm) as f32;
         let max_blocks = (params.max_field_mib * 1024.0 * 1024.0 / std::mem::size_of::<Block>() as f64) as usize;
-        Ok(Tsdf { params, voxel, trunc, index: HashMap::default(), blocks: Vec::new(), max_blocks, views: 0, points: 0, refused: 0 })
+        Ok(Tsdf { params, voxel, trunc, index: HashMap::default(), blocks: Vec::new(), max_blocks, views: 0, points: 0, refused: 0, spacing: None })
     }
 
     pub fn params(&self) -> &FuseParams {
@@ -165,6 +182,9 @@ impl Tsdf {
     /// viewing ray crosses within the truncation band: signed distance along the ray,
     /// weight (depth_ref / Z)⁴, colour.
     pub fn integrate(&mut self, cloud: &PointCloud, world_from_view: &Isometry3<f64>) {
+        if self.spacing.is_none() {
+            self.fit_voxel(cloud);
+        }
         let rot = world_from_view.rotation.to_rotation_matrix().into_inner().cast::<f32>();
         let t = world_from_view.translation.vector.cast::<f32>();
         let (voxel, inv_voxel, trunc) = (self.voxel, 1.0 / self.voxel, self.trunc);
@@ -249,6 +269,30 @@ impl Tsdf {
         self.points += used;
     }
 
+    /// Measures the first view's point spacing (at least [`MIN_FIT_POINTS`] valid points;
+    /// else the next view's) and, with `fit_to_sampling`, grows the voxel and the truncation
+    /// band to [`SAMPLING_VOXELS`] spacings where that is coarser than asked. The field is
+    /// still empty then, so every voxel has one size.
+    fn fit_voxel(&mut self, cloud: &PointCloud) {
+        let points: Vec<[f32; 3]> = cloud.points.iter().filter(|p| p[2] > 0.0 && p.iter().all(|v| v.is_finite())).copied().collect();
+        if points.len() < MIN_FIT_POINTS {
+            return;
+        }
+        let Ok(tree) = crate::register::KdTree::build(points, "view") else { return };
+        let spacing = tree.median_spacing();
+        self.spacing = Some(spacing);
+        let fitted = SAMPLING_VOXELS * spacing;
+        if self.params.fit_to_sampling && fitted > self.params.voxel_mm {
+            self.voxel = fitted as f32;
+            self.trunc = (self.params.truncation_voxels * fitted) as f32;
+        }
+    }
+
+    /// The first view's point spacing, mm (None before a view with points came).
+    pub fn spacing_mm(&self) -> Option<f64> {
+        self.spacing
+    }
+
     /// The index of block `key`, allocated (unseen) when new; None when it is new and the
     /// memory budget is spent.
     fn block_of(&mut self, key: [i32; 3]) -> Option<usize> {
@@ -306,7 +350,9 @@ impl Tsdf {
         keys
     }
 
-    pub(crate) fn voxel_mm(&self) -> f32 {
+    /// The voxel side the field uses, mm: `voxel_mm`, or coarser where it was fitted to the
+    /// views' sampling ([`FuseParams::fit_to_sampling`]).
+    pub fn voxel_mm(&self) -> f32 {
         self.voxel
     }
 

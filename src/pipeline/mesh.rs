@@ -80,7 +80,11 @@ pub(crate) fn mesh_json(tsdf: &Tsdf, stats: &MeshStats, extract_ms: f64) -> Valu
     let (views, points) = tsdf.integrated();
     about["views"] = json!(views);
     about["points"] = json!(points);
-    about["voxel_mm"] = json!(p.voxel_mm);
+    about["voxel_mm"] = json!(tsdf.voxel_mm() as f64);
+    // What was asked for, and the sampling that made the voxel coarser when it did.
+    about["voxel_asked_mm"] = json!(p.voxel_mm);
+    about["view_spacing_mm"] = json!(tsdf.spacing_mm());
+    about["voxel_fitted"] = json!(tsdf.voxel_mm() as f64 > p.voxel_mm);
     about["truncation_voxels"] = json!(p.truncation_voxels);
     about["filled"] = json!(p.fill);
     about["blocks"] = json!(tsdf.blocks());
@@ -93,7 +97,7 @@ pub(crate) fn mesh_json(tsdf: &Tsdf, stats: &MeshStats, extract_ms: f64) -> Valu
             "the field reached its memory budget of {} MiB and {} voxel updates were left out: part of the surface is missing; use a larger voxel (now {} mm) or a larger budget",
             p.max_field_mib,
             tsdf.refused_updates(),
-            p.voxel_mm
+            tsdf.voxel_mm()
         ));
     }
     about

@@ -77,6 +77,15 @@ fn run(rx: Receiver<(PointCloud, Isometry3<f64>)>, shared: &ScanShared, params: 
             Err(RecvTimeoutError::Disconnected) => false,
         };
         if shared.take_mesh_request() {
+            // The preview holds every view registered before the request: those still
+            // waiting (a loaded machine starves this thread, which runs below registration's
+            // priority) are fused first. A single view at a coarse sampling can leave no cube
+            // of the field seen at all eight corners, so a preview of fewer views than the
+            // client saw registered can come out empty.
+            for _ in 0..rx.len() {
+                let Ok((cloud, pose)) = rx.try_recv() else { break };
+                tsdf.integrate(&cloud, &pose);
+            }
             write_preview(&tsdf, shared);
         }
         if !open {
@@ -106,4 +115,51 @@ pub(super) fn announce_mesh(shared: &ScanShared, file: &Path, figures: &Value, e
         about["error"] = json!(e);
     }
     shared.emit("scan.mesh", about);
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Mutex;
+
+    use super::*;
+    use crate::pipeline::live::{ScanMode, ScanSpec};
+
+    /// A flat 20 × 20 mm patch 300 mm ahead, sampled every 0.5 mm.
+    fn patch() -> PointCloud {
+        let mut cloud = PointCloud::default();
+        for i in 0..40 {
+            for j in 0..40 {
+                cloud.points.push([i as f32 * 0.5 - 10.0, j as f32 * 0.5 - 10.0, 300.0]);
+                cloud.colors.push([200, 200, 200]);
+            }
+        }
+        cloud
+    }
+
+    /// A request that finds views still waiting (the thread was starved) is answered with
+    /// all of them fused, not with the first alone: the client saw them registered.
+    #[test]
+    fn a_preview_fuses_every_view_waiting_when_it_is_asked_for() {
+        let dir = std::env::temp_dir().join(format!("spinscan-live-fusion-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let events: Arc<Mutex<Vec<Value>>> = Arc::default();
+        let sink = events.clone();
+        let spec = ScanSpec { name: "starved".into(), mode: ScanMode::Step, step_deg: 45.0, total_deg: 360.0, speed_deg_s: 6.0, max_views: None };
+        let shared = ScanShared::new(spec, dir.clone(), Box::new(move |m, v| sink.lock().unwrap().push(json!({"method": m, "params": v}))));
+        let (tx, rx) = crossbeam_channel::bounded(BACKLOG);
+        for k in 0..3 {
+            tx.send((patch(), Isometry3::translation(0.1 * k as f64, 0.0, 0.0))).unwrap();
+        }
+        shared.request_mesh();
+        drop(tx);
+        run(rx, &shared, FuseParams::default());
+        let events = events.lock().unwrap();
+        let meshes: Vec<&Value> = events.iter().filter(|e| e["method"] == "scan.mesh").collect();
+        assert_eq!(meshes.len(), 1, "{events:?}");
+        let about = &meshes[0]["params"];
+        assert_eq!(about["views"], 3, "{about}");
+        assert!(about["triangles"].as_u64().unwrap() > 0 && about.get("error").is_none(), "{about}");
+        assert!(dir.join("mesh_live.ply").is_file());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }
