@@ -18,7 +18,7 @@ pub struct MeshArgs {
     pub output: PathBuf,
     /// Voxel side of the fused field, mm (smaller: finer detail, more memory and time). The
     /// field uses a coarser voxel, 1.5 × the views' point spacing, where they are sampled
-    /// coarser than this (the mesh would be holes); `--exact-voxel` keeps it as given.
+    /// over 1.5 voxels apart (the mesh would be holes); `--exact-voxel` keeps it as given.
     #[arg(long, default_value_t = FuseParams::default().voxel_mm)]
     pub voxel_mm: f64,
     /// Keep `--voxel-mm` even where the views are sampled coarser than it.

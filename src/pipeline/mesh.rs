@@ -84,7 +84,7 @@ pub(crate) fn mesh_json(tsdf: &Tsdf, stats: &MeshStats, extract_ms: f64) -> Valu
     // What was asked for, and the sampling that made the voxel coarser when it did.
     about["voxel_asked_mm"] = json!(p.voxel_mm);
     about["view_spacing_mm"] = json!(tsdf.spacing_mm());
-    about["voxel_fitted"] = json!(tsdf.voxel_mm() as f64 > p.voxel_mm);
+    about["voxel_fitted"] = json!(tsdf.voxel_mm() as f64 != p.voxel_mm as f32 as f64);
     about["truncation_voxels"] = json!(p.truncation_voxels);
     about["filled"] = json!(p.fill);
     about["blocks"] = json!(tsdf.blocks());
