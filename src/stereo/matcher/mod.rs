@@ -333,9 +333,12 @@ impl StereoMatcher {
         (iv.width, iv.height) = (w, h);
         iv.lo.resize(w * h, 0);
         iv.hi.resize(w * h, 0);
-        // Branch-free, so that it vectorises; unmatched pixels search nothing.
+        // Branch-free, so that it vectorises; unmatched pixels search nothing. The value is
+        // clamped to 3 past the range before it is rounded (NaN to the low end), which
+        // changes no bound below and lets the rounding skip the cast's saturation.
+        let (below, above) = (dmin as f32 - 3.0, dmax as f32 + 3.0);
         for ((&d, lo), hi) in out.values().iter().zip(iv.lo.iter_mut()).zip(iv.hi.iter_mut()) {
-            let (r, matched) = (round_half_away(d), !d.is_nan());
+            let (r, matched) = (round_half_away_within(d.max(below).min(above)), !d.is_nan());
             *lo = if matched { (r - 2).clamp(dmin, dmax) as i16 } else { 1 };
             *hi = if matched { (r + 2).clamp(dmin, dmax) as i16 } else { 0 };
         }
@@ -421,11 +424,14 @@ impl StereoMatcher {
     }
 }
 
-/// `d.round() as i32` (halves away from zero) without a libm call (the baseline x86-64 target
-/// has no rounding instruction); exact for |d| < 2²³, and NaN gives 0, as the cast does.
+/// `d.round() as i32` (halves away from zero) of a finite `d` with |d| < 2²³: without a
+/// libm call (the baseline x86-64 target has no rounding instruction) nor the cast's checks
+/// for NaN and overflow, so that a loop of it vectorises.
 #[inline(always)]
-fn round_half_away(d: f32) -> i32 {
-    let t = d as i32;
+fn round_half_away_within(d: f32) -> i32 {
+    debug_assert!(d.abs() < (1 << 23) as f32, "{d}");
+    // SAFETY: d is finite and far inside i32 (the callers clamp it; checked in debug builds).
+    let t: i32 = unsafe { d.to_int_unchecked() };
     // d − trunc(d) is exact in f32 for |d| < 2²³.
     let frac = d - t as f32;
     t + (frac >= 0.5) as i32 - (frac <= -0.5) as i32

@@ -356,9 +356,9 @@ fn refinement_replaces_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
 fn rounding_without_libm_is_the_cast_of_round() {
     let mut rand = crate::testing::xorshift(99);
     let mut values: Vec<f32> = (0..100_000).map(|_| ((rand() % 2_000_000) as f32 - 1_000_000.0) / 4096.0).collect();
-    values.extend([0.5, -0.5, 1.5, -1.5, 0.49999997, -0.49999997, 2.5000002, 127.5, -127.5, 0.0, -0.0, f32::NAN, 8_388_607.5]);
+    values.extend([0.5, -0.5, 1.5, -1.5, 0.49999997, -0.49999997, 2.5000002, 127.5, -127.5, 0.0, -0.0, 8_388_607.5, -8_388_607.5]);
     for d in values {
-        assert_eq!(super::round_half_away(d), d.round() as i32, "{d}");
+        assert_eq!(super::round_half_away_within(d), d.round() as i32, "{d}");
     }
 }
 
