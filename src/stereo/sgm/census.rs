@@ -18,23 +18,22 @@
 pub(super) const CENSUS_W: usize = 7;
 pub(super) const CENSUS_H: usize = 5;
 
-/// The census word of every pixel of `img` (`w × h`, row-major), row by row: `emit(y, row)`
-/// receives row `y` padded with `pad = (left, right)` copies of its first and last word.
-/// (Rows, not a whole image: the right census is kept split ([`split`]) on AVX2, and an
-/// image of `u64` words only to be split again was one more pass over memory.)
+/// The census comparisons of every pixel of `img` (`w × h`, row-major), row by row:
+/// `emit(y, planes)` receives row `y`'s five byte planes (`w` bytes each; comparison t at bit
+/// t % 8 of plane t / 8), which [`words_row`] or [`split_row`] lay out as the costs read them.
+/// (Planes, not words: the right census is kept split on AVX2 — its low four planes are its
+/// low 32 bits, its fifth the high bits — and words only to be split again were one more
+/// pass over memory.)
 ///
 /// `planes_of` makes a row's comparisons: [`planes_row`] or a vector copy of it.
 #[inline(always)]
-pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), planes_of: impl Fn(&[u8], usize, &mut [u8]), mut emit: impl FnMut(usize, &[u64])) {
-    let wo = pad.0 + w + pad.1;
-    let mut row = vec![0u64; wo];
+pub(super) fn transform(img: &[u8], w: usize, h: usize, planes_of: impl Fn(&[u8], usize, &mut [u8]), mut emit: impl FnMut(usize, [&[u8]; PLANES])) {
     let (rx, ry) = (CENSUS_W / 2, CENSUS_H / 2);
     // Source rows padded left and right by rx replicated pixels, so the inner loop has no
     // branch.
     let wp = w + 2 * rx;
     let mut padded = vec![0u8; wp * CENSUS_H];
-    // 34 comparisons: five byte planes (the word's bytes 5–7 stay zero).
-    let mut planes = vec![0u8; (CENSUS_W * CENSUS_H - 1).div_ceil(8) * w];
+    let mut planes = vec![0u8; PLANES * w];
     for y in 0..h {
         for (j, dst) in padded.chunks_mut(wp).enumerate() {
             let sy = (y + j).saturating_sub(ry).min(h - 1);
@@ -45,18 +44,43 @@ pub(super) fn transform(img: &[u8], w: usize, h: usize, pad: (usize, usize), pla
             dst[rx + w..].fill(last);
         }
         planes_of(&padded, w, &mut planes);
-        let (p0, rest) = planes.split_at(w);
-        let (p1, rest) = rest.split_at(w);
-        let (p2, rest) = rest.split_at(w);
-        let (p3, p4) = rest.split_at(w);
-        for (x, o) in row[pad.0..pad.0 + w].iter_mut().enumerate() {
-            *o = u64::from_le_bytes([p0[x], p1[x], p2[x], p3[x], p4[x], 0, 0, 0]);
-        }
-        let (first, last) = (row[pad.0], row[pad.0 + w - 1]);
-        row[..pad.0].fill(first);
-        row[pad.0 + w..].fill(last);
-        emit(y, &row);
+        emit(y, std::array::from_fn(|k| &planes[k * w..][..w]));
     }
+}
+
+/// Byte planes of the census: 34 comparisons, five planes (a word's bytes 5–7 stay zero).
+pub(super) const PLANES: usize = (CENSUS_W * CENSUS_H - 1).div_ceil(8);
+
+/// A row's planes as census words into `row`, padded by `pad = (left, right)` copies of its
+/// first and last word.
+#[inline(always)]
+pub(super) fn words_row(planes: [&[u8]; PLANES], pad: (usize, usize), row: &mut [u64]) {
+    let w = planes[0].len();
+    let [p0, p1, p2, p3, p4] = planes;
+    for (x, o) in row[pad.0..pad.0 + w].iter_mut().enumerate() {
+        *o = u64::from_le_bytes([p0[x], p1[x], p2[x], p3[x], p4[x], 0, 0, 0]);
+    }
+    let (first, last) = (row[pad.0], row[pad.0 + w - 1]);
+    row[..pad.0].fill(first);
+    row[pad.0 + w..].fill(last);
+}
+
+/// A row's planes as its words' low 32 bits into `lo` and high bits into `hi` (what
+/// [`split`] makes of the words), padded as [`words_row`] pads.
+#[inline(always)]
+pub(super) fn split_row(planes: [&[u8]; PLANES], pad: (usize, usize), lo: &mut [u32], hi: &mut [u8]) {
+    let w = planes[0].len();
+    let [p0, p1, p2, p3, p4] = planes;
+    for (x, o) in lo[pad.0..pad.0 + w].iter_mut().enumerate() {
+        *o = u32::from_le_bytes([p0[x], p1[x], p2[x], p3[x]]);
+    }
+    hi[pad.0..pad.0 + w].copy_from_slice(p4);
+    let (first, last) = (lo[pad.0], lo[pad.0 + w - 1]);
+    lo[..pad.0].fill(first);
+    lo[pad.0 + w..].fill(last);
+    let (first, last) = (hi[pad.0], hi[pad.0 + w - 1]);
+    hi[..pad.0].fill(first);
+    hi[pad.0 + w..].fill(last);
 }
 
 /// One row's comparisons: `padded` holds the window's `CENSUS_H` source rows, each padded by
@@ -92,7 +116,7 @@ pub(super) fn transform_into(img: &[u8], w: usize, h: usize, pad: (usize, usize)
     let wo = pad.0 + w + pad.1;
     // Every word is written below: no clearing (a fill of the whole image) unless it grows.
     out.resize(wo * h, 0);
-    transform(img, w, h, pad, planes_of, |y, row| out[y * wo..][..wo].copy_from_slice(row));
+    transform(img, w, h, planes_of, |y, planes| words_row(planes, pad, &mut out[y * wo..][..wo]));
 }
 
 /// The map of the right image's grey levels onto the left's mean and standard deviation
@@ -151,9 +175,11 @@ pub(super) struct Run<'a> {
     pub cap: u8,
 }
 
-/// The census words' low 32 bits and their two high bits (a window of 34 bits), for the
-/// vector costs: eight words per register instead of four. `lo` and `hi` are as long as
-/// `words`.
+/// The census words' low 32 bits and their two high bits (a window of 34 bits), as the
+/// vector costs read them (eight words per register instead of four); `lo` and `hi` as long
+/// as `words`. The matcher builds them from the planes ([`split_row`]); this is the tests'
+/// reference.
+#[cfg(test)]
 pub(super) fn split(words: &[u64], lo: &mut [u32], hi: &mut [u8]) {
     for ((&w, lo), hi) in words.iter().zip(lo).zip(hi) {
         (*lo, *hi) = (w as u32, (w >> 32) as u8);
@@ -201,6 +227,23 @@ mod tests {
             }
         }
         assert_eq!(a[y * w + x], expect);
+    }
+
+    /// The split rows the AVX2 costs read, made from the planes, are the padded words split.
+    #[test]
+    fn split_rows_are_the_padded_words_split() {
+        let (w, h, pad) = (13, 6, (5, 2));
+        let mut next = crate::testing::xorshift(7);
+        let img: Vec<u8> = (0..w * h).map(|_| next() as u8).collect();
+        let wo = pad.0 + w + pad.1;
+        let mut words = Vec::new();
+        transform_into(&img, w, h, pad, planes_row, &mut words);
+        let (mut lo, mut hi) = (vec![0u32; wo * h], vec![0u8; wo * h]);
+        transform(&img, w, h, planes_row, |y, planes| split_row(planes, pad, &mut lo[y * wo..][..wo], &mut hi[y * wo..][..wo]));
+        let (mut want_lo, mut want_hi) = (vec![0u32; wo * h], vec![0u8; wo * h]);
+        split(&words, &mut want_lo, &mut want_hi);
+        assert!(want_hi.iter().any(|&v| v != 0) && want_lo.iter().any(|&v| v != 0));
+        assert_eq!((lo, hi), (want_lo, want_hi));
     }
 
     #[test]

@@ -289,7 +289,7 @@ impl Sgm {
             self.census_r_lo.resize(wr * h, 0);
             self.census_r_hi.resize(wr * h, 0);
             let (lo, hi) = (&mut self.census_r_lo, &mut self.census_r_hi);
-            census::transform(right.data, w, h, (pad_l, pad_r), planes_of, |y, row| census::split(row, &mut lo[y * wr..][..wr], &mut hi[y * wr..][..wr]));
+            census::transform(right.data, w, h, planes_of, |y, planes| census::split_row(planes, (pad_l, pad_r), &mut lo[y * wr..][..wr], &mut hi[y * wr..][..wr]));
         } else {
             census::transform_into(right.data, w, h, (pad_l, pad_r), planes_of, &mut self.census_r);
         }
