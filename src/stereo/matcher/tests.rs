@@ -388,3 +388,21 @@ fn full_ranges_up_to_the_tile_band_match_as_the_row_path_does() {
         }
     }
 }
+
+#[test]
+fn the_searched_span_is_the_first_and_last_searched_pixel() {
+    let mut next = crate::testing::xorshift(31);
+    for n in [0usize, 1, 5, 31, 32, 33, 64, 95, 200, 640] {
+        for _ in 0..50 {
+            // Mostly background, a few searched pixels anywhere (none in some rows).
+            let searched = (next() % 4) as usize;
+            let (mut lo, mut hi) = (vec![1i16; n], vec![0i16; n]);
+            for _ in 0..searched.min(n) {
+                let x = (next() % n as u64) as usize;
+                (lo[x], hi[x]) = (3, 3 + (next() % 5) as i16);
+            }
+            let want = (0..n).position(|x| lo[x] <= hi[x]).map(|a| (a, (0..n).rposition(|x| lo[x] <= hi[x]).unwrap()));
+            assert_eq!(super::scratch::searched_span(&lo, &hi), want, "n {n}, lo {lo:?}");
+        }
+    }
+}
