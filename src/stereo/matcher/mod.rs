@@ -337,10 +337,14 @@ impl StereoMatcher {
         // clamped to 3 past the range before it is rounded (NaN to the low end), which
         // changes no bound below and lets the rounding skip the cast's saturation.
         let (below, above) = (dmin as f32 - 3.0, dmax as f32 + 3.0);
-        for ((&d, lo), hi) in out.values().iter().zip(iv.lo.iter_mut()).zip(iv.hi.iter_mut()) {
-            let (r, matched) = (round_half_away_within(d.max(below).min(above)), !d.is_nan());
-            *lo = if matched { (r - 2).clamp(dmin, dmax) as i16 } else { 1 };
-            *hi = if matched { (r + 2).clamp(dmin, dmax) as i16 } else { 0 };
+        let n = out.values().len();
+        let (vals, los, his) = (&out.values()[..n], &mut iv.lo[..n], &mut iv.hi[..n]);
+        for x in 0..n {
+            let d = vals[x];
+            let matched = !d.is_nan();
+            let r = round_half_away_within((if matched { d } else { 0.0 }).clamp(below, above));
+            los[x] = if matched { (r - 2).max(dmin).min(dmax) as i16 } else { 1 };
+            his[x] = if matched { (r + 2).max(dmin).min(dmax) as i16 } else { 0 };
         }
         let mut corr = std::mem::replace(&mut self.refine_out, DisparityMap::new(0, 0));
         if (corr.width, corr.height) != (w, h) {
