@@ -446,6 +446,24 @@ fn round_half_away_within(d: f32) -> i32 {
 /// to front so that increasing disparity walks forward in memory. The rows start
 /// [`PF_SLACK`] bytes into `out`, which has as many after them.
 fn prefilter_xsobel(img: GrayView, cap: u8, pad: (usize, usize), reversed: bool, out: &mut Vec<u8>) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2 (checked just above).
+        return unsafe { prefilter_xsobel_avx2(img, cap, pad, reversed, out) };
+    }
+    prefilter_xsobel_body(img, cap, pad, reversed, out)
+}
+
+/// [`prefilter_xsobel`] compiled for AVX2: its interior loop in sixteen `i16` lanes instead
+/// of the baseline's eight; the same integer arithmetic, so the same bytes.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn prefilter_xsobel_avx2(img: GrayView, cap: u8, pad: (usize, usize), reversed: bool, out: &mut Vec<u8>) {
+    prefilter_xsobel_body(img, cap, pad, reversed, out)
+}
+
+#[inline(always)]
+fn prefilter_xsobel_body(img: GrayView, cap: u8, pad: (usize, usize), reversed: bool, out: &mut Vec<u8>) {
     let (w, h) = (img.width, img.height);
     let (r, wp) = (pad.0, w + pad.0 + pad.1);
     out.clear();
