@@ -194,7 +194,8 @@ impl Tsdf {
     /// viewing ray crosses within the truncation band: signed distance along the ray,
     /// weight (depth_ref / Z)⁴, colour.
     pub fn integrate(&mut self, cloud: &PointCloud, world_from_view: &Isometry3<f64>) {
-        if self.spacing.is_none() {
+        // (Only while the field is empty: every voxel has one size.)
+        if self.spacing.is_none() && self.blocks.is_empty() {
             self.fit_voxel(cloud);
         }
         let rot = world_from_view.rotation.to_rotation_matrix().into_inner().cast::<f32>();
@@ -281,10 +282,11 @@ impl Tsdf {
         self.points += used;
     }
 
-    /// Measures the first view's point spacing (at least [`MIN_FIT_POINTS`] valid points;
-    /// else the next view's) and, with `fit_to_sampling`, grows the voxel and the truncation
-    /// band to [`SAMPLING_VOXELS`] spacings where the spacing is over [`FIT_ABOVE_VOXELS`]
-    /// voxels. The field is still empty then, so every voxel has one size.
+    /// Measures the first view's point spacing (it needs [`MIN_FIT_POINTS`] valid points;
+    /// with fewer, the next view's, as long as nothing was fused yet) and, with
+    /// `fit_to_sampling`, grows the voxel and the truncation band to [`SAMPLING_VOXELS`]
+    /// spacings where the spacing is over [`FIT_ABOVE_VOXELS`] voxels. Called only while the
+    /// field is empty, so that every voxel has one size.
     fn fit_voxel(&mut self, cloud: &PointCloud) {
         let points: Vec<[f32; 3]> = cloud.points.iter().filter(|p| p[2] > 0.0 && p.iter().all(|v| v.is_finite())).copied().collect();
         if points.len() < MIN_FIT_POINTS {
