@@ -334,8 +334,8 @@ impl StereoMatcher {
         iv.lo.resize(w * h, 0);
         iv.hi.resize(w * h, 0);
         // Branch-free, so that it vectorises; unmatched pixels search nothing. The value is
-        // clamped to 3 past the range before it is rounded (NaN to the low end), which
-        // changes no bound below and lets the rounding skip the cast's saturation.
+        // clamped to 3 past the range before it is rounded (NaN to 0, its bounds unused),
+        // which changes no bound below and lets the rounding skip the cast's checks.
         let (below, above) = (dmin as f32 - 3.0, dmax as f32 + 3.0);
         let n = out.values().len();
         let (vals, los, his) = (&out.values()[..n], &mut iv.lo[..n], &mut iv.hi[..n]);

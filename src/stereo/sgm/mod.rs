@@ -143,8 +143,8 @@ pub(super) struct Sgm {
     /// The right census, each row padded by replication so that every disparity of every
     /// block has a right pixel (the portable costs' words).
     census_r: Vec<u64>,
-    /// The same split into its low 32 bits and its two high bits ([`census::split`]): the
-    /// AVX2 costs' words, in place of `census_r`.
+    /// The same split into its low 32 bits and its two high bits, laid out from the census
+    /// planes ([`census::split_row`]): the AVX2 costs' words, in place of `census_r`.
     census_r_lo: Vec<u32>,
     census_r_hi: Vec<u8>,
     /// The right image's grey levels matched to the left's, padded as `census_r`.
