@@ -80,11 +80,13 @@ pub(crate) fn mesh_json(tsdf: &Tsdf, stats: &MeshStats, extract_ms: f64) -> Valu
     let (views, points) = tsdf.integrated();
     about["views"] = json!(views);
     about["points"] = json!(points);
-    about["voxel_mm"] = json!(tsdf.voxel_mm() as f64);
-    // What was asked for, and the sampling that made the voxel coarser when it did.
+    // The voxel used (the one asked for, exactly as given, unless it was fitted to the
+    // views' sampling), what was asked for, and the sampling.
+    let fitted = tsdf.voxel_mm() != p.voxel_mm as f32;
+    about["voxel_mm"] = if fitted { json!(tsdf.voxel_mm() as f64) } else { json!(p.voxel_mm) };
     about["voxel_asked_mm"] = json!(p.voxel_mm);
     about["view_spacing_mm"] = json!(tsdf.spacing_mm());
-    about["voxel_fitted"] = json!(tsdf.voxel_mm() as f64 != p.voxel_mm as f32 as f64);
+    about["voxel_fitted"] = json!(fitted);
     about["truncation_voxels"] = json!(p.truncation_voxels);
     about["filled"] = json!(p.fill);
     about["blocks"] = json!(tsdf.blocks());
