@@ -22,6 +22,12 @@ pub use mesh::{MeshStats, SurfaceMesh};
 /// Valid points a view needs for its spacing to be measured (and the voxel fitted to it).
 const MIN_FIT_POINTS: usize = 16;
 
+/// Whether a view's point can be fused: finite, in front of the camera.
+#[inline(always)]
+fn usable(p: &[f32; 3]) -> bool {
+    p[2] > 0.0 && p.iter().all(|v| v.is_finite())
+}
+
 /// Voxels per block side.
 pub(crate) const SIDE: i32 = 8;
 const VOXELS: usize = (SIDE * SIDE * SIDE) as usize;
@@ -214,7 +220,7 @@ impl Tsdf {
             .points
             .iter()
             .enumerate()
-            .filter(|(_, p)| p[2] > 0.0 && p.iter().all(|v| v.is_finite()))
+            .filter(|(_, p)| usable(p))
             .map(|(i, p)| {
                 let q = rot * nalgebra::Vector3::new(p[0], p[1], p[2]) + t;
                 // The block's coordinates (18 bits each), then the voxel inside the block.
@@ -288,7 +294,7 @@ impl Tsdf {
     /// spacings where the spacing is over [`FIT_ABOVE_VOXELS`] voxels. Called only while the
     /// field is empty, so that every voxel has one size.
     fn fit_voxel(&mut self, cloud: &PointCloud) {
-        let points: Vec<[f32; 3]> = cloud.points.iter().filter(|p| p[2] > 0.0 && p.iter().all(|v| v.is_finite())).copied().collect();
+        let points: Vec<[f32; 3]> = cloud.points.iter().filter(|p| usable(p)).copied().collect();
         if points.len() < MIN_FIT_POINTS {
             return;
         }

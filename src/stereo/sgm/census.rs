@@ -39,9 +39,7 @@ pub(super) fn transform(img: &[u8], w: usize, h: usize, planes_of: impl Fn(&[u8]
             let sy = (y + j).saturating_sub(ry).min(h - 1);
             let src = &img[sy * w..][..w];
             dst[rx..rx + w].copy_from_slice(src);
-            let (first, last) = (src[0], src[w - 1]);
-            dst[..rx].fill(first);
-            dst[rx + w..].fill(last);
+            replicate_ends(dst, (rx, rx));
         }
         planes_of(&padded, w, &mut planes);
         emit(y, std::array::from_fn(|k| &planes[k * w..][..w]));
@@ -60,9 +58,7 @@ pub(super) fn words_row(planes: [&[u8]; PLANES], pad: (usize, usize), row: &mut 
     for (x, o) in row[pad.0..pad.0 + w].iter_mut().enumerate() {
         *o = u64::from_le_bytes([p0[x], p1[x], p2[x], p3[x], p4[x], 0, 0, 0]);
     }
-    let (first, last) = (row[pad.0], row[pad.0 + w - 1]);
-    row[..pad.0].fill(first);
-    row[pad.0 + w..].fill(last);
+    replicate_ends(&mut row[..pad.0 + w + pad.1], pad);
 }
 
 /// A row's planes as its words' low 32 bits into `lo` and high bits into `hi` (what
@@ -75,12 +71,18 @@ pub(super) fn split_row(planes: [&[u8]; PLANES], pad: (usize, usize), lo: &mut [
         *o = u32::from_le_bytes([p0[x], p1[x], p2[x], p3[x]]);
     }
     hi[pad.0..pad.0 + w].copy_from_slice(p4);
-    let (first, last) = (lo[pad.0], lo[pad.0 + w - 1]);
-    lo[..pad.0].fill(first);
-    lo[pad.0 + w..].fill(last);
-    let (first, last) = (hi[pad.0], hi[pad.0 + w - 1]);
-    hi[..pad.0].fill(first);
-    hi[pad.0 + w..].fill(last);
+    replicate_ends(&mut lo[..pad.0 + w + pad.1], pad);
+    replicate_ends(&mut hi[..pad.0 + w + pad.1], pad);
+}
+
+/// `row`'s first `pad.0` and last `pad.1` entries set to copies of the first and last entry
+/// between them.
+#[inline(always)]
+fn replicate_ends<T: Copy>(row: &mut [T], pad: (usize, usize)) {
+    let end = row.len() - pad.1;
+    let (first, last) = (row[pad.0], row[end - 1]);
+    row[..pad.0].fill(first);
+    row[end..].fill(last);
 }
 
 /// One row's comparisons: `padded` holds the window's `CENSUS_H` source rows, each padded by
