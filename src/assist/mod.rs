@@ -230,6 +230,7 @@ impl Plan {
 struct PrevFrame {
     seq: u64,
     disparity: DisparityMap,
+    /// The frame's mask, kept for the paper's rule only (the predicted splat reads none).
     mask: Option<Vec<u8>>,
     /// Bounding box of the disparities.
     region: Region,
@@ -596,6 +597,7 @@ impl Assistant {
         // inside the plan's region when assisted.
         let within = if plan.assisted() { self.region } else { Region { x0: 0, x1: disparity.width, y0: 0, y1: disparity.height } };
         let region = Region::of_disparity(disparity, within);
+        let keep_mask = matches!(self.params.mode, AssistMode::Paper { .. });
         match &mut self.prev {
             Some(p) if (p.disparity.width, p.disparity.height) == (disparity.width, disparity.height) => {
                 p.seq = seq;
@@ -606,13 +608,13 @@ impl Assistant {
                 for y in hull.ys() {
                     p.disparity.values_mut()[y * w + hull.x0..y * w + hull.x1].copy_from_slice(&disparity.values()[y * w + hull.x0..y * w + hull.x1]);
                 }
-                match (&mut p.mask, mask) {
+                match (&mut p.mask, mask.filter(|_| keep_mask)) {
                     (Some(old), Some(new)) if old.len() == new.len() => old.copy_from_slice(new),
                     (slot, new) => *slot = new.map(<[u8]>::to_vec),
                 }
                 p.region = region;
             }
-            slot => *slot = Some(PrevFrame { seq, disparity: disparity.clone(), mask: mask.map(<[u8]>::to_vec), region }),
+            slot => *slot = Some(PrevFrame { seq, disparity: disparity.clone(), mask: mask.filter(|_| keep_mask).map(<[u8]>::to_vec), region }),
         }
         None
     }

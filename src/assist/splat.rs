@@ -34,6 +34,10 @@ impl Assistant {
         // vectorises (NaN where there is no point or it moves behind the camera), then the
         // splats.
         let (mut xs, mut ys, mut los, mut his) = (vec![0i32; n], vec![-1i32; n], vec![0f32; n], vec![0f32; n]);
+        // At tile granularity, each point's tile and the tiles its splat crosses into, found
+        // in the vector loop with the projection: the scatter then only widens the hulls.
+        let (mut tile_of, mut crosses) = (vec![0u32; n], vec![0u32; n]);
+        let cols = self.tiles.cols() as u32;
         let tiled = self.params.granularity == Granularity::Tile;
         let tiles = &mut self.tiles;
         // A prediction splats onto the 2 × 2 pixels from (⌊px⌋, ⌊py⌋): they lie inside the
@@ -67,6 +71,7 @@ impl Assistant {
                 // SAFETY: px and py lie in [0, w) and [0, h), far inside i32.
                 let (x0, y0) = unsafe { (px.to_int_unchecked::<i32>(), py.to_int_unchecked::<i32>()) };
                 (xs[k], ys[k]) = (x0, if inside { y0 } else { -1 });
+                (tile_of[k], crosses[k]) = tiles::splat_tile(x0 as u32, y0 as u32, cols);
                 los[k] = pd - half;
                 his[k] = pd + half;
             }
@@ -75,14 +80,12 @@ impl Assistant {
                     continue;
                 }
                 let (a, b) = (los[k], his[k]);
-                let (x0, y0) = (xs[k] as usize, ys[k] as usize);
                 if tiled {
                     // Straight into the tiles: no per-pixel map (tiles.rs).
-                    let (t, right, down) = tiles::splat_tile(x0, y0, tiles.cols());
-                    tiles.add_splat(t, right, down, a, b);
+                    tiles.add_splat(tile_of[k] as usize, crosses[k], a, b);
                     continue;
                 }
-                let i = y0 * w + x0;
+                let i = ys[k] as usize * w + xs[k] as usize;
                 for j in [i, i + 1, i + w, i + w + 1] {
                     lo[j] = lo[j].min(a);
                     hi[j] = hi[j].max(b);
