@@ -126,12 +126,21 @@ pub(super) fn transform_into(img: &[u8], w: usize, h: usize, pad: (usize, usize)
 /// intensity term compares levels. One table for a call, so that every stripe of rows
 /// compares the same levels.
 pub(in crate::stereo) fn level_map(left: &[u8], right: &[u8]) -> [u8; 256] {
-    // From each image's histogram: one pass of integer counting per image.
+    // From each image's histogram: one pass of integer counting per image, into four
+    // histograms taken in turn (a blue screen repeats one level pixel after pixel, and one
+    // counter incremented back to back waits on its own store each time), summed after.
     let stats = |img: &[u8]| {
-        let mut hist = [0u32; 256];
-        for &v in img {
-            hist[v as usize] += 1;
+        let mut hists = [[0u32; 256]; 4];
+        let quads = img.chunks_exact(4);
+        for &v in quads.remainder() {
+            hists[0][v as usize] += 1;
         }
+        for q in quads {
+            for (hist, &v) in hists.iter_mut().zip(q) {
+                hist[v as usize] += 1;
+            }
+        }
+        let hist: [u32; 256] = std::array::from_fn(|v| hists.iter().map(|h| h[v]).sum());
         let n = img.len().max(1) as f64;
         let mean = hist.iter().enumerate().map(|(v, &c)| v as f64 * c as f64).sum::<f64>() / n;
         let var = hist.iter().enumerate().map(|(v, &c)| (v as f64 - mean).powi(2) * c as f64).sum::<f64>() / n;
