@@ -46,7 +46,8 @@ use super::kernels;
 use super::params::{Method, ValidMatchParams};
 use super::speckle::SpeckleFilter;
 use rows::{column_bands, left_right_check, row_intervals, select_row, texture_row, tile_bands, update_column_sums, update_texture};
-use scratch::{searched_span, Geometry, StripeInput, StripeScratch, TileSums, PF_SLACK, TILE_H, TILE_W};
+use super::disparity::searched_span;
+use scratch::{Geometry, StripeInput, StripeScratch, TileSums, PF_SLACK, TILE_H, TILE_W};
 
 mod rows;
 mod scratch;

@@ -214,32 +214,3 @@ pub(super) struct StripeScratch {
 pub(super) fn clamp_row(y: isize, h: usize) -> usize {
     y.clamp(0, h as isize - 1) as usize
 }
-
-/// The first and last `x` with `lo[x] <= hi[x]` (a searched pixel), if any. Tested
-/// [`SPAN_CHUNK`] at a time from each end, each chunk a fixed-size array tested branch-free
-/// (so that it compiles to a few vector compares): rows are mostly background on both sides
-/// of the object.
-#[inline(always)]
-pub(super) fn searched_span<T: PartialOrd + Copy>(lo: &[T], hi: &[T]) -> Option<(usize, usize)> {
-    let n = lo.len().min(hi.len());
-    let (lo, hi) = (&lo[..n], &hi[..n]);
-    let chunk = |a: usize| -> (&[T; SPAN_CHUNK], &[T; SPAN_CHUNK]) { (lo[a..a + SPAN_CHUNK].try_into().unwrap(), hi[a..a + SPAN_CHUNK].try_into().unwrap()) };
-    let any = |(l, h): (&[T; SPAN_CHUNK], &[T; SPAN_CHUNK])| l.iter().zip(h).fold(false, |acc, (l, h)| acc | (l <= h));
-    let searched = |x: usize| lo[x] <= hi[x];
-    // Whole chunks from the left, then the rest one by one.
-    let mut start = 0;
-    while start + SPAN_CHUNK <= n && !any(chunk(start)) {
-        start += SPAN_CHUNK;
-    }
-    let first = (start..n).find(|&x| searched(x))?;
-    // Whole chunks from the right down to `first`, then one by one.
-    let mut end = n;
-    while end >= first + SPAN_CHUNK && !any(chunk(end - SPAN_CHUNK)) {
-        end -= SPAN_CHUNK;
-    }
-    let last = (first..end).rev().find(|&x| searched(x)).expect("first is searched");
-    Some((first, last))
-}
-
-/// Pixels [`searched_span`] tests at once.
-const SPAN_CHUNK: usize = 32;

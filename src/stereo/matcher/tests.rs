@@ -402,7 +402,7 @@ fn the_searched_span_is_the_first_and_last_searched_pixel() {
                 (lo[x], hi[x]) = (3, 3 + (next() % 5) as i16);
             }
             let want = (0..n).position(|x| lo[x] <= hi[x]).map(|a| (a, (0..n).rposition(|x| lo[x] <= hi[x]).unwrap()));
-            assert_eq!(super::scratch::searched_span(&lo, &hi), want, "n {n}, lo {lo:?}");
+            assert_eq!(crate::stereo::disparity::searched_span(&lo, &hi), want, "n {n}, lo {lo:?}");
         }
     }
 }

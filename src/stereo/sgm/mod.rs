@@ -41,7 +41,7 @@
 
 use std::ops::Range;
 
-use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
+use super::disparity::{searched_span, DisparityIntervals, DisparityMap, GrayView, MatchStats};
 use super::params::ValidMatchParams;
 
 mod census;
@@ -307,7 +307,9 @@ impl Sgm {
             v.resize(w, 0);
         }
         let vals = out.values_mut();
-        vals.fill(f32::NAN);
+        // Each kept row is written whole by its selection; the other rows stay unmatched.
+        vals[..keep.start * w].fill(f32::NAN);
+        vals[keep.end * w..].fill(f32::NAN);
         self.pass::<AVX2>(p, g, left.data, false, keep.clone(), vals, &mut stats);
         self.pass::<AVX2>(p, g, left.data, true, keep, vals, &mut stats);
         stats
@@ -330,9 +332,15 @@ impl Sgm {
             let (ilo, ihi) = (&iv.lo[row.clone()], &iv.hi[row.clone()]);
             let (band_a, band_m) = (&mut self.band_a[row.clone()], &mut self.band_m[row.clone()]);
             let (lo_out, hi_out) = (&mut self.lo[row.clone()], &mut self.hi[row.clone()]);
-            // Branch-free, so that it vectorises: the clipped interval, its block band (m = 0
-            // where nothing is searched) and its indices.
-            for x in 0..w {
+            // Outside the row's searched span nothing is (m = 0); inside it, branch-free so
+            // that it vectorises: the clipped interval, its block band (m = 0 where nothing is
+            // searched) and its indices.
+            let searched_px = searched_span(ilo, ihi).map_or(0..0, |(first, last)| first..last + 1);
+            for v in [&mut *band_a, &mut *band_m, &mut *lo_out, &mut *hi_out] {
+                v[..searched_px.start].fill(0);
+                v[searched_px.end..].fill(0);
+            }
+            for x in searched_px.clone() {
                 let lo = (ilo[x] as i32).max(dmin).max(x as i32 - w as i32 + 1);
                 let hi = (ihi[x] as i32).min(dmax).min(x as i32);
                 let searched = lo <= hi;
@@ -353,9 +361,10 @@ impl Sgm {
                 row_total += m as usize;
                 row_searched += (m > 0) as usize;
             }
-            let first = band_m.iter().position(|&m| m > 0);
-            let last = band_m.iter().rposition(|&m| m > 0);
-            self.span[y] = first.zip(last).map_or(0..0, |(a, b)| a..b + 1);
+            let inside = &band_m[searched_px.clone()];
+            let first = inside.iter().position(|&m| m > 0);
+            let last = inside.iter().rposition(|&m| m > 0);
+            self.span[y] = first.zip(last).map_or(0..0, |(a, b)| searched_px.start + a..searched_px.start + b + 1);
             total += row_total;
             if keep.contains(&y) {
                 stats.searched += row_searched;

@@ -130,9 +130,11 @@ impl Sgm {
         // match); the divisions then run over the row in vector lanes, not one per pixel
         // behind the next.
         let (di_row, num_row, den_row) = (&mut self.fit_di[..w], &mut self.fit_num[..w], &mut self.fit_den[..w]);
-        // Nothing outside the row's span is searched: those pixels stay NaN (`out` comes
-        // filled with it).
+        // Nothing outside the row's span is searched: those pixels are unmatched (the span's
+        // are all written below).
         let span = self.span[y].clone();
+        out[..span.start].fill(f32::NAN);
+        out[span.end..].fill(f32::NAN);
         den_row[span.clone()].fill(0);
         // The row's per-pixel records sliced once (not indexed through `self` per pixel).
         let row = y * w..(y + 1) * w;
