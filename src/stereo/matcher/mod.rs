@@ -41,12 +41,11 @@
 
 use std::ops::Range;
 
-use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
+use super::disparity::{searched_span, DisparityIntervals, DisparityMap, GrayView, MatchStats};
 use super::kernels;
 use super::params::{Method, ValidMatchParams};
 use super::speckle::SpeckleFilter;
 use rows::{column_bands, left_right_check, row_intervals, select_row, texture_row, tile_bands, update_column_sums, update_texture};
-use super::disparity::searched_span;
 use scratch::{Geometry, StripeInput, StripeScratch, TileSums, PF_SLACK, TILE_H, TILE_W};
 
 mod rows;
@@ -338,14 +337,23 @@ impl StereoMatcher {
         // clamped to 3 past the range before it is rounded (NaN to 0, its bounds unused),
         // which changes no bound below and lets the rounding skip the cast's checks.
         let (below, above) = (dmin as f32 - 3.0, dmax as f32 + 3.0);
-        let n = out.values().len();
-        let (vals, los, his) = (&out.values()[..n], &mut iv.lo[..n], &mut iv.hi[..n]);
-        for x in 0..n {
-            let d = vals[x];
-            let matched = !d.is_nan();
-            let r = round_half_away_within((if matched { d } else { 0.0 }).clamp(below, above));
-            los[x] = if matched { (r - 2).max(dmin).min(dmax) as i16 } else { 1 };
-            his[x] = if matched { (r + 2).max(dmin).min(dmax) as i16 } else { 0 };
+        // Per row, only from its first match to its last (`d <= d` fails for NaN alone):
+        // outside them nothing is searched, and nothing changes below.
+        let spans: Vec<Range<usize>> = out.values().chunks_exact(w).map(|row| searched_span(row, row).map_or(0..0, |(first, last)| first..last + 1)).collect();
+        for (y, span) in spans.iter().enumerate() {
+            let row = y * w..(y + 1) * w;
+            let (vals, los, his) = (&out.values()[row.clone()], &mut iv.lo[row.clone()], &mut iv.hi[row]);
+            los[..span.start].fill(1);
+            his[..span.start].fill(0);
+            los[span.end..].fill(1);
+            his[span.end..].fill(0);
+            for x in span.clone() {
+                let d = vals[x];
+                let matched = !d.is_nan();
+                let r = round_half_away_within((if matched { d } else { 0.0 }).clamp(below, above));
+                los[x] = if matched { (r - 2).max(dmin).min(dmax) as i16 } else { 1 };
+                his[x] = if matched { (r + 2).max(dmin).min(dmax) as i16 } else { 0 };
+            }
         }
         let mut corr = std::mem::replace(&mut self.refine_out, DisparityMap::new(0, 0));
         if (corr.width, corr.height) != (w, h) {
@@ -353,12 +361,15 @@ impl StereoMatcher {
         }
         let stats = self.correlate(&bm, left, right, &iv, &mut corr);
         totals.evaluated += stats.evaluated;
-        for (d, &c) in out.values_mut().iter_mut().zip(corr.values()) {
-            // Branch-free. NaN fails every comparison: an unmatched pixel stays unmatched, and
-            // a missing correlation disagrees.
-            let agrees = (c - *d).abs() <= 1.0;
-            let kept = if masked { f32::NAN } else { *d };
-            *d = if agrees { c } else { kept };
+        for (y, span) in spans.iter().enumerate() {
+            let row = y * w + span.start..y * w + span.end;
+            for (d, &c) in out.values_mut()[row.clone()].iter_mut().zip(&corr.values()[row]) {
+                // Branch-free. NaN fails every comparison: an unmatched pixel stays unmatched,
+                // and a missing correlation disagrees.
+                let agrees = (c - *d).abs() <= 1.0;
+                let kept = if masked { f32::NAN } else { *d };
+                *d = if agrees { c } else { kept };
+            }
         }
         (self.refine_intervals, self.refine_out) = (iv, corr);
     }
