@@ -55,8 +55,11 @@ pub(super) const PLANES: usize = (CENSUS_W * CENSUS_H - 1).div_ceil(8);
 pub(super) fn words_row(planes: [&[u8]; PLANES], pad: (usize, usize), row: &mut [u64]) {
     let w = planes[0].len();
     let [p0, p1, p2, p3, p4] = planes;
-    for (x, o) in row[pad.0..pad.0 + w].iter_mut().enumerate() {
-        *o = u64::from_le_bytes([p0[x], p1[x], p2[x], p3[x], p4[x], 0, 0, 0]);
+    // (Shifts and ORs of the planes' bytes over slices of one length, not `from_le_bytes`,
+    // so that it vectorises.)
+    let (p0, p1, p2, p3, p4, out) = (&p0[..w], &p1[..w], &p2[..w], &p3[..w], &p4[..w], &mut row[pad.0..pad.0 + w]);
+    for x in 0..w {
+        out[x] = p0[x] as u64 | (p1[x] as u64) << 8 | (p2[x] as u64) << 16 | (p3[x] as u64) << 24 | (p4[x] as u64) << 32;
     }
     replicate_ends(&mut row[..pad.0 + w + pad.1], pad);
 }

@@ -356,11 +356,13 @@ impl Sgm {
             }
             let off = &mut self.off[row];
             let (mut row_total, mut row_searched) = (0usize, 0usize);
-            for (o, &m) in off.iter_mut().zip(band_m.iter()) {
+            off[..searched_px.start].fill(total);
+            for (o, &m) in off[searched_px.clone()].iter_mut().zip(&band_m[searched_px.clone()]) {
                 *o = total + row_total;
                 row_total += m as usize;
                 row_searched += (m > 0) as usize;
             }
+            off[searched_px.end..].fill(total + row_total);
             let inside = &band_m[searched_px.clone()];
             let first = inside.iter().position(|&m| m > 0);
             let last = inside.iter().rposition(|&m| m > 0);
