@@ -140,17 +140,13 @@ impl Sgm {
         let row = y * w..(y + 1) * w;
         let (band_a, band_m, lo_row, hi_row, off_row) = (&self.band_a[row.clone()], &self.band_m[row.clone()], &self.lo[row.clone()], &self.hi[row.clone()], &self.off[row]);
         let (sum, right_best) = (&self.sum[..], &mut self.right_best[..w]);
-        for x in span.clone() {
-            let m = band_m[x] as usize;
-            if m == 0 {
-                continue;
-            }
-            let (a, lo, hi) = (band_a[x] as usize, lo_row[x] as usize, hi_row[x] as usize);
-            let s = &sum[off_row[x]..][..m];
-            let (best, bk, rival) = select::<AVX2>(s, a, lo, hi, uniq > 0);
+        // A pixel's verdict from its winner `bk` (sum `best`) and rival: the uniqueness test,
+        // the splat onto its right pixel, the terms of its fit.
+        let mut decide = |x: usize, best: u16, bk: usize, rival: u16| {
             if uniq > 0 && (rival as u32) * (100 - uniq) < best as u32 * 100 {
-                continue;
+                return;
             }
+            let (a, m, lo, hi) = (band_a[x] as usize, band_m[x] as usize, lo_row[x] as usize, hi_row[x] as usize);
             let di = dmin + bk as i32;
             let xr = (x as i32 - di) as usize;
             // The cheapest splat wins; ties go to the smaller x, i.e. the smaller disparity.
@@ -159,6 +155,7 @@ impl Sgm {
             (num_row[x], den_row[x]) = if p.subpixel && bk > lo && bk < hi {
                 // Equiangular (V-shaped) fit: census sums rise about linearly away from the
                 // minimum (docs/matcher.md: the parabola and a correlation-cost fit measured).
+                let s = &sum[off_row[x]..][..m];
                 let (s0, s2) = (s[bk - 1 - a] as i32, s[bk + 1 - a] as i32);
                 let rise = (s0.max(s2) - best as i32).max(1);
                 (s0 - s2, 2 * rise)
@@ -166,6 +163,32 @@ impl Sgm {
                 // d + 0 / 1 = d exactly.
                 (0, 1)
             };
+        };
+        let mut x = span.start;
+        while x < span.end {
+            // Sixteen pixels of one-block bands at once, in the vector lanes (their sums lie
+            // one after the other).
+            #[cfg(target_arch = "x86_64")]
+            if AVX2 && x + LANES <= span.end && band_m[x..x + LANES].iter().all(|&m| m as usize == LANES) {
+                let jlo: [u16; LANES] = std::array::from_fn(|i| lo_row[x + i] - band_a[x + i]);
+                let jhi: [u16; LANES] = std::array::from_fn(|i| hi_row[x + i] - band_a[x + i]);
+                // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the
+                // sixteen bands are one block each, so their sums are LANES · LANES in a row,
+                // and each interval lies inside its block.
+                let (best, at, rival) = unsafe { super::simd::select_blocks(&sum[off_row[x]..][..LANES * LANES], &jlo, &jhi, uniq > 0) };
+                for i in 0..LANES {
+                    decide(x + i, best[i], band_a[x + i] as usize + at[i] as usize, rival[i]);
+                }
+                x += LANES;
+                continue;
+            }
+            let m = band_m[x] as usize;
+            if m > 0 {
+                let (a, lo, hi) = (band_a[x] as usize, lo_row[x] as usize, hi_row[x] as usize);
+                let (best, bk, rival) = select::<AVX2>(&sum[off_row[x]..][..m], a, lo, hi, uniq > 0);
+                decide(x, best, bk, rival);
+            }
+            x += 1;
         }
         for x in span.clone() {
             let d = di_row[x] as f32 + num_row[x] as f32 / den_row[x].max(1) as f32;
@@ -213,6 +236,29 @@ mod tests {
                 let got = select::<true>(&s, a, lo, hi, true);
                 assert_eq!(got, (best, bk, rival), "case {case}: {s:?}, a {a}, {lo} ..= {hi}");
                 assert_eq!(select::<true>(&s, a, lo, hi, false), (best, bk, u16::MAX));
+            }
+        }
+    }
+
+    #[test]
+    fn sixteen_pixels_in_the_lanes_select_as_one_at_a_time() {
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            let mut next = crate::testing::xorshift(0x2545_f491_4f6c_dd1d);
+            for case in 0..500 {
+                // Few distinct values, so that ties and equal rivals are common.
+                let s: Vec<u16> = (0..LANES * LANES).map(|_| (next() % 5) as u16 * 100 + 40).collect();
+                let jlo: [u16; LANES] = std::array::from_fn(|_| (next() % LANES as u64) as u16);
+                let jhi: [u16; LANES] = std::array::from_fn(|i| jlo[i] + (next() % (LANES as u64 - jlo[i] as u64)) as u16);
+                for rival in [true, false] {
+                    // SAFETY: the CPU has AVX2 (checked above); 16 × 16 sums, intervals inside a block.
+                    let (best, at, second) = unsafe { crate::stereo::sgm::simd::select_blocks(&s, &jlo, &jhi, rival) };
+                    for i in 0..LANES {
+                        let a = 3 * LANES;
+                        let want = select::<true>(&s[i * LANES..][..LANES], a, a + jlo[i] as usize, a + jhi[i] as usize, rival);
+                        assert_eq!((best[i], a + at[i] as usize, second[i]), want, "case {case}, pixel {i}, rival {rival}");
+                    }
+                }
             }
         }
     }
