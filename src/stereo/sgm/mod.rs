@@ -179,6 +179,11 @@ pub(super) struct Sgm {
     fit_di: Vec<i32>,
     fit_num: Vec<i32>,
     fit_den: Vec<i32>,
+    /// Per pixel of the row being selected: its smallest sum, the disparity index holding it
+    /// and its rival (`select.rs`; sixteen at a time where the bands allow).
+    win_best: Vec<u16>,
+    win_k: Vec<u16>,
+    win_rival: Vec<u16>,
 }
 
 /// The geometry of one call: image size, the padded range and the right rows' padding.
@@ -304,6 +309,9 @@ impl Sgm {
         self.fresh.resize(n + 2, UNREACHED);
         self.right_best.resize(w, 0);
         for v in [&mut self.fit_di, &mut self.fit_num, &mut self.fit_den] {
+            v.resize(w, 0);
+        }
+        for v in [&mut self.win_best, &mut self.win_k, &mut self.win_rival] {
             v.resize(w, 0);
         }
         let vals = out.values_mut();

@@ -140,13 +140,47 @@ impl Sgm {
         let row = y * w..(y + 1) * w;
         let (band_a, band_m, lo_row, hi_row, off_row) = (&self.band_a[row.clone()], &self.band_m[row.clone()], &self.lo[row.clone()], &self.hi[row.clone()], &self.off[row]);
         let (sum, right_best) = (&self.sum[..], &mut self.right_best[..w]);
-        // A pixel's verdict from its winner `bk` (sum `best`) and rival: the uniqueness test,
-        // the splat onto its right pixel, the terms of its fit.
-        let mut decide = |x: usize, best: u16, bk: usize, rival: u16| {
-            if uniq > 0 && (rival as u32) * (100 - uniq) < best as u32 * 100 {
-                return;
+        // Each searched pixel's smallest sum, its disparity index and its rival.
+        let (win_best, win_k, win_rival) = (&mut self.win_best[..w], &mut self.win_k[..w], &mut self.win_rival[..w]);
+        let mut x = span.start;
+        while x < span.end {
+            // Sixteen pixels of one-block bands at once, in the vector lanes (their sums lie
+            // one after the other). (The first pixel's band is tested alone first: at full
+            // range it is wider.)
+            #[cfg(target_arch = "x86_64")]
+            if AVX2 && x + LANES <= span.end && band_m[x] as usize == LANES && band_m[x..x + LANES].iter().all(|&m| m as usize == LANES) {
+                let jlo: [u16; LANES] = std::array::from_fn(|i| lo_row[x + i] - band_a[x + i]);
+                let jhi: [u16; LANES] = std::array::from_fn(|i| hi_row[x + i] - band_a[x + i]);
+                // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the
+                // sixteen bands are one block each, so their sums are LANES · LANES in a row,
+                // and each interval lies inside its block.
+                let (best, at, rival) = unsafe { super::simd::select_blocks(&sum[off_row[x]..][..LANES * LANES], &jlo, &jhi, uniq > 0) };
+                win_best[x..x + LANES].copy_from_slice(&best);
+                win_rival[x..x + LANES].copy_from_slice(&rival);
+                for i in 0..LANES {
+                    win_k[x + i] = band_a[x + i] + at[i];
+                }
+                x += LANES;
+                continue;
             }
-            let (a, m, lo, hi) = (band_a[x] as usize, band_m[x] as usize, lo_row[x] as usize, hi_row[x] as usize);
+            let m = band_m[x] as usize;
+            if m > 0 {
+                let (a, lo, hi) = (band_a[x] as usize, lo_row[x] as usize, hi_row[x] as usize);
+                let (best, bk, rival) = select::<AVX2>(&sum[off_row[x]..][..m], a, lo, hi, uniq > 0);
+                (win_best[x], win_k[x], win_rival[x]) = (best, bk as u16, rival);
+            }
+            x += 1;
+        }
+        for x in span.clone() {
+            let m = band_m[x] as usize;
+            if m == 0 {
+                continue;
+            }
+            let (best, bk, rival) = (win_best[x], win_k[x] as usize, win_rival[x]);
+            if uniq > 0 && (rival as u32) * (100 - uniq) < best as u32 * 100 {
+                continue;
+            }
+            let (a, lo, hi) = (band_a[x] as usize, lo_row[x] as usize, hi_row[x] as usize);
             let di = dmin + bk as i32;
             let xr = (x as i32 - di) as usize;
             // The cheapest splat wins; ties go to the smaller x, i.e. the smaller disparity.
@@ -163,32 +197,6 @@ impl Sgm {
                 // d + 0 / 1 = d exactly.
                 (0, 1)
             };
-        };
-        let mut x = span.start;
-        while x < span.end {
-            // Sixteen pixels of one-block bands at once, in the vector lanes (their sums lie
-            // one after the other).
-            #[cfg(target_arch = "x86_64")]
-            if AVX2 && x + LANES <= span.end && band_m[x..x + LANES].iter().all(|&m| m as usize == LANES) {
-                let jlo: [u16; LANES] = std::array::from_fn(|i| lo_row[x + i] - band_a[x + i]);
-                let jhi: [u16; LANES] = std::array::from_fn(|i| hi_row[x + i] - band_a[x + i]);
-                // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the
-                // sixteen bands are one block each, so their sums are LANES · LANES in a row,
-                // and each interval lies inside its block.
-                let (best, at, rival) = unsafe { super::simd::select_blocks(&sum[off_row[x]..][..LANES * LANES], &jlo, &jhi, uniq > 0) };
-                for i in 0..LANES {
-                    decide(x + i, best[i], band_a[x + i] as usize + at[i] as usize, rival[i]);
-                }
-                x += LANES;
-                continue;
-            }
-            let m = band_m[x] as usize;
-            if m > 0 {
-                let (a, lo, hi) = (band_a[x] as usize, lo_row[x] as usize, hi_row[x] as usize);
-                let (best, bk, rival) = select::<AVX2>(&sum[off_row[x]..][..m], a, lo, hi, uniq > 0);
-                decide(x, best, bk, rival);
-            }
-            x += 1;
         }
         for x in span.clone() {
             let d = di_row[x] as f32 + num_row[x] as f32 / den_row[x].max(1) as f32;
