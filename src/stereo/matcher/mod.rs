@@ -99,9 +99,10 @@ pub struct StereoMatcher {
     crop_right: Vec<u8>,
     crop_intervals: DisparityIntervals,
     crop_out: DisparityMap,
-    /// SGM's refinement pass: its intervals and map (see `refine_subpixel`), reused.
+    /// SGM's refinement pass: its intervals, map and rows' match spans (`refine_subpixel`), reused.
     refine_intervals: DisparityIntervals,
     refine_out: DisparityMap,
+    refine_spans: Vec<Range<usize>>,
 }
 
 /// The rectangle of a call that matters: the searched pixels' rows and columns, with the
@@ -170,6 +171,7 @@ impl StereoMatcher {
             crop_out: DisparityMap::new(0, 0),
             refine_intervals: DisparityIntervals::empty(0, 0),
             refine_out: DisparityMap::new(0, 0),
+            refine_spans: Vec::new(),
         }
     }
 
@@ -345,7 +347,9 @@ impl StereoMatcher {
         let (below, above) = (dmin as f32 - 3.0, dmax as f32 + 3.0);
         // Per row, only from its first match to its last (`d <= d` fails for NaN alone):
         // outside them nothing is searched, and nothing changes below.
-        let spans: Vec<Range<usize>> = out.values().chunks_exact(w).map(|row| searched_span(row, row).map_or(0..0, |(first, last)| first..last + 1)).collect();
+        let mut spans = std::mem::take(&mut self.refine_spans);
+        spans.clear();
+        spans.extend(out.values().chunks_exact(w).map(|row| searched_span(row, row).map_or(0..0, |(first, last)| first..last + 1)));
         for (y, span) in spans.iter().enumerate() {
             let row = y * w..(y + 1) * w;
             let (vals, los, his) = (&out.values()[row.clone()], &mut iv.lo[row.clone()], &mut iv.hi[row]);
@@ -377,7 +381,7 @@ impl StereoMatcher {
                 *d = if agrees { c } else { kept };
             }
         }
-        (self.refine_intervals, self.refine_out) = (iv, corr);
+        (self.refine_intervals, self.refine_out, self.refine_spans) = (iv, corr, spans);
     }
 
     /// Semi-global matching, in stripes of rows on `threads` threads. Each stripe runs the
