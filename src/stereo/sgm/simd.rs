@@ -288,7 +288,11 @@ pub(super) unsafe fn planes(padded: &[u8], w: usize, planes: &mut [u8]) {
     let flip = _mm256_set1_epi8(i8::MIN);
     let (src, dst) = (padded.as_ptr(), planes.as_mut_ptr());
     let mut x = 0;
-    while x + 32 <= w {
+    while x < w && w >= 32 {
+        // The last columns as the 32 ending at the row's end, again where they overlap the
+        // previous 32 (the same comparisons, the same bytes): one by one, the up to 31
+        // columns of a crop's width cost as much as the vector part of the row.
+        x = x.min(w - 32);
         // SAFETY: every load reads 32 bytes at column x + i ≤ w − 32 + 2 rx of a row of wp
         // bytes, every store 32 bytes at x ≤ w − 32 of a plane of w.
         unsafe {
@@ -306,7 +310,7 @@ pub(super) unsafe fn planes(padded: &[u8], w: usize, planes: &mut [u8]) {
         }
         x += 32;
     }
-    // The last columns one by one, the same comparisons.
+    // A row narrower than 32 columns one by one, the same comparisons.
     for x in x..w {
         let c = padded[ry * wp + rx + x];
         let mut bytes = [0u8; 5];
