@@ -29,19 +29,19 @@ pub(super) const CENSUS_H: usize = 5;
 #[inline(always)]
 pub(super) fn transform(img: &[u8], w: usize, h: usize, planes_of: impl Fn(&[u8], usize, &mut [u8]), mut emit: impl FnMut(usize, [&[u8]; PLANES])) {
     let (rx, ry) = (CENSUS_W / 2, CENSUS_H / 2);
-    // Source rows padded left and right by rx replicated pixels, so the inner loop has no
-    // branch.
+    // The source rows padded left and right by rx replicated pixels, so the inner loop has no
+    // branch, and above and below by ry replicated rows: each output row's window is
+    // `CENSUS_H` consecutive rows of it (the image copied once, not once per window row).
     let wp = w + 2 * rx;
-    let mut padded = vec![0u8; wp * CENSUS_H];
+    let mut padded = vec![0u8; wp * (h + 2 * ry)];
+    for (j, dst) in padded.chunks_mut(wp).enumerate() {
+        let sy = j.saturating_sub(ry).min(h - 1);
+        dst[rx..rx + w].copy_from_slice(&img[sy * w..][..w]);
+        replicate_ends(dst, (rx, rx));
+    }
     let mut planes = vec![0u8; PLANES * w];
     for y in 0..h {
-        for (j, dst) in padded.chunks_mut(wp).enumerate() {
-            let sy = (y + j).saturating_sub(ry).min(h - 1);
-            let src = &img[sy * w..][..w];
-            dst[rx..rx + w].copy_from_slice(src);
-            replicate_ends(dst, (rx, rx));
-        }
-        planes_of(&padded, w, &mut planes);
+        planes_of(&padded[y * wp..][..wp * CENSUS_H], w, &mut planes);
         emit(y, std::array::from_fn(|k| &planes[k * w..][..w]));
     }
 }
