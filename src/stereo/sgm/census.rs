@@ -25,15 +25,18 @@ pub(super) const CENSUS_H: usize = 5;
 /// low 32 bits, its fifth the high bits — and words only to be split again were one more
 /// pass over memory.)
 ///
-/// `planes_of` makes a row's comparisons: [`planes_row`] or a vector copy of it.
+/// `planes_of` makes a row's comparisons: [`planes_row`] or a vector copy of it; `rows` is
+/// the caller's buffer for the padded source, reused from call to call.
 #[inline(always)]
-pub(super) fn transform(img: &[u8], w: usize, h: usize, planes_of: impl Fn(&[u8], usize, &mut [u8]), mut emit: impl FnMut(usize, [&[u8]; PLANES])) {
+pub(super) fn transform(img: &[u8], w: usize, h: usize, rows: &mut Vec<u8>, planes_of: impl Fn(&[u8], usize, &mut [u8]), mut emit: impl FnMut(usize, [&[u8]; PLANES])) {
     let (rx, ry) = (CENSUS_W / 2, CENSUS_H / 2);
     // The source rows padded left and right by rx replicated pixels, so the inner loop has no
     // branch, and above and below by ry replicated rows: each output row's window is
     // `CENSUS_H` consecutive rows of it (the image copied once, not once per window row).
+    // Kept in `rows` between calls; every byte is written below, so it is not cleared.
     let wp = w + 2 * rx;
-    let mut padded = vec![0u8; wp * (h + 2 * ry)];
+    rows.resize(wp * (h + 2 * ry), 0);
+    let padded = &mut rows[..wp * (h + 2 * ry)];
     for (j, dst) in padded.chunks_mut(wp).enumerate() {
         let sy = j.saturating_sub(ry).min(h - 1);
         dst[rx..rx + w].copy_from_slice(&img[sy * w..][..w]);
@@ -117,11 +120,11 @@ pub(super) fn planes_row(padded: &[u8], w: usize, planes: &mut [u8]) {
 
 /// [`transform`]'s words into `out`, `w + pad.0 + pad.1` per row.
 #[inline(always)]
-pub(super) fn transform_into(img: &[u8], w: usize, h: usize, pad: (usize, usize), planes_of: impl Fn(&[u8], usize, &mut [u8]), out: &mut Vec<u64>) {
+pub(super) fn transform_into(img: &[u8], w: usize, h: usize, pad: (usize, usize), rows: &mut Vec<u8>, planes_of: impl Fn(&[u8], usize, &mut [u8]), out: &mut Vec<u64>) {
     let wo = pad.0 + w + pad.1;
     // Every word is written below: no clearing (a fill of the whole image) unless it grows.
     out.resize(wo * h, 0);
-    transform(img, w, h, planes_of, |y, planes| words_row(planes, pad, &mut out[y * wo..][..wo]));
+    transform(img, w, h, rows, planes_of, |y, planes| words_row(planes, pad, &mut out[y * wo..][..wo]));
 }
 
 /// The map of the right image's grey levels onto the left's mean and standard deviation
@@ -223,8 +226,8 @@ mod tests {
         // A strictly increasing change of intensity (gain and offset) keeps every comparison.
         let brighter: Vec<u8> = img.iter().map(|&v| 2 * v + 1).collect();
         let (mut a, mut b) = (Vec::new(), Vec::new());
-        transform_into(&img, w, h, (0, 0), planes_row, &mut a);
-        transform_into(&brighter, w, h, (0, 0), planes_row, &mut b);
+        transform_into(&img, w, h, (0, 0), &mut Vec::new(), planes_row, &mut a);
+        transform_into(&brighter, w, h, (0, 0), &mut Vec::new(), planes_row, &mut b);
         assert_eq!(a, b);
         assert!(a.iter().any(|&v| v != 0));
         // Bit by bit at one interior pixel.
@@ -251,9 +254,9 @@ mod tests {
         let img: Vec<u8> = (0..w * h).map(|_| next() as u8).collect();
         let wo = pad.0 + w + pad.1;
         let mut words = Vec::new();
-        transform_into(&img, w, h, pad, planes_row, &mut words);
+        transform_into(&img, w, h, pad, &mut Vec::new(), planes_row, &mut words);
         let (mut lo, mut hi) = (vec![0u32; wo * h], vec![0u8; wo * h]);
-        transform(&img, w, h, planes_row, |y, planes| split_row(planes, pad, &mut lo[y * wo..][..wo], &mut hi[y * wo..][..wo]));
+        transform(&img, w, h, &mut Vec::new(), planes_row, |y, planes| split_row(planes, pad, &mut lo[y * wo..][..wo], &mut hi[y * wo..][..wo]));
         let (mut want_lo, mut want_hi) = (vec![0u32; wo * h], vec![0u8; wo * h]);
         split(&words, &mut want_lo, &mut want_hi);
         assert!(want_hi.iter().any(|&v| v != 0) && want_lo.iter().any(|&v| v != 0));
@@ -294,8 +297,8 @@ mod tests {
         let (w, h) = (10, 3);
         let img: Vec<u8> = (0..w * h).map(|i| ((i * 53) % 200) as u8).collect();
         let (mut plain, mut padded) = (Vec::new(), Vec::new());
-        transform_into(&img, w, h, (0, 0), planes_row, &mut plain);
-        transform_into(&img, w, h, (3, 2), planes_row, &mut padded);
+        transform_into(&img, w, h, (0, 0), &mut Vec::new(), planes_row, &mut plain);
+        transform_into(&img, w, h, (3, 2), &mut Vec::new(), planes_row, &mut padded);
         for y in 0..h {
             let row = &padded[y * (w + 5)..][..w + 5];
             assert_eq!(&row[3..3 + w], &plain[y * w..][..w]);

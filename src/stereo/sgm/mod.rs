@@ -140,6 +140,8 @@ struct From<'a> {
 #[derive(Default)]
 pub(super) struct Sgm {
     census_l: Vec<u64>,
+    /// The census's padded source image (`census::transform`), reused for both images.
+    census_rows: Vec<u8>,
     /// The right census, each row padded by replication so that every disparity of every
     /// block has a right pixel (the portable costs' words).
     census_r: Vec<u64>,
@@ -287,16 +289,16 @@ impl Sgm {
             }
             census::planes_row(rows, w, planes)
         };
-        census::transform_into(left.data, w, h, (0, 0), planes_of, &mut self.census_l);
+        census::transform_into(left.data, w, h, (0, 0), &mut self.census_rows, planes_of, &mut self.census_l);
         // The right words as the costs read them: split on AVX2, whole words otherwise.
         let wr = g.wr;
         if AVX2 {
             self.census_r_lo.resize(wr * h, 0);
             self.census_r_hi.resize(wr * h, 0);
             let (lo, hi) = (&mut self.census_r_lo, &mut self.census_r_hi);
-            census::transform(right.data, w, h, planes_of, |y, planes| census::split_row(planes, (pad_l, pad_r), &mut lo[y * wr..][..wr], &mut hi[y * wr..][..wr]));
+            census::transform(right.data, w, h, &mut self.census_rows, planes_of, |y, planes| census::split_row(planes, (pad_l, pad_r), &mut lo[y * wr..][..wr], &mut hi[y * wr..][..wr]));
         } else {
-            census::transform_into(right.data, w, h, (pad_l, pad_r), planes_of, &mut self.census_r);
+            census::transform_into(right.data, w, h, (pad_l, pad_r), &mut self.census_rows, planes_of, &mut self.census_r);
         }
         census::pad_rows(right.data, w, h, (pad_l, pad_r), levels, &mut self.levels_r);
         let mut stats = MatchStats { prefilter_ns: t0.elapsed().as_nanos() as u64, ..MatchStats::default() };
