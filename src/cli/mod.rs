@@ -105,6 +105,10 @@ pub struct MatchArgs {
     /// correlation cost around each winner (faster, less precise on slanted surfaces).
     #[arg(long)]
     pub no_sgm_refine: bool,
+    /// SGM: side of the refinement's correlation window (odd, 3…31; `--block` is bm's). Larger
+    /// averages more noise and reaches further past a silhouette (docs/matcher.md, "The rim").
+    #[arg(long, default_value_t = MatchParams::default().sgm_refine_block)]
+    pub sgm_refine_block: u32,
     /// First disparity searched (may be negative). Default: 0, or −(N−1) on a calibrated rig
     /// whose rectified disparities are negative.
     #[arg(long, allow_hyphen_values = true)]
@@ -161,6 +165,7 @@ impl MatchArgs {
             sgm_paths: self.sgm_paths,
             sgm_ad_cap: self.sgm_ad_cap,
             sgm_refine: !self.no_sgm_refine,
+            sgm_refine_block: self.sgm_refine_block,
             min_disparity: self.min_disparity.unwrap_or(0),
             num_disparities: self.num_disparities.unwrap_or(default_range),
             block: self.block,

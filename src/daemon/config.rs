@@ -283,6 +283,8 @@ pub struct MatchingSection {
     pub sgm_ad_cap: u8,
     /// SGM's sub-pixel disparities from the correlation cost around each winner.
     pub sgm_refine: bool,
+    /// That correlation's window side (odd, 3 … 31).
+    pub sgm_refine_block: u32,
     /// "predicted", "paper" or "none".
     pub assist: String,
     /// The paper's weighting factor w (mode "paper").
@@ -299,7 +301,7 @@ impl Default for MatchingSection {
         // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
         // about 330 mm on.
         let m = crate::stereo::MatchParams::default();
-        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true }
+        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true }
     }
 }
 
@@ -422,6 +424,7 @@ impl Config {
                 "p2" => "matching.p2",
                 "sgm_paths" => "matching.sgm_paths",
                 "sgm_ad_cap" => "matching.sgm_ad_cap",
+                "sgm_refine_block" => "matching.sgm_refine_block",
                 _ => "matching",
             };
             return bad(key, format!("{}, got {}", e.expected, e.value));
@@ -444,7 +447,7 @@ impl Config {
         let config = self;
         let mut pipeline = crate::pipeline::PipelineOptions::default();
         let m = &config.matching;
-        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, ..crate::stereo::MatchParams::for_method(m.method) };
+        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, ..crate::stereo::MatchParams::for_method(m.method) };
         // Parallelism comes from the pool: one thread per matcher.
         pipeline.matching.threads = 1;
         let registration = config.scan.register.then(|| {
@@ -546,7 +549,7 @@ mod tests {
     #[test]
     fn matcher_parameters_follow_the_matchers_rules_and_every_accepted_value_builds() {
         let p = Path::new("x.toml");
-        for (text, key) in [("p1 = 0", "matching.p1"), ("p2 = 9000", "matching.p2"), ("sgm_paths = 5", "matching.sgm_paths"), ("sgm_ad_cap = 101", "matching.sgm_ad_cap"), ("method = \"census\"", "expected `bm` or `sgm`"), ("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities")] {
+        for (text, key) in [("p1 = 0", "matching.p1"), ("p2 = 9000", "matching.p2"), ("sgm_paths = 5", "matching.sgm_paths"), ("sgm_ad_cap = 101", "matching.sgm_ad_cap"), ("method = \"census\"", "expected `bm` or `sgm`"), ("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("sgm_refine_block = 8", "matching.sgm_refine_block"), ("sgm_refine_block = 33", "matching.sgm_refine_block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities")] {
             let e = Config::parse(p, &format!("[matching]\n{text}\n")).unwrap_err().to_string();
             assert!(e.contains(key), "{text}: {e}");
         }

@@ -24,6 +24,9 @@ pub struct MatchParams {
     /// over `block`) around SGM's winner instead of from SGM's own sums (sharper on slanted
     /// surfaces; about 25 ns per matched pixel more).
     pub sgm_refine: bool,
+    /// SGM: side of the refinement's square correlation window, odd, 3…31 pixels (`block`
+    /// is `bm`'s own window).
+    pub sgm_refine_block: u32,
     /// Smallest disparity searched (OpenCV `minDisparity`); may be negative.
     pub min_disparity: i32,
     /// Number of disparities searched: `min_disparity … min_disparity + num_disparities − 1`.
@@ -63,6 +66,7 @@ impl Default for MatchParams {
             sgm_paths: 4,
             sgm_ad_cap: 25,
             sgm_refine: true,
+            sgm_refine_block: 11,
             min_disparity: 0,
             num_disparities: 64,
             block: 9,
@@ -161,6 +165,13 @@ impl ValidMatchParams {
         (self.block / 2) as usize
     }
 
+    /// Half the side of the widest window any stage reads: `block`'s, or SGM's refinement's
+    /// where that is wider.
+    pub fn reach(&self) -> usize {
+        let refine = if self.method == Method::Sgm && self.sgm_refine && self.subpixel { (self.sgm_refine_block / 2) as usize } else { 0 };
+        self.radius().max(refine)
+    }
+
     /// Largest disparity searched.
     pub fn max_disparity(&self) -> i32 {
         self.min_disparity + self.num_disparities as i32 - 1
@@ -190,12 +201,16 @@ impl MatchParams {
             // 31 keeps every window cost (block² · 2·cap) inside 16 bits.
             return err("block", self.block.to_string(), "must be odd and within 3…31");
         }
+        if self.sgm_refine_block % 2 == 0 || !(3..=31).contains(&self.sgm_refine_block) {
+            return err("sgm_refine_block", self.sgm_refine_block.to_string(), "must be odd and within 3…31");
+        }
         if !(1..=63).contains(&self.prefilter_cap) {
             return err("prefilter_cap", self.prefilter_cap.to_string(), "must be within 1…63");
         }
-        let max_cost = self.block * self.block * 2 * self.prefilter_cap as u32;
-        if max_cost > u16::MAX as u32 {
-            return err("block", self.block.to_string(), "is too large for this prefilter_cap (block² · 2 · cap must stay below 65536)");
+        for (name, block) in [("block", self.block), ("sgm_refine_block", self.sgm_refine_block)] {
+            if block * block * 2 * self.prefilter_cap as u32 > u16::MAX as u32 {
+                return err(name, block.to_string(), "is too large for this prefilter_cap (block² · 2 · cap must stay below 65536)");
+            }
         }
         if self.uniqueness_ratio > 100 {
             return err("uniqueness_ratio", self.uniqueness_ratio.to_string(), "must be a percentage within 0…100");

@@ -48,6 +48,7 @@ use super::speckle::SpeckleFilter;
 use rows::{column_bands, left_right_check, row_intervals, select_row, texture_row, tile_bands, update_column_sums, update_texture};
 use scratch::{Geometry, StripeInput, StripeScratch, TileSums, PF_SLACK, TILE_H, TILE_W};
 
+mod refine;
 mod rows;
 mod scratch;
 mod tiles;
@@ -99,10 +100,8 @@ pub struct StereoMatcher {
     crop_right: Vec<u8>,
     crop_intervals: DisparityIntervals,
     crop_out: DisparityMap,
-    /// SGM's refinement pass: its intervals, map and rows' match spans (`refine_subpixel`), reused.
-    refine_intervals: DisparityIntervals,
-    refine_out: DisparityMap,
-    refine_spans: Vec<Range<usize>>,
+    /// SGM's refinement pass's buffers (`refine.rs`), reused.
+    refine: refine::RefineScratch,
 }
 
 /// The rectangle of a call that matters: the searched pixels' rows and columns, with the
@@ -140,7 +139,7 @@ impl Crop {
             return None;
         }
         let (dlo, dhi) = (dlo.clamp(dmin, dmax), dhi.clamp(dmin, dmax));
-        let m = p.radius() as i64 + 1;
+        let m = p.reach() as i64 + 1;
         let left = (x0 as i64 - m - dhi.max(0) as i64).max(0) as usize;
         let right = ((x1 as i64 + m - dlo.min(0) as i64) as usize).min(w - 1);
         let top = y0.saturating_sub(m as usize);
@@ -169,9 +168,7 @@ impl StereoMatcher {
             crop_right: Vec::new(),
             crop_intervals: DisparityIntervals::empty(0, 0),
             crop_out: DisparityMap::new(0, 0),
-            refine_intervals: DisparityIntervals::empty(0, 0),
-            refine_out: DisparityMap::new(0, 0),
-            refine_spans: Vec::new(),
+            refine: Default::default(),
         }
     }
 
@@ -263,7 +260,7 @@ impl StereoMatcher {
             if self.params.subpixel && self.params.sgm_refine {
                 // A mask (the object segmented from the blue screen) marks a scan's view.
                 let masked = intervals.lo.iter().zip(&intervals.hi).any(|(a, b)| a > b);
-                self.refine_subpixel(left, right, out, masked, &mut totals);
+                self.refine_subpixel(left, right, intervals, out, masked, &mut totals);
             }
             totals
         } else {
@@ -320,68 +317,6 @@ impl StereoMatcher {
             totals.lr_passed += s.lr_passed;
         }
         totals
-    }
-
-    /// SGM's sub-pixel disparities taken from the correlation cost: its aggregated sums are
-    /// flattened by the smoothness penalties and step along slanted surfaces, so each matched
-    /// pixel is correlated again (the `bm` cost, `block` window, no uniqueness, texture,
-    /// left–right or speckle test) over its SGM disparity ± 2, and where the correlation's
-    /// sub-pixel disparity lies within 1 of SGM's, it replaces SGM's value. Where they
-    /// disagree in a `masked` match (a scan's view: the object segmented, the background
-    /// unsearched), the match is dropped — on the object's rim SGM carries the background's
-    /// lower disparities in, millimetres too far, and a view's missing pixel is seen by its
-    /// neighbours while a wrong one spoils the fused surface. On a whole image (a single pair)
-    /// SGM's value stays: there density matters and there is no rim.
-    fn refine_subpixel(&mut self, left: GrayView, right: GrayView, out: &mut DisparityMap, masked: bool, totals: &mut MatchStats) {
-        let (w, h) = (left.width, left.height);
-        let p = &self.params;
-        let (dmin, dmax) = (p.min_disparity, p.max_disparity());
-        let bm = crate::stereo::MatchParams { method: Method::Bm, uniqueness_ratio: 0, texture_threshold: 0, lr_max_diff: None, speckle_window: 0, ..(**p).clone() }.validate().expect("the sgm parameters with the correlation's tests off are valid");
-        let mut iv = std::mem::replace(&mut self.refine_intervals, DisparityIntervals::empty(0, 0));
-        (iv.width, iv.height) = (w, h);
-        iv.lo.resize(w * h, 0);
-        iv.hi.resize(w * h, 0);
-        // Branch-free, so that it vectorises; unmatched pixels search nothing. The value is
-        // clamped to 3 past the range before it is rounded (NaN to 0, its bounds unused),
-        // which changes no bound below and lets the rounding skip the cast's checks.
-        let (below, above) = (dmin as f32 - 3.0, dmax as f32 + 3.0);
-        // Per row, only from its first match to its last (`d <= d` fails for NaN alone):
-        // outside them nothing is searched, and nothing changes below.
-        let mut spans = std::mem::take(&mut self.refine_spans);
-        spans.clear();
-        spans.extend(out.values().chunks_exact(w).map(|row| searched_span(row, row).map_or(0..0, |(first, last)| first..last + 1)));
-        for (y, span) in spans.iter().enumerate() {
-            let row = y * w..(y + 1) * w;
-            let (vals, los, his) = (&out.values()[row.clone()], &mut iv.lo[row.clone()], &mut iv.hi[row]);
-            los[..span.start].fill(1);
-            his[..span.start].fill(0);
-            los[span.end..].fill(1);
-            his[span.end..].fill(0);
-            for x in span.clone() {
-                let d = vals[x];
-                let matched = !d.is_nan();
-                let r = round_half_away_within((if matched { d } else { 0.0 }).clamp(below, above));
-                los[x] = if matched { (r - 2).max(dmin).min(dmax) as i16 } else { 1 };
-                his[x] = if matched { (r + 2).max(dmin).min(dmax) as i16 } else { 0 };
-            }
-        }
-        let mut corr = std::mem::replace(&mut self.refine_out, DisparityMap::new(0, 0));
-        if (corr.width, corr.height) != (w, h) {
-            corr = DisparityMap::new(w, h);
-        }
-        let stats = self.correlate(&bm, left, right, &iv, &mut corr);
-        totals.evaluated += stats.evaluated;
-        for (y, span) in spans.iter().enumerate() {
-            let row = y * w + span.start..y * w + span.end;
-            for (d, &c) in out.values_mut()[row.clone()].iter_mut().zip(&corr.values()[row]) {
-                // Branch-free. NaN fails every comparison: an unmatched pixel stays unmatched,
-                // and a missing correlation disagrees.
-                let agrees = (c - *d).abs() <= 1.0;
-                let kept = if masked { f32::NAN } else { *d };
-                *d = if agrees { c } else { kept };
-            }
-        }
-        (self.refine_intervals, self.refine_out, self.refine_spans) = (iv, corr, spans);
     }
 
     /// Semi-global matching, in stripes of rows on `threads` threads. Each stripe runs the

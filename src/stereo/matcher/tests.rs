@@ -340,7 +340,8 @@ fn refinement_replaces_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
             *d = if i % w < w / 2 { 7.3 } else { 3.0 };
         }
         let mut totals = MatchStats::default();
-        m.refine_subpixel(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &mut out, masked, &mut totals);
+        let searched = DisparityIntervals::full(w, h, 0, 15);
+        m.refine_subpixel(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &searched, &mut out, masked, &mut totals);
         let at = |x: usize, y: usize| out.values()[y * w + x];
         // Agreeing: the correlation's value (the shift is whole, 7).
         assert!((at(30, 10) - 7.0).abs() < 0.1, "{}", at(30, 10));
@@ -348,6 +349,54 @@ fn refinement_replaces_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
         assert_eq!(at(70, 10).is_nan(), masked, "{}", at(70, 10));
         if !masked {
             assert_eq!(at(70, 10), 3.0);
+        }
+    }
+}
+
+/// On a scan's rim the refinement correlates over the object's pixels alone where the whole
+/// window disagrees with SGM: a background with stronger texture, matching at a disparity
+/// within the refinement's ± 2, pulls a window that straddles the silhouette to its own
+/// disparity, and those matches would be dropped.
+#[test]
+fn the_rim_is_refined_over_the_object_alone() {
+    let (w, h, d_object, d_background) = (96, 40, 6usize, 4usize);
+    let object = 30..70;
+    let mut next = crate::testing::xorshift(7);
+    let background: Vec<u8> = (0..w * h).map(|_| (next() % 256) as u8).collect();
+    let texture: Vec<u8> = (0..w * h).map(|_| 110 + (next() % 20) as u8).collect();
+    let left: Vec<u8> = (0..w * h).map(|i| if object.contains(&(i % w)) { texture[i] } else { background[i] }).collect();
+    let right: Vec<u8> = (0..w * h)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            if object.contains(&(x + d_object)) { texture[y * w + x + d_object] } else { background[y * w + (x + d_background).min(w - 1)] }
+        })
+        .collect();
+    let p = MatchParams { method: crate::stereo::Method::Sgm, num_disparities: 16, threads: 1, ..Default::default() }.validate().unwrap();
+    let mut m = StereoMatcher::new(p);
+    let mut searched = DisparityIntervals::full(w, h, 0, 15);
+    let mut out = DisparityMap::new(w, h);
+    for y in 0..h {
+        for x in 0..w {
+            if object.contains(&x) {
+                out.set(x, y, Some(d_object as f32 + 0.3));
+            } else {
+                searched.set(x, y, None);
+            }
+        }
+    }
+    let mut totals = MatchStats::default();
+    m.refine_subpixel(GrayView::new(w, h, &left).unwrap(), GrayView::new(w, h, &right).unwrap(), &searched, &mut out, true, &mut totals);
+    // Every object pixel kept; away from the image's top and bottom rows (windows cut short)
+    // near the truth: where the whole window agreed with SGM its value stays (pulled a little
+    // towards the background's disparity at the silhouette), the others are taken over the
+    // object alone.
+    for y in 0..h {
+        for x in object.clone() {
+            let d = out.values()[y * w + x];
+            assert!(!d.is_nan(), "pixel ({x}, {y}) dropped");
+            if (6..h - 6).contains(&y) {
+                assert!((d - d_object as f32).abs() < 0.5, "pixel ({x}, {y}): {d}");
+            }
         }
     }
 }

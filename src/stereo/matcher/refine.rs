@@ -1,0 +1,328 @@
+//! SGM's sub-pixel refinement by the correlation cost (`--method sgm`, `sgm_refine`), and its
+//! masked correlation on a scan's rim.
+//!
+//! SGM's aggregated sums are flattened by the smoothness penalties, so its own sub-pixel
+//! values step along slanted surfaces; the correlation cost around SGM's winner gives the
+//! sub-pixel disparity instead. On a scan's rim — where a pixel's window reaches the
+//! background that segmentation left unsearched — the window straddles the silhouette and
+//! the correlation is pulled off: there it is taken over the window's object pixels alone
+//! (docs/matcher.md, "The rim").
+
+use std::ops::Range;
+
+use super::scratch::{Geometry, PF_SLACK};
+use super::{round_half_away_within, Method, StereoMatcher};
+use crate::stereo::disparity::{searched_span, DisparityIntervals, DisparityMap, GrayView, MatchStats};
+
+/// The refinement's buffers, reused between calls.
+pub(super) struct RefineScratch {
+    /// Each matched pixel's correlation interval (its SGM disparity ± 2).
+    intervals: DisparityIntervals,
+    /// The correlation's disparities.
+    corr: DisparityMap,
+    /// Per row, its first to last matched pixel.
+    spans: Vec<Range<usize>>,
+    /// The masked pass's rows ([`RimRows`]) and the pixels it looks at.
+    rim: RimRows,
+    candidates: Vec<u32>,
+}
+
+impl Default for RefineScratch {
+    fn default() -> Self {
+        RefineScratch { intervals: DisparityIntervals::empty(0, 0), corr: DisparityMap::new(0, 0), spans: Vec::new(), rim: RimRows::default(), candidates: Vec::new() }
+    }
+}
+
+impl StereoMatcher {
+    /// SGM's sub-pixel disparities taken from the correlation cost: each matched pixel is
+    /// correlated again (the `bm` cost, `block` window, no uniqueness, texture, left–right
+    /// or speckle test) over its SGM disparity ± 2, and where the correlation's sub-pixel
+    /// disparity lies within 1 of SGM's, it replaces SGM's value. Where they disagree in a
+    /// `masked` match (a scan's view: the object segmented, the background unsearched, as
+    /// `searched` tells), the match is dropped — a view's missing pixel is seen by its
+    /// neighbours while a wrong one spoils the fused surface — and on its rim the
+    /// correlation is taken over the window's object pixels only ([`rim_correlation`]). On
+    /// a whole image (a single pair) SGM's value stays where they disagree: there density
+    /// matters and there is no rim.
+    pub(super) fn refine_subpixel(&mut self, left: GrayView, right: GrayView, searched: &DisparityIntervals, out: &mut DisparityMap, masked: bool, totals: &mut MatchStats) {
+        let (w, h) = (left.width, left.height);
+        let p = &self.params;
+        let (dmin, dmax) = (p.min_disparity, p.max_disparity());
+        let bm = crate::stereo::MatchParams { method: Method::Bm, uniqueness_ratio: 0, texture_threshold: 0, lr_max_diff: None, speckle_window: 0, block: p.sgm_refine_block, ..(**p).clone() }.validate().expect("the sgm parameters with the correlation's tests off are valid");
+        let mut s = std::mem::take(&mut self.refine);
+        let iv = &mut s.intervals;
+        (iv.width, iv.height) = (w, h);
+        iv.lo.resize(w * h, 0);
+        iv.hi.resize(w * h, 0);
+        // Branch-free, so that it vectorises; unmatched pixels search nothing. The value is
+        // clamped to 3 past the range before it is rounded (NaN to 0, its bounds unused),
+        // which changes no bound below and lets the rounding skip the cast's checks.
+        let (below, above) = (dmin as f32 - 3.0, dmax as f32 + 3.0);
+        // Per row, only from its first match to its last (`d <= d` fails for NaN alone):
+        // outside them nothing is searched, and nothing changes below.
+        s.spans.clear();
+        s.spans.extend(out.values().chunks_exact(w).map(|row| searched_span(row, row).map_or(0..0, |(first, last)| first..last + 1)));
+        for (y, span) in s.spans.iter().enumerate() {
+            let row = y * w..(y + 1) * w;
+            let (vals, los, his) = (&out.values()[row.clone()], &mut iv.lo[row.clone()], &mut iv.hi[row]);
+            los[..span.start].fill(1);
+            his[..span.start].fill(0);
+            los[span.end..].fill(1);
+            his[span.end..].fill(0);
+            for x in span.clone() {
+                let d = vals[x];
+                let matched = !d.is_nan();
+                let r = round_half_away_within((if matched { d } else { 0.0 }).clamp(below, above));
+                los[x] = if matched { (r - 2).max(dmin).min(dmax) as i16 } else { 1 };
+                his[x] = if matched { (r + 2).max(dmin).min(dmax) as i16 } else { 0 };
+            }
+        }
+        if (s.corr.width, s.corr.height) != (w, h) {
+            s.corr = DisparityMap::new(w, h);
+        }
+        let stats = self.correlate(&bm, left, right, &s.intervals, &mut s.corr);
+        totals.evaluated += stats.evaluated;
+        if masked {
+            // The rim's pixels are taken again only where the correlation disagrees: where it
+            // agrees, its value is kept as on the rest of the object.
+            s.candidates.clear();
+            for (y, span) in s.spans.iter().enumerate() {
+                for x in span.clone() {
+                    let i = y * w + x;
+                    let (d, c) = (out.values()[i], s.corr.values()[i]);
+                    if !d.is_nan() && !((c - d).abs() <= 1.0) {
+                        s.candidates.push(i as u32);
+                    }
+                }
+            }
+            if !s.candidates.is_empty() {
+                let g = Geometry::new(&bm, w, h);
+                s.rim.build(g, &self.left_pf, searched);
+                for &i in &s.candidates {
+                    let i = i as usize;
+                    let (lo, hi) = (s.intervals.lo[i] as i32, s.intervals.hi[i] as i32);
+                    if let Some(costs) = s.rim.costs(g, &self.right_pf_rev, i % w, i / w, lo, hi) {
+                        totals.evaluated += (hi - lo + 1) as u64;
+                        s.corr.values_mut()[i] = lo as f32 + fit(&costs[..(hi - lo + 1) as usize]);
+                    }
+                }
+            }
+        }
+        for (y, span) in s.spans.iter().enumerate() {
+            let row = y * w + span.start..y * w + span.end;
+            for (d, &c) in out.values_mut()[row.clone()].iter_mut().zip(&s.corr.values()[row]) {
+                // Branch-free. NaN fails every comparison: an unmatched pixel stays unmatched,
+                // and a missing correlation disagrees.
+                let agrees = (c - *d).abs() <= 1.0;
+                let kept = if masked { f32::NAN } else { *d };
+                *d = if agrees { c } else { kept };
+            }
+        }
+        self.refine = s;
+    }
+}
+
+/// The winner of `costs` (the first of equal ones) and the equiangular sub-pixel fit through it
+/// and its neighbours (none at either end), as an offset from the first cost's disparity: the
+/// correlation's own rule (`rows::decide_at`).
+fn fit(costs: &[u32]) -> f32 {
+    let (best, &min) = costs.iter().enumerate().min_by_key(|&(_, c)| *c).expect("an interval holds a disparity");
+    let mut frac = 0.0f32;
+    if best > 0 && best + 1 < costs.len() {
+        let (c0, c1, c2) = (costs[best - 1] as f32, min as f32, costs[best + 1] as f32);
+        let rise = c0.max(c2) - c1;
+        if rise > 0.0 {
+            frac = ((c0 - c2) / (2.0 * rise)).clamp(-0.5, 0.5);
+        }
+    }
+    best as f32 + frac
+}
+
+/// Lanes of one window row: sixteen columns.
+const LANES: usize = 16;
+
+/// The left image's object for the rim's masked correlation, in rows laid out as the
+/// reversed right rows are (increasing disparity walks forward): per row of the image,
+/// `w + 2·LANES` columns stored back to front, columns `−LANES … w + LANES − 1`. `searched`
+/// is `0xff` at a searched pixel, 0 elsewhere (outside the image too); `object` is the
+/// prefiltered left value at a searched pixel, 0 elsewhere; `background` is `0xff` at an
+/// unsearched pixel of the image, 0 elsewhere.
+#[derive(Default)]
+pub(super) struct RimRows {
+    searched: Vec<u8>,
+    object: Vec<u8>,
+    background: Vec<u8>,
+}
+
+impl RimRows {
+    /// Position of column `x` (−LANES ≤ x < w + LANES) in a row of `w` columns.
+    fn at(w: usize, x: isize) -> usize {
+        (w as isize + LANES as isize - 1 - x) as usize
+    }
+
+    fn build(&mut self, g: Geometry, left_pf: &[u8], searched: &DisparityIntervals) {
+        let Geometry { w, h, r, wp, .. } = g;
+        let width = w + 2 * LANES;
+        for v in [&mut self.searched, &mut self.object, &mut self.background] {
+            // Every byte is written below.
+            v.resize(width * h, 0);
+        }
+        for y in 0..h {
+            let row = y * width..(y + 1) * width;
+            let (sr, or, br) = (&mut self.searched[row.clone()], &mut self.object[row.clone()], &mut self.background[row]);
+            for v in [&mut *sr, &mut *or, &mut *br] {
+                v[..LANES].fill(0);
+                v[LANES + w..].fill(0);
+            }
+            let lrow = &left_pf[PF_SLACK + y * wp + r..][..w];
+            let (lo, hi) = (&searched.lo[y * w..][..w], &searched.hi[y * w..][..w]);
+            // Columns 0 … w − 1 at positions w + LANES − 1 … LANES: reversed iterators, so
+            // that it vectorises.
+            let cols = LANES..LANES + w;
+            let dst = sr[cols.clone()].iter_mut().rev().zip(or[cols.clone()].iter_mut().rev()).zip(br[cols].iter_mut().rev());
+            for (((s, o), b), ((&l, &a), &z)) in dst.zip(lrow.iter().zip(lo).zip(hi)) {
+                let m = if a <= z { 0xff } else { 0 };
+                *s = m;
+                *o = l & m;
+                *b = !m;
+            }
+        }
+    }
+
+    /// The masked SAD of pixel `(x, y)` at disparities `lo ..= hi` (at most five): over its
+    /// `block × block` window's searched pixels inside the image — `None` where the window
+    /// holds no unsearched pixel (not on the rim).
+    fn costs(&self, g: Geometry, right_pf_rev: &[u8], x: usize, y: usize, lo: i32, hi: i32) -> Option<[u32; 5]> {
+        debug_assert!(hi - lo < 5 && lo <= hi);
+        if 2 * g.r + 1 > LANES {
+            return self.costs_scalar(g, right_pf_rev, x, y, lo, hi);
+        }
+        #[cfg(target_arch = "x86_64")]
+        {
+            // SAFETY: SSE2 is part of x86_64; the loads stay inside the buffers (see `costs_sse2`).
+            unsafe { self.costs_sse2(g, right_pf_rev, x, y, lo, hi) }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        self.costs_scalar(g, right_pf_rev, x, y, lo, hi)
+    }
+
+    /// [`RimRows::costs`], one pixel at a time (any window size; the reference of the vector copy).
+    fn costs_scalar(&self, g: Geometry, right_pf_rev: &[u8], x: usize, y: usize, lo: i32, hi: i32) -> Option<[u32; 5]> {
+        let Geometry { w, h, r, .. } = g;
+        let (wr, width) = (g.wr(), w + 2 * LANES);
+        let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
+        let rows = y.saturating_sub(r)..(y + r + 1).min(h);
+        let on_rim = rows.clone().any(|yy| (x0..x1).any(|xx| self.background[yy * width + Self::at(w, xx as isize)] != 0));
+        if !on_rim {
+            return None;
+        }
+        let mut costs = [0u32; 5];
+        for yy in rows {
+            let rrow = &right_pf_rev[PF_SLACK + yy * wr..][..wr];
+            for xx in x0..x1 {
+                let p = yy * width + Self::at(w, xx as isize);
+                if self.searched[p] == 0 {
+                    continue;
+                }
+                let lv = self.object[p] as i32;
+                // The right pixel xx − d in the reversed padded row.
+                let base = (wr - 1 - g.rpad_left) as i32 - xx as i32;
+                for (k, c) in costs[..(hi - lo + 1) as usize].iter_mut().enumerate() {
+                    *c += (lv - rrow[(base + lo + k as i32) as usize] as i32).unsigned_abs();
+                }
+            }
+        }
+        Some(costs)
+    }
+
+    /// [`RimRows::costs`] for windows of at most [`LANES`] columns: per window row, sixteen
+    /// columns from the window's last one backwards, the lanes past its first masked off, and
+    /// one `psadbw` per disparity.
+    ///
+    /// # Safety
+    /// Loads of 16 bytes: the rim rows from `at(w, x + r)` = `w + LANES − 1 − x − r ≥ 0` (x < w),
+    /// ending before `w + 2·LANES` (x + r ≥ 0); the right rows from
+    /// `PF_SLACK + wr − rpad_left − 1 − x − r + d ≥ PF_SLACK` past the row's start
+    /// (`wr − rpad_left = w + rpad_right`, `rpad_right ≥ r − dmin`), ending at most
+    /// `PF_SLACK + wr + 15 − 2r` past it (`rpad_left = r + dmax`): inside the buffer, which has
+    /// `PF_SLACK` bytes after its last row.
+    #[cfg(target_arch = "x86_64")]
+    unsafe fn costs_sse2(&self, g: Geometry, right_pf_rev: &[u8], x: usize, y: usize, lo: i32, hi: i32) -> Option<[u32; 5]> {
+        use std::arch::x86_64::*;
+        let Geometry { w, h, r, .. } = g;
+        let (wr, width) = (g.wr(), w + 2 * LANES);
+        let b = 2 * r + 1;
+        // Lane i holds column x + r − i: the window is the first b lanes.
+        let ramp: [u8; 2 * LANES] = std::array::from_fn(|i| if i < LANES { 0xff } else { 0 });
+        let window = _mm_loadu_si128(ramp.as_ptr().add(LANES - b) as *const __m128i);
+        let start = Self::at(w, (x + r) as isize);
+        let rows = y.saturating_sub(r)..(y + r + 1).min(h);
+        let mut any_bg = _mm_setzero_si128();
+        for yy in rows.clone() {
+            let bg = _mm_loadu_si128(self.background.as_ptr().add(yy * width + start) as *const __m128i);
+            any_bg = _mm_or_si128(any_bg, _mm_and_si128(bg, window));
+        }
+        if _mm_movemask_epi8(_mm_cmpeq_epi8(any_bg, _mm_setzero_si128())) == 0xffff {
+            return None;
+        }
+        let n = (hi - lo + 1) as usize;
+        let mut acc = [_mm_setzero_si128(); 5];
+        // Lane i's right pixel at disparity lo: column x + r − i − lo, reversed.
+        let first = PF_SLACK as isize + (wr - g.rpad_left) as isize - 1 - (x + r) as isize + lo as isize;
+        for yy in rows {
+            let p = yy * width + start;
+            let m = _mm_and_si128(_mm_loadu_si128(self.searched.as_ptr().add(p) as *const __m128i), window);
+            let lv = _mm_and_si128(_mm_loadu_si128(self.object.as_ptr().add(p) as *const __m128i), window);
+            let rp = right_pf_rev.as_ptr().offset(first + (yy * wr) as isize);
+            for (k, a) in acc[..n].iter_mut().enumerate() {
+                let rv = _mm_and_si128(_mm_loadu_si128(rp.add(k) as *const __m128i), m);
+                *a = _mm_add_epi64(*a, _mm_sad_epu8(lv, rv));
+            }
+        }
+        let mut costs = [0u32; 5];
+        for (c, a) in costs.iter_mut().zip(&acc[..n]) {
+            *c = (_mm_cvtsi128_si64(*a) + _mm_cvtsi128_si64(_mm_unpackhi_epi64(*a, *a))) as u32;
+        }
+        Some(costs)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stereo::MatchParams;
+
+    /// The vector rim costs are the scalar ones: every window side up to sixteen lanes, pixels
+    /// at the image's edges and corners, masks with holes, disparities at the range's ends.
+    #[test]
+    fn the_vector_rim_costs_are_the_scalar_ones() {
+        let mut next = crate::testing::xorshift(0x5eed_0f_41);
+        for (block, min_disparity, num_disparities) in [(3, 0, 16), (9, 0, 40), (11, -7, 20), (15, 3, 9)] {
+            let p = MatchParams { block, min_disparity, num_disparities, ..Default::default() }.validate().unwrap();
+            let (w, h) = (37, 23);
+            let g = Geometry::new(&p, w, h);
+            let left_pf: Vec<u8> = (0..g.wp * h + 2 * PF_SLACK).map(|_| (next() % 63) as u8).collect();
+            let right_pf_rev: Vec<u8> = (0..g.wr() * h + 2 * PF_SLACK).map(|_| (next() % 63) as u8).collect();
+            let mut searched = DisparityIntervals::full(w, h, min_disparity, p.max_disparity());
+            for y in 0..h {
+                for x in 0..w {
+                    if next() % 4 == 0 {
+                        searched.set(x, y, None);
+                    }
+                }
+            }
+            let mut rows = RimRows::default();
+            rows.build(g, &left_pf, &searched);
+            let (dmin, dmax) = (min_disparity, p.max_disparity());
+            for y in 0..h {
+                for x in 0..w {
+                    let lo = dmin + (next() % (dmax - dmin - 3) as u64) as i32;
+                    for (lo, hi) in [(lo, lo + 4), (dmin, dmin + 2), (dmax - 4, dmax), (lo, lo)] {
+                        let want = rows.costs_scalar(g, &right_pf_rev, x, y, lo, hi);
+                        assert_eq!(rows.costs(g, &right_pf_rev, x, y, lo, hi), want, "block {block}, pixel ({x}, {y}), {lo} … {hi}");
+                    }
+                }
+            }
+        }
+    }
+}
