@@ -66,7 +66,7 @@ impl Default for MatchParams {
             sgm_paths: 4,
             sgm_ad_cap: 25,
             sgm_refine: true,
-            sgm_refine_block: 11,
+            sgm_refine_block: 9,
             min_disparity: 0,
             num_disparities: 64,
             block: 9,

@@ -160,6 +160,8 @@ impl RimRows {
         (w as isize + LANES as isize - 1 - x) as usize
     }
 
+    /// The rows of a call: its searched pixels (`searched`) and the prefiltered left rows the
+    /// correlation pass has just left (`left_pf`, padded by `r`).
     fn build(&mut self, g: Geometry, left_pf: &[u8], searched: &DisparityIntervals) {
         let Geometry { w, h, r, wp, .. } = g;
         let width = w + 2 * LANES;

@@ -387,15 +387,16 @@ fn the_rim_is_refined_over_the_object_alone() {
     let mut totals = MatchStats::default();
     m.refine_subpixel(GrayView::new(w, h, &left).unwrap(), GrayView::new(w, h, &right).unwrap(), &searched, &mut out, true, &mut totals);
     // Every object pixel kept; away from the image's top and bottom rows (windows cut short)
-    // near the truth: where the whole window agreed with SGM its value stays (pulled a little
-    // towards the background's disparity at the silhouette), the others are taken over the
-    // object alone.
+    // within a pixel of the truth, not at the background's disparity: where the whole window
+    // agreed with SGM its value stays (pulled towards the background's at the silhouette), the
+    // others are taken over the object alone. Inside, the correlation's own precision.
     for y in 0..h {
         for x in object.clone() {
             let d = out.values()[y * w + x];
             assert!(!d.is_nan(), "pixel ({x}, {y}) dropped");
+            let tolerance = if (40..60).contains(&x) { 0.25 } else { 1.0 };
             if (6..h - 6).contains(&y) {
-                assert!((d - d_object as f32).abs() < 0.5, "pixel ({x}, {y}): {d}");
+                assert!((d - d_object as f32).abs() < tolerance, "pixel ({x}, {y}): {d}");
             }
         }
     }
