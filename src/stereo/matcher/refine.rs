@@ -14,6 +14,12 @@ use super::scratch::{Geometry, PF_SLACK};
 use super::{round_half_away_within, Method, StereoMatcher};
 use crate::stereo::disparity::{searched_span, DisparityIntervals, DisparityMap, GrayView, MatchStats};
 
+/// How close the rim's correlation over the object must come to SGM's value to replace it
+/// (elsewhere 1 px): its window holds fewer pixels, and each rim pixel a view gains is less
+/// precise than its median one — at 1 px the realistic egg ring's views' median distance rose
+/// above `bm`'s, at 0.5 px it did not (docs/matcher.md, "The rim").
+const RIM_AGREE_PX: f32 = 0.5;
+
 /// The refinement's buffers, reused between calls.
 pub(super) struct RefineScratch {
     /// Each matched pixel's correlation interval (its SGM disparity ± 2).
@@ -35,15 +41,16 @@ impl Default for RefineScratch {
 
 impl StereoMatcher {
     /// SGM's sub-pixel disparities taken from the correlation cost: each matched pixel is
-    /// correlated again (the `bm` cost, `block` window, no uniqueness, texture, left–right
-    /// or speckle test) over its SGM disparity ± 2, and where the correlation's sub-pixel
-    /// disparity lies within 1 of SGM's, it replaces SGM's value. Where they disagree in a
-    /// `masked` match (a scan's view: the object segmented, the background unsearched, as
-    /// `searched` tells), the match is dropped — a view's missing pixel is seen by its
-    /// neighbours while a wrong one spoils the fused surface — and on its rim the
-    /// correlation is taken over the window's object pixels only ([`rim_correlation`]). On
-    /// a whole image (a single pair) SGM's value stays where they disagree: there density
-    /// matters and there is no rim.
+    /// correlated again (the `bm` cost, the `sgm_refine_block` window, no uniqueness,
+    /// texture, left–right or speckle test) over its SGM disparity ± 2, and where the
+    /// correlation's sub-pixel disparity lies within 1 of SGM's, it replaces SGM's value.
+    /// Where they disagree in a `masked` match (a scan's view: the object segmented, the
+    /// background unsearched, as `searched` tells), the match is dropped — a view's missing
+    /// pixel is seen by its neighbours while a wrong one spoils the fused surface — unless
+    /// its window reaches the background and the correlation over the window's searched
+    /// pixels alone ([`RimRows`]) lies within [`RIM_AGREE_PX`] of SGM's value, which it then
+    /// replaces. On a whole image (a single pair) SGM's value stays where they disagree:
+    /// there density matters and there is no rim.
     pub(super) fn refine_subpixel(&mut self, left: GrayView, right: GrayView, searched: &DisparityIntervals, out: &mut DisparityMap, masked: bool, totals: &mut MatchStats) {
         let (w, h) = (left.width, left.height);
         let p = &self.params;
@@ -103,7 +110,8 @@ impl StereoMatcher {
                     let (lo, hi) = (s.intervals.lo[i] as i32, s.intervals.hi[i] as i32);
                     if let Some(costs) = s.rim.costs(g, &self.right_pf_rev, i % w, i / w, lo, hi) {
                         totals.evaluated += (hi - lo + 1) as u64;
-                        s.corr.values_mut()[i] = lo as f32 + fit(&costs[..(hi - lo + 1) as usize]);
+                        let c = lo as f32 + fit(&costs[..(hi - lo + 1) as usize]);
+                        s.corr.values_mut()[i] = if (c - out.values()[i]).abs() <= RIM_AGREE_PX { c } else { f32::NAN };
                     }
                 }
             }

@@ -378,7 +378,7 @@ fn the_rim_is_refined_over_the_object_alone() {
     for y in 0..h {
         for x in 0..w {
             if object.contains(&x) {
-                out.set(x, y, Some(d_object as f32 + 0.3));
+                out.set(x, y, Some(d_object as f32 + 0.1));
             } else {
                 searched.set(x, y, None);
             }
