@@ -106,7 +106,8 @@ pub struct MatchArgs {
     #[arg(long)]
     pub no_sgm_refine: bool,
     /// SGM: side of the refinement's correlation window (odd, 3…31; `--block` is bm's). Larger
-    /// averages more noise and reaches further past a silhouette (docs/matcher.md, "The rim").
+    /// gives smoother single views but more bias on curved surfaces, which a fused model keeps
+    /// (docs/matcher.md, "The rim").
     #[arg(long, default_value_t = MatchParams::default().sgm_refine_block)]
     pub sgm_refine_block: u32,
     /// First disparity searched (may be negative). Default: 0, or −(N−1) on a calibrated rig
