@@ -10,12 +10,16 @@
 
 use std::ops::Range;
 
+use super::rows::equiangular;
 use super::scratch::{Geometry, PF_SLACK};
 use super::{round_half_away_within, Method, StereoMatcher};
 use crate::stereo::disparity::{searched_span, DisparityIntervals, DisparityMap, GrayView, MatchStats};
 
+/// How close the correlation's sub-pixel disparity must come to SGM's value to replace it.
+const AGREE_PX: f32 = 1.0;
+
 /// How close the rim's correlation over the object must come to SGM's value to replace it
-/// (elsewhere 1 px): its window holds fewer pixels, and each rim pixel a view gains is less
+/// (elsewhere [`AGREE_PX`]): its window holds fewer pixels, and each rim pixel a view gains is less
 /// precise than its median one — at 1 px the realistic egg ring's views' median distance rose
 /// above `bm`'s, at 0.5 px it did not (docs/matcher.md, "The rim").
 const RIM_AGREE_PX: f32 = 0.5;
@@ -97,7 +101,7 @@ impl StereoMatcher {
                 for x in span.clone() {
                     let i = y * w + x;
                     let (d, c) = (out.values()[i], s.corr.values()[i]);
-                    if !d.is_nan() && !((c - d).abs() <= 1.0) {
+                    if !d.is_nan() && !((c - d).abs() <= AGREE_PX) {
                         s.candidates.push(i as u32);
                     }
                 }
@@ -121,7 +125,7 @@ impl StereoMatcher {
             for (d, &c) in out.values_mut()[row.clone()].iter_mut().zip(&s.corr.values()[row]) {
                 // Branch-free. NaN fails every comparison: an unmatched pixel stays unmatched,
                 // and a missing correlation disagrees.
-                let agrees = (c - *d).abs() <= 1.0;
+                let agrees = (c - *d).abs() <= AGREE_PX;
                 let kept = if masked { f32::NAN } else { *d };
                 *d = if agrees { c } else { kept };
             }
@@ -135,14 +139,7 @@ impl StereoMatcher {
 /// correlation's own rule (`rows::decide_at`).
 fn fit(costs: &[u32]) -> f32 {
     let (best, &min) = costs.iter().enumerate().min_by_key(|&(_, c)| *c).expect("an interval holds a disparity");
-    let mut frac = 0.0f32;
-    if best > 0 && best + 1 < costs.len() {
-        let (c0, c1, c2) = (costs[best - 1] as f32, min as f32, costs[best + 1] as f32);
-        let rise = c0.max(c2) - c1;
-        if rise > 0.0 {
-            frac = ((c0 - c2) / (2.0 * rise)).clamp(-0.5, 0.5);
-        }
-    }
+    let frac = if best > 0 && best + 1 < costs.len() { equiangular(costs[best - 1] as f32, min as f32, costs[best + 1] as f32) } else { 0.0 };
     best as f32 + frac
 }
 

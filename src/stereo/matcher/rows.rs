@@ -521,15 +521,22 @@ pub(super) fn decide_at(p: &ValidMatchParams, costs: &[u16], min: u16, best: usi
     }
     let mut frac = 0.0f32;
     if p.subpixel && best > 0 && best + 1 < costs.len() {
-        let (c0, c1, c2) = (costs[best - 1] as f32, min as f32, costs[best + 1] as f32);
-        // Equiangular (V) fit: SAD rises about linearly away from its minimum; a parabola
-        // pulls sub-pixel shifts towards whole pixels (docs/matcher.md).
-        let rise = c0.max(c2) - c1;
-        if rise > 0.0 {
-            frac = ((c0 - c2) / (2.0 * rise)).clamp(-0.5, 0.5);
-        }
+        frac = equiangular(costs[best - 1] as f32, min as f32, costs[best + 1] as f32);
     }
     Some((best, frac))
+}
+
+/// The sub-pixel offset of a minimum `c1` from its neighbours' costs `c0` (one disparity below)
+/// and `c2` (one above), within ±0.5: the equiangular (V) fit — SAD rises about linearly away
+/// from its minimum; a parabola pulls sub-pixel shifts towards whole pixels (docs/matcher.md).
+#[inline(always)]
+pub(super) fn equiangular(c0: f32, c1: f32, c2: f32) -> f32 {
+    let rise = c0.max(c2) - c1;
+    if rise > 0.0 {
+        ((c0 - c2) / (2.0 * rise)).clamp(-0.5, 0.5)
+    } else {
+        0.0
+    }
 }
 
 /// `SAD(x, k) = Σ CS(x … x + 2r, k)` over pixel `x`'s interval, written to row `x` of `sad`:
