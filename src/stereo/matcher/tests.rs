@@ -324,7 +324,7 @@ fn size_mismatch_is_an_error() {
 /// SGM's values are replaced by the correlation's where the two agree; where they disagree
 /// a value is dropped in a masked (scan) match and kept on a whole image.
 #[test]
-fn refinement_replaces_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
+fn refinement_keeps_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
     let (w, h) = (96, 40);
     // A long wave: the correlation cost falls steadily towards the true shift (7) from 20 px
     // either side, so a search of 3.0 ± 2 ends at its edge, 5.
@@ -343,7 +343,7 @@ fn refinement_replaces_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
         let searched = DisparityIntervals::full(w, h, 0, 15);
         m.refine_subpixel(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &searched, &mut out, masked, &mut totals);
         let at = |x: usize, y: usize| out.values()[y * w + x];
-        // Agreeing: the correlation's value (the shift is whole, 7).
+        // Agreeing: near the correlation's value (the shift is whole, 7).
         assert!((at(30, 10) - 7.0).abs() < 0.1, "{}", at(30, 10));
         // Disagreeing: dropped in a scan, kept on a whole image.
         assert_eq!(at(70, 10).is_nan(), masked, "{}", at(70, 10));
@@ -351,6 +351,35 @@ fn refinement_replaces_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
             assert_eq!(at(70, 10), 3.0);
         }
     }
+}
+
+/// Where the correlation agrees, the refined value is the correlation's plus a share
+/// (`OWN_WEIGHT`) of SGM's deviation from it, around their mean lean over the pixel's square
+/// of 32: raising one SGM value by 0.2 raises its refined value by `OWN_WEIGHT` · 0.2 (less
+/// its own part of the lean), lowers the rest of its square a little, and leaves the other
+/// squares alone.
+#[test]
+fn the_blend_takes_sgm_s_deviation_around_its_lean() {
+    let (w, h) = (96, 40);
+    let (l, r) = shifted_pair(w, h, |_, _| 7);
+    let p = MatchParams { method: crate::stereo::Method::Sgm, num_disparities: 16, threads: 1, ..Default::default() }.validate().unwrap();
+    let mut m = StereoMatcher::new(p);
+    let refined = |m: &mut StereoMatcher, raised: bool| {
+        let mut out = DisparityMap::new(w, h);
+        out.values_mut().fill(7.1);
+        if raised {
+            out.values_mut()[10 * w + 10] = 7.3;
+        }
+        let searched = DisparityIntervals::full(w, h, 0, 15);
+        m.refine_subpixel(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &searched, &mut out, false, &mut MatchStats::default());
+        out
+    };
+    let (before, after) = (refined(&mut m, false), refined(&mut m, true));
+    let change = |x: usize, y: usize| after.values()[y * w + x] - before.values()[y * w + x];
+    let own = refine::OWN_WEIGHT * 0.2;
+    assert!((change(10, 10) - own).abs() < own / 100.0, "{} against {own}", change(10, 10));
+    assert!(change(20, 20) < 0.0 && change(20, 20) > -own / 100.0, "{}", change(20, 20));
+    assert_eq!(change(50, 10), 0.0);
 }
 
 /// On a scan's rim the refinement correlates over the object's pixels alone where the whole

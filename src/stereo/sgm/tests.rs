@@ -105,6 +105,30 @@ fn slanted_surfaces_get_the_correlation_s_sub_pixel_precision() {
     assert!(refined < 0.07 && refined < 0.6 * sgm, "median error {refined:.3} px refined, {sgm:.3} px from SGM's sums");
 }
 
+/// SGM's refined disparity blends the correlation's sub-pixel value with SGM's own, and is
+/// closer to the truth than the correlation's alone (the `bm` matcher, same window): on
+/// this slanted texture, the median error is 0.042 px refined against 0.049 px for `bm`;
+/// with the correlation's value alone the two are equal, and the test fails.
+#[test]
+fn the_blended_sub_pixel_value_beats_the_correlation_alone() {
+    let (w, h) = (160, 60);
+    let (l, r) = pair(w, h, |x, _| 6.0 + x as f32 * 0.05);
+    let truth = |x: usize| (6.0 + x as f32 * 0.05) / 1.05;
+    let median_error = |p: MatchParams| {
+        let mut m = crate::stereo::StereoMatcher::new(p.validate().unwrap());
+        let iv = m.full_intervals(w, h, None);
+        let mut out = DisparityMap::new(w, h);
+        m.compute(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut out).unwrap();
+        let mut e: Vec<f32> = (5..h - 5).flat_map(|y| (30..w - 10).map(move |x| (x, y))).filter_map(|(x, y)| out.get(x, y).map(|d| (d - truth(x)).abs())).collect();
+        assert!(e.len() > (h - 10) * (w - 40) * 9 / 10, "{} matched", e.len());
+        e.sort_by(f32::total_cmp);
+        e[e.len() / 2]
+    };
+    let refined = median_error(MatchParams { threads: 1, ..(*params(32)).clone() });
+    let bm = median_error(MatchParams { num_disparities: 32, threads: 1, ..MatchParams::default() });
+    assert!(refined < bm, "median error {refined:.4} px refined, {bm:.4} px for the correlation alone");
+}
+
 #[test]
 fn the_portable_build_gives_the_same_map() {
     let (w, h) = (90, 40);
