@@ -355,20 +355,23 @@ fn refinement_keeps_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
 
 /// Where the correlation agrees, the refined value is the correlation's plus a share
 /// (`OWN_WEIGHT`) of SGM's deviation from it, around their mean lean over the pixel's square
-/// of 32: raising one SGM value by 0.2 raises its refined value by `OWN_WEIGHT` · 0.2 (less
-/// its own part of the lean), lowers the rest of its square a little, and leaves the other
-/// squares alone.
+/// (`OFFSET_TILE`): raising one SGM value by 0.2 raises its refined value by `OWN_WEIGHT` ·
+/// 0.2 (less its own part of the lean), lowers the rest of its square a little, and leaves
+/// the other squares alone.
 #[test]
 fn the_blend_takes_sgm_s_deviation_around_its_lean() {
     let (w, h) = (96, 40);
     let (l, r) = shifted_pair(w, h, |_, _| 7);
     let p = MatchParams { method: crate::stereo::Method::Sgm, num_disparities: 16, threads: 1, ..Default::default() }.validate().unwrap();
     let mut m = StereoMatcher::new(p);
+    // The raised pixel, in the middle of the first square.
+    let (t, c) = (refine::OFFSET_TILE, refine::OFFSET_TILE / 2);
+    assert!(3 * t <= w && t <= h);
     let refined = |m: &mut StereoMatcher, raised: bool| {
         let mut out = DisparityMap::new(w, h);
         out.values_mut().fill(7.1);
         if raised {
-            out.values_mut()[10 * w + 10] = 7.3;
+            out.values_mut()[c * w + c] = 7.3;
         }
         let searched = DisparityIntervals::full(w, h, 0, 15);
         m.refine_subpixel(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &searched, &mut out, false, &mut MatchStats::default());
@@ -377,9 +380,9 @@ fn the_blend_takes_sgm_s_deviation_around_its_lean() {
     let (before, after) = (refined(&mut m, false), refined(&mut m, true));
     let change = |x: usize, y: usize| after.values()[y * w + x] - before.values()[y * w + x];
     let own = refine::OWN_WEIGHT * 0.2;
-    assert!((change(10, 10) - own).abs() < own / 100.0, "{} against {own}", change(10, 10));
-    assert!(change(20, 20) < 0.0 && change(20, 20) > -own / 100.0, "{}", change(20, 20));
-    assert_eq!(change(50, 10), 0.0);
+    assert!((change(c, c) - own).abs() < own / 100.0, "{} against {own}", change(c, c));
+    assert!(change(c + 1, c - 1) < 0.0 && change(c + 1, c - 1) > -own / 100.0, "{}", change(c + 1, c - 1));
+    assert_eq!(change(c + t, c), 0.0);
 }
 
 /// On a scan's rim the refinement correlates over the object's pixels alone where the whole
