@@ -155,13 +155,7 @@ impl StereoMatcher {
             let t0 = y / OFFSET_TILE * tiles_x;
             for (tx, cols) in tile_chunks(span.clone()) {
                 let row = y * w + cols.start..y * w + cols.end;
-                let (mut sum, mut n) = (0.0f32, 0u32);
-                // Branch-free, so that it vectorises (NaN disagrees).
-                for (&d, &c) in out.values()[row.clone()].iter().zip(&s.corr.values()[row]) {
-                    let agrees = (c - d).abs() <= AGREE_PX;
-                    sum += if agrees { d - c } else { 0.0 };
-                    n += agrees as u32;
-                }
+                let (sum, n) = lean_sum(&out.values()[row.clone()], &s.corr.values()[row]);
                 s.lean[t0 + tx] += sum;
                 s.agreeing[t0 + tx] += n;
             }
@@ -185,6 +179,29 @@ impl StereoMatcher {
         }
         self.refine = s;
     }
+}
+
+/// The sum of `d − c` over the pixels where SGM's `d` and the correlation's `c` agree, and
+/// their count. Eight running sums, so that it vectorises (one sum waits on each add).
+fn lean_sum(d: &[f32], c: &[f32]) -> (f32, u32) {
+    const LANES: usize = 8;
+    let (mut sums, mut counts) = ([0.0f32; LANES], [0u32; LANES]);
+    let add = |sums: &mut [f32; LANES], counts: &mut [u32; LANES], k: usize, d: f32, c: f32| {
+        // Branch-free (NaN disagrees).
+        let agrees = (c - d).abs() <= AGREE_PX;
+        sums[k] += if agrees { d - c } else { 0.0 };
+        counts[k] += agrees as u32;
+    };
+    let (dc, cc) = (d.chunks_exact(LANES), c.chunks_exact(LANES));
+    for (k, (&d, &c)) in dc.remainder().iter().zip(cc.remainder()).enumerate() {
+        add(&mut sums, &mut counts, k, d, c);
+    }
+    for (d8, c8) in dc.zip(cc) {
+        for k in 0..LANES {
+            add(&mut sums, &mut counts, k, d8[k], c8[k]);
+        }
+    }
+    (sums.iter().sum(), counts.iter().sum())
 }
 
 /// The columns of `span` cut at multiples of [`OFFSET_TILE`], each with its square's column.
