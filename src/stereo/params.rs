@@ -21,8 +21,8 @@ pub struct MatchParams {
     /// many levels (0 = census alone; at most 100).
     pub sgm_ad_cap: u8,
     /// SGM: take each match's sub-pixel disparity mostly from the correlation cost (the `bm`
-    /// cost over `sgm_refine_block`) around SGM's winner, blended with SGM's own value,
-    /// instead of from SGM's own sums alone (sharper on slanted surfaces; about 25 ns per
+    /// cost over `sgm_refine_block`) around SGM's winner, plus a share of SGM's own deviation
+    /// from it, instead of from SGM's own sums alone (sharper on slanted surfaces; about 25 ns per
     /// matched pixel more).
     pub sgm_refine: bool,
     /// SGM: side of the refinement's square correlation window, odd, 3…31 pixels (`block`

@@ -33,11 +33,11 @@ pub(super) const OWN_WEIGHT: f32 = 0.2;
 /// averaged, pixels. Smaller squares take out more of the lean's slow changes and leave more
 /// of SGM's noise: on 120-view realistic rings, squares of 32 gave views with a lower median
 /// error but a fused egg 4 % further from the truth than without the blend, squares of 16
-/// a fused model as close or closer (docs/matcher.md, "Two sub-pixel estimates").
+/// a fused model within 1 % or closer (docs/matcher.md, "Two sub-pixel estimates").
 pub(super) const OFFSET_TILE: usize = 16;
 
-/// How close the rim's correlation over the object must come to SGM's value to replace it
-/// (elsewhere [`AGREE_PX`]): its window holds fewer pixels, and each rim pixel a view gains is less
+/// How close the rim's correlation over the object must come to SGM's value to stand for the
+/// correlation's (elsewhere [`AGREE_PX`]): its window holds fewer pixels, and each rim pixel a view gains is less
 /// precise than its median one — at 1 px the realistic egg ring's views' median distance rose
 /// above `bm`'s, at 0.5 px it did not (docs/matcher.md, "The rim").
 const RIM_AGREE_PX: f32 = 0.5;
