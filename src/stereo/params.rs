@@ -22,8 +22,8 @@ pub struct MatchParams {
     pub sgm_ad_cap: u8,
     /// SGM: take each match's sub-pixel disparity mostly from the correlation cost (the `bm`
     /// cost over `sgm_refine_block`) around SGM's winner, plus a share of SGM's own deviation
-    /// from it, instead of from SGM's own sums alone (sharper on slanted surfaces; about 25 ns per
-    /// matched pixel more).
+    /// from it, instead of from SGM's own sums alone (sharper on slanted surfaces; about 25 ns
+    /// per matched pixel more).
     pub sgm_refine: bool,
     /// SGM: side of the refinement's square correlation window, odd, 3…31 pixels (`block`
     /// is `bm`'s own window).

@@ -3,10 +3,10 @@
 //!
 //! SGM's aggregated sums are flattened by the smoothness penalties, so its own sub-pixel
 //! values step along slanted surfaces; the correlation cost around SGM's winner gives most
-//! of the sub-pixel disparity instead, blended with SGM's own. On a scan's rim — where a pixel's window reaches the
-//! background that segmentation left unsearched — the window straddles the silhouette and
-//! the correlation is pulled off: there it is taken over the window's object pixels alone
-//! (docs/matcher.md, "The rim").
+//! of the sub-pixel disparity instead, blended with SGM's own. On a scan's rim — where a
+//! pixel's window reaches the background that segmentation left unsearched — the window
+//! straddles the silhouette and the correlation is pulled off: there it is taken over the
+//! window's object pixels alone (docs/matcher.md, "The rim").
 
 use std::ops::Range;
 
@@ -37,9 +37,9 @@ pub(super) const OWN_WEIGHT: f32 = 0.2;
 pub(super) const OFFSET_TILE: usize = 16;
 
 /// How close the rim's correlation over the object must come to SGM's value to stand for the
-/// correlation's (elsewhere [`AGREE_PX`]): its window holds fewer pixels, and each rim pixel a view gains is less
-/// precise than its median one — at 1 px the realistic egg ring's views' median distance rose
-/// above `bm`'s, at 0.5 px it did not (docs/matcher.md, "The rim").
+/// correlation's (elsewhere [`AGREE_PX`]): its window holds fewer pixels, and each rim pixel a
+/// view gains is less precise than its median one — at 1 px the realistic egg ring's views'
+/// median distance rose above `bm`'s, at 0.5 px it did not (docs/matcher.md, "The rim").
 const RIM_AGREE_PX: f32 = 0.5;
 
 /// The refinement's buffers, reused between calls.

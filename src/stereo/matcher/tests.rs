@@ -321,8 +321,8 @@ fn size_mismatch_is_an_error() {
     assert_eq!(err, MatchError::SizeMismatch(20, 10, 20, 11));
 }
 
-/// SGM's values are replaced by the correlation's where the two agree; where they disagree
-/// a value is dropped in a masked (scan) match and kept on a whole image.
+/// SGM's values are refined by the correlation's where the two agree (they end near it);
+/// where they disagree a value is dropped in a masked (scan) match and kept on a whole image.
 #[test]
 fn refinement_keeps_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
     let (w, h) = (96, 40);
