@@ -124,7 +124,7 @@ impl StereoMatcher {
                 for x in span.clone() {
                     let i = y * w + x;
                     let (d, c) = (out.values()[i], s.corr.values()[i]);
-                    if !d.is_nan() && !((c - d).abs() <= AGREE_PX) {
+                    if !d.is_nan() && !agrees(d, c) {
                         s.candidates.push(i as u32);
                     }
                 }
@@ -169,9 +169,8 @@ impl StereoMatcher {
                 let row = y * w + cols.start..y * w + cols.end;
                 let lean = s.lean[t0 + tx];
                 for (d, &c) in out.values_mut()[row.clone()].iter_mut().zip(&s.corr.values()[row]) {
-                    // Branch-free. NaN fails every comparison: an unmatched pixel stays
-                    // unmatched, and a missing correlation disagrees.
-                    let agrees = (c - *d).abs() <= AGREE_PX;
+                    // Branch-free: an unmatched pixel stays unmatched.
+                    let agrees = agrees(*d, c);
                     let kept = if masked { f32::NAN } else { *d };
                     *d = if agrees { c + OWN_WEIGHT * (*d - c - lean) } else { kept };
                 }
@@ -181,14 +180,21 @@ impl StereoMatcher {
     }
 }
 
+/// Whether SGM's value `d` and the correlation's `c` agree ([`AGREE_PX`]). NaN fails every
+/// comparison: an unmatched pixel or a missing correlation disagrees.
+#[inline(always)]
+fn agrees(d: f32, c: f32) -> bool {
+    (c - d).abs() <= AGREE_PX
+}
+
 /// The sum of `d − c` over the pixels where SGM's `d` and the correlation's `c` agree, and
 /// their count. Eight running sums, so that it vectorises (one sum waits on each add).
 fn lean_sum(d: &[f32], c: &[f32]) -> (f32, u32) {
     const LANES: usize = 8;
     let (mut sums, mut counts) = ([0.0f32; LANES], [0u32; LANES]);
     let add = |sums: &mut [f32; LANES], counts: &mut [u32; LANES], k: usize, d: f32, c: f32| {
-        // Branch-free (NaN disagrees).
-        let agrees = (c - d).abs() <= AGREE_PX;
+        // Branch-free.
+        let agrees = agrees(d, c);
         sums[k] += if agrees { d - c } else { 0.0 };
         counts[k] += agrees as u32;
     };
