@@ -54,7 +54,7 @@ pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, ou
                     let q = src[j].add(b);
                     (_mm256_loadu_si256(q as *const __m256i), _mm256_loadu_si256(q.add(1) as *const __m256i), _mm256_loadu_si256(q.add(2) as *const __m256i))
                 };
-                let best = _mm256_min_epu16(_mm256_min_epu16(mid, _mm256_add_epi16(l, p1v)), _mm256_min_epu16(_mm256_add_epi16(r, p1v), jump[j]));
+                let best = _mm256_min_epu16(_mm256_min_epu16(mid, _mm256_add_epi16(_mm256_min_epu16(l, r), p1v)), jump[j]);
                 let v = _mm256_sub_epi16(_mm256_add_epi16(cc, best), base[j]);
                 _mm256_storeu_si256(dst[j].add(b) as *mut __m256i, v);
                 mn[j] = _mm256_min_epu16(mn[j], v);
@@ -449,7 +449,7 @@ pub(super) unsafe fn run<const B: usize>(c: *const u8, sum: *mut u16, dir: isize
                 let cc = _mm256_cvtepu8_epi16(_mm_loadu_si128(cp.add(b * LANES) as *const __m128i));
                 let q = vp.add(b * LANES);
                 let (l, mid, r) = (_mm256_loadu_si256(q as *const __m256i), _mm256_loadu_si256(q.add(1) as *const __m256i), _mm256_loadu_si256(q.add(2) as *const __m256i));
-                let best = _mm256_min_epu16(_mm256_min_epu16(mid, _mm256_add_epi16(l, p1v)), _mm256_min_epu16(_mm256_add_epi16(r, p1v), vjump));
+                let best = _mm256_min_epu16(_mm256_min_epu16(mid, _mm256_add_epi16(_mm256_min_epu16(l, r), p1v)), vjump);
                 let vv = _mm256_sub_epi16(_mm256_add_epi16(cc, best), vbase);
                 _mm256_storeu_si256(vc.add(b * LANES) as *mut __m256i, vv);
                 vmn = _mm256_min_epu16(vmn, vv);
@@ -458,7 +458,7 @@ pub(super) unsafe fn run<const B: usize>(c: *const u8, sum: *mut u16, dir: isize
                 let hm = hv[b];
                 let l = _mm256_alignr_epi8::<14>(hm, _mm256_permute2x128_si256::<0x21>(hp, hm));
                 let r = _mm256_alignr_epi8::<2>(_mm256_permute2x128_si256::<0x21>(hm, hn), hm);
-                let best = _mm256_min_epu16(_mm256_min_epu16(hm, _mm256_add_epi16(l, p1v)), _mm256_min_epu16(_mm256_add_epi16(r, p1v), hjump));
+                let best = _mm256_min_epu16(_mm256_min_epu16(hm, _mm256_add_epi16(_mm256_min_epu16(l, r), p1v)), hjump);
                 let hh = _mm256_sub_epi16(_mm256_add_epi16(cc, best), hbase);
                 nh[b] = hh;
                 hmn = _mm256_min_epu16(hmn, hh);
