@@ -1,7 +1,9 @@
 //! AVX2 copies of the hot loops (the path step and its runs, the masked minimum and its
 //! position, the costs): sixteen 16-bit lanes per instruction, the same integer arithmetic
 //! as the portable versions, so both give the same map
-//! (`the_portable_build_gives_the_same_map`).
+//! (`the_portable_build_gives_the_same_map`). The costs count bits with AVX-512's
+//! `vpopcntd` where the CPU has it (same bytes); wider registers do not pay on the CPUs
+//! measured (docs/matcher.md, "Where the narrow SGM call's time goes").
 
 use std::arch::x86_64::*;
 
@@ -334,9 +336,49 @@ pub(super) unsafe fn planes(padded: &[u8], w: usize, planes: &mut [u8]) {
 /// The CPU supports AVX2; `m` is a multiple of [`LANES`], `out.len()` is `m` times the
 /// run's length, and `run.cr_lo[start + 1 − m ..= start + len − 1]`, `run.cr_hi[…]` and
 /// `run.ir_row[…]` (the same range) exist.
-#[target_feature(enable = "avx2")]
 #[inline]
 pub(super) unsafe fn costs(run: super::census::Run, start: usize, m: usize, out: &mut [u8]) {
+    if has_vpopcnt() {
+        // SAFETY: the CPU has what `costs_vpopcnt` enables, checked just above; the rest is
+        // the caller's contract.
+        unsafe { costs_vpopcnt(run, start, m, out) }
+    } else {
+        // SAFETY: the caller's contract.
+        unsafe { costs_avx2(run, start, m, out) }
+    }
+}
+
+/// Whether the CPU counts bits in vector lanes (AVX-512 VPOPCNTDQ on 256-bit registers).
+#[inline]
+pub(super) fn has_vpopcnt() -> bool {
+    std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512vl") && std::is_x86_feature_detected!("avx512vpopcntdq")
+}
+
+/// [`costs`] with the nibble-table bit counts (AVX2 alone).
+///
+/// # Safety
+/// As [`costs`].
+#[target_feature(enable = "avx2")]
+pub(super) unsafe fn costs_avx2(run: super::census::Run, start: usize, m: usize, out: &mut [u8]) {
+    // SAFETY: the caller's contract.
+    unsafe { costs_impl::<false>(run, start, m, out) }
+}
+
+/// [`costs`] with one `vpopcntd` per eight words in place of the nibble tables: a third
+/// fewer instructions per sixteen costs, the same bytes.
+///
+/// # Safety
+/// As [`costs`], on a CPU with AVX-512 F, VL and VPOPCNTDQ ([`has_vpopcnt`]).
+#[target_feature(enable = "avx2,avx512f,avx512vl,avx512vpopcntdq")]
+pub(super) unsafe fn costs_vpopcnt(run: super::census::Run, start: usize, m: usize, out: &mut [u8]) {
+    // SAFETY: the caller's contract.
+    unsafe { costs_impl::<true>(run, start, m, out) }
+}
+
+/// The body of [`costs_avx2`] and [`costs_vpopcnt`]; `VPOPCNT` counts the low words' bits
+/// with `vpopcntd`.
+#[inline(always)]
+unsafe fn costs_impl<const VPOPCNT: bool>(run: super::census::Run, start: usize, m: usize, out: &mut [u8]) {
     let len = run.cl.len();
     let (lo_row, hi_row) = (run.cr_lo, run.cr_hi);
     assert!(m % LANES == 0 && m > 0 && run.il.len() == len && out.len() == len * m && start + 1 >= m);
@@ -375,8 +417,13 @@ pub(super) unsafe fn costs(run: super::census::Run, start: usize, m: usize, out:
                     _mm_loadu_si128(run.ir_row.as_ptr().add(top - 15) as *const __m128i),
                 )
             };
-            // Per 128-bit half: the sums of p0–p3 and p8–p11 (low), p4–p7 and p12–p15 (high).
-            let sums = _mm256_hadd_epi16(halves(w0), halves(w1));
+            // Per 128-bit half: the sums of p0–p3 and p8–p11 (low), p4–p7 and p12–p15 (high);
+            // with `vpopcntd`, the counts of those words, packed to 16 bits in the same order.
+            let sums = if VPOPCNT {
+                _mm256_packus_epi32(_mm256_popcnt_epi32(_mm256_xor_si256(w0, left_lo)), _mm256_popcnt_epi32(_mm256_xor_si256(w1, left_lo)))
+            } else {
+                _mm256_hadd_epi16(halves(w0), halves(w1))
+            };
             let packed = _mm256_packus_epi16(sums, sums);
             let joined = _mm256_castsi256_si128(_mm256_permute4x64_epi64::<0b1000>(packed));
             let low_bits = _mm_shuffle_epi8(joined, order);

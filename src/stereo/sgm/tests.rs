@@ -262,8 +262,9 @@ fn intervals_emptied_by_the_image_border_search_nothing() {
     assert_eq!(stats.searched, (w - 30) * h);
 }
 
-/// The vector costs (the words split into 32 and 2 bits, a run of pixels at once) are the
-/// portable ones, over words that use all 34 bits.
+/// The vector costs (the words split into 32 and 2 bits, a run of pixels at once; the bits
+/// counted by nibble tables, and by `vpopcntd` where the CPU has it) are the portable ones,
+/// over words that use all 34 bits.
 #[cfg(target_arch = "x86_64")]
 #[test]
 fn the_vector_costs_are_the_portable_ones() {
@@ -285,11 +286,17 @@ fn the_vector_costs_are_the_portable_ones() {
         for (k, out) in want.chunks_exact_mut(m).enumerate() {
             census::costs(census::Pixel { cl: cl[k], il: il[k], cr_row: &cr, ir_row: &levels, cap }, start + k, out);
         }
+        let run = || census::Run { cl: &cl, il: &il, cr_lo: &cr_lo, cr_hi: &cr_hi, ir_row: &levels, cap };
         let mut got = vec![0u8; len * m];
-        let run = census::Run { cl: &cl, il: &il, cr_lo: &cr_lo, cr_hi: &cr_hi, ir_row: &levels, cap };
         // SAFETY: AVX2 checked above; the words start + 1 − m ..= start + len − 1 exist.
-        unsafe { super::simd::costs(run, start, m, &mut got) };
-        assert_eq!(got, want, "start {start}, {m} disparities, {len} pixels");
+        unsafe { super::simd::costs_avx2(run(), start, m, &mut got) };
+        assert_eq!(got, want, "nibble tables: start {start}, {m} disparities, {len} pixels");
+        if super::simd::has_vpopcnt() {
+            let mut got = vec![0u8; len * m];
+            // SAFETY: as above, and the CPU counts bits in vector lanes (checked).
+            unsafe { super::simd::costs_vpopcnt(run(), start, m, &mut got) };
+            assert_eq!(got, want, "vpopcntd: start {start}, {m} disparities, {len} pixels");
+        }
     }
 }
 
