@@ -162,13 +162,9 @@ pub(super) struct Sgm {
     /// Per row: the columns from its first to its last searched pixel — where the passes and
     /// the selection walk (an assisted crop's rows are half background).
     span: Vec<Range<usize>>,
-    /// Census costs and the first pass's sums, packed.
+    /// Census costs and aggregated costs, packed.
     cost: Vec<u8>,
     sum: Vec<u16>,
-    /// The complete sums of the row being selected, packed as in `sum` from the row's first
-    /// offset: pass two writes them here instead of back into `sum`, which halves what it
-    /// moves through memory (the selection reads them while they are in the cache).
-    row_sum: Vec<u16>,
     /// The vertical and diagonal paths (from x − 1, x, x + 1 of the previous row): the
     /// previous and the current row.
     vert_prev: [PathRow; 3],
@@ -206,28 +202,27 @@ struct Geo {
     wr: usize,
 }
 
-/// The `N` paths of one pass at one pixel (two or four): writes each path's values, and
-/// their sum to `sum_out` — on the first pass their sum alone, on the second (`add`) with the
-/// first pass's sum from `sum_in` added; returns each path's minimum.
+/// The `N` paths of one pass at one pixel (two or four): writes each path's values and adds
+/// (or, on the first pass, writes) their sum; returns each path's minimum.
 #[inline(always)]
-fn step<const AVX2: bool, const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut [u16]; N], sum_in: &[u16], sum_out: &mut [u16], add: bool) -> [u16; N] {
+fn step<const AVX2: bool, const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut [u16]; N], sum: &mut [u16], add: bool) -> [u16; N] {
     #[cfg(target_arch = "x86_64")]
     if AVX2 {
         // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU.
-        return unsafe { simd::step(c, from, p1, out, sum_in, sum_out, add) };
+        return unsafe { simd::step(c, from, p1, out, sum, add) };
     }
-    step_portable(c, from, p1, out, sum_in, sum_out, add)
+    step_portable(c, from, p1, out, sum, add)
 }
 
 /// Portable [`step`], in whole blocks.
 #[inline(always)]
-fn step_portable<const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut [u16]; N], sum_in: &[u16], sum_out: &mut [u16], add: bool) -> [u16; N] {
+fn step_portable<const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut [u16]; N], sum: &mut [u16], add: bool) -> [u16; N] {
     let m = c.len();
     let mut mn: [Block; N] = [[u16::MAX; LANES]; N];
     for b in (0..m).step_by(LANES) {
         let cc: &[u8; LANES] = c[b..b + LANES].try_into().unwrap();
-        let s: &mut Block = (&mut sum_out[b..b + LANES]).try_into().unwrap();
-        let mut acc: Block = if add { sum_in[b..b + LANES].try_into().unwrap() } else { [0; LANES] };
+        let s: &mut Block = (&mut sum[b..b + LANES]).try_into().unwrap();
+        let mut acc: Block = if add { *s } else { [0; LANES] };
         for j in 0..N {
             let f = from[j];
             let l: &Block = f.around[b..b + LANES].try_into().unwrap();
@@ -312,9 +307,6 @@ impl Sgm {
         // Pass one writes every cost and sum before anything reads them: no clearing.
         self.cost.resize(total, 0);
         self.sum.resize(total, 0);
-        // Every searched pixel's complete sums are written before its row is selected.
-        let widest = (0..h).map(|y| self.off[(y + 1) * w] - self.off[y * w]).max().unwrap_or(0);
-        self.row_sum.resize(widest, 0);
         self.fresh.clear();
         self.fresh.resize(n + 2, UNREACHED);
         self.right_best.resize(w, 0);
@@ -461,9 +453,6 @@ impl Sgm {
             let py = if up { y + 1 } else { y.wrapping_sub(1) };
             let has_prev_row = py < h;
             let mut h_live = false;
-            // Where the row's sums start in `sum`: on pass two its complete sums go to
-            // `row_sum` from there, not back to `sum` (the selection reads them at once).
-            let row0 = self.off[y * w];
             // The steps of the row's span, in the pass's direction.
             let span = self.span[y].clone();
             let (mut step_x, end) = if up { (w - span.end, w - span.start) } else { (span.start, span.end) };
@@ -497,20 +486,18 @@ impl Sgm {
                 }
                 self.h_cur.prepare(0, n, a, m);
                 let c = &self.cost[self.off[i]..][..m];
-                // Pass one writes the big array; pass two reads it and writes the row's.
-                let o = self.off[i];
-                let (s_in, s_out): (&[u16], &mut [u16]) = if up { (&self.sum[o..][..m], &mut self.row_sum[o - row0..][..m]) } else { (&[], &mut self.sum[o..][..m]) };
+                let s = &mut self.sum[self.off[i]..][..m];
                 let [v0, v1, v2] = &mut self.vert_cur;
                 v1.prepare(x, n, a, m);
                 if eight {
                     v0.prepare(x, n, a, m);
                     v2.prepare(x, n, a, m);
                     let outs = [v0.band_mut(x, n, a, m), v1.band_mut(x, n, a, m), v2.band_mut(x, n, a, m), self.h_cur.band_mut(0, n, a, m)];
-                    let [m0, m1, m2, mh] = step::<AVX2, 4>(c, [vf[0], vf[1], vf[2], hf], p1, outs, s_in, s_out, up);
+                    let [m0, m1, m2, mh] = step::<AVX2, 4>(c, [vf[0], vf[1], vf[2], hf], p1, outs, s, up);
                     (v0.min[x], v1.min[x], v2.min[x], self.h_cur.min[0]) = (m0, m1, m2, mh);
                 } else {
                     let outs = [v1.band_mut(x, n, a, m), self.h_cur.band_mut(0, n, a, m)];
-                    let [m1, mh] = step::<AVX2, 2>(c, [vf[1], hf], p1, outs, s_in, s_out, up);
+                    let [m1, mh] = step::<AVX2, 2>(c, [vf[1], hf], p1, outs, s, up);
                     (v1.min[x], self.h_cur.min[0]) = (m1, mh);
                 }
                 std::mem::swap(&mut self.h_prev, &mut self.h_cur);
@@ -577,8 +564,7 @@ impl Sgm {
         // The run's packed costs and sums, and its slots, from its first to its last pixel.
         let span = (len - 1) * m;
         let (first, last) = if up { (off - span, off + m) } else { (off, off + span + m) };
-        let costs = &self.cost[first..last];
-        let row0 = self.off[y * w];
+        let (costs, sums) = (&self.cost[first..last], &mut self.sum[first..last]);
         let stride = n + 2;
         let slots = if up { (x0 + 1 - len) * stride..(x0 + 1) * stride } else { x0 * stride..(x0 + len) * stride };
         let (vp, vc) = (&self.vert_prev[1], &mut self.vert_cur[1]);
@@ -598,28 +584,20 @@ impl Sgm {
         };
         let h_min = self.h_prev.min[0];
         let h = self.h_prev.band_mut(0, n, a, m);
-        let c = costs[k0..].as_ptr();
-        // Pass two reads the first pass's sums and writes the row's (`row_sum`); pass one
-        // writes `sum`.
-        let (s_in, s_out) = if up {
-            (self.sum[first..last][k0..].as_ptr(), self.row_sum[first - row0..last - row0][k0..].as_mut_ptr())
-        } else {
-            let s = self.sum[first..last][k0..].as_mut_ptr();
-            (s as *const u16, s)
-        };
+        let (c, s) = (costs[k0..].as_ptr(), sums[k0..].as_mut_ptr());
         // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the slices above
         // hold every pixel of the run (costs and sums `len · m`, slots `len · stride` with the
         // band inside each, minima `len`), walked along `dir` from the pointers.
         let last_min = unsafe {
             match blocks {
-                1 => simd::run::<1>(c, s_in, s_out, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                2 => simd::run::<2>(c, s_in, s_out, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                3 => simd::run::<3>(c, s_in, s_out, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                4 => simd::run::<4>(c, s_in, s_out, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                5 => simd::run::<5>(c, s_in, s_out, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                6 => simd::run::<6>(c, s_in, s_out, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                7 => simd::run::<7>(c, s_in, s_out, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                _ => simd::run::<8>(c, s_in, s_out, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                1 => simd::run::<1>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                2 => simd::run::<2>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                3 => simd::run::<3>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                4 => simd::run::<4>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                5 => simd::run::<5>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                6 => simd::run::<6>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                7 => simd::run::<7>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                _ => simd::run::<8>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
             }
         };
         self.h_prev.min[0] = last_min;

@@ -139,9 +139,7 @@ impl Sgm {
         // The row's per-pixel records sliced once (not indexed through `self` per pixel).
         let row = y * w..(y + 1) * w;
         let (band_a, band_m, lo_row, hi_row, off_row) = (&self.band_a[row.clone()], &self.band_m[row.clone()], &self.lo[row.clone()], &self.hi[row.clone()], &self.off[row]);
-        // The row's complete sums (pass two's), pixel x's at `off_row[x] − row0`.
-        let (sum, right_best) = (&self.row_sum[..], &mut self.right_best[..w]);
-        let row0 = self.off[y * w];
+        let (sum, right_best) = (&self.sum[..], &mut self.right_best[..w]);
         // Each searched pixel's smallest sum, its disparity index and its rival.
         let (win_best, win_k, win_rival) = (&mut self.win_best[..w], &mut self.win_k[..w], &mut self.win_rival[..w]);
         let mut x = span.start;
@@ -156,7 +154,7 @@ impl Sgm {
                 // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the
                 // sixteen bands are one block each, so their sums are LANES · LANES in a row,
                 // and each interval lies inside its block.
-                let (best, at, rival) = unsafe { super::simd::select_blocks(&sum[off_row[x] - row0..][..LANES * LANES], &jlo, &jhi, uniq > 0) };
+                let (best, at, rival) = unsafe { super::simd::select_blocks(&sum[off_row[x]..][..LANES * LANES], &jlo, &jhi, uniq > 0) };
                 win_best[x..x + LANES].copy_from_slice(&best);
                 win_rival[x..x + LANES].copy_from_slice(&rival);
                 for i in 0..LANES {
@@ -168,7 +166,7 @@ impl Sgm {
             let m = band_m[x] as usize;
             if m > 0 {
                 let (a, lo, hi) = (band_a[x] as usize, lo_row[x] as usize, hi_row[x] as usize);
-                let (best, bk, rival) = select::<AVX2>(&sum[off_row[x] - row0..][..m], a, lo, hi, uniq > 0);
+                let (best, bk, rival) = select::<AVX2>(&sum[off_row[x]..][..m], a, lo, hi, uniq > 0);
                 (win_best[x], win_k[x], win_rival[x]) = (best, bk as u16, rival);
             }
             x += 1;
@@ -191,7 +189,7 @@ impl Sgm {
             (num_row[x], den_row[x]) = if p.subpixel && bk > lo && bk < hi {
                 // Equiangular (V-shaped) fit: census sums rise about linearly away from the
                 // minimum (docs/matcher.md: the parabola and a correlation-cost fit measured).
-                let s = &sum[off_row[x] - row0..][..m];
+                let s = &sum[off_row[x]..][..m];
                 let (s0, s2) = (s[bk - 1 - a] as i32, s[bk + 1 - a] as i32);
                 let rise = (s0.max(s2) - best as i32).max(1);
                 (s0 - s2, 2 * rise)

@@ -14,13 +14,12 @@ use super::{From, LANES};
 ///
 /// # Safety
 /// The CPU supports AVX2. Lengths are checked: `c.len()` a multiple of [`LANES`], every
-/// `from[j].around` at least `c.len() + 2` long, every `out[j]` and `sum_out` at least
-/// `c.len()`, and `sum_in` too where `add`.
+/// `from[j].around` at least `c.len() + 2` long, every `out[j]` and `sum` at least `c.len()`.
 #[target_feature(enable = "avx2")]
 #[inline]
-pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut [u16]; N], sum_in: &[u16], sum_out: &mut [u16], add: bool) -> [u16; N] {
+pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut [u16]; N], sum: &mut [u16], add: bool) -> [u16; N] {
     let m = c.len();
-    assert!(m % LANES == 0 && sum_out.len() >= m && (!add || sum_in.len() >= m));
+    assert!(m % LANES == 0 && sum.len() >= m);
     for j in 0..N {
         assert!(from[j].around.len() >= m + 2 && out[j].len() >= m);
     }
@@ -44,8 +43,8 @@ pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, ou
         // SAFETY: b + LANES ≤ m and the lengths asserted above.
         unsafe {
             let cc = _mm256_cvtepu8_epi16(_mm_loadu_si128(c.as_ptr().add(b) as *const __m128i));
-            let sp = sum_out.as_mut_ptr().add(b) as *mut __m256i;
-            let mut acc = if add { _mm256_loadu_si256(sum_in.as_ptr().add(b) as *const __m256i) } else { _mm256_setzero_si256() };
+            let sp = sum.as_mut_ptr().add(b) as *mut __m256i;
+            let mut acc = if add { _mm256_loadu_si256(sp) } else { _mm256_setzero_si256() };
             let hn = if b + LANES < m { _mm256_loadu_si256(h.as_ptr().add(1 + b + LANES) as *const __m256i) } else { _mm256_set1_epi16(h[m + 1] as i16) };
             for j in 0..N {
                 let (l, mid, r) = if j == N - 1 {
@@ -457,9 +456,7 @@ pub(super) struct RunRows {
 /// previous row searched (any band): the path along the row (from `h`, its previous values
 /// over the band, and their minimum) stays in registers from pixel to pixel, and the path
 /// from the previous row reads and writes `v`. Pixel `k`'s costs and sums are at
-/// `k · dir · 16B` from `c`, `sum_in` and `sum_out` (packed offsets of equal bands; with
-/// `add`, the sums are read from `sum_in` and written, with this pass's paths added, to
-/// `sum_out`, else only written there); its vertical slots
+/// `k · dir · 16B` from `c` and `sum` (packed offsets of equal bands); its vertical slots
 /// `k · dir · stride` from the first. Returns the row path's values (in `h`) and minimum at
 /// the last pixel. Beside the band the row path's values are `UNREACHED` (equal bands), and
 /// a previous-row slot holds `UNREACHED` outside its own band: both read as [`step`] reads
@@ -471,7 +468,7 @@ pub(super) struct RunRows {
 #[target_feature(enable = "avx2")]
 #[inline]
 #[allow(clippy::too_many_arguments)]
-pub(super) unsafe fn run<const B: usize>(c: *const u8, sum_in: *const u16, sum_out: *mut u16, dir: isize, len: usize, v: &RunRows, h: &mut [u16], h_min: u16, p1: u16, p2: u16, add: bool) -> u16 {
+pub(super) unsafe fn run<const B: usize>(c: *const u8, sum: *mut u16, dir: isize, len: usize, v: &RunRows, h: &mut [u16], h_min: u16, p1: u16, p2: u16, add: bool) -> u16 {
     assert!(h.len() == B * LANES);
     let m = (B * LANES) as isize;
     let p1v = _mm256_set1_epi16(p1 as i16);
@@ -487,7 +484,7 @@ pub(super) unsafe fn run<const B: usize>(c: *const u8, sum_in: *const u16, sum_o
     for k in 0..len as isize {
         // SAFETY: the caller's contract, for pixel k < len.
         unsafe {
-            let (cp, si, so) = (c.offset(k * dir * m), sum_in.offset(k * dir * m), sum_out.offset(k * dir * m));
+            let (cp, sp) = (c.offset(k * dir * m), sum.offset(k * dir * m));
             let slot = k * dir * v.stride as isize;
             let (vp, vc) = (v.prev.offset(slot), v.cur.offset(slot));
             let vbase = _mm256_set1_epi16(*v.prev_min.offset(k * dir) as i16);
@@ -513,8 +510,8 @@ pub(super) unsafe fn run<const B: usize>(c: *const u8, sum_in: *const u16, sum_o
                 nh[b] = hh;
                 hmn = _mm256_min_epu16(hmn, hh);
                 let s = _mm256_add_epi16(vv, hh);
-                let s = if add { _mm256_add_epi16(s, _mm256_loadu_si256(si.add(b * LANES) as *const __m256i)) } else { s };
-                _mm256_storeu_si256(so.add(b * LANES) as *mut __m256i, s);
+                let s = if add { _mm256_add_epi16(s, _mm256_loadu_si256(sp.add(b * LANES) as *const __m256i)) } else { s };
+                _mm256_storeu_si256(sp.add(b * LANES) as *mut __m256i, s);
             }
             *v.cur_min.offset(k * dir) = hmin(vmn);
             hv = nh;
