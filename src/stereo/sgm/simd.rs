@@ -56,6 +56,8 @@ pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, ou
                     let q = src[j].add(b);
                     (_mm256_loadu_si256(q as *const __m256i), _mm256_loadu_si256(q.add(1) as *const __m256i), _mm256_loadu_si256(q.add(2) as *const __m256i))
                 };
+                // min(l, r) + P1 is min(l + P1, r + P1), one add fewer: no value comes near
+                // the top of 16 bits (`UNREACHED` + P1 fits).
                 let best = _mm256_min_epu16(_mm256_min_epu16(mid, _mm256_add_epi16(_mm256_min_epu16(l, r), p1v)), jump[j]);
                 let v = _mm256_sub_epi16(_mm256_add_epi16(cc, best), base[j]);
                 _mm256_storeu_si256(dst[j].add(b) as *mut __m256i, v);
