@@ -248,6 +248,26 @@ mod tests {
         }
     }
 
+    /// The vector minimum and its first position over bands of one to eight blocks are the
+    /// portable ones: intervals anywhere in the band, many ties, within and across blocks.
+    #[test]
+    fn wide_bands_find_the_first_minimum_as_the_portable_code() {
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            let mut next = crate::testing::xorshift(0x51ed_270b_1f3a_9c55);
+            for case in 0..4000 {
+                let m = (1 + (next() % 8) as usize) * LANES;
+                let s: Vec<u16> = (0..m).map(|_| (next() % 4) as u16 * 100 + 40).collect();
+                let a = (next() % 3) as usize * LANES;
+                let lo = a + (next() % m as u64) as usize;
+                let hi = lo + (next() % (a + m - lo) as u64) as usize;
+                let best = masked_min(&s, a, lo, hi, (1, 0));
+                let want = (best, first_at(&s, a, lo, hi, best));
+                assert_eq!(min_and_position::<true>(&s, a, lo, hi), want, "case {case}: {m} disparities from {a}, {lo} ..= {hi}");
+            }
+        }
+    }
+
     #[test]
     fn sixteen_pixels_in_the_lanes_select_as_one_at_a_time() {
         #[cfg(target_arch = "x86_64")]
