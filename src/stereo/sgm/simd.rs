@@ -331,8 +331,9 @@ pub(super) unsafe fn planes(padded: &[u8], w: usize, planes: &mut [u8]) {
 /// disparities, a whole number of blocks; pixel k's right words end at `start + k`, its
 /// costs at `out[k · m ..]`): sixteen Hamming distances per step — the low 32 bits of eight
 /// words per register (nibble table popcount, the bytes of each word summed by two
-/// multiply-adds), the two high bits of all sixteen by one table lookup — plus sixteen
-/// capped level differences, written as bytes.
+/// multiply-adds; or one `vpopcntd` where the CPU has it, [`costs_vpopcnt`]), the two high
+/// bits of all sixteen by one table lookup — plus sixteen capped level differences, written
+/// as bytes.
 ///
 /// # Safety
 /// The CPU supports AVX2; `m` is a multiple of [`LANES`], `out.len()` is `m` times the
