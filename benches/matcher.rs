@@ -137,6 +137,10 @@ fn main() {
                 // The same, one interval per matcher tile (the hull over the tile's object
                 // pixels), as the predicted mode gives it.
                 run(&mut m, pair, &per_tile(&around(&out, 3), mask), &format!("{} object tile ±3px t{threads}", case.name), filter.as_deref());
+                // Tiles of ±7 px: the width `bench table1`'s predicted row gives SGM (about 39
+                // disparities a pixel in whole blocks; docs/matcher.md, "Where the narrow SGM
+                // call's time goes").
+                run(&mut m, pair, &per_tile(&around(&out, 7), mask), &format!("{} object tile ±7px t{threads}", case.name), filter.as_deref());
                 let one = DisparityIntervals::within(w, h, Some(mask), mid, mid);
                 run(&mut m, pair, &one, &format!("{} object one disparity t{threads}", case.name), filter.as_deref());
             }
