@@ -227,43 +227,27 @@ impl Sgm {
 mod tests {
     use super::*;
 
+    /// The selection in registers — one block (`select_block`) or several (`min_at` and the
+    /// masked minimum) — is the portable one: bands of one to eight blocks, intervals anywhere
+    /// in them, many ties and equal rivals, within and across blocks.
     #[test]
-    fn one_block_selection_is_the_general_one() {
+    fn selection_in_registers_is_the_portable_one() {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") {
             let mut next = crate::testing::xorshift(0x9e37_79b9_7f4a_7c15);
-            for case in 0..4000 {
+            for case in 0..8000 {
+                let m = (1 + (next() % 8) as usize) * LANES;
                 // Few distinct values, so that ties and equal rivals are common.
-                let s: Vec<u16> = (0..LANES).map(|_| (next() % 6) as u16 * 100 + 40).collect();
+                let s: Vec<u16> = (0..m).map(|_| (next() % 6) as u16 * 100 + 40).collect();
                 let a = (next() % 4) as usize * LANES;
-                let lo = a + (next() % LANES as u64) as usize;
-                let hi = lo + (next() % (a + LANES - lo) as u64) as usize;
+                let lo = a + (next() % m as u64) as usize;
+                let hi = lo + (next() % (a + m - lo) as u64) as usize;
                 let best = masked_min(&s, a, lo, hi, (1, 0));
                 let bk = first_at(&s, a, lo, hi, best);
                 let rival = masked_min(&s, a, lo, hi, (bk.saturating_sub(1), bk + 1));
                 let got = select::<true>(&s, a, lo, hi, true);
-                assert_eq!(got, (best, bk, rival), "case {case}: {s:?}, a {a}, {lo} ..= {hi}");
+                assert_eq!(got, (best, bk, rival), "case {case}: {m} disparities from {a}, {lo} ..= {hi}: {s:?}");
                 assert_eq!(select::<true>(&s, a, lo, hi, false), (best, bk, u16::MAX));
-            }
-        }
-    }
-
-    /// The vector minimum and its first position over bands of one to eight blocks are the
-    /// portable ones: intervals anywhere in the band, many ties, within and across blocks.
-    #[test]
-    fn wide_bands_find_the_first_minimum_as_the_portable_code() {
-        #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx2") {
-            let mut next = crate::testing::xorshift(0x51ed_270b_1f3a_9c55);
-            for case in 0..4000 {
-                let m = (1 + (next() % 8) as usize) * LANES;
-                let s: Vec<u16> = (0..m).map(|_| (next() % 4) as u16 * 100 + 40).collect();
-                let a = (next() % 3) as usize * LANES;
-                let lo = a + (next() % m as u64) as usize;
-                let hi = lo + (next() % (a + m - lo) as u64) as usize;
-                let best = masked_min(&s, a, lo, hi, (1, 0));
-                let want = (best, first_at(&s, a, lo, hi, best));
-                assert_eq!(min_and_position::<true>(&s, a, lo, hi), want, "case {case}: {m} disparities from {a}, {lo} ..= {hi}");
             }
         }
     }
