@@ -402,6 +402,10 @@ impl Sgm {
         }
         self.h_prev.fit(1, n);
         self.h_cur.fit(1, n);
+        // Whether the costs count bits with `vpopcntd` (AVX-512): asked once a pass, not
+        // once a run of pixels.
+        #[cfg(target_arch = "x86_64")]
+        let vpopcnt = AVX2 && !up && simd::has_vpopcnt();
         for step_y in 0..h {
             let y = if up { h - 1 - step_y } else { step_y };
             if !up {
@@ -435,9 +439,16 @@ impl Sgm {
                     if AVX2 {
                         let (cr_lo, cr_hi) = (&self.census_r_lo[y * g.wr..][..g.wr], &self.census_r_hi[y * g.wr..][..g.wr]);
                         let run = census::Run { cl: &cl[x..x + len], il: &il[x..x + len], cr_lo, cr_hi, ir_row, cap: p.sgm_ad_cap };
-                        // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the
-                        // padded right rows hold every disparity of every band.
-                        unsafe { simd::costs(run, start, m, out) };
+                        // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU, and
+                        // `vpopcnt` only where it has `costs_vpopcnt`'s features; the padded
+                        // right rows hold every disparity of every band.
+                        unsafe {
+                            if vpopcnt {
+                                simd::costs_vpopcnt(run, start, m, out)
+                            } else {
+                                simd::costs_avx2(run, start, m, out)
+                            }
+                        };
                         x += len;
                         continue;
                     }

@@ -56,9 +56,7 @@ pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, ou
                     let q = src[j].add(b);
                     (_mm256_loadu_si256(q as *const __m256i), _mm256_loadu_si256(q.add(1) as *const __m256i), _mm256_loadu_si256(q.add(2) as *const __m256i))
                 };
-                // min(l, r) + P1 is min(l + P1, r + P1), one add fewer: no value comes near
-                // the top of 16 bits (`UNREACHED` + P1 fits).
-                let best = _mm256_min_epu16(_mm256_min_epu16(mid, _mm256_add_epi16(_mm256_min_epu16(l, r), p1v)), jump[j]);
+                let best = best_from(mid, l, r, p1v, jump[j]);
                 let v = _mm256_sub_epi16(_mm256_add_epi16(cc, best), base[j]);
                 _mm256_storeu_si256(dst[j].add(b) as *mut __m256i, v);
                 mn[j] = _mm256_min_epu16(mn[j], v);
@@ -70,6 +68,16 @@ pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, ou
         b += LANES;
     }
     mn.map(|v| hmin(v))
+}
+
+/// A path's term from its previous pixel, per disparity lane: the least of staying
+/// (`mid`), a step of one (`l`, `r`: the neighbouring disparities) plus `p1`, and the jump
+/// term. `min(l, r) + P1` is `min(l + P1, r + P1)` with one add fewer: no value comes near
+/// the top of 16 bits (`UNREACHED` + P1 fits).
+#[target_feature(enable = "avx2")]
+#[inline]
+fn best_from(mid: __m256i, l: __m256i, r: __m256i, p1: __m256i, jump: __m256i) -> __m256i {
+    _mm256_min_epu16(_mm256_min_epu16(mid, _mm256_add_epi16(_mm256_min_epu16(l, r), p1)), jump)
 }
 
 /// The smallest of sixteen unsigned 16-bit lanes.
@@ -327,59 +335,46 @@ pub(super) unsafe fn planes(padded: &[u8], w: usize, planes: &mut [u8]) {
     }
 }
 
-/// [`super::census::costs`] on AVX2 for a run of consecutive left pixels of one band (`m`
-/// disparities, a whole number of blocks; pixel k's right words end at `start + k`, its
-/// costs at `out[k · m ..]`): sixteen Hamming distances per step — the low 32 bits of eight
-/// words per register (nibble table popcount, the bytes of each word summed by two
-/// multiply-adds; or one `vpopcntd` where the CPU has it, [`costs_vpopcnt`]), the two high
-/// bits of all sixteen by one table lookup — plus sixteen capped level differences, written
-/// as bytes.
-///
-/// # Safety
-/// The CPU supports AVX2; `m` is a multiple of [`LANES`], `out.len()` is `m` times the
-/// run's length, and `run.cr_lo[start + 1 − m ..= start + len − 1]`, `run.cr_hi[…]` and
-/// `run.ir_row[…]` (the same range) exist.
-#[inline]
-pub(super) unsafe fn costs(run: super::census::Run, start: usize, m: usize, out: &mut [u8]) {
-    if has_vpopcnt() {
-        // SAFETY: the CPU has what `costs_vpopcnt` enables, checked just above; the rest is
-        // the caller's contract.
-        unsafe { costs_vpopcnt(run, start, m, out) }
-    } else {
-        // SAFETY: the caller's contract.
-        unsafe { costs_avx2(run, start, m, out) }
-    }
-}
-
 /// Whether the CPU counts bits in vector lanes (AVX-512 VPOPCNTDQ on 256-bit registers).
 #[inline]
 pub(super) fn has_vpopcnt() -> bool {
     std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512vl") && std::is_x86_feature_detected!("avx512vpopcntdq")
 }
 
-/// [`costs`] with the nibble-table bit counts (AVX2 alone).
+/// [`costs_impl`] with the nibble-table bit counts (AVX2 alone).
 ///
 /// # Safety
-/// As [`costs`].
+/// As [`costs_impl`].
 #[target_feature(enable = "avx2")]
 pub(super) unsafe fn costs_avx2(run: super::census::Run, start: usize, m: usize, out: &mut [u8]) {
     // SAFETY: the caller's contract.
     unsafe { costs_impl::<false>(run, start, m, out) }
 }
 
-/// [`costs`] with one `vpopcntd` per eight words in place of the nibble tables: a third
+/// [`costs_impl`] with one `vpopcntd` per eight words in place of the nibble tables: a third
 /// fewer instructions per sixteen costs, the same bytes.
 ///
 /// # Safety
-/// As [`costs`], on a CPU with AVX-512 F, VL and VPOPCNTDQ ([`has_vpopcnt`]).
+/// As [`costs_impl`], on a CPU with AVX-512 F, VL and VPOPCNTDQ ([`has_vpopcnt`]).
 #[target_feature(enable = "avx2,avx512f,avx512vl,avx512vpopcntdq")]
 pub(super) unsafe fn costs_vpopcnt(run: super::census::Run, start: usize, m: usize, out: &mut [u8]) {
     // SAFETY: the caller's contract.
     unsafe { costs_impl::<true>(run, start, m, out) }
 }
 
-/// The body of [`costs_avx2`] and [`costs_vpopcnt`]; `VPOPCNT` counts the low words' bits
-/// with `vpopcntd`.
+/// [`super::census::costs`] in vector registers for a run of consecutive left pixels of one
+/// band (`m` disparities, a whole number of blocks; pixel k's right words end at
+/// `start + k`, its costs at `out[k · m ..]`): sixteen Hamming distances per step — the low
+/// 32 bits of eight words per register (nibble table popcount, the bytes of each word summed
+/// by two multiply-adds; or, with `VPOPCNT`, one `vpopcntd`), the two high bits of all
+/// sixteen by one table lookup — plus sixteen capped level differences, written as bytes.
+/// The body of [`costs_avx2`] and [`costs_vpopcnt`].
+///
+/// # Safety
+/// The CPU supports AVX2 (and with `VPOPCNT` what [`costs_vpopcnt`] enables); `m` is a
+/// multiple of [`LANES`], `out.len()` is `m` times the run's length, and
+/// `run.cr_lo[start + 1 − m ..= start + len − 1]`, `run.cr_hi[…]` and `run.ir_row[…]` (the
+/// same range) exist.
 #[inline(always)]
 unsafe fn costs_impl<const VPOPCNT: bool>(run: super::census::Run, start: usize, m: usize, out: &mut [u8]) {
     let len = run.cl.len();
@@ -499,7 +494,7 @@ pub(super) unsafe fn run<const B: usize>(c: *const u8, sum: *mut u16, dir: isize
                 let cc = _mm256_cvtepu8_epi16(_mm_loadu_si128(cp.add(b * LANES) as *const __m128i));
                 let q = vp.add(b * LANES);
                 let (l, mid, r) = (_mm256_loadu_si256(q as *const __m256i), _mm256_loadu_si256(q.add(1) as *const __m256i), _mm256_loadu_si256(q.add(2) as *const __m256i));
-                let best = _mm256_min_epu16(_mm256_min_epu16(mid, _mm256_add_epi16(_mm256_min_epu16(l, r), p1v)), vjump);
+                let best = best_from(mid, l, r, p1v, vjump);
                 let vv = _mm256_sub_epi16(_mm256_add_epi16(cc, best), vbase);
                 _mm256_storeu_si256(vc.add(b * LANES) as *mut __m256i, vv);
                 vmn = _mm256_min_epu16(vmn, vv);
@@ -508,7 +503,7 @@ pub(super) unsafe fn run<const B: usize>(c: *const u8, sum: *mut u16, dir: isize
                 let hm = hv[b];
                 let l = _mm256_alignr_epi8::<14>(hm, _mm256_permute2x128_si256::<0x21>(hp, hm));
                 let r = _mm256_alignr_epi8::<2>(_mm256_permute2x128_si256::<0x21>(hm, hn), hm);
-                let best = _mm256_min_epu16(_mm256_min_epu16(hm, _mm256_add_epi16(_mm256_min_epu16(l, r), p1v)), hjump);
+                let best = best_from(hm, l, r, p1v, hjump);
                 let hh = _mm256_sub_epi16(_mm256_add_epi16(cc, best), hbase);
                 nh[b] = hh;
                 hmn = _mm256_min_epu16(hmn, hh);
