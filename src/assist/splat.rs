@@ -271,11 +271,19 @@ unsafe fn tiles_row_avx2(p: &Projection, base: [f32; 3], u_col: &[f32], d_row: &
     }
     // The row's last points, one by one.
     for k in k..n {
-        let (px, py, a, b, inside) = p.point(base, u_col[k], d_row[k]);
-        if inside {
-            let (t, crosses) = tiles::splat_tile(px as u32, py as u32, cols);
-            tiles.add_splat(t as usize, crosses, a, b);
-        }
+        splat_point(p, base, u_col[k], d_row[k], cols, tiles);
+    }
+}
+
+/// One previous point splatted straight into the tiles (what the portable loop of
+/// [`Assistant::splat_predicted`] does for each point at tile granularity).
+#[inline(always)]
+fn splat_point(p: &Projection, base: [f32; 3], u: f32, d: f32, cols: u32, tiles: &mut TileBounds) {
+    let (px, py, a, b, inside) = p.point(base, u, d);
+    if inside {
+        // Non-negative once inside: the conversion is the floor.
+        let (t, crosses) = tiles::splat_tile(px as u32, py as u32, cols);
+        tiles.add_splat(t as usize, crosses, a, b);
     }
 }
 
@@ -308,4 +316,84 @@ fn hmax_ps(v: std::arch::x86_64::__m256) -> f32 {
     let m = _mm_max_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
     let m = _mm_max_ps(m, _mm_movehl_ps(m, m));
     _mm_cvtss_f32(_mm_max_ss(m, _mm_shuffle_ps::<0b01>(m, m)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The AVX2 row splat against the point-by-point one, bit for bit: random small motions
+    /// (with roll, so that eight neighbours can land in different tile rows), smooth rows
+    /// (eight points of one or two tiles) and scattered ones, runs without disparities, points
+    /// landing outside the region.
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn the_avx2_tile_splat_is_the_pointwise_one() {
+        if !std::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let mut next = crate::testing::xorshift(0x5b1a_7e11);
+        let mut unit = move || (next() % 1_000_003) as f32 / 1_000_003.0;
+        let (w, h) = (203usize, 121usize);
+        let (fx, fy, cx, cy, tx) = (300.0f32, 310.0f32, 101.5f32, 60.5f32, -300.0f32 * 60.0);
+        let (mut fast, mut slow) = (0, 0);
+        for case in 0..60 {
+            let angle = |unit: &mut dyn FnMut() -> f32| (unit() - 0.5) * 0.08;
+            let (rx, ry, rz) = (angle(&mut unit), angle(&mut unit), angle(&mut unit));
+            let rot = nalgebra::Rotation3::from_euler_angles(rx, ry, rz).into_inner();
+            let region = (7 + case % 5, w - 3 - case % 7, 2 + case % 3, h - 1 - case % 4);
+            let p = Projection {
+                r0: [rot[(0, 0)], rot[(1, 0)], rot[(2, 0)]],
+                t: [(unit() - 0.5) * 40.0, (unit() - 0.5) * 40.0, (unit() - 0.5) * 40.0],
+                fx,
+                fy,
+                cx,
+                cy,
+                dcx: (unit() - 0.5) * 4.0,
+                tx,
+                inv_mtx: -1.0 / tx,
+                k_sigma: 3.0,
+                s2: 0.25,
+                min_half: 1.0,
+                c: [1e-6 * unit(), -2e-7 * unit(), 1e-6 * unit(), 1e-5 * unit(), -1e-5 * unit(), 0.5 * unit()],
+                bounds: [region.0 as f32, (region.1 - 1) as f32, region.2 as f32, (region.3 - 1) as f32],
+            };
+            let cols = w.div_ceil(crate::stereo::BAND_TILE.0) as u32;
+            let u_col: Vec<f32> = (region.0..region.1).map(|x| (x as f32 - cx) * (1.0 / fx)).collect();
+            let (mut want, mut got) = (TileBounds::default(), TileBounds::default());
+            want.reset(w, h);
+            got.reset(w, h);
+            for y in region.2..region.3 {
+                let v = (y as f32 - cy) * (1.0 / fy);
+                let b = nalgebra::Vector3::new(rot[(0, 1)], rot[(1, 1)], rot[(2, 1)]) * v + nalgebra::Vector3::new(rot[(0, 2)], rot[(1, 2)], rot[(2, 2)]);
+                let base = [b.x, b.y, b.z];
+                let smooth = next_bool(&mut unit, 0.7);
+                let (d0, slope) = (20.0 + 100.0 * unit(), (unit() - 0.5) * 0.6);
+                let d_row: Vec<f32> = (0..u_col.len())
+                    .map(|k| {
+                        let gap = (k / 8 + y) % 5 == 0 || next_bool(&mut unit, 0.05);
+                        if gap {
+                            f32::NAN
+                        } else if smooth {
+                            d0 + slope * k as f32
+                        } else {
+                            5.0 + 130.0 * unit()
+                        }
+                    })
+                    .collect();
+                for k in 0..u_col.len() {
+                    splat_point(&p, base, u_col[k], d_row[k], cols, &mut want);
+                }
+                // SAFETY: the CPU has AVX2 (checked above).
+                unsafe { tiles_row_avx2(&p, base, &u_col, &d_row, cols, &mut got) };
+                (fast, slow) = if smooth { (fast + 1, slow) } else { (fast, slow + 1) };
+            }
+            assert!(got == want, "case {case}: the tiles' hulls differ");
+        }
+        assert!(fast > 100 && slow > 100, "both kinds of row: {fast} smooth, {slow} scattered");
+    }
+
+    fn next_bool(unit: &mut impl FnMut() -> f32, p: f32) -> bool {
+        unit() < p
+    }
 }

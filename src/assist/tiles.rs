@@ -68,7 +68,7 @@ impl Granularity {
 
 /// Per tile of the image: the hull `lo..=hi` of the bounds splatted into it, and how many
 /// of its pixels are foreground.
-#[derive(Clone, Default)]
+#[derive(Clone, Default, PartialEq, Debug)]
 pub(super) struct TileBounds {
     cols: usize,
     rows: usize,

@@ -79,6 +79,27 @@ impl StereoMatcher {
     /// is then blended. On a whole image (a single pair) SGM's value stays where they disagree:
     /// there density matters and there is no rim.
     pub(super) fn refine_subpixel(&mut self, left: GrayView, right: GrayView, searched: &DisparityIntervals, out: &mut DisparityMap, masked: bool, totals: &mut MatchStats) {
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU has AVX2 (checked just above).
+            return unsafe { self.refine_avx2(left, right, searched, out, masked, totals) };
+        }
+        self.refine(left, right, searched, out, masked, totals)
+    }
+
+    /// [`StereoMatcher::refine_subpixel`] compiled for AVX2: its passes over the map are
+    /// written branch-free so that they vectorise, in eight lanes here instead of the
+    /// baseline's four. The same operations in the same order (no fused multiply-add, the
+    /// lean summed in its eight running sums either way), so the same disparities.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn refine_avx2(&mut self, left: GrayView, right: GrayView, searched: &DisparityIntervals, out: &mut DisparityMap, masked: bool, totals: &mut MatchStats) {
+        self.refine(left, right, searched, out, masked, totals)
+    }
+
+    /// The body of [`StereoMatcher::refine_subpixel`].
+    #[inline(always)]
+    fn refine(&mut self, left: GrayView, right: GrayView, searched: &DisparityIntervals, out: &mut DisparityMap, masked: bool, totals: &mut MatchStats) {
         let (w, h) = (left.width, left.height);
         let p = &self.params;
         let (dmin, dmax) = (p.min_disparity, p.max_disparity());
@@ -121,11 +142,24 @@ impl StereoMatcher {
             // agrees, its value is kept as on the rest of the object.
             s.candidates.clear();
             for (y, span) in s.spans.iter().enumerate() {
-                for x in span.clone() {
-                    let i = y * w + x;
-                    let (d, c) = (out.values()[i], s.corr.values()[i]);
-                    if !d.is_nan() && !agrees(d, c) {
-                        s.candidates.push(i as u32);
+                let row = y * w + span.start..y * w + span.end;
+                let (ds, cs) = (&out.values()[row.clone()], &s.corr.values()[row.clone()]);
+                // Eight pixels at a time, as a bit mask (branch-free, so that it vectorises):
+                // most pixels agree.
+                let disagrees = |d: f32, c: f32| !d.is_nan() && !agrees(d, c);
+                let (dc, cc) = (ds.chunks_exact(8), cs.chunks_exact(8));
+                let tail = row.start + dc.len() * 8;
+                for (k, (d8, c8)) in dc.clone().zip(cc.clone()).enumerate() {
+                    let bits = (0..8).fold(0u32, |m, j| m | (disagrees(d8[j], c8[j]) as u32) << j);
+                    let mut bits = bits;
+                    while bits != 0 {
+                        s.candidates.push((row.start + k * 8 + bits.trailing_zeros() as usize) as u32);
+                        bits &= bits - 1;
+                    }
+                }
+                for (j, (&d, &c)) in dc.remainder().iter().zip(cc.remainder()).enumerate() {
+                    if disagrees(d, c) {
+                        s.candidates.push((tail + j) as u32);
                     }
                 }
             }
