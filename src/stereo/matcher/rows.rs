@@ -328,15 +328,18 @@ pub(super) fn update_texture(g: Geometry, lpf: &[u8], y: usize, first_row: bool,
     }
 }
 
-/// Window texture of every pixel of the span: the column sums slid along the row.
+/// Window texture of every pixel of the span: the sum of the `b` column sums from its
+/// window's first column, as `b` element-wise passes over the span (they vectorise; a sum slid
+/// along the row waits on itself at every pixel).
 #[inline(always)]
 pub(super) fn texture_row(g: Geometry, s: &mut StripeScratch, span: Range<usize>) {
     let b = 2 * g.r + 1;
-    let mut tex: u32 = s.tex_col[span.start..span.start + b].iter().sum();
-    s.tex_row[span.start] = tex;
-    for x in span.start + 1..span.end {
-        tex = tex + s.tex_col[x + b - 1] - s.tex_col[x - 1];
-        s.tex_row[x] = tex;
+    let out = &mut s.tex_row[span.clone()];
+    out.copy_from_slice(&s.tex_col[span.clone()]);
+    for k in 1..b {
+        for (t, &c) in out.iter_mut().zip(&s.tex_col[span.start + k..span.end + k]) {
+            *t += c;
+        }
     }
 }
 

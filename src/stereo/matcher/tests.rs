@@ -1,6 +1,7 @@
 //! The matcher on synthetic shifted pairs: known shifts recovered, narrow intervals against
 //! the full search, masks, negative disparities, the portable and SIMD paths against each
-//! other, cropping against the whole image, and a size mismatch named.
+//! other, cropping against the whole image, a size mismatch named, and the window texture
+//! against its definition.
 
 use super::*;
 use crate::stereo::MatchParams;
@@ -485,6 +486,25 @@ fn the_searched_span_is_the_first_and_last_searched_pixel() {
             }
             let want = (0..n).position(|x| lo[x] <= hi[x]).map(|a| (a, (0..n).rposition(|x| lo[x] <= hi[x]).unwrap()));
             assert_eq!(crate::stereo::disparity::searched_span(&lo, &hi), want, "n {n}, lo {lo:?}");
+        }
+    }
+}
+
+#[test]
+fn a_pixels_texture_is_the_sum_of_its_windows_column_sums() {
+    let mut next = crate::testing::xorshift(0x7e97_0e);
+    for block in [3usize, 9, 15] {
+        let p = MatchParams { block: block as u32, ..Default::default() }.validate().unwrap();
+        let w = 45;
+        let g = Geometry::new(&p, w, 20);
+        let mut s = StripeScratch { tex_col: (0..g.wp).map(|_| (next() % 2000) as u32).collect(), tex_row: vec![0; w], ..Default::default() };
+        for span in [0..w, 3..4, 7..31, w - 1..w] {
+            s.tex_row.fill(u32::MAX);
+            rows::texture_row(g, &mut s, span.clone());
+            for x in 0..w {
+                let want = if span.contains(&x) { s.tex_col[x..x + block].iter().sum() } else { u32::MAX };
+                assert_eq!(s.tex_row[x], want, "block {block}, span {span:?}, x {x}");
+            }
         }
     }
 }
