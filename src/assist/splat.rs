@@ -246,7 +246,7 @@ unsafe fn tiles_row_avx2(p: &Projection, base: [f32; 3], u_col: &[f32], d_row: &
                     continue;
                 }
                 let lanes = _mm256_castsi256_ps(lanes);
-                let (lo, hi) = (hmin_ps(_mm256_blendv_ps(inf, a, lanes)), hmax_ps(_mm256_blendv_ps(ninf, b, lanes)));
+                let (lo, hi) = hull_ps(_mm256_blendv_ps(inf, a, lanes), _mm256_blendv_ps(ninf, b, lanes));
                 tiles.add(t as usize, lo, hi);
                 if m_down != 0 {
                     tiles.add(t as usize + cols as usize, lo, hi);
@@ -298,24 +298,15 @@ fn hmin_epu32(v: std::arch::x86_64::__m256i) -> u32 {
     _mm_cvtsi128_si32(m) as u32
 }
 
-/// The smallest of eight `f32` lanes (none NaN).
+/// The smallest of `lo`'s eight lanes and the largest of `hi`'s (none NaN).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn hmin_ps(v: std::arch::x86_64::__m256) -> f32 {
+fn hull_ps(lo: std::arch::x86_64::__m256, hi: std::arch::x86_64::__m256) -> (f32, f32) {
     use std::arch::x86_64::*;
-    let m = _mm_min_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
-    let m = _mm_min_ps(m, _mm_movehl_ps(m, m));
-    _mm_cvtss_f32(_mm_min_ss(m, _mm_shuffle_ps::<0b01>(m, m)))
-}
-
-/// The largest of eight `f32` lanes (none NaN).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn hmax_ps(v: std::arch::x86_64::__m256) -> f32 {
-    use std::arch::x86_64::*;
-    let m = _mm_max_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
-    let m = _mm_max_ps(m, _mm_movehl_ps(m, m));
-    _mm_cvtss_f32(_mm_max_ss(m, _mm_shuffle_ps::<0b01>(m, m)))
+    let a = _mm_min_ps(_mm256_castps256_ps128(lo), _mm256_extractf128_ps::<1>(lo));
+    let b = _mm_max_ps(_mm256_castps256_ps128(hi), _mm256_extractf128_ps::<1>(hi));
+    let (a, b) = (_mm_min_ps(a, _mm_movehl_ps(a, a)), _mm_max_ps(b, _mm_movehl_ps(b, b)));
+    (_mm_cvtss_f32(_mm_min_ss(a, _mm_shuffle_ps::<0b01>(a, a))), _mm_cvtss_f32(_mm_max_ss(b, _mm_shuffle_ps::<0b01>(b, b))))
 }
 
 #[cfg(test)]

@@ -150,8 +150,7 @@ impl StereoMatcher {
                 let (dc, cc) = (ds.chunks_exact(8), cs.chunks_exact(8));
                 let tail = row.start + dc.len() * 8;
                 for (k, (d8, c8)) in dc.clone().zip(cc.clone()).enumerate() {
-                    let bits = (0..8).fold(0u32, |m, j| m | (disagrees(d8[j], c8[j]) as u32) << j);
-                    let mut bits = bits;
+                    let mut bits = (0..8).fold(0u32, |m, j| m | (disagrees(d8[j], c8[j]) as u32) << j);
                     while bits != 0 {
                         s.candidates.push((row.start + k * 8 + bits.trailing_zeros() as usize) as u32);
                         bits &= bits - 1;
