@@ -208,12 +208,16 @@ fn narrow_band_tiles_agree_with_the_row_path() {
             state = state.wrapping_mul(1664525).wrapping_add(1013904223);
             (state >> 8) % m
         };
-        for (n, min_disparity, block, threads) in [(128u32, 0, 9, 1), (64, 0, 5, 2), (128, -20, 11, 1)] {
+        // (The last two without the left–right check, one without the uniqueness test too:
+        // the narrow path then keeps the costs for the rival alone, or nothing.)
+        let d = MatchParams::default();
+        let (lr, uq) = (d.lr_max_diff, d.uniqueness_ratio);
+        for (n, min_disparity, block, threads, lr_max_diff, uniqueness_ratio) in [(128u32, 0, 9, 1, lr, uq), (64, 0, 5, 2, lr, uq), (128, -20, 11, 1, lr, uq), (64, 0, 5, 1, None, uq), (128, 0, 9, 1, None, 0)] {
             let (w, h) = (230, 70);
             // The shift grows down the image, so tile bands change between tile rows.
             let (l, r) = shifted_pair(w, h, |_, y| 25 + y / 12);
             let (lv, rv) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap());
-            let p = MatchParams { num_disparities: n, min_disparity, block, threads, speckle_window: 0, ..Default::default() }.validate().unwrap();
+            let p = MatchParams { num_disparities: n, min_disparity, block, threads, speckle_window: 0, lr_max_diff, uniqueness_ratio, ..Default::default() }.validate().unwrap();
             let mut m = StereoMatcher::new(p);
             let mut iv = DisparityIntervals::full(w, h, 0, 0);
             for y in 0..h {

@@ -53,8 +53,10 @@ pub(super) fn right_len(g: Geometry) -> usize {
 }
 
 /// Matches the searched pixels of row `y` inside `span`, tile by tile: fills the winners
-/// `s.win_*`, the tiles' costs `s.tile_cost` and the forward right-row minima in the first
-/// `s.tile_right` copy, for [`tile_check`].
+/// `s.win_*`, and for the tests that read them the tiles' costs `s.tile_cost` (uniqueness,
+/// left–right check) and the forward right-row minima in the first `s.tile_right` copy
+/// (left–right check), for [`tile_check`]. Without those tests (SGM's refinement) neither
+/// is written: each disparity of a tile then costs a store and a read-modify-write less.
 ///
 /// # Safety
 /// AVX2 must be available; `s` must be sized by the stripe set-up, `s.tile_lo/hi` hold this
@@ -63,6 +65,21 @@ pub(super) fn right_len(g: Geometry) -> usize {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: usize, s: &mut StripeScratch, span: Range<usize>) {
+    match (p.lr_max_diff.is_some(), p.uniqueness_ratio > 0) {
+        (true, _) => tile_row_with::<true, true>(p, g, pf, y, s, span),
+        (false, true) => tile_row_with::<false, true>(p, g, pf, y, s, span),
+        (false, false) => tile_row_with::<false, false>(p, g, pf, y, s, span),
+    }
+}
+
+/// [`tile_row`] writing the right-row minima (`SPLAT`) and the tiles' costs (`COSTS`) or not.
+///
+/// # Safety
+/// As [`tile_row`]; `SPLAT` when the left–right check runs, `COSTS` when it or the
+/// uniqueness test does.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn tile_row_with<const SPLAT: bool, const COSTS: bool>(p: &ValidMatchParams, g: Geometry, pf: Slack, y: usize, s: &mut StripeScratch, span: Range<usize>) {
     use std::arch::x86_64::*;
     let Geometry { w, h, r, wp, n, .. } = g;
     let wr = g.wr();
@@ -76,8 +93,10 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
     s.tile_right.resize(RIGHT_COPIES * rlen, u16::MAX);
     // Right pixels this row's span reaches: left x in span, k in 0..n.
     let rr = span.start..(span.end.next_multiple_of(TILE_W) + n).min(rlen);
-    for c in 0..RIGHT_COPIES {
-        s.tile_right[c * rlen + rr.start..c * rlen + rr.end].fill(u16::MAX);
+    if SPLAT {
+        for c in 0..RIGHT_COPIES {
+            s.tile_right[c * rlen + rr.start..c * rlen + rr.end].fill(u16::MAX);
+        }
     }
     // Tiles skipped below keep nothing.
     s.win_keep[span.start / TILE_W * TILE_W..span.end.next_multiple_of(TILE_W)].fill(0);
@@ -172,7 +191,9 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
                 }
                 let out = _mm256_or_si256(_mm256_cmpgt_epi16(ilo[half], kv), _mm256_cmpgt_epi16(kv, ihi[half]));
                 let m = _mm256_or_si256(sum, out);
-                _mm256_storeu_si256(cost.add(cost_index(n, x0 + 16 * half, k as usize)) as *mut __m256i, m);
+                if COSTS {
+                    _mm256_storeu_si256(cost.add(cost_index(n, x0 + 16 * half, k as usize)) as *mut __m256i, m);
+                }
                 let nb = _mm256_min_epu16(m, best_c[half]);
                 // Lanes whose best stays (not strictly lower): the first lowest wins.
                 let stay = _mm256_cmpeq_epi16(nb, best_c[half]);
@@ -185,13 +206,15 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
                 before[half] = _mm256_blendv_epi8(last[half], before[half], stay);
                 moved[half] = _mm256_andnot_si256(stay, ones);
                 last[half] = m;
-                let rv = rm.add(16 * half) as *mut __m256i;
-                _mm256_storeu_si256(rv, _mm256_min_epu16(_mm256_loadu_si256(rv), m));
+                if SPLAT {
+                    let rv = rm.add(16 * half) as *mut __m256i;
+                    _mm256_storeu_si256(rv, _mm256_min_epu16(_mm256_loadu_si256(rv), m));
+                }
             }
         }
         // The rival: the cheapest pair more than one disparity from the winner.
         let mut rival = [ones; 2];
-        if p.uniqueness_ratio > 0 {
+        if COSTS && p.uniqueness_ratio > 0 {
             let two = _mm256_set1_epi16(2);
             let (below, above) = ([0, 1].map(|hf| _mm256_sub_epi16(best_k[hf], two)), [0, 1].map(|hf| _mm256_add_epi16(best_k[hf], two)));
             for k in lo..=hi {
@@ -221,6 +244,9 @@ pub(super) unsafe fn tile_row(p: &ValidMatchParams, g: Geometry, pf: Slack, y: u
         }
     }
     // The copies of the right row merged into the first.
+    if !SPLAT {
+        return;
+    }
     let (first, rest) = s.tile_right.split_at_mut(rlen);
     for c in 0..RIGHT_COPIES - 1 {
         for (m, &v) in first[rr.clone()].iter_mut().zip(&rest[c * rlen + rr.start..c * rlen + rr.end]) {
