@@ -359,6 +359,56 @@ fn the_kept_frame_is_the_accepted_map_wherever_the_object_moves() {
 }
 
 #[test]
+fn a_recycled_interval_buffer_gives_the_plan_a_new_one_gives() {
+    // A recycled buffer is cleared only where its old region lies outside the new one (each
+    // plan writes all of its own). The matched maps hold part of the object — the part away
+    // from where it goes next — so a region built from them and the next mask leaves old
+    // foreground behind, on the left, on the right and in whole rows: as the object jumps
+    // around the image and a frame comes out empty, every plan must equal the plan built in a
+    // fresh buffer.
+    let scene = Scene::new();
+    let modes = [(AssistMode::Paper { w: 0.8 }, Granularity::Pixel), (AssistMode::Predicted, Granularity::Pixel), (AssistMode::Predicted, Granularity::Tile), (AssistMode::Paper { w: 0.8 }, Granularity::Tile)];
+    for (mode, granularity) in modes {
+        let (mut recycling, mut fresh) = (assistant_at(&scene, mode, granularity, 3), assistant_at(&scene, mode, granularity, 3));
+        let base = scene.disparity(3.0);
+        let (w, h) = (base.width, base.height);
+        // Frame, shift, and the part of the object (in its unshifted pixels) the match keeps.
+        let all = |_: isize, _: isize| true;
+        let frames: [(u64, isize, isize, &dyn Fn(isize, isize) -> bool); 7] = [
+            (3, 0, 0, &|xs, _| xs >= 180),
+            (4, 60, 0, &|xs, _| xs < 180),
+            (5, -60, 0, &|_, ys| ys >= 140),
+            (6, -60, 60, &all),
+            (7, 0, 0, &all),
+            (8, 60, 0, &all),
+            (9, 60, 0, &all),
+        ];
+        for (k, dx, dy, keep) in frames {
+            let (mut d, mut part) = (DisparityMap::new(w, h), DisparityMap::new(w, h));
+            if k != 7 {
+                for y in 0..h {
+                    for x in 0..w {
+                        let (xs, ys) = (x as isize - dx, y as isize - dy);
+                        if (0..w as isize).contains(&xs) && (0..h as isize).contains(&ys) {
+                            let v = base.values()[ys as usize * w + xs as usize];
+                            d.values_mut()[y * w + x] = v;
+                            part.values_mut()[y * w + x] = if keep(xs, ys) { v } else { f32::NAN };
+                        }
+                    }
+                }
+            }
+            let mask = Scene::mask(&d);
+            let (a, b) = (recycling.plan(k, Some(&mask), &scene.poses(0..k)), fresh.plan(k, Some(&mask), &scene.poses(0..k)));
+            assert!(a.assisted(), "{mode:?} frame {k}");
+            assert!(a.intervals == b.intervals, "{mode:?} {granularity:?} frame {k}");
+            assert!(recycling.accept(k, &a, &part, Some(&mask), &stats(0.9)).is_none());
+            assert!(fresh.accept(k, &b, &part, Some(&mask), &stats(0.9)).is_none());
+            recycling.recycle(a);
+        }
+    }
+}
+
+#[test]
 fn holes_take_the_hull_of_the_bounds_around_them() {
     // Foreground pixels no splat reached (the predicted mode's forward warp leaves many):
     // each takes the hull of the bounds within FILL pixels, widened by 2 px, rounded outwards
