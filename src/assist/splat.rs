@@ -329,8 +329,10 @@ mod tests {
         let (fx, fy, cx, cy, tx) = (300.0f32, 310.0f32, 101.5f32, 60.5f32, -300.0f32 * 60.0);
         let (mut fast, mut slow) = (0, 0);
         for case in 0..60 {
-            let angle = |unit: &mut dyn FnMut() -> f32| (unit() - 0.5) * 0.08;
-            let (rx, ry, rz) = (angle(&mut unit), angle(&mut unit), angle(&mut unit));
+            let (rx, ry, rz) = {
+                let mut angle = || (unit() - 0.5) * 0.08;
+                (angle(), angle(), angle())
+            };
             let rot = nalgebra::Rotation3::from_euler_angles(rx, ry, rz).into_inner();
             let region = (7 + case % 5, w - 3 - case % 7, 2 + case % 3, h - 1 - case % 4);
             let p = Projection {
@@ -356,13 +358,13 @@ mod tests {
             got.reset(w, h);
             for y in region.2..region.3 {
                 let v = (y as f32 - cy) * (1.0 / fy);
-                let b = nalgebra::Vector3::new(rot[(0, 1)], rot[(1, 1)], rot[(2, 1)]) * v + nalgebra::Vector3::new(rot[(0, 2)], rot[(1, 2)], rot[(2, 2)]);
+                let b = rot.column(1) * v + rot.column(2);
                 let base = [b.x, b.y, b.z];
-                let smooth = next_bool(&mut unit, 0.7);
+                let smooth = unit() < 0.7;
                 let (d0, slope) = (20.0 + 100.0 * unit(), (unit() - 0.5) * 0.6);
                 let d_row: Vec<f32> = (0..u_col.len())
                     .map(|k| {
-                        let gap = (k / 8 + y) % 5 == 0 || next_bool(&mut unit, 0.05);
+                        let gap = (k / 8 + y) % 5 == 0 || unit() < 0.05;
                         if gap {
                             f32::NAN
                         } else if smooth {
@@ -382,9 +384,5 @@ mod tests {
             assert!(got == want, "case {case}: the tiles' hulls differ");
         }
         assert!(fast > 100 && slow > 100, "both kinds of row: {fast} smooth, {slow} scattered");
-    }
-
-    fn next_bool(unit: &mut impl FnMut() -> f32, p: f32) -> bool {
-        unit() < p
     }
 }
