@@ -53,9 +53,11 @@ pub fn load_image(path: &Path) -> Result<LoadedImage, ImageIoError> {
 
 /// BT.601 luma with OpenCV's fixed-point weights (0.299, 0.587, 0.114).
 pub fn rgb_to_gray(rgb: &[u8]) -> Vec<u8> {
-    rgb.chunks_exact(3)
-        .map(|p| ((p[0] as u32 * 4899 + p[1] as u32 * 9617 + p[2] as u32 * 1868 + (1 << 13)) >> 14) as u8)
-        .collect()
+    let mut gray = vec![0u8; rgb.len() / 3];
+    for (g, p) in gray.iter_mut().zip(rgb.chunks_exact(3)) {
+        *g = crate::stereo::luma(p[0], p[1], p[2]);
+    }
+    gray
 }
 
 /// Writes `data` to `path` through a temporary file and a rename, so readers never see a

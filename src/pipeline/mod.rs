@@ -275,14 +275,16 @@ impl Pipeline {
     /// Rectifies (and, with `segment`, segments) a raw RGB pair for matching.
     pub fn prepare_rgb(&self, left: &[u8], right: &[u8], segment: bool, plate: Option<&[u8]>) -> Result<Prepared, PipelineError> {
         let (w, h) = self.size;
-        let (lr, rr) = self.rectify_rgb(left, right);
+        // The right image is matched in grey only: sampled and converted in one pass.
+        let (left_rgb, left_gray) = self.maps.0.remap_rgb_gray(left, w as u32, h as u32);
+        let right_gray = self.maps.1.remap_gray(right, w as u32, h as u32);
         let mask = if segment {
             let plate = plate.map(|p| self.maps.0.remap::<3>(p, w as u32, h as u32));
-            Some(self.chroma.segment(&lr, w, h, plate.as_deref())?)
+            Some(self.chroma.segment(&left_rgb, w, h, plate.as_deref())?)
         } else {
             None
         };
-        Ok(Prepared { left_gray: rgb_to_gray(&lr), right_gray: rgb_to_gray(&rr), left_rgb: lr, mask })
+        Ok(Prepared { left_gray, right_gray, left_rgb, mask })
     }
 
     /// Matches frame `seq` over the intervals the assistant plans from `poses`; a result the

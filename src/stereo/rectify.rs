@@ -1,5 +1,5 @@
 //! Bouguet rectification, computed the way OpenCV 5's `stereoRectify(…, CALIB_ZERO_DISPARITY,
-//! alpha)` computes it, and remap tables with bilinear sampling.
+//! alpha)` computes it; the remap tables it makes are [`super::remap`]'s.
 //!
 //! Frames: the rectified left camera is `R1 · (raw left camera)`; `P1`, `P2` project rectified
 //! camera-frame points (of the left rectified frame) to rectified pixels; `Q` maps
@@ -8,6 +8,7 @@
 
 use nalgebra::{Matrix3, Matrix3x4, Matrix4, Rotation3, Vector3};
 
+use super::remap::RemapTable;
 use crate::calib::{Camera, StereoCalib};
 
 /// Iterations of the undistortion fixed point that OpenCV's `undistortPoints` uses by default;
@@ -230,150 +231,10 @@ impl Rectification {
     }
 }
 
-/// For every rectified pixel, the raw pixel it samples (OpenCV `initUndistortRectifyMap`).
-#[derive(Debug, Clone)]
-pub struct RemapTable {
-    pub width: u32,
-    pub height: u32,
-    /// Interleaved `(x, y)` raw coordinates, row-major.
-    pub map: Vec<[f32; 2]>,
-    /// The same map in fixed point for a source of the table's own size: the top-left
-    /// neighbour's index and the bilinear weights in 1/256 (OpenCV's remap uses 1/32).
-    fixed: Vec<Tap>,
-}
-
-/// One output pixel's source in fixed point.
-#[derive(Debug, Clone, Copy)]
-struct Tap {
-    /// Index of the top-left neighbour; `u32::MAX`: all four neighbours outside (black);
-    /// `u32::MAX - 1`: on the border (some outside), sampled by the exact path.
-    idx: u32,
-    fx: u16,
-    fy: u16,
-}
-
-const OUTSIDE: u32 = u32::MAX;
-const BORDER: u32 = u32::MAX - 1;
-
-impl RemapTable {
-    /// Builds the table for a camera, its rectifying rotation and new camera matrix.
-    pub fn new(cam: &Camera, r: &Matrix3<f64>, p: &Matrix3<f64>, size: (u32, u32)) -> RemapTable {
-        let ir = (p * r).try_inverse().expect("P·R of a rectification is invertible");
-        let (fx, fy, cx, cy) = (cam.k[(0, 0)], cam.k[(1, 1)], cam.k[(0, 2)], cam.k[(1, 2)]);
-        let mut map = Vec::with_capacity(size.0 as usize * size.1 as usize);
-        for v in 0..size.1 {
-            for u in 0..size.0 {
-                let ray = ir * Vector3::new(u as f64, v as f64, 1.0);
-                let (xd, yd) = cam.distortion.distort(ray.x / ray.z, ray.y / ray.z);
-                map.push([(fx * xd + cx) as f32, (fy * yd + cy) as f32]);
-            }
-        }
-        let (sw, sh) = (size.0 as i64, size.1 as i64);
-        let fixed = map
-            .iter()
-            .map(|&[mx, my]| {
-                let (x0, y0) = (mx.floor() as i64, my.floor() as i64);
-                let (fx, fy) = (((mx - mx.floor()) * 256.0).round() as u16, ((my - my.floor()) * 256.0).round() as u16);
-                let idx = if x0 < -1 || y0 < -1 || x0 >= sw || y0 >= sh {
-                    OUTSIDE
-                } else if x0 < 0 || y0 < 0 || x0 + 1 >= sw || y0 + 1 >= sh {
-                    BORDER
-                } else {
-                    (y0 * sw + x0) as u32
-                };
-                Tap { idx, fx, fy }
-            })
-            .collect();
-        RemapTable { width: size.0, height: size.1, map, fixed }
-    }
-
-    /// Resamples an image of `C` interleaved 8-bit channels bilinearly; samples outside the
-    /// source are black (OpenCV's `BORDER_CONSTANT`).
-    pub fn remap<const C: usize>(&self, src: &[u8], src_w: u32, src_h: u32) -> Vec<u8> {
-        if (src_w, src_h) != (self.width, self.height) || src.len() < (src_w * src_h) as usize * C {
-            return self.remap_exact::<C>(src, src_w, src_h, None);
-        }
-        // Fixed point inside the image (within one level of the exact path), the exact path
-        // on the border.
-        let mut out = vec![0u8; self.map.len() * C];
-        let stride = src_w as usize * C;
-        let mut border = Vec::new();
-        for (i, t) in self.fixed.iter().enumerate() {
-            match t.idx {
-                OUTSIDE => {}
-                BORDER => border.push(i),
-                idx => {
-                    let o = idx as usize * C;
-                    let (fx, fy) = (t.fx as u32, t.fy as u32);
-                    let (gx, gy) = (256 - fx, 256 - fy);
-                    for c in 0..C {
-                        let top = src[o + c] as u32 * gx + src[o + C + c] as u32 * fx;
-                        let bottom = src[o + stride + c] as u32 * gx + src[o + stride + C + c] as u32 * fx;
-                        out[i * C + c] = ((top * gy + bottom * fy + 32768) >> 16) as u8;
-                    }
-                }
-            }
-        }
-        if !border.is_empty() {
-            let exact = self.remap_exact::<C>(src, src_w, src_h, Some(&border));
-            for i in border {
-                out[i * C..(i + 1) * C].copy_from_slice(&exact[i * C..(i + 1) * C]);
-            }
-        }
-        out
-    }
-
-    /// Float bilinear sampling (of `only` these output pixels, or all).
-    fn remap_exact<const C: usize>(&self, src: &[u8], src_w: u32, src_h: u32, only: Option<&[usize]>) -> Vec<u8> {
-        let (sw, sh) = (src_w as i64, src_h as i64);
-        let mut out = vec![0u8; self.map.len() * C];
-        let all: Box<dyn Iterator<Item = usize>> = match only {
-            Some(list) => Box::new(list.iter().copied()),
-            None => Box::new(0..self.map.len()),
-        };
-        for i in all {
-            let [mx, my] = self.map[i];
-            let (x0f, y0f) = (mx.floor(), my.floor());
-            let (fx, fy) = (mx - x0f, my - y0f);
-            let (x0, y0) = (x0f as i64, y0f as i64);
-            let px = |x: i64, y: i64, c: usize| -> f32 {
-                if x < 0 || y < 0 || x >= sw || y >= sh {
-                    0.0
-                } else {
-                    src[((y * sw + x) as usize) * C + c] as f32
-                }
-            };
-            if x0 < -1 || y0 < -1 || x0 >= sw || y0 >= sh {
-                continue;
-            }
-            for c in 0..C {
-                let top = px(x0, y0, c) * (1.0 - fx) + px(x0 + 1, y0, c) * fx;
-                let bottom = px(x0, y0 + 1, c) * (1.0 - fx) + px(x0 + 1, y0 + 1, c) * fx;
-                out[i * C + c] = (top * (1.0 - fy) + bottom * fy).round().clamp(0.0, 255.0) as u8;
-            }
-        }
-        out
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::calib::Distortion;
-
-    #[test]
-    fn fixed_point_remap_is_within_one_level_of_the_exact_one() {
-        let mut calib = rig(Vector3::new(-60.0, 0.0, 0.0));
-        calib.left.distortion = Distortion::new(&[-0.2, 0.05, 0.001, -0.001, 0.0]).unwrap();
-        let rect = Rectification::compute(&calib, (96, 64), 0.0).unwrap();
-        let (map, _) = rect.maps(&calib);
-        let src: Vec<u8> = (0..96 * 64 * 3).map(|i| ((i * 7919) % 251) as u8).collect();
-        let fast = map.remap::<3>(&src, 96, 64);
-        let exact = map.remap_exact::<3>(&src, 96, 64, None);
-        let worst = fast.iter().zip(&exact).map(|(a, b)| (*a as i32 - *b as i32).abs()).max().unwrap();
-        assert!(worst <= 1, "largest difference {worst}");
-        assert!(fast.iter().zip(&exact).filter(|(a, b)| a != b).count() < fast.len() / 4);
-    }
 
     fn rig(t: Vector3<f64>) -> StereoCalib {
         let k = Matrix3::new(700.0, 0.0, 320.0, 0.0, 700.0, 240.0, 0.0, 0.0, 1.0);
