@@ -45,6 +45,12 @@ fn a_full_step_turn_through_the_socket() {
     assert_eq!(end["status"], "complete", "{end}");
     assert_eq!(end["progress"]["views"], 8);
     assert_eq!(end["progress"]["drops"], 0);
+    // Where a view's time went: every stage each view goes through took some.
+    let stages = end["progress"]["stage_ms"].as_object().unwrap();
+    assert_eq!(stages.keys().collect::<Vec<_>>(), ["assist", "match", "prepare", "register", "triangulate", "write"], "{stages:?}");
+    for st in ["prepare", "match", "triangulate", "write", "register"] {
+        assert!(stages[st].as_f64().is_some_and(|ms| ms > 0.0), "{st}: {stages:?}");
+    }
 
     // Events: running first, progress with growing view counts and the table's angle.
     let states: Vec<&Value> = c.events.iter().filter(|e| e["method"] == "scan.state").collect();

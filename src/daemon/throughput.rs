@@ -15,7 +15,7 @@ use std::time::Instant;
 
 use serde_json::{json, Value};
 
-use crate::pipeline::live::{self as scan, Devices, PipelineSettings, ScanMode, ScanShared, ScanSpec};
+use crate::pipeline::live::{self as scan, Devices, PipelineSettings, ScanMode, ScanShared, ScanSpec, Stage};
 use crate::calib::StereoCalib;
 use crate::hw::{CaptureError, Picture, StereoFrame, StereoSource};
 
@@ -62,6 +62,9 @@ pub struct LiveRun {
     pub lag_mean_ms: f64,
     pub lag_max_ms: f64,
     pub max_rss_mib: f64,
+    /// Mean time per view of each stage of the pipeline, ms, in [`Stage::ALL`]'s order (None:
+    /// no view went through it).
+    pub stage_ms: Vec<(Stage, Option<f64>)>,
     pub status: String,
 }
 
@@ -74,6 +77,7 @@ impl LiveRun {
             "matched_per_s": self.matched as f64 / self.matching_s.max(1e-9),
             "registration_lag_ms": {"mean": self.lag_mean_ms, "max": self.lag_max_ms},
             "max_rss_mib": self.max_rss_mib, "status": self.status,
+            "stage_ms": self.stage_ms.iter().map(|(st, ms)| (st.name().to_string(), json!(ms))).collect::<serde_json::Map<_, _>>(),
         })
     }
 }
@@ -171,6 +175,7 @@ pub fn live(recording: &Path, opts: &LiveOptions, work: &Path, progress: &mut dy
             lag_mean_ms: p["registration_lag_ms"]["mean"].as_f64().unwrap_or(0.0),
             lag_max_ms: p["registration_lag_ms"]["max"].as_f64().unwrap_or(0.0),
             max_rss_mib,
+            stage_ms: Stage::ALL.iter().map(|&st| (st, p["stage_ms"][st.name()].as_f64())).collect(),
             status: match end.reason {
                 Some(r) => format!("{}: {r}", end.status),
                 None => end.status.to_string(),
@@ -181,7 +186,7 @@ pub fn live(recording: &Path, opts: &LiveOptions, work: &Path, progress: &mut dy
     Ok(runs)
 }
 
-/// The table `bench live` prints.
+/// The tables `bench live` prints: the runs, then where a view's time went in each.
 pub fn render(runs: &[LiveRun]) -> String {
     let mut s = format!("{:<22} {:>6} {:>8} {:>11} {:>6} {:>8} {:>8} {:>10} {:>14} {:>9}  {}\n", "run", "fed", "matched", "registered", "drops", "match s", "wall s", "matched/s", "reg lag ms", "RSS MiB", "status");
     for r in runs {
@@ -200,6 +205,26 @@ pub fn render(runs: &[LiveRun]) -> String {
             r.max_rss_mib,
             r.status
         ));
+    }
+    s.push_str("\nper view, ms (mean of each stage's views; the matchers' stages, then the registration thread's)\n");
+    s.push_str(&format!("{:<22}", "run"));
+    for st in Stage::ALL {
+        s.push_str(&format!(" {:>11}", st.name()));
+    }
+    s.push_str("  match share\n");
+    for r in runs {
+        s.push_str(&format!("{:<22}", r.label));
+        for (_, ms) in &r.stage_ms {
+            s.push_str(&match ms {
+                Some(ms) => format!(" {ms:>11.2}"),
+                None => format!(" {:>11}", "–"),
+            });
+        }
+        // The matcher calls' share of the time a view costs: its own stages and writing it
+        // (registration runs for some views only, on its own thread).
+        let get = |st: Stage| r.stage_ms.iter().find(|(s, _)| *s == st).and_then(|(_, ms)| *ms).unwrap_or(0.0);
+        let per_view: f64 = [Stage::Prepare, Stage::Assist, Stage::Match, Stage::Triangulate, Stage::Write].into_iter().map(get).sum();
+        s.push_str(&format!("  {:>10.0} %\n", 100.0 * get(Stage::Match) / per_view.max(1e-9)));
     }
     s
 }

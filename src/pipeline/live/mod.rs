@@ -22,7 +22,7 @@ mod pool;
 mod register;
 mod state;
 
-pub use state::{check_step_deg, check_total_deg, validate_name, Counters, Devices, PipelineSettings, ScanEnd, ScanError, ScanMode, ScanShared, ScanSpec, SpecError, MAX_MATCHER_THREADS, MAX_QUEUE_DEPTH, MIN_STEP_DEG};
+pub use state::{check_step_deg, check_total_deg, validate_name, Counters, Devices, PipelineSettings, ScanEnd, ScanError, ScanMode, ScanShared, ScanSpec, SpecError, Stage, MAX_MATCHER_THREADS, MAX_QUEUE_DEPTH, MIN_STEP_DEG};
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;

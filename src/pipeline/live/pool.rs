@@ -4,10 +4,11 @@
 
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
+use std::time::Instant;
 
 use crossbeam_channel::{Receiver, Sender};
 
-use super::state::{lower_priority, Job, Note, PipelineSettings, ScanShared};
+use super::state::{lower_priority, Job, Note, PipelineSettings, ScanShared, Stage};
 use crate::pipeline::{Assist, Pipeline};
 use crate::register::posestore::PoseStore;
 
@@ -34,7 +35,20 @@ pub(super) fn matcher_loop(mut pipe: Pipeline, jobs: Receiver<Job>, notes: Sende
         }
         let poses = store.snapshot();
         let assist = assistant.as_mut().map(|assistant| Assist { assistant, poses: &poses });
-        let view = pipe.process_frame(&job.frame, settings.segment, None, assist);
+        // `Pipeline::process_frame`'s three steps, each timed (`scan.progress`'s `stage_ms`).
+        let t0 = Instant::now();
+        let view = pipe.prepare_frame(&job.frame, settings.segment, None).and_then(|prepared| {
+            c.add_stage(Stage::Prepare, ms_since(t0));
+            let m = pipe.match_frame(seq, &prepared, assist)?;
+            c.add_stage(Stage::Match, m.outcome.match_ms);
+            if m.assisted {
+                c.add_stage(Stage::Assist, m.outcome.interval_ms);
+            }
+            let t1 = Instant::now();
+            let view = pipe.finish_view(prepared, m);
+            c.add_stage(Stage::Triangulate, ms_since(t1));
+            Ok(view)
+        });
         let meta = job.frame.meta();
         let note = match view {
             Ok(view) => {
@@ -53,4 +67,9 @@ pub(super) fn matcher_loop(mut pipe: Pipeline, jobs: Receiver<Job>, notes: Sende
             return;
         }
     }
+}
+
+/// Milliseconds since `t0`.
+pub(super) fn ms_since(t0: Instant) -> f64 {
+    t0.elapsed().as_secs_f64() * 1e3
 }

@@ -12,7 +12,8 @@ use crossbeam_channel::{Receiver, Sender};
 use serde_json::json;
 
 use super::fusion::{announce_mesh, LiveFusion};
-use super::state::{lower_priority, Note, PipelineSettings, ScanError, ScanMode, ScanShared};
+use super::pool::ms_since;
+use super::state::{lower_priority, Note, PipelineSettings, ScanError, ScanMode, ScanShared, Stage};
 use crate::pipeline::results::{finish_registration, register_view, ModelOptions, ResultsWriter};
 use crate::register::posestore::PoseStore;
 
@@ -62,7 +63,9 @@ fn register_all(
     let mut process = |note: Note, results: &mut ResultsWriter, behind: bool| -> Result<(), ScanError> {
         match note {
             Note::View { frame_meta, view, captured } => {
+                let t_write = Instant::now();
                 let mut entry = results.write_view(&frame_meta, &view, settings.assist.as_ref())?;
+                let mut write_ms = ms_since(t_write);
                 if registrar.is_some() && newest_only && behind && captured.elapsed() > SKIP_AFTER {
                     // A continuous scan sees the object at 15 fps: when newer views wait and
                     // this one is already late, it is kept (views/, disparity/) but not
@@ -72,7 +75,10 @@ fn register_all(
                     entry["register_skipped"] = json!(format!("newer views were waiting and this one was captured more than {} ms ago (registration is behind; the newest view is registered)", SKIP_AFTER.as_millis()));
                     c.register_skipped.fetch_add(1, Ordering::Relaxed);
                 } else if let Some(reg) = registrar.as_mut() {
-                    if let Some((fitness, rmse)) = register_view(reg, &frame_meta, &view, &mut entry) {
+                    let t_register = Instant::now();
+                    let registered = register_view(reg, &frame_meta, &view, &mut entry);
+                    c.add_stage(Stage::Register, ms_since(t_register));
+                    if let Some((fitness, rmse)) = registered {
                         for o in &observers {
                             let _ = o.send((frame_meta.seq, fitness, rmse));
                         }
@@ -95,7 +101,10 @@ fn register_all(
                     c.lag_max_us.fetch_max(lag, Ordering::Relaxed);
                     c.registered.fetch_add(1, Ordering::Relaxed);
                 }
+                let t_push = Instant::now();
                 results.push_frame(entry)?;
+                write_ms += ms_since(t_push);
+                c.add_stage(Stage::Write, write_ms);
             }
             Note::Skipped { seq, why } => results.note_skipped(seq, &why),
             Note::Announce(_) => unreachable!("announcements are not queued"),

@@ -225,6 +225,51 @@ pub struct Counters {
     pub max_skew_us: AtomicU64,
     /// Registered views left out of the live preview (its thread was behind).
     pub live_fusion_skipped: AtomicU64,
+    /// Per [`Stage`]: the time spent in it so far, µs, and the views that went through it.
+    pub stage_us: [AtomicU64; Stage::ALL.len()],
+    pub stage_views: [AtomicU64; Stage::ALL.len()],
+}
+
+/// Where a view's time goes in the live pipeline (`scan.progress`'s `stage_ms`): the
+/// matchers' stages, then the registration thread's.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// Decoding, rectifying and segmenting the pair.
+    Prepare,
+    /// The assistant's plan (the search intervals) and its check of the result.
+    Assist,
+    /// The matcher calls (a full-range redo included).
+    Match,
+    /// Disparities to points.
+    Triangulate,
+    /// The view's files and its entry in the scan's folder.
+    Write,
+    /// Registering the view (views registered only).
+    Register,
+}
+
+impl Stage {
+    pub const ALL: [Stage; 6] = [Stage::Prepare, Stage::Assist, Stage::Match, Stage::Triangulate, Stage::Write, Stage::Register];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Prepare => "prepare",
+            Stage::Assist => "assist",
+            Stage::Match => "match",
+            Stage::Triangulate => "triangulate",
+            Stage::Write => "write",
+            Stage::Register => "register",
+        }
+    }
+}
+
+impl Counters {
+    /// Counts `ms` of one view's time in `stage`.
+    pub(super) fn add_stage(&self, stage: Stage, ms: f64) {
+        let i = stage as usize;
+        self.stage_us[i].fetch_add((ms * 1e3).round() as u64, Ordering::Relaxed);
+        self.stage_views[i].fetch_add(1, Ordering::Relaxed);
+    }
 }
 
 /// A scan's shared state: its counters, its stop flag and the event sink.
@@ -326,6 +371,11 @@ impl ScanShared {
             "registration_lag_ms": {"mean": if registered > 0 { get(&c.lag_sum_us) as f64 / registered as f64 / 1e3 } else { 0.0 }, "max": get(&c.lag_max_us) as f64 / 1e3},
             "elapsed_s": elapsed,
             "matched_at_s": get(&c.matched_us) as f64 / 1e6,
+            // Mean time per view of each stage, ms (null before a view went through it).
+            "stage_ms": Stage::ALL.iter().map(|&st| {
+                let (us, n) = (get(&c.stage_us[st as usize]), get(&c.stage_views[st as usize]));
+                (st.name().to_string(), if n > 0 { json!(us as f64 / n as f64 / 1e3) } else { Value::Null })
+            }).collect::<serde_json::Map<_, _>>(),
         })
     }
 }
