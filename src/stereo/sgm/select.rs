@@ -3,7 +3,7 @@
 
 use super::super::disparity::MatchStats;
 use super::super::params::ValidMatchParams;
-use super::{all_eq, Block, Geo, Sgm, LANES};
+use super::{Block, Geo, Sgm, LANES};
 
 /// The smallest sum over disparity indices `lo ..= hi` outside `skip` (absolute indices,
 /// none when `skip.0 > skip.1`; `s` covers `a …`), in whole blocks.
@@ -144,18 +144,17 @@ impl Sgm {
         let (win_best, win_k, win_rival) = (&mut self.win_best[..w], &mut self.win_k[..w], &mut self.win_rival[..w]);
         let mut x = span.start;
         while x < span.end {
-            // Sixteen pixels of bands of one size (up to a few blocks) at once, in the vector
-            // lanes (their sums lie one after the other). (The first pixel's band is tested
-            // alone first: at full range it is wider.)
+            // Sixteen pixels of one-block bands at once, in the vector lanes (their sums lie
+            // one after the other). (The first pixel's band is tested alone first: at full
+            // range it is wider.)
             #[cfg(target_arch = "x86_64")]
-            if AVX2 && x + LANES <= span.end && (1..=super::simd::SELECT_BLOCKS_MAX * LANES).contains(&(band_m[x] as usize)) && all_eq(&band_m[x..x + LANES], band_m[x]) {
-                let m = band_m[x] as usize;
+            if AVX2 && x + LANES <= span.end && band_m[x] as usize == LANES && band_m[x..x + LANES].iter().all(|&m| m as usize == LANES) {
                 let jlo: [u16; LANES] = std::array::from_fn(|i| lo_row[x + i] - band_a[x + i]);
                 let jhi: [u16; LANES] = std::array::from_fn(|i| hi_row[x + i] - band_a[x + i]);
                 // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the
-                // sixteen bands are m = 1 … SELECT_BLOCKS_MAX blocks each, so their sums are
-                // LANES · m in a row, and each interval lies inside its band.
-                let (best, at, rival) = unsafe { super::simd::select_blocks(&sum[off_row[x]..][..LANES * m], m / LANES, &jlo, &jhi, uniq > 0) };
+                // sixteen bands are one block each, so their sums are LANES · LANES in a row,
+                // and each interval lies inside its block.
+                let (best, at, rival) = unsafe { super::simd::select_blocks(&sum[off_row[x]..][..LANES * LANES], &jlo, &jhi, uniq > 0) };
                 win_best[x..x + LANES].copy_from_slice(&best);
                 win_rival[x..x + LANES].copy_from_slice(&rival);
                 for i in 0..LANES {
@@ -260,17 +259,15 @@ mod tests {
             let mut next = crate::testing::xorshift(0x2545_f491_4f6c_dd1d);
             for case in 0..500 {
                 // Few distinct values, so that ties and equal rivals are common.
-                let blocks = 1 + case % crate::stereo::sgm::simd::SELECT_BLOCKS_MAX;
-                let m = blocks * LANES;
-                let s: Vec<u16> = (0..LANES * m).map(|_| (next() % 5) as u16 * 100 + 40).collect();
-                let jlo: [u16; LANES] = std::array::from_fn(|_| (next() % m as u64) as u16);
-                let jhi: [u16; LANES] = std::array::from_fn(|i| jlo[i] + (next() % (m as u64 - jlo[i] as u64)) as u16);
+                let s: Vec<u16> = (0..LANES * LANES).map(|_| (next() % 5) as u16 * 100 + 40).collect();
+                let jlo: [u16; LANES] = std::array::from_fn(|_| (next() % LANES as u64) as u16);
+                let jhi: [u16; LANES] = std::array::from_fn(|i| jlo[i] + (next() % (LANES as u64 - jlo[i] as u64)) as u16);
                 for rival in [true, false] {
-                    // SAFETY: the CPU has AVX2 (checked above); 16 × m sums, intervals inside the bands.
-                    let (best, at, second) = unsafe { crate::stereo::sgm::simd::select_blocks(&s, blocks, &jlo, &jhi, rival) };
+                    // SAFETY: the CPU has AVX2 (checked above); 16 × 16 sums, intervals inside a block.
+                    let (best, at, second) = unsafe { crate::stereo::sgm::simd::select_blocks(&s, &jlo, &jhi, rival) };
                     for i in 0..LANES {
                         let a = 3 * LANES;
-                        let want = select::<true>(&s[i * m..][..m], a, a + jlo[i] as usize, a + jhi[i] as usize, rival);
+                        let want = select::<true>(&s[i * LANES..][..LANES], a, a + jlo[i] as usize, a + jhi[i] as usize, rival);
                         assert_eq!((best[i], a + at[i] as usize, second[i]), want, "case {case}, pixel {i}, rival {rival}");
                     }
                 }

@@ -185,82 +185,74 @@ pub(super) unsafe fn select_block(s: &[u16], a: usize, lo: usize, hi: usize, riv
     (best, a + j as usize, hmin(_mm256_or_si256(vm, near)))
 }
 
-/// The most blocks per pixel [`select_blocks`] takes (its transposed sums stay in L1: 4 KB).
-pub(super) const SELECT_BLOCKS_MAX: usize = 4;
-
-/// [`select_block`] for sixteen consecutive pixels whose bands are `blocks` blocks each
-/// (1 ≤ `blocks` ≤ [`SELECT_BLOCKS_MAX`]), their sums one after the other (`s`: pixel i's
-/// `m = blocks · LANES` sums at `m · i`), the pixels in the lanes: per pixel the smallest sum
-/// over band indices `jlo[i] ..= jhi[i]`, the first index holding it and, with `rival`, the
-/// smallest sum outside that index ± 1 (else `u16::MAX`) — what `select_block` and
-/// `min_at` give each pixel. The sums are transposed in registers, a block at a time (band
-/// index `k` of every pixel in one vector), and the minimum, its index and the rival are
-/// vertical operations: no horizontal minimum and no chain of dependent steps per pixel.
+/// [`select_block`] for sixteen consecutive pixels with one-block bands, their sums one
+/// after the other (`s`: pixel i's [`LANES`] sums at `LANES · i`), the pixels in the lanes:
+/// per pixel the smallest sum over block indices `jlo[i] ..= jhi[i]`, the first index holding
+/// it and, with `rival`, the smallest sum outside that index ± 1 (else `u16::MAX`) — what
+/// `select_block` gives each pixel. The sums are transposed in registers (disparity `j` of
+/// every pixel in one vector), and the minimum, its index and the rival are vertical
+/// operations: no horizontal minimum and no chain of dependent steps per pixel.
 ///
 /// # Safety
-/// The CPU supports AVX2; `s` holds `LANES · m` sums; `jlo[i] ≤ jhi[i] < m`.
+/// The CPU supports AVX2; `s` holds `LANES · LANES` sums; `jlo[i] ≤ jhi[i] < LANES`.
 #[target_feature(enable = "avx2")]
 #[inline]
-pub(super) unsafe fn select_blocks(s: &[u16], blocks: usize, jlo: &[u16; LANES], jhi: &[u16; LANES], rival: bool) -> ([u16; LANES], [u16; LANES], [u16; LANES]) {
-    assert!((1..=SELECT_BLOCKS_MAX).contains(&blocks) && s.len() == LANES * LANES * blocks);
-    let m = blocks * LANES;
+pub(super) unsafe fn select_blocks(s: &[u16], jlo: &[u16; LANES], jhi: &[u16; LANES], rival: bool) -> ([u16; LANES], [u16; LANES], [u16; LANES]) {
+    assert!(s.len() == LANES * LANES);
     let ones = _mm256_set1_epi16(-1);
-    let mut t = [_mm256_setzero_si256(); LANES * SELECT_BLOCKS_MAX];
-    for b in 0..blocks {
-        // SAFETY: LANES u16 of block b at each of the 16 pixels, asserted above.
-        let row = |i: usize| unsafe { _mm256_loadu_si256(s.as_ptr().add(i * m + b * LANES) as *const __m256i) };
-        // Rows i and i + 8 side by side, low halves (indices 0–7) and high halves (8–15); an
-        // 8 × 8 transpose inside each 128-bit lane then gives index j of rows 0–7 in the low
-        // lane and of rows 8–15 in the high lane: index j of all sixteen pixels.
-        let low: [__m256i; 8] = std::array::from_fn(|i| _mm256_permute2x128_si256::<0x20>(row(i), row(i + 8)));
-        let high: [__m256i; 8] = std::array::from_fn(|i| _mm256_permute2x128_si256::<0x31>(row(i), row(i + 8)));
-        let transpose = |x: [__m256i; 8]| -> [__m256i; 8] {
-            let a: [__m256i; 8] = std::array::from_fn(|k| {
-                let (p, q) = (x[k / 2 * 2], x[k / 2 * 2 + 1]);
-                if k % 2 == 0 { _mm256_unpacklo_epi16(p, q) } else { _mm256_unpackhi_epi16(p, q) }
-            });
-            // b[0..4] from a0/a2 and a1/a3 (rows 0–3), b[4..8] from a4/a6 and a5/a7 (rows 4–7).
-            let b: [__m256i; 8] = std::array::from_fn(|k| {
-                let base = k / 4 * 4;
-                let (p, q) = (a[base + k % 4 / 2], a[base + 2 + k % 4 / 2]);
-                if k % 2 == 0 { _mm256_unpacklo_epi32(p, q) } else { _mm256_unpackhi_epi32(p, q) }
-            });
-            std::array::from_fn(|j| {
-                let (p, q) = (b[j / 2], b[4 + j / 2]);
-                if j % 2 == 0 { _mm256_unpacklo_epi64(p, q) } else { _mm256_unpackhi_epi64(p, q) }
-            })
-        };
-        t[b * LANES..][..8].copy_from_slice(&transpose(low));
-        t[b * LANES + 8..][..8].copy_from_slice(&transpose(high));
-    }
+    // SAFETY: LANES u16 at each of the 16 rows, asserted above.
+    let row = |i: usize| unsafe { _mm256_loadu_si256(s.as_ptr().add(i * LANES) as *const __m256i) };
+    // Rows i and i + 8 side by side, low halves (indices 0–7) and high halves (8–15); an
+    // 8 × 8 transpose inside each 128-bit lane then gives index j of rows 0–7 in the low lane
+    // and of rows 8–15 in the high lane: disparity j of all sixteen pixels.
+    let low: [__m256i; 8] = std::array::from_fn(|i| _mm256_permute2x128_si256::<0x20>(row(i), row(i + 8)));
+    let high: [__m256i; 8] = std::array::from_fn(|i| _mm256_permute2x128_si256::<0x31>(row(i), row(i + 8)));
+    let transpose = |x: [__m256i; 8]| -> [__m256i; 8] {
+        let a: [__m256i; 8] = std::array::from_fn(|k| {
+            let (p, q) = (x[k / 2 * 2], x[k / 2 * 2 + 1]);
+            if k % 2 == 0 { _mm256_unpacklo_epi16(p, q) } else { _mm256_unpackhi_epi16(p, q) }
+        });
+        // b[0..4] from a0/a2 and a1/a3 (rows 0–3), b[4..8] from a4/a6 and a5/a7 (rows 4–7).
+        let b: [__m256i; 8] = std::array::from_fn(|k| {
+            let base = k / 4 * 4;
+            let (p, q) = (a[base + k % 4 / 2], a[base + 2 + k % 4 / 2]);
+            if k % 2 == 0 { _mm256_unpacklo_epi32(p, q) } else { _mm256_unpackhi_epi32(p, q) }
+        });
+        std::array::from_fn(|j| {
+            let (p, q) = (b[j / 2], b[4 + j / 2]);
+            if j % 2 == 0 { _mm256_unpacklo_epi64(p, q) } else { _mm256_unpackhi_epi64(p, q) }
+        })
+    };
+    let (v_low, v_high) = (transpose(low), transpose(high));
+    let v = |j: usize| if j < 8 { v_low[j] } else { v_high[j - 8] };
     // SAFETY: arrays of LANES u16.
     let (lo_m1, hi_p1) = unsafe {
         let (l, h) = (_mm256_loadu_si256(jlo.as_ptr() as *const __m256i), _mm256_loadu_si256(jhi.as_ptr() as *const __m256i));
         (_mm256_sub_epi16(l, _mm256_set1_epi16(1)), _mm256_add_epi16(h, _mm256_set1_epi16(1)))
     };
-    // Index k's sums, 0xFFFF (above every sum, at most 8 · (134 + 2000)) outside the pixel's
+    // Index j's sums, 0xFFFF (above every sum, at most 8 · (134 + 2000)) outside the pixel's
     // interval.
-    let inside = |k: usize| {
-        let kv = _mm256_set1_epi16(k as i16);
-        let keep = _mm256_and_si256(_mm256_cmpgt_epi16(kv, lo_m1), _mm256_cmpgt_epi16(hi_p1, kv));
-        _mm256_or_si256(t[k], _mm256_andnot_si256(keep, ones))
+    let inside = |j: usize| {
+        let jv = _mm256_set1_epi16(j as i16);
+        let keep = _mm256_and_si256(_mm256_cmpgt_epi16(jv, lo_m1), _mm256_cmpgt_epi16(hi_p1, jv));
+        _mm256_or_si256(v(j), _mm256_andnot_si256(keep, ones))
     };
     let (mut best, mut at) = (ones, _mm256_setzero_si256());
-    for k in 0..m {
-        let vk = inside(k);
+    for j in 0..LANES {
+        let vj = inside(j);
         // Strictly below the best so far (max(v, best) = v means v ≥ best): the first
         // index of the minimum is kept.
-        let below = _mm256_andnot_si256(_mm256_cmpeq_epi16(_mm256_max_epu16(vk, best), vk), ones);
-        best = _mm256_min_epu16(best, vk);
-        at = _mm256_blendv_epi8(at, _mm256_set1_epi16(k as i16), below);
+        let below = _mm256_andnot_si256(_mm256_cmpeq_epi16(_mm256_max_epu16(vj, best), vj), ones);
+        best = _mm256_min_epu16(best, vj);
+        at = _mm256_blendv_epi8(at, _mm256_set1_epi16(j as i16), below);
     }
     let mut second = ones;
     if rival {
         let (near_lo, near_hi) = (_mm256_sub_epi16(at, _mm256_set1_epi16(2)), _mm256_add_epi16(at, _mm256_set1_epi16(2)));
-        for k in 0..m {
-            let kv = _mm256_set1_epi16(k as i16);
-            let near = _mm256_and_si256(_mm256_cmpgt_epi16(kv, near_lo), _mm256_cmpgt_epi16(near_hi, kv));
-            second = _mm256_min_epu16(second, _mm256_or_si256(inside(k), near));
+        for j in 0..LANES {
+            let jv = _mm256_set1_epi16(j as i16);
+            let near = _mm256_and_si256(_mm256_cmpgt_epi16(jv, near_lo), _mm256_cmpgt_epi16(near_hi, jv));
+            second = _mm256_min_epu16(second, _mm256_or_si256(inside(j), near));
         }
     }
     let out = |v: __m256i| {
