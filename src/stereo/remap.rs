@@ -144,17 +144,24 @@ impl RemapTable {
         #[cfg(not(target_arch = "x86_64"))]
         let _ = avx2;
         for i in start..n {
-            let t = self.idx[i];
-            if t & 1 << 31 != 0 {
-                continue;
-            }
-            let p = tap::<C>(src, stride, t, self.weights[i]);
-            if let Some(out) = out.as_deref_mut() {
-                out[i * C..(i + 1) * C].copy_from_slice(&p);
-            }
-            if let Some(gray) = gray.as_deref_mut() {
-                gray[i] = luma(p[0], p[1 % C], p[2 % C]);
-            }
+            self.fixed_pixel::<C>(src, stride, i, out.as_deref_mut(), gray.as_deref_mut());
+        }
+    }
+
+    /// Output pixel `i` by the portable fixed-point path into `out` and `gray` (as
+    /// [`RemapTable::fixed`]); [`OUTSIDE`] and [`BORDER`] pixels are left alone.
+    #[inline(always)]
+    fn fixed_pixel<const C: usize>(&self, src: &[u8], stride: usize, i: usize, out: Option<&mut [u8]>, gray: Option<&mut [u8]>) {
+        let t = self.idx[i];
+        if t & 1 << 31 != 0 {
+            return;
+        }
+        let p = tap::<C>(src, stride, t, self.weights[i]);
+        if let Some(out) = out {
+            out[i * C..(i + 1) * C].copy_from_slice(&p);
+        }
+        if let Some(gray) = gray {
+            gray[i] = luma(p[0], p[1 % C], p[2 % C]);
         }
     }
 
@@ -212,7 +219,7 @@ fn tap<const C: usize>(src: &[u8], stride: usize, idx: u32, wt: u32) -> [u8; C] 
 mod avx2 {
     use std::arch::x86_64::*;
 
-    use super::{tap, RemapTable};
+    use super::RemapTable;
 
     /// [`RemapTable::fixed`] eight output pixels at a time: the four neighbours' bytes by
     /// gathers of 32 bits (one reads `C` channels and the next pixel's first), each
@@ -249,17 +256,7 @@ mod avx2 {
             let iv = _mm256_andnot_si256(special, iv);
             if _mm256_movemask_epi8(_mm256_cmpgt_epi32(iv, limit)) != 0 {
                 for j in i..i + 8 {
-                    let k = t.idx[j];
-                    if k & 1 << 31 != 0 {
-                        continue;
-                    }
-                    let p = tap::<C>(src, stride, k, t.weights[j]);
-                    if let Some(out) = out.as_deref_mut() {
-                        out[j * C..(j + 1) * C].copy_from_slice(&p);
-                    }
-                    if let Some(gray) = gray.as_deref_mut() {
-                        gray[j] = super::luma(p[0], p[1 % C], p[2 % C]);
-                    }
+                    t.fixed_pixel::<C>(src, stride, j, out.as_deref_mut(), gray.as_deref_mut());
                 }
                 i += 8;
                 continue;
@@ -373,6 +370,26 @@ mod tests {
         (out, gray)
     }
 
+    /// The AVX2 path's bytes against the portable loop's on random images through `map`:
+    /// colour with grey, grey alone, one channel.
+    fn assert_avx2_is_portable(map: &RemapTable, rng: &mut impl FnMut() -> u64) {
+        let (w, h) = (map.width, map.height);
+        let n = (w * h) as usize;
+        let rgb: Vec<u8> = (0..n * 3).map(|_| rng() as u8).collect();
+        let (want, want_gray) = portable::<3>(map, &rgb);
+        let (mut out, mut gray) = (vec![0; n * 3], vec![0; n]);
+        map.fixed::<3>(&rgb, Some(&mut out), Some(&mut gray), true);
+        assert_eq!(out, want, "{w}×{h} RGB");
+        assert_eq!(gray, want_gray, "{w}×{h} grey");
+        let mut only_gray = vec![0; n];
+        map.fixed::<3>(&rgb, None, Some(&mut only_gray), true);
+        assert_eq!(only_gray, want_gray, "{w}×{h} grey alone");
+        let one: Vec<u8> = (0..n).map(|_| rng() as u8).collect();
+        let mut out1 = vec![0; n];
+        map.fixed::<1>(&one, Some(&mut out1), None, true);
+        assert_eq!(out1, portable::<1>(map, &one).0, "{w}×{h} one channel");
+    }
+
     #[test]
     fn the_avx2_remap_gives_the_portable_bytes() {
         if !simd() {
@@ -381,21 +398,7 @@ mod tests {
         let mut rng = crate::testing::xorshift(7);
         // Sizes whose output ends in a partial group of eight (the tail) and a whole one.
         for (w, h) in [(96, 64), (61, 37), (640, 480)] {
-            let map = table(w, h);
-            let n = (w * h) as usize;
-            let rgb: Vec<u8> = (0..n * 3).map(|_| rng() as u8).collect();
-            let (want, want_gray) = portable::<3>(&map, &rgb);
-            let (mut out, mut gray) = (vec![0; n * 3], vec![0; n]);
-            map.fixed::<3>(&rgb, Some(&mut out), Some(&mut gray), true);
-            assert_eq!(out, want, "{w}×{h} RGB");
-            assert_eq!(gray, want_gray, "{w}×{h} grey");
-            let mut only_gray = vec![0; n];
-            map.fixed::<3>(&rgb, None, Some(&mut only_gray), true);
-            assert_eq!(only_gray, want_gray, "{w}×{h} grey alone");
-            let one: Vec<u8> = (0..n).map(|_| rng() as u8).collect();
-            let mut out1 = vec![0; n];
-            map.fixed::<1>(&one, Some(&mut out1), None, true);
-            assert_eq!(out1, portable::<1>(&map, &one).0, "{w}×{h} one channel");
+            assert_avx2_is_portable(&table(w, h), &mut rng);
         }
     }
 
@@ -429,17 +432,7 @@ mod tests {
         let mut rng = crate::testing::xorshift(11);
         for (w, h) in [(16, 9), (33, 20), (640, 480)] {
             let map = random_table(w, h, &mut rng);
-            let n = (w * h) as usize;
-            let rgb: Vec<u8> = (0..n * 3).map(|_| rng() as u8).collect();
-            let (want, want_gray) = portable::<3>(&map, &rgb);
-            let (mut out, mut gray) = (vec![0; n * 3], vec![0; n]);
-            map.fixed::<3>(&rgb, Some(&mut out), Some(&mut gray), true);
-            assert_eq!(out, want, "{w}×{h} RGB");
-            assert_eq!(gray, want_gray, "{w}×{h} grey");
-            let one: Vec<u8> = (0..n).map(|_| rng() as u8).collect();
-            let mut out1 = vec![0; n];
-            map.fixed::<1>(&one, Some(&mut out1), None, true);
-            assert_eq!(out1, portable::<1>(&map, &one).0, "{w}×{h} one channel");
+            assert_avx2_is_portable(&map, &mut rng);
         }
     }
 
