@@ -83,7 +83,7 @@ impl RemapTable {
             return self.remap_exact::<C>(src, src_w, src_h);
         }
         let mut out = vec![0u8; self.map.len() * C];
-        self.fixed::<C>(src, Some(&mut out), None, simd());
+        self.fixed::<C>(src, Some(&mut out), None, true);
         for &i in &self.border {
             let i = i as usize;
             out[i * C..(i + 1) * C].copy_from_slice(&self.exact_pixel::<C>(src, src_w, src_h, i));
@@ -99,7 +99,7 @@ impl RemapTable {
             return (rgb, gray);
         }
         let (mut rgb, mut gray) = (vec![0u8; self.map.len() * 3], vec![0u8; self.map.len()]);
-        self.fixed::<3>(src, Some(&mut rgb), Some(&mut gray), simd());
+        self.fixed::<3>(src, Some(&mut rgb), Some(&mut gray), true);
         for &i in &self.border {
             let i = i as usize;
             let p = self.exact_pixel::<3>(src, src_w, src_h, i);
@@ -115,7 +115,7 @@ impl RemapTable {
             return self.remap_rgb_gray(src, src_w, src_h).1;
         }
         let mut gray = vec![0u8; self.map.len()];
-        self.fixed::<3>(src, None, Some(&mut gray), simd());
+        self.fixed::<3>(src, None, Some(&mut gray), true);
         for &i in &self.border {
             let p = self.exact_pixel::<3>(src, src_w, src_h, i as usize);
             gray[i as usize] = luma(p[0], p[1], p[2]);
@@ -130,19 +130,20 @@ impl RemapTable {
 
     /// The fixed-point path over every pixel: `out` gets the `C` channels, `gray` (with
     /// `C == 3`) their [`luma`]; [`OUTSIDE`] and [`BORDER`] pixels get zeros (the border is
-    /// overwritten by the caller). `avx2`: the CPU has AVX2.
-    fn fixed<const C: usize>(&self, src: &[u8], mut out: Option<&mut [u8]>, mut gray: Option<&mut [u8]>, avx2: bool) {
-        debug_assert!(gray.is_none() || C == 3);
-        let stride = self.width as usize * C;
+    /// overwritten by the caller). `vector`: the AVX2 path may run (where the CPU has it).
+    fn fixed<const C: usize>(&self, src: &[u8], mut out: Option<&mut [u8]>, mut gray: Option<&mut [u8]>, vector: bool) {
         let n = self.idx.len();
+        assert!(gray.is_none() || C == 3);
+        assert!(src.len() >= n * C && out.as_ref().is_none_or(|o| o.len() >= n * C) && gray.as_ref().is_none_or(|g| g.len() >= n));
+        let stride = self.width as usize * C;
         let mut start = 0;
         #[cfg(target_arch = "x86_64")]
-        if avx2 && (C == 1 || C == 3) {
-            // SAFETY: the CPU has AVX2 (the caller checked), and `fits` holds.
+        if vector && (C == 1 || C == 3) && simd() {
+            // SAFETY: the CPU has AVX2 (checked just above), and the sizes asserted above.
             start = unsafe { avx2::fixed::<C>(self, src, out.as_deref_mut(), gray.as_deref_mut()) };
         }
         #[cfg(not(target_arch = "x86_64"))]
-        let _ = avx2;
+        let _ = vector;
         for i in start..n {
             self.fixed_pixel::<C>(src, stride, i, out.as_deref_mut(), gray.as_deref_mut());
         }
@@ -227,8 +228,8 @@ mod avx2 {
     /// first pixel it left to the portable loop (the last few, whose stores would run past
     /// the end). A group of eight whose gathers could read past `src` goes pixel by pixel.
     ///
-    /// SAFETY: the CPU has AVX2; `src` holds the table's `width × height × C` bytes; `out`
-    /// and `gray`, when given, hold `C` and 1 bytes per output pixel.
+    /// SAFETY: the CPU has AVX2; `src` holds `C` bytes per output pixel (the table's
+    /// `width × height`); `out` and `gray`, when given, hold `C` and 1 bytes per output pixel.
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn fixed<const C: usize>(t: &RemapTable, src: &[u8], mut out: Option<&mut [u8]>, mut gray: Option<&mut [u8]>) -> usize {
         let n = t.idx.len();

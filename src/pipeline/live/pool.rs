@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use crossbeam_channel::{Receiver, Sender};
 
-use super::state::{lower_priority, Job, Note, PipelineSettings, ScanShared, Stage};
+use super::state::{lower_priority, ms_since, Job, Note, PipelineSettings, ScanShared, Stage};
 use crate::pipeline::{Assist, Pipeline};
 use crate::register::posestore::PoseStore;
 
@@ -67,9 +67,4 @@ pub(super) fn matcher_loop(mut pipe: Pipeline, jobs: Receiver<Job>, notes: Sende
             return;
         }
     }
-}
-
-/// Milliseconds since `t0`.
-pub(super) fn ms_since(t0: Instant) -> f64 {
-    t0.elapsed().as_secs_f64() * 1e3
 }

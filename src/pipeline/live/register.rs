@@ -12,8 +12,7 @@ use crossbeam_channel::{Receiver, Sender};
 use serde_json::json;
 
 use super::fusion::{announce_mesh, LiveFusion};
-use super::pool::ms_since;
-use super::state::{lower_priority, Note, PipelineSettings, ScanError, ScanMode, ScanShared, Stage};
+use super::state::{lower_priority, ms_since, Note, PipelineSettings, ScanError, ScanMode, ScanShared, Stage};
 use crate::pipeline::results::{finish_registration, register_view, ModelOptions, ResultsWriter};
 use crate::register::posestore::PoseStore;
 

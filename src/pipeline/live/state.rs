@@ -263,6 +263,11 @@ impl Stage {
     }
 }
 
+/// Milliseconds since `t0`.
+pub(super) fn ms_since(t0: Instant) -> f64 {
+    t0.elapsed().as_secs_f64() * 1e3
+}
+
 impl Counters {
     /// Counts `ms` of one view's time in `stage`.
     pub(super) fn add_stage(&self, stage: Stage, ms: f64) {
