@@ -42,6 +42,72 @@ pub enum SegmentError {
     Tolerance(f32),
 }
 
+/// The colour test's terms: the key's chromaticity, the squared tolerance, the dark level.
+struct Key {
+    chroma: (f32, f32),
+    tol2: f32,
+    dark_level: u16,
+}
+
+/// The colour test, pixel by pixel: 0 where a pixel is bright enough and its chromaticity
+/// lies within the tolerance of the key's, 255 elsewhere. Branch-free per pixel: a pixel of
+/// sum 0 has no chromaticity (its ratios are NaN, which fails the test).
+fn key_portable(key: &Key, rgb: &[u8], mask: &mut [u8]) {
+    for (m, px) in mask.iter_mut().zip(rgb.chunks_exact(3)) {
+        let (r, g, b) = (px[0] as f32, px[1] as f32, px[2] as f32);
+        let s = r + g + b;
+        let bright = px[0] as u16 + px[1] as u16 + px[2] as u16 >= key.dark_level;
+        let (dr, dg) = (r / s - key.chroma.0, g / s - key.chroma.1);
+        let keyed = bright & (s > 0.0) & (dr * dr + dg * dg <= key.tol2);
+        *m = if keyed { 0 } else { 255 };
+    }
+}
+
+/// [`key_portable`] eight pixels at a time: the 24 bytes split into their channels by one
+/// permute and three shuffles, then the same float operations in the same order (no fused
+/// multiply-add), so the same mask. Returns the pixels it did: it stops where its 32-byte
+/// loads would run past `rgb`.
+///
+/// # Safety
+/// The CPU has AVX2; `rgb` holds at least `3 · mask.len()` bytes.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn key_avx2(key: &Key, rgb: &[u8], mask: &mut [u8]) -> usize {
+    use std::arch::x86_64::*;
+    assert!(rgb.len() >= 3 * mask.len());
+    // Pixels 0–3 (bytes 0–11) into the low lane, 4–7 (bytes 12–23) into the high one, then
+    // each channel's byte of the lane's four pixels into 32-bit lanes.
+    let halves = _mm256_setr_epi32(0, 1, 2, 0, 3, 4, 5, 0);
+    let channel = |c: i8| _mm256_setr_epi8(c, -1, -1, -1, c + 3, -1, -1, -1, c + 6, -1, -1, -1, c + 9, -1, -1, -1, c, -1, -1, -1, c + 3, -1, -1, -1, c + 6, -1, -1, -1, c + 9, -1, -1, -1);
+    let (red, green, blue) = (channel(0), channel(1), channel(2));
+    let (k0, k1, tol2) = (_mm256_set1_ps(key.chroma.0), _mm256_set1_ps(key.chroma.1), _mm256_set1_ps(key.tol2));
+    let dark = _mm256_set1_epi32(key.dark_level as i32 - 1);
+    let zero = _mm256_setzero_ps();
+    // 32 bytes read from 3i: the last group of eight ends 8 bytes before `rgb` does.
+    let groups = (rgb.len().saturating_sub(8) / 3).min(mask.len()) / 8;
+    for k in 0..groups {
+        let i = 8 * k;
+        // SAFETY: 3i + 32 ≤ 3 · 8 · groups + 8 ≤ rgb.len().
+        let bytes = _mm256_permutevar8x32_epi32(unsafe { _mm256_loadu_si256(rgb.as_ptr().add(3 * i) as *const __m256i) }, halves);
+        let (ri, gi, bi) = (_mm256_shuffle_epi8(bytes, red), _mm256_shuffle_epi8(bytes, green), _mm256_shuffle_epi8(bytes, blue));
+        let bright = _mm256_cmpgt_epi32(_mm256_add_epi32(_mm256_add_epi32(ri, gi), bi), dark);
+        let (r, g, b) = (_mm256_cvtepi32_ps(ri), _mm256_cvtepi32_ps(gi), _mm256_cvtepi32_ps(bi));
+        let s = _mm256_add_ps(_mm256_add_ps(r, g), b);
+        let dr = _mm256_sub_ps(_mm256_div_ps(r, s), k0);
+        let dg = _mm256_sub_ps(_mm256_div_ps(g, s), k1);
+        let near = _mm256_cmp_ps::<_CMP_LE_OQ>(_mm256_add_ps(_mm256_mul_ps(dr, dr), _mm256_mul_ps(dg, dg)), tol2);
+        let lit = _mm256_cmp_ps::<_CMP_GT_OQ>(s, zero);
+        let keyed = _mm256_and_si256(bright, _mm256_castps_si256(_mm256_and_ps(near, lit)));
+        // 255 where not keyed: the lanes' 32-bit masks narrowed to bytes.
+        let m = _mm256_andnot_si256(keyed, _mm256_set1_epi32(-1));
+        let m = _mm256_packs_epi16(_mm256_packs_epi32(m, m), _mm256_setzero_si256());
+        let (lo, hi) = (_mm_cvtsi128_si32(_mm256_castsi256_si128(m)), _mm_cvtsi128_si32(_mm256_extracti128_si256::<1>(m)));
+        mask[i..i + 4].copy_from_slice(&lo.to_le_bytes());
+        mask[i + 4..i + 8].copy_from_slice(&hi.to_le_bytes());
+    }
+    8 * groups
+}
+
 fn chromaticity(p: &[u8]) -> Option<(f32, f32)> {
     let s = p[0] as f32 + p[1] as f32 + p[2] as f32;
     (s > 0.0).then(|| (p[0] as f32 / s, p[1] as f32 / s))
@@ -62,19 +128,16 @@ impl ChromaKey {
                 return Err(SegmentError::PlateSize(n / height.max(1), height, width, height));
             }
         }
-        let key = chromaticity(&self.key_rgb).unwrap_or((0.0, 0.0));
-        let tol2 = self.tolerance * self.tolerance;
+        let key = Key { chroma: chromaticity(&self.key_rgb).unwrap_or((0.0, 0.0)), tol2: self.tolerance * self.tolerance, dark_level: self.dark_level };
         let mut mask = vec![0u8; width * height];
-        // Branch-free per pixel, so that it vectorises: a pixel of sum 0 has no chromaticity
-        // (its ratios are NaN, which fails the test).
-        for (m, px) in mask.iter_mut().zip(rgb.chunks_exact(3)) {
-            let (r, g, b) = (px[0] as f32, px[1] as f32, px[2] as f32);
-            let s = r + g + b;
-            let bright = px[0] as u16 + px[1] as u16 + px[2] as u16 >= self.dark_level;
-            let (dr, dg) = (r / s - key.0, g / s - key.1);
-            let keyed = bright & (s > 0.0) & (dr * dr + dg * dg <= tol2);
-            *m = if keyed { 0 } else { 255 };
+        let mut done = 0;
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU has AVX2 (checked just above); `rgb` holds 3 bytes per mask pixel
+            // (checked at the top).
+            done = unsafe { key_avx2(&key, rgb, &mut mask) };
         }
+        key_portable(&key, &rgb[3 * done..], &mut mask[done..]);
         if let Some(p) = plate {
             for ((m, px), pl) in mask.iter_mut().zip(rgb.chunks_exact(3)).zip(p.chunks_exact(3)) {
                 let plated = px.iter().zip(pl).all(|(&a, &b)| a.abs_diff(b) <= self.plate_tolerance);
@@ -185,6 +248,41 @@ mod tests {
         let with = key.segment(&img, w, h, Some(&plate)).unwrap();
         assert_eq!(with[0], 0);
         assert_eq!(with[3 * w + 5], 255);
+    }
+
+    /// The colour test in AVX2 gives the portable mask: random pixels (dark ones, black
+    /// ones, and ones on either side of the tolerance around the key), lengths that end in a
+    /// partial group of eight.
+    #[test]
+    fn the_avx2_key_is_the_portable_one() {
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            let mut next = crate::testing::xorshift(0x5e9_7e47);
+            let k = ChromaKey::default();
+            for (n, tolerance, dark_level) in [(1, 0.12, 60), (37, 0.12, 60), (1000, 0.05, 0), (4099, 0.3, 200)] {
+                let key = Key { chroma: chromaticity(&k.key_rgb).unwrap(), tol2: tolerance * tolerance, dark_level };
+                let rgb: Vec<u8> = (0..n)
+                    .flat_map(|_| match next() % 4 {
+                        // Near the key, scaled and jittered: both sides of the tolerance.
+                        0 | 1 => {
+                            let scale = 0.2 + (next() % 100) as f32 / 60.0;
+                            k.key_rgb.map(|v| ((v as f32 * scale) as i32 + (next() % 31) as i32 - 15).clamp(0, 255) as u8)
+                        }
+                        2 => [(next() % 8) as u8, (next() % 8) as u8, (next() % 8) as u8],
+                        _ => [next() as u8, next() as u8, next() as u8],
+                    })
+                    .collect();
+                let mut want = vec![0; n];
+                key_portable(&key, &rgb, &mut want);
+                let mut got = vec![0; n];
+                // SAFETY: the CPU has AVX2 (checked above); 3 bytes per pixel.
+                let done = unsafe { key_avx2(&key, &rgb, &mut got) };
+                key_portable(&key, &rgb[3 * done..], &mut got[done..]);
+                assert!(n < 16 || done >= n - 16, "{done} of {n} in the lanes");
+                assert_eq!(got, want, "{n} pixels, tolerance {tolerance}, dark level {dark_level}");
+                assert!(want.contains(&0) && want.contains(&255) || n < 40, "both outcomes among {n} pixels");
+            }
+        }
     }
 
     /// Dilation and erosion against the rule written out: a pixel of the result is set when
