@@ -84,10 +84,7 @@ impl RemapTable {
         }
         let mut out = vec![0u8; self.map.len() * C];
         self.fixed::<C>(src, Some(&mut out), None, true);
-        for &i in &self.border {
-            let i = i as usize;
-            out[i * C..(i + 1) * C].copy_from_slice(&self.exact_pixel::<C>(src, src_w, src_h, i));
-        }
+        self.border_exact::<C>(src, src_w, src_h, Some(&mut out), None);
         out
     }
 
@@ -100,12 +97,7 @@ impl RemapTable {
         }
         let (mut rgb, mut gray) = (vec![0u8; self.map.len() * 3], vec![0u8; self.map.len()]);
         self.fixed::<3>(src, Some(&mut rgb), Some(&mut gray), true);
-        for &i in &self.border {
-            let i = i as usize;
-            let p = self.exact_pixel::<3>(src, src_w, src_h, i);
-            rgb[i * 3..i * 3 + 3].copy_from_slice(&p);
-            gray[i] = luma(p[0], p[1], p[2]);
-        }
+        self.border_exact::<3>(src, src_w, src_h, Some(&mut rgb), Some(&mut gray));
         (rgb, gray)
     }
 
@@ -116,10 +108,7 @@ impl RemapTable {
         }
         let mut gray = vec![0u8; self.map.len()];
         self.fixed::<3>(src, None, Some(&mut gray), true);
-        for &i in &self.border {
-            let p = self.exact_pixel::<3>(src, src_w, src_h, i as usize);
-            gray[i as usize] = luma(p[0], p[1], p[2]);
-        }
+        self.border_exact::<3>(src, src_w, src_h, None, Some(&mut gray));
         gray
     }
 
@@ -157,12 +146,15 @@ impl RemapTable {
         if t & 1 << 31 != 0 {
             return;
         }
-        let p = tap::<C>(src, stride, t, self.weights[i]);
-        if let Some(out) = out {
-            out[i * C..(i + 1) * C].copy_from_slice(&p);
-        }
-        if let Some(gray) = gray {
-            gray[i] = luma(p[0], p[1 % C], p[2 % C]);
+        put(tap::<C>(src, stride, t, self.weights[i]), i, out, gray);
+    }
+
+    /// The [`BORDER`] pixels by the exact path into `out` and `gray` (where
+    /// [`RemapTable::fixed`] left zeros).
+    fn border_exact<const C: usize>(&self, src: &[u8], src_w: u32, src_h: u32, mut out: Option<&mut [u8]>, mut gray: Option<&mut [u8]>) {
+        for &i in &self.border {
+            let i = i as usize;
+            put(self.exact_pixel::<C>(src, src_w, src_h, i), i, out.as_deref_mut(), gray.as_deref_mut());
         }
     }
 
@@ -193,6 +185,18 @@ impl RemapTable {
     /// Float bilinear sampling of every pixel, for a source of any size.
     fn remap_exact<const C: usize>(&self, src: &[u8], src_w: u32, src_h: u32) -> Vec<u8> {
         (0..self.map.len()).flat_map(|i| self.exact_pixel::<C>(src, src_w, src_h, i)).collect()
+    }
+}
+
+/// Output pixel `i`'s sample `p` into `out` (its `C` channels) and `gray` (its [`luma`], with
+/// `C == 3`).
+#[inline(always)]
+fn put<const C: usize>(p: [u8; C], i: usize, out: Option<&mut [u8]>, gray: Option<&mut [u8]>) {
+    if let Some(out) = out {
+        out[i * C..(i + 1) * C].copy_from_slice(&p);
+    }
+    if let Some(gray) = gray {
+        gray[i] = luma(p[0], p[1 % C], p[2 % C]);
     }
 }
 
