@@ -138,6 +138,28 @@ fn table1_rejects_bad_input_in_one_line() {
     }
 }
 
+/// `bench live --method` hands the daemon's pipeline the chosen matcher (the JSON reports
+/// the pipeline's, not the flag), and an unknown one is refused in one line.
+#[test]
+fn bench_live_runs_the_chosen_matcher() {
+    let dir = support::temp_dir("assist-bench-live");
+    let rec = small_turn(&dir, 3, true);
+    for method in ["sgm", "bm"] {
+        let json = dir.join(format!("live-{method}.json"));
+        let o = spinscan(&["bench", "live", rec.to_str().unwrap(), "--pairs", "3", "--pace", "100", "--no-unpaced", "--max-disparity", "64", "--method", method, "--json", json.to_str().unwrap()]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        assert!(String::from_utf8_lossy(&o.stdout).contains(&format!("method {method},")));
+        let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        assert_eq!(v["method"], method);
+        let run = &v["runs"][0];
+        assert_eq!(run["matched"], 3, "{run}");
+        assert!(run["stage_ms"]["match"].as_f64().unwrap() > 0.0, "{run}");
+    }
+    let o = spinscan(&["bench", "live", rec.to_str().unwrap(), "--method", "census"]);
+    assert_eq!(o.status.code(), Some(2), "clap's usage error");
+    assert!(String::from_utf8_lossy(&o.stderr).contains("expected bm or sgm"), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
 #[test]
 fn an_assisted_replay_says_per_frame_how_it_searched() {
     let dir = support::temp_dir("assist-replay");

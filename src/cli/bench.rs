@@ -96,6 +96,10 @@ pub struct LiveArgs {
     /// How finely the assisted search range is set: auto, pixel or tile.
     #[arg(long, default_value = "auto")]
     pub assist_granularity: String,
+    /// The matcher, as the daemon's `[matching] method`: `bm` or `sgm` (with its default
+    /// penalties, paths and refinement).
+    #[arg(long, default_value = "bm")]
+    pub method: spinscan::stereo::Method,
     /// Write the runs as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -108,6 +112,7 @@ pub fn cmd_bench_live(a: LiveArgs) -> Result<(), Failure> {
     config.scan.queue_depth = a.queue_depth;
     config.scan.register_max_points = a.register_max_points;
     config.matching.num_disparities = a.num_disparities;
+    config.matching.method = a.method;
     config.matching.assist = a.assist.clone();
     config.matching.assist_granularity = a.assist_granularity.clone();
     config.validate(Path::new("bench live flags")).map_err(input)?;
@@ -120,10 +125,12 @@ pub fn cmd_bench_live(a: LiveArgs) -> Result<(), Failure> {
     let _ = std::fs::remove_dir_all(&work);
     let runs = runs?;
     let threads = if a.matcher_threads == 0 { std::thread::available_parallelism().map_or(2, |n| n.get()) } else { a.matcher_threads };
-    println!("live pipeline: {} matcher threads, queue {}, {} disparities, assist {} ({}), registration ≤ {} points/view", threads, a.queue_depth, a.num_disparities, a.assist, a.assist_granularity, a.register_max_points);
+    // The matcher the pipeline was given (not the flag echoed).
+    let method = opts.settings.pipeline.matching.method.name();
+    println!("live pipeline: {} matcher threads, queue {}, {} disparities, method {}, assist {} ({}), registration ≤ {} points/view", threads, a.queue_depth, a.num_disparities, method, a.assist, a.assist_granularity, a.register_max_points);
     print!("{}", spinscan::daemon::throughput::render(&runs));
     if let Some(path) = &a.json {
-        let v = json!({"matcher_threads": threads, "queue_depth": a.queue_depth, "num_disparities": a.num_disparities, "assist": a.assist, "assist_granularity": a.assist_granularity, "runs": runs.iter().map(|r| r.to_json()).collect::<Vec<_>>()});
+        let v = json!({"matcher_threads": threads, "queue_depth": a.queue_depth, "num_disparities": a.num_disparities, "method": method, "assist": a.assist, "assist_granularity": a.assist_granularity, "runs": runs.iter().map(|r| r.to_json()).collect::<Vec<_>>()});
         io::write_atomic(path, serde_json::to_string_pretty(&v).unwrap().as_bytes()).map_err(|e| output(format!("cannot write {}: {e}", path.display())))?;
     }
     Ok(())
