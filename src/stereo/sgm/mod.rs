@@ -428,6 +428,10 @@ impl Sgm {
                     let rest = i..y * w + end;
                     let whole = all_eq(&self.band_a[rest.clone()], a) && all_eq(&self.band_m[rest], m as u16);
                     let mut len = if whole { end - x } else { 1 };
+                    // Sixteen at a time, then one by one.
+                    while x + len + LANES <= w && all_eq(&self.band_m[i + len..][..LANES], m as u16) && all_eq(&self.band_a[i + len..][..LANES], a) {
+                        len += LANES;
+                    }
                     while x + len < w && self.band_m[i + len] as usize == m && self.band_a[i + len] == a {
                         len += 1;
                     }
@@ -553,6 +557,19 @@ impl Sgm {
             && all_eq(&cur.band[rest.clone()], band)
         {
             len = rest.len();
+        }
+        // Sixteen pixels at a time while all of them continue the run and their slots already
+        // hold the band (so `prepare` has nothing to do): checked without a branch per pixel.
+        while step_x + len + LANES <= w {
+            let next = step_x + len;
+            let xs = if up { w - next - LANES..w - next } else { next..next + LANES };
+            let here = y * w + xs.start..y * w + xs.end;
+            let above = if up { here.start + w..here.end + w } else { here.start - w..here.end - w };
+            let continues = all_eq(&band_a[here.clone()], band.0) && all_eq(&band_m[here], band.1) && band_m[above].iter().fold(true, |ok, &b| ok & (b > 0)) && all_eq(&cur.band[xs], band);
+            if !continues {
+                break;
+            }
+            len += LANES;
         }
         while step_x + len < w {
             let x = if up { w - 1 - step_x - len } else { step_x + len };

@@ -91,6 +91,78 @@ fn lr_fails(right: &[u64], x: usize, di: i32, tol: u32) -> bool {
     best != u64::MAX && (d_right - di).unsigned_abs() > tol
 }
 
+/// The left–right check of a row's `span` (`out`, its disparities, NaN unmatched) against
+/// the winning splats `right`, eight pixels at a time: a match fails, and becomes NaN, when
+/// [`lr_fails`] at both the floor and the ceiling of its disparity — the same decisions, the
+/// splat's column read by a gather of its low 32 bits (all ones: no splat, as `u64::MAX`).
+/// Returns the matches looked at and those that passed.
+///
+/// # Safety
+/// The CPU supports AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn lr_check_avx2(right: &[u64], out: &mut [f32], span: std::ops::Range<usize>, tol: u32) -> (usize, usize) {
+    use std::arch::x86_64::*;
+    assert!(span.end <= out.len() && right.len() <= i32::MAX as usize);
+    let (mut candidates, mut passed) = (0usize, 0usize);
+    let lanes = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    let mut x = span.start;
+    while x + 8 <= span.end {
+        // SAFETY: eight values of `out` from x (x + 8 ≤ span.end ≤ out.len()).
+        let d = unsafe { _mm256_loadu_ps(out.as_ptr().add(x)) };
+        let matched = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_ORD_Q>(d, d));
+        let xv = _mm256_add_epi32(_mm256_set1_epi32(x as i32), lanes);
+        // (Exact: the floor and ceiling of a matched disparity are small integers.)
+        let (lo, hi) = (_mm256_cvttps_epi32(_mm256_floor_ps(d)), _mm256_cvttps_epi32(_mm256_ceil_ps(d)));
+        // SAFETY: the CPU supports AVX2; the gathers read `right` inside it only.
+        let fail = unsafe { _mm256_and_si256(lr_fails8(right, xv, lo, matched, tol), lr_fails8(right, xv, hi, matched, tol)) };
+        let kept = _mm256_blendv_ps(d, _mm256_set1_ps(f32::NAN), _mm256_castsi256_ps(fail));
+        // SAFETY: as the load above.
+        unsafe { _mm256_storeu_ps(out.as_mut_ptr().add(x), kept) };
+        candidates += _mm256_movemask_ps(_mm256_castsi256_ps(matched)).count_ones() as usize;
+        passed += _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_andnot_si256(fail, matched))).count_ones() as usize;
+        x += 8;
+    }
+    for x in x..span.end {
+        let d = out[x];
+        if d.is_nan() {
+            continue;
+        }
+        candidates += 1;
+        if lr_fails(right, x, d.floor() as i32, tol) && lr_fails(right, x, d.ceil() as i32, tol) {
+            out[x] = f32::NAN;
+            continue;
+        }
+        passed += 1;
+    }
+    (candidates, passed)
+}
+
+/// [`lr_fails`] for eight pixels (columns `xv`, disparities `di`, lanes where `matched`):
+/// all ones in the lanes that fail.
+///
+/// # Safety
+/// The CPU supports AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn lr_fails8(right: &[u64], xv: std::arch::x86_64::__m256i, di: std::arch::x86_64::__m256i, matched: std::arch::x86_64::__m256i, tol: u32) -> std::arch::x86_64::__m256i {
+    use std::arch::x86_64::*;
+    let none = _mm256_set1_epi32(-1);
+    let xr = _mm256_sub_epi32(xv, di);
+    // The right pixel inside the row, 0 ≤ xr < w: else the check says nothing.
+    let inside = _mm256_and_si256(matched, _mm256_and_si256(_mm256_cmpgt_epi32(xr, none), _mm256_cmpgt_epi32(_mm256_set1_epi32(right.len() as i32), xr)));
+    // SAFETY: lane by lane, the low half of `right[xr]` where `inside` (0 ≤ xr < right.len());
+    // the other lanes are not read.
+    let xw = unsafe { _mm256_mask_i32gather_epi32::<8>(none, right.as_ptr() as *const i32, xr, inside) };
+    let splat = _mm256_andnot_si256(_mm256_cmpeq_epi32(xw, none), inside);
+    let off = _mm256_abs_epi32(_mm256_sub_epi32(_mm256_sub_epi32(xw, xr), di));
+    // `off > tol` unsigned: both sides with their top bit flipped, compared signed.
+    let flip = _mm256_set1_epi32(i32::MIN);
+    let far = _mm256_cmpgt_epi32(_mm256_xor_si256(off, flip), _mm256_xor_si256(_mm256_set1_epi32(tol as i32), flip));
+    _mm256_and_si256(splat, far)
+}
+
 impl Sgm {
     /// [`Sgm::select_row`], on AVX2 compiled as a function of its own. Compiled only as part
     /// of the whole matcher, its per-pixel helpers (`min_at`, `masked_min`) stayed calls, one
@@ -203,6 +275,15 @@ impl Sgm {
             out[x] = if den_row[x] != 0 { d } else { f32::NAN };
         }
         let t0 = std::time::Instant::now();
+        #[cfg(target_arch = "x86_64")]
+        if let (true, Some(tol)) = (AVX2, p.lr_max_diff) {
+            // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU.
+            let (candidates, passed) = unsafe { lr_check_avx2(&self.right_best[..w], out, span, tol) };
+            stats.lr_candidates += candidates;
+            stats.lr_passed += passed;
+            stats.lr_check_ns += t0.elapsed().as_nanos() as u64;
+            return;
+        }
         for x in span {
             let d = out[x];
             if d.is_nan() {

@@ -120,6 +120,54 @@ fn the_blended_sub_pixel_value_beats_the_correlation_alone() {
     assert!(refined < bm, "median error {refined:.4} px refined, {bm:.4} px for the correlation alone");
 }
 
+/// Intervals in wide patches, 37 × 5 pixels: side by side, patches of one width (so one
+/// band width) at other disparities, and a hole about every 41 pixels of a row — runs longer
+/// than the sixteen pixels the run and cost loops check at once, ending at band changes,
+/// holes and slots that held another band two rows up.
+fn wide_patches(w: usize, h: usize) -> DisparityIntervals {
+    let mut wide = DisparityIntervals::empty(w, h);
+    for y in 0..h {
+        for x in 0..w {
+            if (x + 3 * y) % 41 != 0 {
+                let lo = ((x / 37 * 17 + y / 5 * 5) % 60) as i16;
+                (wide.lo[y * w + x], wide.hi[y * w + x]) = (lo, lo + [3, 20, 40][y / 5 % 3]);
+            }
+        }
+    }
+    wide
+}
+
+/// Pass one cuts each row into runs of one band for the costs: every pixel gets the costs of
+/// its own band, whatever runs it was cut into.
+#[test]
+fn every_pixel_is_costed_over_its_own_band() {
+    let (w, h) = (90, 40);
+    let (l, r) = pair(w, h, |x, y| 4.0 + ((x / 20 + y / 10) % 3) as f32 * 5.0);
+    let p = params(128);
+    let mut sgm = Sgm::default();
+    let mut out = DisparityMap::new(w, h);
+    sgm.compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), &wide_patches(w, h), 0..h, &mut out);
+    let (n, dmin) = (128, p.min_disparity);
+    let pad_l = (dmin + n - 1).max(0) as usize;
+    let wr = sgm.census_r.len() / h;
+    let mut costed = 0;
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let (a, m) = (sgm.band_a[i] as usize, sgm.band_m[i] as usize);
+            if m == 0 {
+                continue;
+            }
+            let px = census::Pixel { cl: sgm.census_l[i], il: l[i], cr_row: &sgm.census_r[y * wr..][..wr], ir_row: &sgm.levels_r[y * wr..][..wr], cap: p.sgm_ad_cap };
+            let mut want = vec![0u8; m];
+            census::costs(px, (x as i32 + pad_l as i32 - dmin - a as i32) as usize, &mut want);
+            assert_eq!(&sgm.cost[sgm.off[i]..][..m], &want[..], "pixel ({x}, {y}), band {a} + {m}");
+            costed += 1;
+        }
+    }
+    assert!(costed > w * h / 2, "{costed}");
+}
+
 #[test]
 fn the_portable_build_gives_the_same_map() {
     let (w, h) = (90, 40);
@@ -137,7 +185,8 @@ fn the_portable_build_gives_the_same_map() {
             }
         }
     }
-    for (iv, range, what) in [(&full, 40, "full range"), (&patches, 128, "patches")] {
+    let wide = wide_patches(w, h);
+    for (iv, range, what) in [(&full, 40, "full range"), (&patches, 128, "patches"), (&wide, 128, "wide patches")] {
         for paths in [4, 8] {
             let p = MatchParams { sgm_paths: paths, ..(*params(range)).clone() }.validate().unwrap();
             let (fast, _) = run(&p, &l, &r, w, h, iv);
