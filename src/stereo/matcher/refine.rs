@@ -84,7 +84,7 @@ impl StereoMatcher {
             // SAFETY: the CPU has AVX2 (checked just above).
             return unsafe { self.refine_avx2(left, right, searched, out, masked, totals) };
         }
-        self.refine(left, right, searched, out, masked, totals)
+        self.refine::<false>(left, right, searched, out, masked, totals)
     }
 
     /// [`StereoMatcher::refine_subpixel`] compiled for AVX2: its passes over the map are
@@ -94,12 +94,12 @@ impl StereoMatcher {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
     unsafe fn refine_avx2(&mut self, left: GrayView, right: GrayView, searched: &DisparityIntervals, out: &mut DisparityMap, masked: bool, totals: &mut MatchStats) {
-        self.refine(left, right, searched, out, masked, totals)
+        self.refine::<true>(left, right, searched, out, masked, totals)
     }
 
     /// The body of [`StereoMatcher::refine_subpixel`].
     #[inline(always)]
-    fn refine(&mut self, left: GrayView, right: GrayView, searched: &DisparityIntervals, out: &mut DisparityMap, masked: bool, totals: &mut MatchStats) {
+    pub(super) fn refine<const AVX2: bool>(&mut self, left: GrayView, right: GrayView, searched: &DisparityIntervals, out: &mut DisparityMap, masked: bool, totals: &mut MatchStats) {
         let (w, h) = (left.width, left.height);
         let p = &self.params;
         let (dmin, dmax) = (p.min_disparity, p.max_disparity());
@@ -150,6 +150,10 @@ impl StereoMatcher {
                 let (dc, cc) = (ds.chunks_exact(8), cs.chunks_exact(8));
                 let tail = row.start + dc.len() * 8;
                 for (k, (d8, c8)) in dc.clone().zip(cc.clone()).enumerate() {
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: AVX2 is only set by `refine_avx2`, whose caller checked the CPU.
+                    let mut bits = if AVX2 { unsafe { disagree_bits_avx2(d8, c8) } } else { (0..8).fold(0u32, |m, j| m | (disagrees(d8[j], c8[j]) as u32) << j) };
+                    #[cfg(not(target_arch = "x86_64"))]
                     let mut bits = (0..8).fold(0u32, |m, j| m | (disagrees(d8[j], c8[j]) as u32) << j);
                     while bits != 0 {
                         s.candidates.push((row.start + k * 8 + bits.trailing_zeros() as usize) as u32);
@@ -218,6 +222,26 @@ impl StereoMatcher {
 #[inline(always)]
 fn agrees(d: f32, c: f32) -> bool {
     (c - d).abs() <= AGREE_PX
+}
+
+/// Bit j set where SGM's `d[j]` (matched) and the correlation's `c[j]` disagree: `!d.is_nan()
+/// && !agrees(d, c)` for eight pixels by one compare each (`d` and `c` hold eight values).
+///
+/// # Safety
+/// The CPU supports AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn disagree_bits_avx2(d: &[f32], c: &[f32]) -> u32 {
+    use std::arch::x86_64::*;
+    assert!(d.len() == 8 && c.len() == 8);
+    // SAFETY: eight values each, asserted above.
+    let (d, c) = unsafe { (_mm256_loadu_ps(d.as_ptr()), _mm256_loadu_ps(c.as_ptr())) };
+    // |c − d| ≤ AGREE_PX, false where either is NaN (an ordered compare), as `agrees`.
+    let off = _mm256_andnot_ps(_mm256_set1_ps(-0.0), _mm256_sub_ps(c, d));
+    let agree = _mm256_cmp_ps::<_CMP_LE_OQ>(off, _mm256_set1_ps(AGREE_PX));
+    let matched = _mm256_cmp_ps::<_CMP_ORD_Q>(d, d);
+    _mm256_movemask_ps(_mm256_andnot_ps(agree, matched)) as u32
 }
 
 /// The sum of `d − c` over the pixels where SGM's `d` and the correlation's `c` agree, and

@@ -358,6 +358,49 @@ fn refinement_keeps_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
     }
 }
 
+/// The refinement compiled for AVX2 (its search for disagreeing pixels in vector compares)
+/// gives the portable build's values to the bit: SGM values near and far from the
+/// correlation's, unmatched pixels, on a masked match with a rim and on a whole image.
+#[test]
+fn the_avx2_refinement_is_the_portable_one() {
+    if !std::is_x86_feature_detected!("avx2") {
+        return;
+    }
+    let (w, h) = (83, 37);
+    let mut next = crate::testing::xorshift(0x0dd_ba11);
+    let l: Vec<u8> = (0..w * h).map(|_| (next() % 256) as u8).collect();
+    let r: Vec<u8> = (0..w * h).map(|i| l[(i / w) * w + (i % w + 5).min(w - 1)]).collect();
+    let p = MatchParams { method: crate::stereo::Method::Sgm, num_disparities: 16, threads: 1, ..Default::default() }.validate().unwrap();
+    let mut searched = DisparityIntervals::full(w, h, 0, 15);
+    let mut sgm = DisparityMap::new(w, h);
+    for y in 0..h {
+        for x in 0..w {
+            let d = match next() % 8 {
+                0 => None,
+                // Beyond the correlation's ± 2, or just inside or outside its agreement.
+                1 => Some(1.0 + (next() % 3) as f32),
+                2 => Some(5.0 + [-1.25, -0.99, 1.0, 1.01][(next() % 4) as usize]),
+                _ => Some(5.0 + ((next() % 100) as f32 - 50.0) / 100.0),
+            };
+            sgm.set(x, y, d);
+            if (20..60).contains(&x) && (5..30).contains(&y) || d.is_none() && next() % 2 == 0 {
+                continue;
+            }
+            searched.set(x, y, None);
+        }
+    }
+    let (lv, rv) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap());
+    for masked in [true, false] {
+        let mut m = StereoMatcher::new(p.clone());
+        let (mut fast, mut portable) = (sgm.clone(), sgm.clone());
+        m.refine::<true>(lv, rv, &searched, &mut fast, masked, &mut MatchStats::default());
+        m.refine::<false>(lv, rv, &searched, &mut portable, masked, &mut MatchStats::default());
+        assert!(fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits()), "masked {masked}");
+        let changed = fast.values().iter().zip(sgm.values()).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
+        assert!(changed > w * h / 4, "masked {masked}: {changed} values refined or dropped");
+    }
+}
+
 /// Where the correlation agrees, the refined value is the correlation's plus a share
 /// (`OWN_WEIGHT`) of SGM's deviation from it, around their mean lean over the pixel's square
 /// (`OFFSET_TILE`): raising one SGM value by 0.2 raises its refined value by `OWN_WEIGHT` ·
