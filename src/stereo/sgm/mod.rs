@@ -306,7 +306,8 @@ impl Sgm {
         let total = self.off[w * h];
         // Pass one writes every cost and sum before anything reads them: no clearing.
         self.cost.resize(total, 0);
-        self.sum.resize(total, 0);
+        // (One more: the selection's gathers read each sum as the low half of 32 bits.)
+        self.sum.resize(total + 1, 0);
         self.fresh.clear();
         self.fresh.resize(n + 2, UNREACHED);
         self.right_best.resize(w, 0);

@@ -163,6 +163,74 @@ unsafe fn lr_fails8(right: &[u64], xv: std::arch::x86_64::__m256i, di: std::arch
     _mm256_and_si256(splat, far)
 }
 
+/// A row's per-pixel records that the fit reads: bands, intervals, offsets of the sums, and
+/// each pixel's smallest sum and its disparity index.
+#[cfg(target_arch = "x86_64")]
+struct FitRows<'a> {
+    band_a: &'a [u16],
+    band_m: &'a [u16],
+    lo: &'a [u16],
+    hi: &'a [u16],
+    off: &'a [usize],
+    best: &'a [u16],
+    k: &'a [u16],
+}
+
+/// The second loop of [`Sgm::select_row`] without the uniqueness test, with the sub-pixel
+/// fit, eight pixels at a time over whole groups of `span`: each searched pixel's disparity
+/// index `di`, and the equiangular fit's `num` and `den` from its sums beside the winner
+/// (gathered), or `(0, 1)` at its interval's ends; `den` 0 where nothing was searched — the
+/// scalar loop's values. Returns where it stopped (the rest, fewer than eight, is the
+/// caller's).
+///
+/// # Safety
+/// The CPU supports AVX2; `sum` holds every pixel's band at its offset and one value more.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn fit_avx2(r: FitRows, span: std::ops::Range<usize>, dmin: i32, sum: &[u16], (di, num, den): (&mut [i32], &mut [i32], &mut [i32])) -> usize {
+    use std::arch::x86_64::*;
+    let n = r.band_m.len();
+    assert!(span.end <= n && [r.band_a.len(), r.lo.len(), r.hi.len(), r.off.len(), r.best.len(), r.k.len(), di.len(), num.len(), den.len()].iter().all(|&l| l == n));
+    let (zero, one) = (_mm256_setzero_si256(), _mm256_set1_epi32(1));
+    // The low dwords of four u64 in each 128-bit half's … first four lanes.
+    let low = _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6);
+    let mut x = span.start;
+    while x + 8 <= span.end {
+        // SAFETY (loads): eight values of each row from x, x + 8 ≤ n.
+        let ld = |v: &[u16]| unsafe { _mm256_cvtepu16_epi32(_mm_loadu_si128(v.as_ptr().add(x) as *const __m128i)) };
+        let (m, a, lo, hi, best, k) = (ld(r.band_m), ld(r.band_a), ld(r.lo), ld(r.hi), ld(r.best), ld(r.k));
+        let searched = _mm256_cmpgt_epi32(m, zero);
+        // The fit where the winner has a neighbour inside the interval on both sides.
+        let fit = _mm256_and_si256(searched, _mm256_and_si256(_mm256_cmpgt_epi32(k, lo), _mm256_cmpgt_epi32(hi, k)));
+        // Each pixel's offset from the first one's (small: eight bands).
+        let base = r.off[x];
+        let (o0, o1) = unsafe { (_mm256_loadu_si256(r.off.as_ptr().add(x) as *const __m256i), _mm256_loadu_si256(r.off.as_ptr().add(x + 4) as *const __m256i)) };
+        let b = _mm256_set1_epi64x(base as i64);
+        let rel = _mm256_blend_epi32::<0b1111_0000>(_mm256_permutevar8x32_epi32(_mm256_sub_epi64(o0, b), low), _mm256_permutevar8x32_epi32(_mm256_sub_epi64(o1, b), low));
+        let at = _mm256_sub_epi32(_mm256_add_epi32(rel, k), a);
+        // SAFETY: where `fit`, a < k < a + m − 1 … so both reads, 32 bits from the sum at
+        // k − 1 and at k + 1 of the pixel's band, end inside `sum` (one value past the last
+        // band); the other lanes are not read.
+        let p = unsafe { sum.as_ptr().add(base) as *const i32 };
+        let (s0, s2) = unsafe { (_mm256_mask_i32gather_epi32::<2>(zero, p, _mm256_sub_epi32(at, one), fit), _mm256_mask_i32gather_epi32::<2>(zero, p, _mm256_add_epi32(at, one), fit)) };
+        let mask16 = _mm256_set1_epi32(0xffff);
+        let (s0, s2) = (_mm256_and_si256(s0, mask16), _mm256_and_si256(s2, mask16));
+        let rise = _mm256_max_epi32(_mm256_sub_epi32(_mm256_max_epi32(s0, s2), best), one);
+        let num_v = _mm256_and_si256(fit, _mm256_sub_epi32(s0, s2));
+        // 2 · rise where fitted, 1 elsewhere searched, 0 where nothing was.
+        let den_v = _mm256_blendv_epi8(_mm256_and_si256(searched, one), _mm256_add_epi32(rise, rise), fit);
+        let di_v = _mm256_add_epi32(_mm256_set1_epi32(dmin), k);
+        // SAFETY (stores): eight values of each row from x, x + 8 ≤ n.
+        unsafe {
+            _mm256_storeu_si256(di.as_mut_ptr().add(x) as *mut __m256i, di_v);
+            _mm256_storeu_si256(num.as_mut_ptr().add(x) as *mut __m256i, num_v);
+            _mm256_storeu_si256(den.as_mut_ptr().add(x) as *mut __m256i, den_v);
+        }
+        x += 8;
+    }
+    x
+}
+
 impl Sgm {
     /// [`Sgm::select_row`], on AVX2 compiled as a function of its own. Compiled only as part
     /// of the whole matcher, its per-pixel helpers (`min_at`, `masked_min`) stayed calls, one
@@ -243,7 +311,24 @@ impl Sgm {
             }
             x += 1;
         }
-        for x in span.clone() {
+        // Without the uniqueness test, the winners' disparities and fits eight at a time,
+        // then their splats one by one (two may land on one right pixel); the rest of the
+        // span below.
+        let mut x = span.start;
+        #[cfg(target_arch = "x86_64")]
+        if AVX2 && uniq == 0 && p.subpixel {
+            let rows = FitRows { band_a, band_m, lo: lo_row, hi: hi_row, off: off_row, best: win_best, k: win_k };
+            // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; `sum` has
+            // one value past the last pixel's band.
+            x = unsafe { fit_avx2(rows, span.clone(), dmin, sum, (di_row, num_row, den_row)) };
+            for x in span.start..x {
+                if band_m[x] > 0 {
+                    let xr = (x as i32 - di_row[x]) as usize;
+                    right_best[xr] = right_best[xr].min((win_best[x] as u64) << 32 | x as u64);
+                }
+            }
+        }
+        for x in x..span.end {
             let m = band_m[x] as usize;
             if m == 0 {
                 continue;

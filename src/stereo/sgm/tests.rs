@@ -187,14 +187,15 @@ fn the_portable_build_gives_the_same_map() {
     }
     let wide = wide_patches(w, h);
     for (iv, range, what) in [(&full, 40, "full range"), (&patches, 128, "patches"), (&wide, 128, "wide patches")] {
-        for paths in [4, 8] {
-            let p = MatchParams { sgm_paths: paths, ..(*params(range)).clone() }.validate().unwrap();
+        // (Uniqueness 15 and 0, SGM's default: without the test the fits run in the lanes.)
+        for (paths, uniqueness_ratio) in [(4, 15), (8, 15), (4, 0), (8, 0)] {
+            let p = MatchParams { sgm_paths: paths, uniqueness_ratio, ..(*params(range)).clone() }.validate().unwrap();
             let (fast, _) = run(&p, &l, &r, w, h, iv);
             let mut portable = DisparityMap::new(w, h);
             Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), iv, 0..h, &mut portable);
             let same = fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits());
-            assert!(same, "{what}, {paths} paths");
-            assert!(fast.valid_count() * 5 > w * h, "{what}, {paths} paths: {} matched", fast.valid_count());
+            assert!(same, "{what}, {paths} paths, uniqueness {uniqueness_ratio}");
+            assert!(fast.valid_count() * 5 > w * h, "{what}, {paths} paths, uniqueness {uniqueness_ratio}: {} matched", fast.valid_count());
         }
     }
 }
