@@ -192,7 +192,7 @@ unsafe fn fit_avx2(r: FitRows, span: std::ops::Range<usize>, dmin: i32, sum: &[u
     let n = r.band_m.len();
     assert!(span.end <= n && [r.band_a.len(), r.lo.len(), r.hi.len(), r.off.len(), r.best.len(), r.k.len(), di.len(), num.len(), den.len()].iter().all(|&l| l == n));
     let (zero, one) = (_mm256_setzero_si256(), _mm256_set1_epi32(1));
-    // The low dwords of four u64 in each 128-bit half's … first four lanes.
+    // Lanes 0, 2, 4 and 6 — the low 32 bits of four u64 — moved to the first four.
     let low = _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6);
     let mut x = span.start;
     while x + 8 <= span.end {
@@ -208,9 +208,10 @@ unsafe fn fit_avx2(r: FitRows, span: std::ops::Range<usize>, dmin: i32, sum: &[u
         let b = _mm256_set1_epi64x(base as i64);
         let rel = _mm256_blend_epi32::<0b1111_0000>(_mm256_permutevar8x32_epi32(_mm256_sub_epi64(o0, b), low), _mm256_permutevar8x32_epi32(_mm256_sub_epi64(o1, b), low));
         let at = _mm256_sub_epi32(_mm256_add_epi32(rel, k), a);
-        // SAFETY: where `fit`, a < k < a + m − 1 … so both reads, 32 bits from the sum at
-        // k − 1 and at k + 1 of the pixel's band, end inside `sum` (one value past the last
-        // band); the other lanes are not read.
+        // SAFETY: where `fit`, lo < k < hi inside the band (a ≤ lo, hi < a + m), so both
+        // reads — 32 bits from the sums at k − 1 and at k + 1 — end at most one value past
+        // the pixel's band: inside `sum`, which has one value of slack past the last band.
+        // The other lanes are not read.
         let p = unsafe { sum.as_ptr().add(base) as *const i32 };
         let (s0, s2) = unsafe { (_mm256_mask_i32gather_epi32::<2>(zero, p, _mm256_sub_epi32(at, one), fit), _mm256_mask_i32gather_epi32::<2>(zero, p, _mm256_add_epi32(at, one), fit)) };
         let mask16 = _mm256_set1_epi32(0xffff);
