@@ -144,17 +144,11 @@ impl StereoMatcher {
             for (y, span) in s.spans.iter().enumerate() {
                 let row = y * w + span.start..y * w + span.end;
                 let (ds, cs) = (&out.values()[row.clone()], &s.corr.values()[row.clone()]);
-                // Eight pixels at a time, as a bit mask (branch-free, so that it vectorises):
-                // most pixels agree.
-                let disagrees = |d: f32, c: f32| !d.is_nan() && !agrees(d, c);
+                // Eight pixels at a time, as a bit mask: most pixels agree.
                 let (dc, cc) = (ds.chunks_exact(8), cs.chunks_exact(8));
                 let tail = row.start + dc.len() * 8;
                 for (k, (d8, c8)) in dc.clone().zip(cc.clone()).enumerate() {
-                    #[cfg(target_arch = "x86_64")]
-                    // SAFETY: AVX2 is only set by `refine_avx2`, whose caller checked the CPU.
-                    let mut bits = if AVX2 { unsafe { disagree_bits_avx2(d8, c8) } } else { (0..8).fold(0u32, |m, j| m | (disagrees(d8[j], c8[j]) as u32) << j) };
-                    #[cfg(not(target_arch = "x86_64"))]
-                    let mut bits = (0..8).fold(0u32, |m, j| m | (disagrees(d8[j], c8[j]) as u32) << j);
+                    let mut bits = disagree_bits::<AVX2>(d8, c8);
                     while bits != 0 {
                         s.candidates.push((row.start + k * 8 + bits.trailing_zeros() as usize) as u32);
                         bits &= bits - 1;
@@ -224,8 +218,25 @@ fn agrees(d: f32, c: f32) -> bool {
     (c - d).abs() <= AGREE_PX
 }
 
-/// Bit j set where SGM's `d[j]` (matched) and the correlation's `c[j]` disagree: `!d.is_nan()
-/// && !agrees(d, c)` for eight pixels by one compare each (`d` and `c` hold eight values).
+/// Whether SGM's `d` (matched) and the correlation's `c` disagree.
+#[inline(always)]
+fn disagrees(d: f32, c: f32) -> bool {
+    !d.is_nan() && !agrees(d, c)
+}
+
+/// Bit j set where `d[j]` and `c[j]` [`disagrees`], for eight pixels (`d` and `c` hold
+/// eight values): on AVX2 by one vector compare, else branch-free, so that it vectorises.
+#[inline(always)]
+fn disagree_bits<const AVX2: bool>(d: &[f32], c: &[f32]) -> u32 {
+    #[cfg(target_arch = "x86_64")]
+    if AVX2 {
+        // SAFETY: AVX2 is only set by `refine_avx2`, whose caller checked the CPU.
+        return unsafe { disagree_bits_avx2(d, c) };
+    }
+    (0..8).fold(0u32, |m, j| m | (disagrees(d[j], c[j]) as u32) << j)
+}
+
+/// [`disagree_bits`] by one compare each.
 ///
 /// # Safety
 /// The CPU supports AVX2.

@@ -426,11 +426,10 @@ impl Sgm {
                     }
                     // (The rest of the span at once when it all holds the band — the full range —
                     // checked without a branch per pixel.)
-                    let rest = i..y * w + end;
-                    let whole = all_eq(&self.band_a[rest.clone()], a) && all_eq(&self.band_m[rest], m as u16);
-                    let mut len = if whole { end - x } else { 1 };
+                    let holds = |px: Range<usize>| all_eq(&self.band_a[px.clone()], a) && all_eq(&self.band_m[px], m as u16);
+                    let mut len = if holds(i..y * w + end) { end - x } else { 1 };
                     // Sixteen at a time, then one by one.
-                    while x + len + LANES <= w && all_eq(&self.band_m[i + len..][..LANES], m as u16) && all_eq(&self.band_a[i + len..][..LANES], a) {
+                    while x + len + LANES <= w && holds(i + len..i + len + LANES) {
                         len += LANES;
                     }
                     while x + len < w && self.band_m[i + len] as usize == m && self.band_a[i + len] == a {
@@ -545,29 +544,26 @@ impl Sgm {
         }
         let mut len = 0;
         let (band_a, band_m, cur) = (&self.band_a, &self.band_m, &mut self.vert_cur[1]);
-        // The rest of the row's span at once when this row and the slots to be written all
-        // hold the band there and every pixel of the previous row searched (the full range:
-        // every row but the first), checked without a branch per pixel; else pixel by pixel
-        // up to the first that does not.
+        // Whether columns `cols` of the row all continue the run with nothing for `prepare`
+        // to do: they hold the band, their previous row's pixels searched, and their slots
+        // already hold the band. Checked without a branch per pixel.
+        let (row, prev_row) = (y * w..(y + 1) * w, if up { (y + 1) * w..(y + 2) * w } else { (y - 1) * w..y * w });
+        let continues = |cols: Range<usize>| {
+            all_eq(&band_a[row.clone()][cols.clone()], band.0)
+                && all_eq(&band_m[row.clone()][cols.clone()], band.1)
+                && band_m[prev_row.clone()][cols.clone()].iter().fold(true, |ok, &b| ok & (b > 0))
+                && all_eq(&cur.band[cols], band)
+        };
+        // The rest of the row's span at once (the full range: every row but the first); else
+        // sixteen pixels at a time; then pixel by pixel up to the first that does not continue.
         let span = &self.span[y];
         let rest = if up { span.start..x0 + 1 } else { x0..span.end };
-        let (row, prev_row) = (y * w..(y + 1) * w, if up { (y + 1) * w..(y + 2) * w } else { (y - 1) * w..y * w });
-        if all_eq(&band_a[row.clone()][rest.clone()], band.0)
-            && all_eq(&band_m[row][rest.clone()], band.1)
-            && band_m[prev_row][rest.clone()].iter().fold(true, |ok, &b| ok & (b > 0))
-            && all_eq(&cur.band[rest.clone()], band)
-        {
+        if continues(rest.clone()) {
             len = rest.len();
         }
-        // Sixteen pixels at a time while all of them continue the run and their slots already
-        // hold the band (so `prepare` has nothing to do): checked without a branch per pixel.
         while step_x + len + LANES <= w {
             let next = step_x + len;
-            let xs = if up { w - next - LANES..w - next } else { next..next + LANES };
-            let here = y * w + xs.start..y * w + xs.end;
-            let above = if up { here.start + w..here.end + w } else { here.start - w..here.end - w };
-            let continues = all_eq(&band_a[here.clone()], band.0) && all_eq(&band_m[here], band.1) && band_m[above].iter().fold(true, |ok, &b| ok & (b > 0)) && all_eq(&cur.band[xs], band);
-            if !continues {
+            if !continues(if up { w - next - LANES..w - next } else { next..next + LANES }) {
                 break;
             }
             len += LANES;

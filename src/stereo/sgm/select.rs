@@ -95,13 +95,14 @@ fn lr_fails(right: &[u64], x: usize, di: i32, tol: u32) -> bool {
 /// the winning splats `right`, eight pixels at a time: a match fails, and becomes NaN, when
 /// [`lr_fails`] at both the floor and the ceiling of its disparity — the same decisions, the
 /// splat's column read by a gather of its low 32 bits (all ones: no splat, as `u64::MAX`).
-/// Returns the matches looked at and those that passed.
+/// Returns where it stopped (the rest of the span, fewer than eight, is the caller's), the
+/// matches looked at and those that passed.
 ///
 /// # Safety
 /// The CPU supports AVX2.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn lr_check_avx2(right: &[u64], out: &mut [f32], span: std::ops::Range<usize>, tol: u32) -> (usize, usize) {
+unsafe fn lr_check_avx2(right: &[u64], out: &mut [f32], span: std::ops::Range<usize>, tol: u32) -> (usize, usize, usize) {
     use std::arch::x86_64::*;
     assert!(span.end <= out.len() && right.len() <= i32::MAX as usize);
     let (mut candidates, mut passed) = (0usize, 0usize);
@@ -123,19 +124,15 @@ unsafe fn lr_check_avx2(right: &[u64], out: &mut [f32], span: std::ops::Range<us
         passed += _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_andnot_si256(fail, matched))).count_ones() as usize;
         x += 8;
     }
-    for x in x..span.end {
-        let d = out[x];
-        if d.is_nan() {
-            continue;
-        }
-        candidates += 1;
-        if lr_fails(right, x, d.floor() as i32, tol) && lr_fails(right, x, d.ceil() as i32, tol) {
-            out[x] = f32::NAN;
-            continue;
-        }
-        passed += 1;
-    }
-    (candidates, passed)
+    (x, candidates, passed)
+}
+
+/// Left pixel `x`'s winning match (disparity `di`, sum `best`) splatted onto its right pixel
+/// in `right`: the cheapest splat wins; ties go to the smaller x, i.e. the smaller disparity.
+#[inline(always)]
+fn splat(right: &mut [u64], x: usize, di: i32, best: u16) {
+    let xr = (x as i32 - di) as usize;
+    right[xr] = right[xr].min((best as u64) << 32 | x as u64);
 }
 
 /// [`lr_fails`] for eight pixels (columns `xv`, disparities `di`, lanes where `matched`):
@@ -324,8 +321,7 @@ impl Sgm {
             x = unsafe { fit_avx2(rows, span.clone(), dmin, sum, (di_row, num_row, den_row)) };
             for x in span.start..x {
                 if band_m[x] > 0 {
-                    let xr = (x as i32 - di_row[x]) as usize;
-                    right_best[xr] = right_best[xr].min((win_best[x] as u64) << 32 | x as u64);
+                    splat(right_best, x, di_row[x], win_best[x]);
                 }
             }
         }
@@ -340,9 +336,7 @@ impl Sgm {
             }
             let (a, lo, hi) = (band_a[x] as usize, lo_row[x] as usize, hi_row[x] as usize);
             let di = dmin + bk as i32;
-            let xr = (x as i32 - di) as usize;
-            // The cheapest splat wins; ties go to the smaller x, i.e. the smaller disparity.
-            right_best[xr] = right_best[xr].min((best as u64) << 32 | x as u64);
+            splat(right_best, x, di, best);
             di_row[x] = di;
             (num_row[x], den_row[x]) = if p.subpixel && bk > lo && bk < hi {
                 // Equiangular (V-shaped) fit: census sums rise about linearly away from the
@@ -361,16 +355,17 @@ impl Sgm {
             out[x] = if den_row[x] != 0 { d } else { f32::NAN };
         }
         let t0 = std::time::Instant::now();
+        // Eight at a time on AVX2, the rest below.
+        let mut x = span.start;
         #[cfg(target_arch = "x86_64")]
         if let (true, Some(tol)) = (AVX2, p.lr_max_diff) {
             // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU.
-            let (candidates, passed) = unsafe { lr_check_avx2(&self.right_best[..w], out, span, tol) };
+            let (done, candidates, passed) = unsafe { lr_check_avx2(&self.right_best[..w], out, span.clone(), tol) };
+            x = done;
             stats.lr_candidates += candidates;
             stats.lr_passed += passed;
-            stats.lr_check_ns += t0.elapsed().as_nanos() as u64;
-            return;
         }
-        for x in span {
+        for x in x..span.end {
             let d = out[x];
             if d.is_nan() {
                 continue;
