@@ -23,6 +23,7 @@ use crate::recording::{Recording, TurntableAxis};
 use crate::register::posestore::{PoseSnapshot, PoseStore};
 use crate::register::ring::{Registrar, RegistrationParams};
 use crate::register::surface::{quantile, Surface};
+use crate::segment::KeySource;
 use crate::stereo::{DisparityMap, MatchParams, Method};
 
 /// What to run.
@@ -243,6 +244,9 @@ pub struct Table1 {
     pub floor_ms: Vec<f64>,
     /// The same per matcher, in the order of `Table1Options::matchers`.
     pub floor_ms_by_method: Vec<(Method, Vec<f64>)>,
+    /// Frames (seq) whose border showed no coloured screen, keyed by the default colour
+    /// (`segment::KeySource::NotFound`).
+    pub screen_not_found: Vec<u64>,
 }
 
 struct Truth {
@@ -272,9 +276,13 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
 
     // Prepare every frame once: every row matches the same images and masks.
     let mut frames: Vec<(u64, Option<f64>, Prepared)> = Vec::with_capacity(n);
+    let mut screen_not_found = Vec::new();
     for i in 0..n {
         let f = rec.load_frame(i).map_err(|e| BenchError::Recording(e.to_string()))?;
         let p = pipes[0].prepare_frame(&f, true, None).map_err(|e| BenchError::Recording(format!("frame seq {}: {e}", f.seq)))?;
+        if p.key.is_some_and(|k| k.source == KeySource::NotFound) {
+            screen_not_found.push(f.seq);
+        }
         frames.push((f.seq, f.table_deg, p));
         progress("prepare", i + 1, n);
     }
@@ -403,6 +411,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         fig_left: frames[fig_frame].2.left_rgb.clone(),
         floor_ms: floor_ms[0].clone(),
         floor_ms_by_method: matchers.iter().map(|m| m.method).zip(floor_ms).collect(),
+        screen_not_found,
     })
 }
 
@@ -473,6 +482,7 @@ impl Table1 {
             "floor_ms": self.floor_ms,
             "median_floor_ms": median(&self.floor_ms),
             "floor_ms_by_method": self.floor_ms_by_method.iter().map(|(m, f)| json!({"method": m.name(), "floor_ms": f, "median_floor_ms": median(f)})).collect::<Vec<_>>(),
+            "screen_not_found_seqs": self.screen_not_found,
             "fig_tiles": std::iter::once("left".to_string()).chain(self.rows.iter().map(row_label)).collect::<Vec<_>>(),
             "rows": self.rows.iter().map(|r| {
                 let mut j = r.to_json();
@@ -537,6 +547,9 @@ impl Table1 {
                 opt(median(&r.ns_per_pair), 3),
                 r.full_range.len(),
             );
+        }
+        if let Some(first) = self.screen_not_found.first() {
+            let _ = writeln!(s, "\nsegmentation: {} of {} frames (the first seq {first}): {}", self.screen_not_found.len(), self.frames.len(), crate::segment::NO_SCREEN);
         }
         s
     }

@@ -6,12 +6,90 @@
 //! decided by the optional background plate (an image of the empty scene), else kept as
 //! foreground (losing object pixels is worse than keeping a little screen). The mask is then
 //! cleaned by a morphological opening (removes specks) and closing (fills pinholes).
+//!
+//! The screen's colour is found in each frame by default ([`KeyColour::Auto`]): the most
+//! common chromaticity of the image's border, where a turntable scene shows the screen, so
+//! that a lab's own blue (or green) screen is keyed without being measured first. Where the
+//! border shows no coloured screen (grey frames, an object filling the view) the default key
+//! colour is used, and [`ChromaKey::key_of`] says so.
+
+/// Which colour the screen is keyed by.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum KeyColour {
+    /// Found in each frame ([`ChromaKey::key_of`]); [`DEFAULT_KEY_RGB`] where the frame's
+    /// border shows no coloured screen.
+    Auto,
+    /// This colour, RGB.
+    Rgb([u8; 3]),
+}
+
+impl std::fmt::Display for KeyColour {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            KeyColour::Auto => f.write_str("auto"),
+            KeyColour::Rgb([r, g, b]) => write!(f, "{r},{g},{b}"),
+        }
+    }
+}
+
+/// A key colour that is not `auto` or `R,G,B`.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[error("`{0}` is not a key colour: expected `auto` or R,G,B with three numbers 0…255, e.g. 40,70,190")]
+pub struct BadKeyColour(String);
+
+impl std::str::FromStr for KeyColour {
+    type Err = BadKeyColour;
+
+    fn from_str(s: &str) -> Result<KeyColour, BadKeyColour> {
+        if s.trim().eq_ignore_ascii_case("auto") {
+            return Ok(KeyColour::Auto);
+        }
+        let err = || BadKeyColour(s.to_string());
+        let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+        if parts.len() != 3 {
+            return Err(err());
+        }
+        let mut rgb = [0u8; 3];
+        for (c, p) in rgb.iter_mut().zip(parts) {
+            *c = p.parse().map_err(|_| err())?;
+        }
+        Ok(KeyColour::Rgb(rgb))
+    }
+}
+
+/// The simulated lab's screen colour, and the key where [`KeyColour::Auto`] finds no screen.
+pub const DEFAULT_KEY_RGB: [u8; 3] = [40, 70, 190];
+
+/// What a frame whose border showed no coloured screen is segmented by.
+pub const NO_SCREEN: &str = "no coloured screen in the border of the left image (grey frames, or a screen covering less than 30 % of the border): keyed by the default colour 40,70,190";
+
+/// Share of a frame's border pixels that the colour [`KeyColour::Auto`] found must key out
+/// for it to be taken as the screen's.
+pub const AUTO_MIN_SHARE: f32 = 0.3;
+
+/// The key a frame is segmented with, and where it came from.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct KeyUsed {
+    /// Its chromaticity `(R, G) / (R + G + B)`.
+    pub chroma: (f32, f32),
+    pub source: KeySource,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum KeySource {
+    /// The colour given ([`KeyColour::Rgb`]).
+    Given,
+    /// Found in the frame's border, which it keys out to this share (0…1).
+    Found { border_share: f32 },
+    /// [`KeyColour::Auto`] found no coloured screen in the border: [`DEFAULT_KEY_RGB`].
+    NotFound,
+}
 
 /// Chroma-key settings.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ChromaKey {
-    /// The background colour, RGB.
-    pub key_rgb: [u8; 3],
+    /// The background colour.
+    pub key: KeyColour,
     /// Largest chromaticity distance from the key still counted as background (0…1).
     pub tolerance: f32,
     /// Pixels whose R + G + B is below this are too dark to key by colour.
@@ -27,7 +105,7 @@ pub struct ChromaKey {
 
 impl Default for ChromaKey {
     fn default() -> Self {
-        ChromaKey { key_rgb: [40, 70, 190], tolerance: 0.12, dark_level: 60, plate_tolerance: 20, open_radius: 1, close_radius: 2 }
+        ChromaKey { key: KeyColour::Auto, tolerance: 0.12, dark_level: 60, plate_tolerance: 20, open_radius: 1, close_radius: 2 }
     }
 }
 
@@ -113,9 +191,88 @@ fn chromaticity(p: &[u8]) -> Option<(f32, f32)> {
     (s > 0.0).then(|| (p[0] as f32 / s, p[1] as f32 / s))
 }
 
+/// The pixels of an RGB image's border — a ring `ring` pixels wide — on a grid of `step`:
+/// how many there are, and the chromaticities of the bright ones.
+fn border_chromaticities(rgb: &[u8], w: usize, h: usize, ring: usize, step: usize, dark_level: u16) -> (usize, Vec<(f32, f32)>) {
+    let (mut all, mut chroma) = (0, Vec::new());
+    for y in (0..h).step_by(step) {
+        let row = &rgb[y * w * 3..(y + 1) * w * 3];
+        let edge_row = y < ring || y + ring >= h;
+        for x in (0..w).step_by(step) {
+            if !(edge_row || x < ring || x + ring >= w) {
+                continue;
+            }
+            all += 1;
+            let px = &row[x * 3..x * 3 + 3];
+            if px[0] as u16 + px[1] as u16 + px[2] as u16 >= dark_level {
+                chroma.extend(chromaticity(px));
+            }
+        }
+    }
+    (all, chroma)
+}
+
+/// The screen's chromaticity in an RGB image, and the share of the border's pixels within
+/// `tolerance` of it: the most common chromaticity (bins of 1/32) among the bright pixels of
+/// the border — a ring of a sixteenth of the smaller side, on a grid of an eighth of that — refined to the mean of those
+/// within half the tolerance of it. Only blue or green colours away from grey count (red
+/// not the strongest channel; farther than the tolerance from grey), as screens are: keying
+/// a grey or brown border would take out an object of that colour. None where no such colour
+/// keys out [`AUTO_MIN_SHARE`] of the border.
+fn find_screen(rgb: &[u8], w: usize, h: usize, dark_level: u16, tolerance: f32) -> Option<((f32, f32), f32)> {
+    const BINS: usize = 32;
+    let ring = (w.min(h) / 16).max(1);
+    // (About 7 000 pixels of a 640 × 480 frame's border: plenty for the histogram.)
+    let (all, chroma) = border_chromaticities(rgb, w, h, ring, (ring / 8).max(1), dark_level);
+    let bin = |(r, g): (f32, f32)| ((r * BINS as f32) as usize).min(BINS - 1) * BINS + ((g * BINS as f32) as usize).min(BINS - 1);
+    let mut hist = vec![(0u32, 0.0f64, 0.0f64); BINS * BINS];
+    for &c in &chroma {
+        let e = &mut hist[bin(c)];
+        *e = (e.0 + 1, e.1 + c.0 as f64, e.2 + c.1 as f64);
+    }
+    let within = |centre: (f32, f32), tol: f32| {
+        move |&&(r, g): &&(f32, f32)| {
+            let (dr, dg) = (r - centre.0, g - centre.1);
+            dr * dr + dg * dg <= tol * tol
+        }
+    };
+    // A screen is blue or green (red is not its strongest channel) and not grey: keying a
+    // grey, brown or skin-coloured border would key out an object of that colour.
+    let grey = (1.0 / 3.0, 1.0 / 3.0);
+    let screen_like = |c: (f32, f32)| c.0 < c.1.max(1.0 - c.0 - c.1) && !within(grey, tolerance)(&&c);
+    let mean = |e: (u32, f64, f64)| ((e.1 / e.0 as f64) as f32, (e.2 / e.0 as f64) as f32);
+    // The fullest such bin (the first of equals).
+    let peak = hist.iter().filter(|e| e.0 > 0 && screen_like(mean(**e))).fold((0u32, 0.0, 0.0), |best, &e| if e.0 > best.0 { e } else { best });
+    if peak.0 == 0 {
+        return None;
+    }
+    let peak = mean(peak);
+    let near: Vec<&(f32, f32)> = chroma.iter().filter(within(peak, tolerance / 2.0)).collect();
+    let centre = if near.is_empty() { peak } else { (near.iter().map(|c| c.0).sum::<f32>() / near.len() as f32, near.iter().map(|c| c.1).sum::<f32>() / near.len() as f32) };
+    let share = chroma.iter().filter(within(centre, tolerance)).count() as f32 / all as f32;
+    (share >= AUTO_MIN_SHARE && screen_like(centre)).then_some((centre, share))
+}
+
 impl ChromaKey {
+    /// The key an interleaved RGB image is segmented with: the colour given, or the one
+    /// [`KeyColour::Auto`] finds in the image's border (else [`DEFAULT_KEY_RGB`]).
+    pub fn key_of(&self, rgb: &[u8], width: usize, height: usize) -> KeyUsed {
+        match self.key {
+            KeyColour::Rgb(c) => KeyUsed { chroma: chromaticity(&c).unwrap_or((0.0, 0.0)), source: KeySource::Given },
+            KeyColour::Auto => match find_screen(rgb, width, height, self.dark_level, self.tolerance) {
+                Some((chroma, border_share)) => KeyUsed { chroma, source: KeySource::Found { border_share } },
+                None => KeyUsed { chroma: chromaticity(&DEFAULT_KEY_RGB).expect("a colour, not black"), source: KeySource::NotFound },
+            },
+        }
+    }
+
     /// Segments an interleaved RGB image: 255 = object, 0 = background.
     pub fn segment(&self, rgb: &[u8], width: usize, height: usize, plate: Option<&[u8]>) -> Result<Vec<u8>, SegmentError> {
+        self.segment_keyed(rgb, width, height, plate).map(|(mask, _)| mask)
+    }
+
+    /// [`ChromaKey::segment`], with the key it used ([`ChromaKey::key_of`]).
+    pub fn segment_keyed(&self, rgb: &[u8], width: usize, height: usize, plate: Option<&[u8]>) -> Result<(Vec<u8>, KeyUsed), SegmentError> {
         if rgb.len() != width * height * 3 {
             return Err(SegmentError::Buffer(rgb.len(), width * height * 3));
         }
@@ -128,7 +285,8 @@ impl ChromaKey {
                 return Err(SegmentError::PlateSize(n / height.max(1), height, width, height));
             }
         }
-        let key = Key { chroma: chromaticity(&self.key_rgb).unwrap_or((0.0, 0.0)), tol2: self.tolerance * self.tolerance, dark_level: self.dark_level };
+        let used = self.key_of(rgb, width, height);
+        let key = Key { chroma: used.chroma, tol2: self.tolerance * self.tolerance, dark_level: self.dark_level };
         let mut mask = vec![0u8; width * height];
         let mut done = 0;
         #[cfg(target_arch = "x86_64")]
@@ -152,7 +310,7 @@ impl ChromaKey {
             morph(&mut mask, width, height, self.close_radius, true);
             morph(&mut mask, width, height, self.close_radius, false);
         }
-        Ok(mask)
+        Ok((mask, used))
     }
 }
 
@@ -199,17 +357,92 @@ mod tests {
     use super::*;
 
     fn scene(w: usize, h: usize) -> Vec<u8> {
+        scene_on(w, h, DEFAULT_KEY_RGB)
+    }
+
+    /// A screen of colour `screen` darkening to the right (shading), a grey square in the
+    /// middle (columns 10–29, rows 8–23).
+    fn scene_on(w: usize, h: usize, screen: [u8; 3]) -> Vec<u8> {
         let mut img = Vec::with_capacity(w * h * 3);
         for y in 0..h {
             for x in 0..w {
-                // Blue screen darkening to the right (shading), a grey square in the middle.
                 let shade = 1.0 - 0.5 * x as f32 / w as f32;
                 let inside = (10..30).contains(&x) && (8..24).contains(&y);
-                let px = if inside { [150, 140, 130] } else { [40, 70, 190] };
+                let px = if inside { [150, 140, 130] } else { screen };
                 img.extend(px.iter().map(|&v| (v as f32 * shade) as u8));
             }
         }
         img
+    }
+
+    /// `auto` keys a screen of any saturated colour as the given colour would, and says it
+    /// found it: a chromaticity within a hundredth of the screen's, over the whole border.
+    #[test]
+    fn auto_finds_a_screen_of_any_colour() {
+        let (w, h) = (48, 32);
+        // The simulated lab's blue, chroma-key blue, a purer blue, green.
+        for screen in [DEFAULT_KEY_RGB, [0, 71, 187], [10, 30, 230], [0, 177, 64]] {
+            let img = scene_on(w, h, screen);
+            let (mask, used) = ChromaKey::default().segment_keyed(&img, w, h, None).unwrap();
+            let given = ChromaKey { key: KeyColour::Rgb(screen), ..ChromaKey::default() }.segment(&img, w, h, None).unwrap();
+            assert_eq!(mask, given, "screen {screen:?}");
+            assert_eq!(mask.iter().filter(|&&m| m == 255).count(), 20 * 16, "screen {screen:?}");
+            let want = chromaticity(&screen).unwrap();
+            assert!((used.chroma.0 - want.0).abs() < 0.01 && (used.chroma.1 - want.1).abs() < 0.01, "screen {screen:?}: {used:?}");
+            assert!(matches!(used.source, KeySource::Found { border_share } if border_share > 0.99), "screen {screen:?}: {used:?}");
+        }
+        // A turntable of another colour along the bottom: the screen is still the most common.
+        let mut img = scene_on(w, h, [0, 71, 187]);
+        for px in img[(h - 2) * w * 3..].chunks_exact_mut(3) {
+            px.copy_from_slice(&[90, 90, 90]);
+        }
+        let used = ChromaKey::default().key_of(&img, w, h);
+        assert!(matches!(used.source, KeySource::Found { .. }) && (used.chroma.1 - 0.275).abs() < 0.01, "{used:?}");
+    }
+
+    /// Where the border shows no coloured screen — grey frames, or an object over most of
+    /// it — `auto` keys by the default colour and says so; a given colour is used as given.
+    #[test]
+    fn auto_falls_back_where_the_border_shows_no_screen() {
+        let (w, h) = (48, 32);
+        let default = chromaticity(&DEFAULT_KEY_RGB).unwrap();
+        // Grey: one chromaticity everywhere, but grey.
+        let grey: Vec<u8> = scene(w, h).chunks_exact(3).flat_map(|p| [((p[0] as u16 + p[1] as u16 + p[2] as u16) / 3) as u8; 3]).collect();
+        assert_eq!(ChromaKey::default().key_of(&grey, w, h), KeyUsed { chroma: default, source: KeySource::NotFound });
+        // A brown object over all but the first four columns, the blue screen there (a
+        // quarter of the border): brown is no screen colour, and the screen keys out too
+        // little of the border.
+        let brown = |cols: usize| {
+            let mut img = scene(w, h);
+            for (i, px) in img.chunks_exact_mut(3).enumerate() {
+                if i % w >= w - cols {
+                    px.copy_from_slice(&[120, 80, 40]);
+                }
+            }
+            img
+        };
+        let img = brown(w - 4);
+        assert_eq!(ChromaKey::default().key_of(&img, w, h).source, KeySource::NotFound);
+        // Over three fifths of the columns (more of the border than the screen, which keys out
+        // 43 % of it): the screen is found, not the brown.
+        let used = ChromaKey::default().key_of(&brown(w * 3 / 5), w, h);
+        assert!(matches!(used.source, KeySource::Found { .. }) && (used.chroma.0 - default.0).abs() < 0.01, "{used:?}");
+        let given = ChromaKey { key: KeyColour::Rgb([120, 80, 40]), ..ChromaKey::default() };
+        assert_eq!(given.key_of(&img, w, h), KeyUsed { chroma: chromaticity(&[120, 80, 40]).unwrap(), source: KeySource::Given });
+    }
+
+    #[test]
+    fn key_colours_parse_as_written() {
+        assert_eq!("auto".parse(), Ok(KeyColour::Auto));
+        assert_eq!(" AUTO ".parse(), Ok(KeyColour::Auto));
+        assert_eq!("0, 71 ,187".parse(), Ok(KeyColour::Rgb([0, 71, 187])));
+        for bad in ["", "blue", "1,2", "1,2,3,4", "0,0,256", "-1,0,0"] {
+            let e = bad.parse::<KeyColour>().unwrap_err().to_string();
+            assert!(e.contains("expected `auto` or R,G,B"), "{bad}: {e}");
+        }
+        for k in [KeyColour::Auto, KeyColour::Rgb([40, 70, 190])] {
+            assert_eq!(k.to_string().parse(), Ok(k));
+        }
     }
 
     #[test]
@@ -258,15 +491,14 @@ mod tests {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") {
             let mut next = crate::testing::xorshift(0x5e9_7e47);
-            let k = ChromaKey::default();
             for (n, tolerance, dark_level) in [(1, 0.12, 60), (37, 0.12, 60), (1000, 0.05, 0), (4099, 0.3, 200)] {
-                let key = Key { chroma: chromaticity(&k.key_rgb).unwrap(), tol2: tolerance * tolerance, dark_level };
+                let key = Key { chroma: chromaticity(&DEFAULT_KEY_RGB).unwrap(), tol2: tolerance * tolerance, dark_level };
                 let rgb: Vec<u8> = (0..n)
                     .flat_map(|_| match next() % 4 {
                         // Near the key, scaled and jittered: both sides of the tolerance.
                         0 | 1 => {
                             let scale = 0.2 + (next() % 100) as f32 / 60.0;
-                            k.key_rgb.map(|v| ((v as f32 * scale) as i32 + (next() % 31) as i32 - 15).clamp(0, 255) as u8)
+                            DEFAULT_KEY_RGB.map(|v| ((v as f32 * scale) as i32 + (next() % 31) as i32 - 15).clamp(0, 255) as u8)
                         }
                         2 => [(next() % 8) as u8, (next() % 8) as u8, (next() % 8) as u8],
                         _ => [next() as u8, next() as u8, next() as u8],

@@ -205,11 +205,11 @@ fn demo_records_and_replays_a_scan_on_the_simulated_lab() {
 
 #[test]
 fn help_defaults_match_the_library_defaults() {
-    // The CLI repeats the chroma key's default colour as text; keep the two in step.
+    // The CLI repeats the chroma key's default as text; keep the two in step.
     let o = spinscan(&["points", "--help"]);
-    let k = spinscan::segment::ChromaKey::default().key_rgb;
+    let k = spinscan::segment::ChromaKey::default().key;
     let text = String::from_utf8_lossy(&o.stdout);
-    assert!(text.contains(&format!("[default: {},{},{}]", k[0], k[1], k[2])), "{text}");
+    assert!(text.contains(&format!("[default: {k}]")), "{text}");
 }
 
 #[test]

@@ -11,6 +11,7 @@ use spinscan::io;
 use spinscan::recording::Recording;
 use spinscan::pipeline::replay::{self, ReplayOptions};
 use spinscan::hw::sim::{RenderOptions, SimObject};
+use spinscan::segment::{KeyColour, DEFAULT_KEY_RGB};
 use spinscan::stereo::MatchParams;
 
 /// A small ideal recording (320×240, f = 350 px: disparities up to ~64).
@@ -196,6 +197,65 @@ fn replays_a_recording_written_by_another_tool() {
     let gt = s.gt.expect("ground truth scored");
     println!("foreign recording: coverage {:.3}, bad2 of matched {:.4}", gt.coverage, gt.bad2_of_matched);
     assert!(gt.coverage >= 0.8 && gt.bad2_of_matched <= 0.05, "{gt:?}");
+    // Grey images have no screen colour to find: each frame says it was keyed by the default.
+    for f in read_json(&dir.join("out/report.json"))["frames"].as_array().unwrap() {
+        assert_eq!(f["segmentation"]["key"], "default", "{f}");
+    }
+}
+
+/// The simulated recording with its blue screen (and table) repainted in another colour at
+/// the same brightness, as another lab's or renderer's screen.
+fn repaint_screen(src: &Path, dst: &Path, colour: [u8; 3]) {
+    let rec = Recording::open(src).unwrap();
+    let blue = spinscan::segment::ChromaKey { key: KeyColour::Rgb(DEFAULT_KEY_RGB), open_radius: 0, close_radius: 0, ..Default::default() };
+    std::fs::create_dir_all(dst).unwrap();
+    for entry in ["calib.yaml", "frames.jsonl"] {
+        std::fs::copy(src.join(entry), dst.join(entry)).unwrap();
+    }
+    for f in &rec.frames {
+        for side in [&f.left, &f.right] {
+            let img = io::load_image(&src.join(side)).unwrap();
+            let screen = blue.segment(&img.rgb, img.width, img.height, None).unwrap();
+            let mut rgb = img.rgb.clone();
+            for (px, &m) in rgb.chunks_exact_mut(3).zip(&screen) {
+                if m == 0 {
+                    let light = (px[0] as f32 + px[1] as f32 + px[2] as f32) / DEFAULT_KEY_RGB.iter().map(|&v| v as f32).sum::<f32>();
+                    for (v, &c) in px.iter_mut().zip(&colour) {
+                        *v = (c as f32 * light).min(255.0) as u8;
+                    }
+                }
+            }
+            let path = dst.join(side);
+            std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+            io::write_rgb_png(&path, img.width, img.height, &rgb).unwrap();
+        }
+    }
+}
+
+/// A screen of another colour — chroma-key green, chroma-key blue — is found in each frame
+/// and keyed out as the simulated lab's blue is: the same views, give or take the pixels on
+/// the silhouette.
+#[test]
+fn a_screen_of_another_colour_is_keyed_without_being_told() {
+    let dir = support::temp_dir("rec-screen");
+    small_recording(&dir.join("sim"), 2, 0.0);
+    replay(&dir.join("sim"), &dir.join("out-sim")).unwrap();
+    let points = |out: &Path| -> Vec<u64> { read_json(&out.join("report.json"))["frames"].as_array().unwrap().iter().map(|f| f["points"].as_u64().unwrap()).collect() };
+    let want = points(&dir.join("out-sim"));
+    for (name, colour) in [("green", [0, 177, 64]), ("chroma-blue", [0, 71, 187])] {
+        let rec = dir.join(name);
+        repaint_screen(&dir.join("sim"), &rec, colour);
+        let out = dir.join(format!("out-{name}"));
+        replay(&rec, &out).unwrap();
+        for f in read_json(&out.join("report.json"))["frames"].as_array().unwrap() {
+            assert_eq!(f["segmentation"]["key"], "found", "{name}: {f}");
+        }
+        let got = points(&out);
+        println!("{name}: {got:?} points against {want:?}");
+        for (g, w) in got.iter().zip(&want) {
+            assert!(g.abs_diff(*w) * 50 <= *w, "{name}: {got:?} points against {want:?} on the blue screen");
+        }
+    }
 }
 
 fn expect_rejected(dir: &Path, wants: &[&str]) {

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use clap::{Args, Subcommand};
 use serde_json::json;
 
-use super::{input, output, progress, AssistArgs, Failure, MatchArgs};
+use super::{input, output, progress, AssistArgs, Failure, KeyColourArgs, MatchArgs};
 use spinscan::assist::{AssistMode, Granularity};
 use spinscan::io;
 use spinscan::pipeline::PipelineOptions;
@@ -62,6 +62,8 @@ pub struct Table1Args {
     pub assist: AssistArgs,
     #[command(flatten)]
     pub matching: MatchArgs,
+    #[command(flatten)]
+    pub key: KeyColourArgs,
 }
 
 /// `spinscan bench live`'s arguments.
@@ -169,7 +171,7 @@ pub fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
         }
     }
     let opts = spinscan::bench::Table1Options {
-        pipeline: PipelineOptions { min_disparity: a.matching.min_disparity, matching: matchers[0].clone(), ..Default::default() },
+        pipeline: PipelineOptions { min_disparity: a.matching.min_disparity, matching: matchers[0].clone(), chroma: a.key.chroma(), ..Default::default() },
         matchers,
         weights: a.weights.clone(),
         predicted: !a.no_predicted,

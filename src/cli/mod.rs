@@ -22,7 +22,7 @@ use spinscan::io::{self, LoadedImage};
 use spinscan::pipeline::replay::ReplayOptions;
 use spinscan::pipeline::PipelineOptions;
 use spinscan::register::IcpParams;
-use spinscan::segment::ChromaKey;
+use spinscan::segment::{ChromaKey, KeyColour};
 use spinscan::stereo::{MatchParams, Method};
 
 /// Exit codes, so scripts and systemd can tell kinds of failure apart.
@@ -204,15 +204,30 @@ pub struct RectArgs {
     pub alpha: f64,
 }
 
-/// Blue-screen segmentation knobs (used by `--mask auto`).
+/// The chroma key's colour and tolerance.
 #[derive(Args, Clone)]
-pub struct KeyArgs {
-    /// Background colour to key out, as R,G,B (0…255 each).
-    #[arg(long, value_parser = parse_rgb, default_value = "40,70,190")]
-    pub key_color: [u8; 3],
+pub struct KeyColourArgs {
+    /// Background colour to key out: `auto` (found in each frame: the most common colour of the
+    /// image's border, where the screen shows; 40,70,190 where the border shows no coloured
+    /// screen) or R,G,B (0…255 each).
+    #[arg(long, default_value = "auto")]
+    pub key_color: KeyColour,
     /// Largest chromaticity distance from the key colour still counted as background (0…1).
     #[arg(long, default_value_t = ChromaKey::default().tolerance)]
     pub key_tolerance: f32,
+}
+
+impl KeyColourArgs {
+    pub fn chroma(&self) -> ChromaKey {
+        ChromaKey { key: self.key_color, tolerance: self.key_tolerance, ..ChromaKey::default() }
+    }
+}
+
+/// Blue-screen segmentation knobs (used by `--mask auto`).
+#[derive(Args, Clone)]
+pub struct KeyArgs {
+    #[command(flatten)]
+    pub colour: KeyColourArgs,
     /// Image of the empty scene (raw left camera): pixels close to it are background too.
     #[arg(long)]
     pub plate: Option<PathBuf>,
@@ -220,26 +235,8 @@ pub struct KeyArgs {
 
 impl KeyArgs {
     pub fn chroma(&self) -> ChromaKey {
-        ChromaKey { key_rgb: self.key_color, tolerance: self.key_tolerance, ..ChromaKey::default() }
+        self.colour.chroma()
     }
-}
-
-/// A colour `R,G,B` that is not one.
-#[derive(Debug, thiserror::Error)]
-#[error("`{0}` is not a colour: expected R,G,B with three numbers 0…255, e.g. 40,70,190")]
-pub struct BadColour(String);
-
-pub fn parse_rgb(s: &str) -> Result<[u8; 3], BadColour> {
-    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
-    let err = || BadColour(s.to_string());
-    if parts.len() != 3 {
-        return Err(err());
-    }
-    let mut rgb = [0u8; 3];
-    for (c, p) in rgb.iter_mut().zip(parts) {
-        *c = p.parse().map_err(|_| err())?;
-    }
-    Ok(rgb)
 }
 
 #[derive(Args, Clone)]

@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use crate::assist::{AssistMode, AssistModeError, AssistParams, Granularity};
 use crate::hw::sim::SimSection;
 use crate::hw::DriverConfig;
+use crate::segment::KeyColour;
 use crate::pipeline::live::{check_step_deg, check_total_deg, PipelineSettings, SpecError, MAX_MATCHER_THREADS, MAX_QUEUE_DEPTH};
 
 /// Why a configuration cannot be used.
@@ -294,6 +295,8 @@ pub struct MatchingSection {
     pub assist_granularity: String,
     /// Segment the blue screen.
     pub segment: bool,
+    /// The screen's colour: "auto" (found in each frame's border) or "R,G,B".
+    pub key_color: String,
 }
 
 impl Default for MatchingSection {
@@ -301,7 +304,7 @@ impl Default for MatchingSection {
         // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
         // about 330 mm on.
         let m = crate::stereo::MatchParams::default();
-        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true }
+        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string() }
     }
 }
 
@@ -429,6 +432,9 @@ impl Config {
             };
             return bad(key, format!("{}, got {}", e.expected, e.value));
         }
+        if let Err(e) = self.matching.key_color.parse::<KeyColour>() {
+            return bad("matching.key_color", e.to_string());
+        }
         if let Err(e) = self.assist() {
             let key = if matches!(e, AssistModeError::Granularity(_)) { "matching.assist_granularity" } else { "matching.assist" };
             return bad(key, e.to_string());
@@ -450,6 +456,8 @@ impl Config {
         pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, ..crate::stereo::MatchParams::for_method(m.method) };
         // Parallelism comes from the pool: one thread per matcher.
         pipeline.matching.threads = 1;
+        // (An unknown colour is refused by `validate`; unvalidated configs find the screen.)
+        pipeline.chroma.key = m.key_color.parse().unwrap_or(KeyColour::Auto);
         let registration = config.scan.register.then(|| {
             let mut p = crate::register::ring::RegistrationParams::default();
             if config.scan.register_max_points > 0 {
@@ -544,6 +552,13 @@ mod tests {
         assert!(e.contains("matching.assist"), "{e}");
         let e = Config::parse(p, "[matching]\nassist_granularity = \"block\"\n").unwrap_err().to_string();
         assert!(e.contains("matching.assist_granularity") && e.contains("expected auto, pixel or tile"), "{e}");
+        for text in ["blue", "0,0,256", "1,2"] {
+            let e = Config::parse(p, &format!("[matching]\nkey_color = \"{text}\"\n")).unwrap_err().to_string();
+            assert!(e.contains("matching.key_color") && e.contains("expected `auto` or R,G,B"), "{text}: {e}");
+        }
+        let c = Config::parse(p, "[matching]\nkey_color = \"0, 71, 187\"\n").unwrap();
+        assert_eq!(c.pipeline_settings().pipeline.chroma.key, crate::segment::KeyColour::Rgb([0, 71, 187]));
+        assert_eq!(Config::default().pipeline_settings().pipeline.chroma.key, crate::segment::KeyColour::Auto);
     }
 
     #[test]

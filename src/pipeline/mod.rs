@@ -27,7 +27,7 @@ use crate::io::rgb_to_gray;
 use crate::recording::TurntableAxis;
 use crate::register::posestore::{PoseSnapshot, PoseStore};
 use crate::register::ring::{Registrar, RegistrationParams};
-use crate::segment::{ChromaKey, SegmentError};
+use crate::segment::{ChromaKey, KeyUsed, SegmentError};
 use crate::stereo::{
     triangulate::triangulate, DisparityIntervals, DisparityMap, GrayView, MatchError, MatchParams, MatchStats, ParamError,
     Rectification, RectifyError, RemapTable, StereoMatcher,
@@ -120,6 +120,8 @@ pub struct View {
     pub match_ms: f64,
     /// How the search range was chosen, when an [`Assistant`] chose it.
     pub assist: Option<AssistOutcome>,
+    /// The key the mask was made with, when segmentation ran.
+    pub key: Option<KeyUsed>,
 }
 
 /// A rectified, segmented pair ready to match.
@@ -129,6 +131,8 @@ pub struct Prepared {
     pub left_gray: Vec<u8>,
     pub right_gray: Vec<u8>,
     pub mask: Option<Vec<u8>>,
+    /// The key the mask was made with, when segmentation ran.
+    pub key: Option<KeyUsed>,
 }
 
 /// One frame matched with registration assistance.
@@ -278,13 +282,14 @@ impl Pipeline {
         // The right image is matched in grey only: sampled and converted in one pass.
         let (left_rgb, left_gray) = self.maps.0.remap_rgb_gray(left, w as u32, h as u32);
         let right_gray = self.maps.1.remap_gray(right, w as u32, h as u32);
-        let mask = if segment {
+        let (mask, key) = if segment {
             let plate = plate.map(|p| self.maps.0.remap::<3>(p, w as u32, h as u32));
-            Some(self.chroma.segment(&left_rgb, w, h, plate.as_deref())?)
+            let (mask, key) = self.chroma.segment_keyed(&left_rgb, w, h, plate.as_deref())?;
+            (Some(mask), Some(key))
         } else {
-            None
+            (None, None)
         };
-        Ok(Prepared { left_gray, right_gray, left_rgb, mask })
+        Ok(Prepared { left_gray, right_gray, left_rgb, mask, key })
     }
 
     /// Matches frame `seq` over the intervals the assistant plans from `poses`; a result the
@@ -318,7 +323,7 @@ impl Pipeline {
     pub fn finish_view(&self, frame: Prepared, m: AssistedMatch) -> View {
         let cloud = triangulate(&m.disparity, &self.rect, &frame.left_rgb);
         let match_ms = m.outcome.match_ms;
-        View { disparity: m.disparity, left_rgb: frame.left_rgb, mask: frame.mask, cloud, stats: m.stats, match_ms, assist: m.assisted.then_some(m.outcome) }
+        View { disparity: m.disparity, left_rgb: frame.left_rgb, mask: frame.mask, cloud, stats: m.stats, match_ms, assist: m.assisted.then_some(m.outcome), key: frame.key }
     }
 
     /// Processes a raw RGB pair. `segment`: match only the chroma-keyed foreground.
@@ -335,7 +340,7 @@ impl Pipeline {
 
     /// Matches and triangulates an already rectified RGB pair, with an optional rectified mask.
     pub fn process_rectified(&mut self, left_rgb: Vec<u8>, right_rgb: &[u8], mask: Option<Vec<u8>>) -> Result<View, PipelineError> {
-        self.process_prepared(Prepared { left_gray: rgb_to_gray(&left_rgb), right_gray: rgb_to_gray(right_rgb), left_rgb, mask })
+        self.process_prepared(Prepared { left_gray: rgb_to_gray(&left_rgb), right_gray: rgb_to_gray(right_rgb), left_rgb, mask, key: None })
     }
 
     /// Matches a prepared pair over the full range and triangulates it.

@@ -23,6 +23,7 @@ use crate::register::ring::{LoopClosure, Registrar};
 use crate::register::surface::{quantile, Surface};
 use crate::register::tracks::TrackImage;
 use crate::register::voxel::VoxelModel;
+use crate::segment::{KeySource, KeyUsed, NO_SCREEN};
 use crate::stereo::DisparityMap;
 
 /// Why the results folder could not be written (or scored).
@@ -105,6 +106,18 @@ pub fn score_against_gt(disp: &DisparityMap, gt: &DisparityMap) -> GtScore {
 }
 
 /// The results folder, kept consistent on disk after every frame.
+/// A frame's `segmentation` entry in `report.json`: which key colour it was keyed by
+/// (`given`, `found` in the frame's border, or the `default` where none was found), its
+/// chromaticity, and the share of the border it keyed out where it was found.
+fn segmentation_entry(k: &KeyUsed) -> Value {
+    let (key, share) = match k.source {
+        KeySource::Given => ("given", None),
+        KeySource::Found { border_share } => ("found", Some(border_share)),
+        KeySource::NotFound => ("default", None),
+    };
+    json!({"key": key, "chromaticity": [k.chroma.0, k.chroma.1], "border_share": share})
+}
+
 pub struct ResultsWriter {
     dir: PathBuf,
     source: String,
@@ -166,6 +179,9 @@ impl ResultsWriter {
             "t_left_ns": frame.t_left_ns,
             "skew_ns": frame.t_right_ns as i64 - frame.t_left_ns as i64,
         });
+        if let Some(k) = &view.key {
+            entry["segmentation"] = segmentation_entry(k);
+        }
         if let Some(a) = &view.assist {
             entry["assist"] = json!({
                 "mode": assist.map(|p| p.mode.name()),
@@ -199,6 +215,9 @@ impl ResultsWriter {
 
     /// Adds a frame's entry and rewrites the manifest (still `running`).
     pub fn push_frame(&mut self, entry: Value) -> Result<(), ResultsError> {
+        if entry["segmentation"]["key"] == json!("default") && !self.frames.iter().any(|f| f["segmentation"]["key"] == json!("default")) {
+            tracing::warn!("frame seq {}: {NO_SCREEN}; give the screen's colour (`--key-color R,G,B`, the daemon's `[matching] key_color`) or a background plate (`--plate`), or turn segmentation off", entry["seq"]);
+        }
         self.frames.push(entry);
         self.write_manifest("running", None)
     }
