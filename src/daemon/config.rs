@@ -10,8 +10,8 @@ use serde::{Deserialize, Serialize};
 use crate::assist::{AssistMode, AssistModeError, AssistParams, Granularity};
 use crate::hw::sim::SimSection;
 use crate::hw::DriverConfig;
-use crate::segment::KeyColour;
 use crate::pipeline::live::{check_step_deg, check_total_deg, PipelineSettings, SpecError, MAX_MATCHER_THREADS, MAX_QUEUE_DEPTH};
+use crate::segment::KeyColour;
 
 /// Why a configuration cannot be used.
 #[derive(Debug, thiserror::Error)]
