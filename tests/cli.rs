@@ -212,6 +212,25 @@ fn help_defaults_match_the_library_defaults() {
     assert!(text.contains(&format!("[default: {k}]")), "{text}");
 }
 
+/// `--mask auto` finds the simulated lab's screen without a word, and says so where grey
+/// images give it no colour to find.
+#[test]
+fn points_on_grey_images_says_no_screen_was_found() {
+    let dir = support::temp_dir("cli-grey-screen");
+    let (l, r) = sim_pair(&dir);
+    let points = |l: &Path, r: &Path| spinscan(&["points", "--calib", dir.join("calib.yaml").to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--mask", "auto", "--max-disparity", "48", "-o", dir.join("p.ply").to_str().unwrap()]);
+    let o = points(&l, &r);
+    assert!(o.status.success() && !stderr(&o).contains("no coloured screen"), "{}", stderr(&o));
+    let grey = |p: &Path| {
+        let img = spinscan::io::load_image(p).unwrap();
+        let out = dir.join(format!("grey-{}", p.file_name().unwrap().to_str().unwrap()));
+        spinscan::io::write_gray_png(&out, img.width, img.height, &img.gray).unwrap();
+        out
+    };
+    let o = points(&grey(&l), &grey(&r));
+    assert!(o.status.success() && stderr(&o).contains("no coloured screen in the border"), "{}", stderr(&o));
+}
+
 #[test]
 fn points_with_auto_mask_and_plate_on_the_simulated_lab() {
     let dir = support::temp_dir("cli-plate");
