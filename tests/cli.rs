@@ -199,6 +199,12 @@ fn demo_records_and_replays_a_scan_on_the_simulated_lab() {
     // The views are registered: three poses, and a model near the true surface.
     assert_eq!(std::fs::read_to_string(dir.join("results/poses.jsonl")).unwrap().lines().count(), 3);
     assert!(j["registration"]["gt_model_distance_mm"]["median"].as_f64().unwrap() < 2.0, "{j}");
+    // Each view's own distance to the true surface, in its frame's entry.
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("results/report.json")).unwrap()).unwrap();
+    for f in report["frames"].as_array().unwrap() {
+        let d = &f["gt_view_distance_mm"];
+        assert!(d["median"].as_f64().is_some_and(|m| m < 1.0) && d["p95"].as_f64() >= d["median"].as_f64() && d["points"].as_u64().is_some_and(|n| n > 100), "{f}");
+    }
     let manifest: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("results/manifest.json")).unwrap()).unwrap();
     assert_eq!((manifest["status"].as_str(), manifest["frames"].as_u64(), manifest["format"].as_u64()), (Some("complete"), Some(3), Some(1)));
 }

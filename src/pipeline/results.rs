@@ -368,7 +368,14 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
             t.integrate(&view.cloud, &p.first_from_view);
         }
         if let Some(t) = &truth {
+            let from = own.len();
             t.view_samples(p.seq, &view.cloud.points, &mut own, &mut seen);
+            // The view's own distance to the true surface, in its frame's entry: what the
+            // stereo gives, whatever the registration.
+            let d = &own[from..];
+            if let (false, Some(f)) = (d.is_empty(), results.frames.iter_mut().find(|f| f["seq"] == json!(p.seq))) {
+                f["gt_view_distance_mm"] = json!({"median": quantile(d, 0.5), "p95": quantile(d, 0.95), "points": d.len()});
+            }
         }
     }
     let fuse_ms = fuse_start.elapsed().as_secs_f64() * 1e3;
