@@ -105,7 +105,6 @@ pub fn score_against_gt(disp: &DisparityMap, gt: &DisparityMap) -> GtScore {
     }
 }
 
-/// The results folder, kept consistent on disk after every frame.
 /// A frame's `segmentation` entry in `report.json`: which key colour it was keyed by
 /// (`given`, `found` in the frame's border, or the `default` where none was found), its
 /// chromaticity, and the share of the border it keyed out where it was found.
@@ -118,6 +117,7 @@ fn segmentation_entry(k: &KeyUsed) -> Value {
     json!({"key": key, "chromaticity": [k.chroma.0, k.chroma.1], "border_share": share})
 }
 
+/// The results folder, kept consistent on disk after every frame.
 pub struct ResultsWriter {
     dir: PathBuf,
     source: String,
