@@ -549,7 +549,7 @@ impl Table1 {
             );
         }
         if let Some(first) = self.screen_not_found.first() {
-            let _ = writeln!(s, "\nsegmentation: {} of {} frames (the first seq {first}): {}", self.screen_not_found.len(), self.frames.len(), crate::segment::NO_SCREEN);
+            let _ = writeln!(s, "\nsegmentation: {} of {} frames (the first seq {first}): {}", self.screen_not_found.len(), self.frames.len(), crate::segment::no_screen());
         }
         s
     }

@@ -60,8 +60,11 @@ impl std::str::FromStr for KeyColour {
 /// The simulated lab's screen colour, and the key where [`KeyColour::Auto`] finds no screen.
 pub const DEFAULT_KEY_RGB: [u8; 3] = [40, 70, 190];
 
-/// What a frame whose border showed no coloured screen is segmented by.
-pub const NO_SCREEN: &str = "no coloured screen in the border of the left image (grey frames, or a screen covering less than 30 % of the border): keyed by the default colour 40,70,190";
+/// What a frame whose border showed no coloured screen is segmented by, in words (from
+/// [`AUTO_MIN_SHARE`] and [`DEFAULT_KEY_RGB`]).
+pub fn no_screen() -> String {
+    format!("no coloured screen in the border of the left image (grey frames, or a screen covering less than {:.0} % of the border): keyed by the default colour {}", AUTO_MIN_SHARE * 100.0, KeyColour::Rgb(DEFAULT_KEY_RGB))
+}
 
 /// Share of a frame's border pixels that the colour [`KeyColour::Auto`] found must key out
 /// for it to be taken as the screen's.
@@ -430,6 +433,11 @@ mod tests {
         assert!(matches!(used.source, KeySource::Found { .. }) && (used.chroma.0 - default.0).abs() < 0.01, "{used:?}");
         let given = ChromaKey { key: KeyColour::Rgb([120, 80, 40]), ..ChromaKey::default() };
         assert_eq!(given.key_of(&img, w, h), KeyUsed { chroma: chromaticity(&[120, 80, 40]).unwrap(), source: KeySource::Given });
+    }
+
+    #[test]
+    fn the_no_screen_message_names_the_share_and_the_colour() {
+        assert_eq!(no_screen(), "no coloured screen in the border of the left image (grey frames, or a screen covering less than 30 % of the border): keyed by the default colour 40,70,190");
     }
 
     #[test]

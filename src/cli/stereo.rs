@@ -217,7 +217,7 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
     }
     .map_err(input)?;
     if view.key.is_some_and(|k| k.source == spinscan::segment::KeySource::NotFound) {
-        eprintln!("points: warning: {}; give the screen's colour (--key-color R,G,B) or a background plate (--plate)", spinscan::segment::NO_SCREEN);
+        eprintln!("points: warning: {}; give the screen's colour (--key-color R,G,B) or a background plate (--plate)", spinscan::segment::no_screen());
     }
     io::ply::write_ply(&a.out, &view.cloud).map_err(output)?;
     if let Some(p) = &a.disparity {

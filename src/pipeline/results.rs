@@ -23,7 +23,7 @@ use crate::register::ring::{LoopClosure, Registrar};
 use crate::register::surface::{quantile, Surface};
 use crate::register::tracks::TrackImage;
 use crate::register::voxel::VoxelModel;
-use crate::segment::{KeySource, KeyUsed, NO_SCREEN};
+use crate::segment::{no_screen, KeySource, KeyUsed};
 use crate::stereo::DisparityMap;
 
 /// Why the results folder could not be written (or scored).
@@ -216,7 +216,7 @@ impl ResultsWriter {
     /// Adds a frame's entry and rewrites the manifest (still `running`).
     pub fn push_frame(&mut self, entry: Value) -> Result<(), ResultsError> {
         if entry["segmentation"]["key"] == json!("default") && !self.frames.iter().any(|f| f["segmentation"]["key"] == json!("default")) {
-            tracing::warn!("frame seq {}: {NO_SCREEN}; give the screen's colour (`--key-color R,G,B`, the daemon's `[matching] key_color`) or a background plate (`--plate`), or turn segmentation off", entry["seq"]);
+            tracing::warn!("frame seq {}: {}; give the screen's colour (`--key-color R,G,B`, the daemon's `[matching] key_color`) or a background plate (`--plate`), or turn segmentation off", entry["seq"], no_screen());
         }
         self.frames.push(entry);
         self.write_manifest("running", None)
