@@ -273,6 +273,8 @@ pub struct Assistant {
     /// `paper`: projected sphere radius per previous pixel, and the pixels needing the union.
     rho: Vec<f32>,
     union_needed: Vec<u8>,
+    /// `paper`: the largest ρ of each 8 × 8 block of `rho` (see `paper::Spheres`).
+    rho_blocks: Vec<u32>,
     /// An interval buffer handed back, with the region it was written in.
     spare: Option<(DisparityIntervals, Region)>,
     /// Tile granularity: the hull of each tile's bounds.
@@ -302,6 +304,7 @@ impl Assistant {
             region: Region::default(),
             rho: Vec::new(),
             union_needed: Vec::new(),
+            rho_blocks: Vec::new(),
             spare: None,
             tiles: tiles::TileBounds::default(),
         }

@@ -417,8 +417,8 @@ fn holes_take_the_hull_of_the_bounds_around_them() {
     let scene = Scene::new();
     let truth = scene.disparity(4.0);
     let (w, h) = (truth.width, truth.height);
-    // The object's mask grown by 4 px on both sides (new foreground beside it: filled), and a
-    // patch far from it (nothing around: the full range).
+    // The object's mask grown by 4 px on both sides (new foreground beside it: filled), and
+    // patches far from it (nothing around: the full range), one on rows of the object.
     let mut mask = Scene::mask(&truth);
     for y in 0..h {
         if let (Some(first), Some(last)) = ((0..w).find(|&x| mask[y * w + x] != 0), (0..w).rev().find(|&x| mask[y * w + x] != 0)) {
@@ -432,6 +432,12 @@ fn holes_take_the_hull_of_the_bounds_around_them() {
     }
     for y in 2..5 {
         for x in 2..5 {
+            mask[y * w + x] = 255;
+        }
+    }
+    let middle = (0..h).filter(|&y| truth.values()[y * w..(y + 1) * w].iter().any(|d| d.is_finite())).nth(10).expect("object rows");
+    for y in middle..middle + 3 {
+        for x in w - 5..w - 2 {
             mask[y * w + x] = 255;
         }
     }
