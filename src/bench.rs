@@ -23,7 +23,7 @@ use crate::recording::{Recording, TurntableAxis};
 use crate::register::posestore::{PoseSnapshot, PoseStore};
 use crate::register::ring::{Registrar, RegistrationParams};
 use crate::register::surface::{quantile, Surface};
-use crate::segment::KeySource;
+use crate::segment::{self, KeySource};
 use crate::stereo::{DisparityMap, MatchParams, Method};
 
 /// What to run.
@@ -247,6 +247,9 @@ pub struct Table1 {
     /// Frames (seq) whose border showed no coloured screen, keyed by the default colour
     /// (`segment::KeySource::NotFound`).
     pub screen_not_found: Vec<u64>,
+    /// Frames (seq) whose mask keeps at least `segment::EDGE_WARN_SHARE` of the image's edge
+    /// as object, with that share.
+    pub object_on_edge: Vec<(u64, f32)>,
 }
 
 struct Truth {
@@ -276,12 +279,16 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
 
     // Prepare every frame once: every row matches the same images and masks.
     let mut frames: Vec<(u64, Option<f64>, Prepared)> = Vec::with_capacity(n);
-    let mut screen_not_found = Vec::new();
+    let (mut screen_not_found, mut object_on_edge) = (Vec::new(), Vec::new());
     for i in 0..n {
         let f = rec.load_frame(i).map_err(|e| BenchError::Recording(e.to_string()))?;
         let p = pipes[0].prepare_frame(&f, true, None).map_err(|e| BenchError::Recording(format!("frame seq {}: {e}", f.seq)))?;
         if p.key.is_some_and(|k| k.source == KeySource::NotFound) {
             screen_not_found.push(f.seq);
+        }
+        let edge = p.mask.as_deref().map_or(0.0, |m| segment::edge_share(m, size.0, size.1));
+        if edge >= segment::EDGE_WARN_SHARE {
+            object_on_edge.push((f.seq, edge));
         }
         frames.push((f.seq, f.table_deg, p));
         progress("prepare", i + 1, n);
@@ -412,6 +419,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         floor_ms: floor_ms[0].clone(),
         floor_ms_by_method: matchers.iter().map(|m| m.method).zip(floor_ms).collect(),
         screen_not_found,
+        object_on_edge,
     })
 }
 
@@ -483,6 +491,7 @@ impl Table1 {
             "median_floor_ms": median(&self.floor_ms),
             "floor_ms_by_method": self.floor_ms_by_method.iter().map(|(m, f)| json!({"method": m.name(), "floor_ms": f, "median_floor_ms": median(f)})).collect::<Vec<_>>(),
             "screen_not_found_seqs": self.screen_not_found,
+            "object_on_edge_seqs": self.object_on_edge.iter().map(|e| e.0).collect::<Vec<_>>(),
             "fig_tiles": std::iter::once("left".to_string()).chain(self.rows.iter().map(row_label)).collect::<Vec<_>>(),
             "rows": self.rows.iter().map(|r| {
                 let mut j = r.to_json();
@@ -550,6 +559,9 @@ impl Table1 {
         }
         if let Some(first) = self.screen_not_found.first() {
             let _ = writeln!(s, "\nsegmentation: {} of {} frames (the first seq {first}): {}", self.screen_not_found.len(), self.frames.len(), crate::segment::no_screen());
+        }
+        if let Some(&(first, share)) = self.object_on_edge.first() {
+            let _ = writeln!(s, "\nsegmentation: {} of {} frames (the first seq {first}): {}", self.object_on_edge.len(), self.frames.len(), crate::segment::object_on_edge(share));
         }
         s
     }

@@ -70,6 +70,35 @@ pub fn no_screen() -> String {
 /// for it to be taken as the screen's.
 pub const AUTO_MIN_SHARE: f32 = 0.3;
 
+/// Share of a mask's edge (its outermost pixels) kept as object from which a frame is said to
+/// hold more than the object ([`object_on_edge`]). An object scanned whole stays inside the
+/// view: its mask leaves the edge clear (0 on the simulated lab's recordings); a grey floor
+/// or turntable the key leaves covered 44 % of it.
+pub const EDGE_WARN_SHARE: f32 = 0.05;
+
+/// The share (0…1) of the outermost pixels of a `w` × `h` mask (255 = object) that are object.
+pub fn edge_share(mask: &[u8], w: usize, h: usize) -> f32 {
+    if w == 0 || h == 0 || mask.len() != w * h {
+        return 0.0;
+    }
+    let (mut object, mut n) = (0, 0);
+    for (y, row) in mask.chunks_exact(w).enumerate() {
+        if y == 0 || y == h - 1 {
+            object += row.iter().filter(|&&m| m != 0).count();
+            n += w;
+        } else {
+            object += (row[0] != 0) as usize + (w > 1 && row[w - 1] != 0) as usize;
+            n += 1 + (w > 1) as usize;
+        }
+    }
+    object as f32 / n as f32
+}
+
+/// What a frame whose mask covers `share` of the image's edge holds, in words.
+pub fn object_on_edge(share: f32) -> String {
+    format!("{:.0} % of the left image's edge is kept as object (at most {:.0} % expected of an object in full view): part of the scene the key leaves — a turntable or floor not in the screen's colour — is matched and enters the views, or the object leaves the view", share * 100.0, EDGE_WARN_SHARE * 100.0)
+}
+
 /// The key a frame is segmented with, and where it came from.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct KeyUsed {
@@ -406,6 +435,32 @@ mod tests {
 
     /// Where the border shows no coloured screen — grey frames, or an object over most of
     /// it — `auto` keys by the default colour and says so; a given colour is used as given.
+    /// The edge share counts each outermost pixel once, corners included, on masks of one
+    /// row or column too.
+    #[test]
+    fn the_edge_share_counts_the_outermost_pixels() {
+        let (w, h) = (10, 6);
+        let mut mask = vec![0u8; w * h];
+        assert_eq!(edge_share(&mask, w, h), 0.0);
+        // An object inside the view: nothing on the edge.
+        for y in 2..4 {
+            mask[y * w + 3..y * w + 7].fill(255);
+        }
+        assert_eq!(edge_share(&mask, w, h), 0.0);
+        // A floor along the bottom row: 10 of the 28 edge pixels; then the left column's
+        // inner pixels too.
+        mask[(h - 1) * w..].fill(255);
+        assert_eq!(edge_share(&mask, w, h), 10.0 / 28.0);
+        for y in 1..h - 1 {
+            mask[y * w] = 255;
+        }
+        assert_eq!(edge_share(&mask, w, h), 14.0 / 28.0);
+        assert_eq!(edge_share(&[255; 7], 7, 1), 1.0);
+        assert_eq!(edge_share(&[0, 255, 0], 1, 3), 1.0 / 3.0);
+        assert_eq!(edge_share(&[255; 12], 4, 3), 1.0);
+        assert!(object_on_edge(0.44).starts_with("44 % of the left image's edge"), "{}", object_on_edge(0.44));
+    }
+
     #[test]
     fn auto_falls_back_where_the_border_shows_no_screen() {
         let (w, h) = (48, 32);

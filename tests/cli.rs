@@ -237,6 +237,33 @@ fn points_on_grey_images_says_no_screen_was_found() {
     assert!(o.status.success() && stderr(&o).contains("no coloured screen in the border"), "{}", stderr(&o));
 }
 
+/// A grey floor the key leaves, along the bottom of both images, reaches the image's edge:
+/// `points` says so; the simulated lab's scene (an object in full view) does not.
+#[test]
+fn points_says_when_the_mask_reaches_the_image_s_edge() {
+    let dir = support::temp_dir("cli-edge");
+    let (l, r) = sim_pair(&dir);
+    let points = |l: &Path, r: &Path| spinscan(&["points", "--calib", dir.join("calib.yaml").to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--mask", "auto", "--max-disparity", "48", "-o", dir.join("p.ply").to_str().unwrap()]);
+    let o = points(&l, &r);
+    assert!(o.status.success() && !stderr(&o).contains("edge is kept as object"), "{}", stderr(&o));
+    let blue = spinscan::segment::ChromaKey { key: spinscan::segment::KeyColour::Rgb(spinscan::segment::DEFAULT_KEY_RGB), ..Default::default() };
+    let floor = |p: &Path| {
+        let img = spinscan::io::load_image(p).unwrap();
+        let screen = blue.segment(&img.rgb, img.width, img.height, None).unwrap();
+        let mut rgb = img.rgb.clone();
+        for (k, (px, &m)) in rgb.chunks_exact_mut(3).zip(&screen).enumerate() {
+            if m == 0 && k / img.width >= img.height * 3 / 4 {
+                px.copy_from_slice(&[100, 100, 100]);
+            }
+        }
+        let out = dir.join(format!("floor-{}", p.file_name().unwrap().to_str().unwrap()));
+        spinscan::io::write_rgb_png(&out, img.width, img.height, &rgb).unwrap();
+        out
+    };
+    let o = points(&floor(&l), &floor(&r));
+    assert!(o.status.success() && stderr(&o).contains("of the left image's edge is kept as object"), "{}", stderr(&o));
+}
+
 #[test]
 fn points_with_auto_mask_and_plate_on_the_simulated_lab() {
     let dir = support::temp_dir("cli-plate");

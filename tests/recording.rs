@@ -242,6 +242,10 @@ fn a_screen_of_another_colour_is_keyed_without_being_told() {
     replay(&dir.join("sim"), &dir.join("out-sim")).unwrap();
     let points = |out: &Path| -> Vec<u64> { read_json(&out.join("report.json"))["frames"].as_array().unwrap().iter().map(|f| f["points"].as_u64().unwrap()).collect() };
     let want = points(&dir.join("out-sim"));
+    // The object is in full view: its masks leave the image's edge clear.
+    for f in read_json(&dir.join("out-sim").join("report.json"))["frames"].as_array().unwrap() {
+        assert_eq!(f["segmentation"]["edge_object_share"], 0.0, "{f}");
+    }
     for (name, colour) in [("green", [0, 177, 64]), ("chroma-blue", [0, 71, 187])] {
         let rec = dir.join(name);
         repaint_screen(&dir.join("sim"), &rec, colour);

@@ -219,6 +219,12 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
     if view.key.is_some_and(|k| k.source == spinscan::segment::KeySource::NotFound) {
         eprintln!("points: warning: {}; give the screen's colour (--key-color R,G,B) or a background plate (--plate)", spinscan::segment::no_screen());
     }
+    if let (Some(_), Some(mask)) = (view.key, &view.mask) {
+        let edge = spinscan::segment::edge_share(mask, view.disparity.width, view.disparity.height);
+        if edge >= spinscan::segment::EDGE_WARN_SHARE {
+            eprintln!("points: warning: {}; cover it in the screen's colour, or give a background plate (--plate)", spinscan::segment::object_on_edge(edge));
+        }
+    }
     io::ply::write_ply(&a.out, &view.cloud).map_err(output)?;
     if let Some(p) = &a.disparity {
         io::write_disparity_png(p, &view.disparity).map_err(output)?;

@@ -23,7 +23,7 @@ use crate::register::ring::{LoopClosure, Registrar};
 use crate::register::surface::{quantile, Surface};
 use crate::register::tracks::TrackImage;
 use crate::register::voxel::VoxelModel;
-use crate::segment::{no_screen, KeySource, KeyUsed};
+use crate::segment::{edge_share, no_screen, object_on_edge, KeySource, KeyUsed, EDGE_WARN_SHARE};
 use crate::stereo::DisparityMap;
 
 /// Why the results folder could not be written (or scored).
@@ -107,14 +107,15 @@ pub fn score_against_gt(disp: &DisparityMap, gt: &DisparityMap) -> GtScore {
 
 /// A frame's `segmentation` entry in `report.json`: which key colour it was keyed by
 /// (`given`, `found` in the frame's border, or the `default` where none was found), its
-/// chromaticity, and the share of the border it keyed out where it was found.
-fn segmentation_entry(k: &KeyUsed) -> Value {
+/// chromaticity, the share of the border it keyed out where it was found, and the share of
+/// the image's edge the mask kept as object (`segment::edge_share`).
+fn segmentation_entry(k: &KeyUsed, edge: f32) -> Value {
     let (key, share) = match k.source {
         KeySource::Given => ("given", None),
         KeySource::Found { border_share } => ("found", Some(border_share)),
         KeySource::NotFound => ("default", None),
     };
-    json!({"key": key, "chromaticity": [k.chroma.0, k.chroma.1], "border_share": share})
+    json!({"key": key, "chromaticity": [k.chroma.0, k.chroma.1], "border_share": share, "edge_object_share": edge})
 }
 
 /// The results folder, kept consistent on disk after every frame.
@@ -179,8 +180,8 @@ impl ResultsWriter {
             "t_left_ns": frame.t_left_ns,
             "skew_ns": frame.t_right_ns as i64 - frame.t_left_ns as i64,
         });
-        if let Some(k) = &view.key {
-            entry["segmentation"] = segmentation_entry(k);
+        if let (Some(k), Some(mask)) = (&view.key, &view.mask) {
+            entry["segmentation"] = segmentation_entry(k, edge_share(mask, view.disparity.width, view.disparity.height));
         }
         if let Some(a) = &view.assist {
             entry["assist"] = json!({
@@ -217,6 +218,11 @@ impl ResultsWriter {
     pub fn push_frame(&mut self, entry: Value) -> Result<(), ResultsError> {
         if entry["segmentation"]["key"] == json!("default") && !self.frames.iter().any(|f| f["segmentation"]["key"] == json!("default")) {
             tracing::warn!("frame seq {}: {}; give the screen's colour (`--key-color R,G,B`, the daemon's `[matching] key_color`) or a background plate (`--plate`), or turn segmentation off", entry["seq"], no_screen());
+        }
+        let on_edge = |f: &Value| f["segmentation"]["edge_object_share"].as_f64().is_some_and(|s| s >= EDGE_WARN_SHARE as f64);
+        if on_edge(&entry) && !self.frames.iter().any(on_edge) {
+            let share = entry["segmentation"]["edge_object_share"].as_f64().unwrap_or(0.0) as f32;
+            tracing::warn!("frame seq {}: {}; cover it in the screen's colour, or replay with a background plate (`--plate`)", entry["seq"], object_on_edge(share));
         }
         self.frames.push(entry);
         self.write_manifest("running", None)
