@@ -52,6 +52,9 @@ pub struct Table1Options {
     pub registration: RegistrationParams,
     /// Frame (index) shown in the figure.
     pub fig_frame: Option<usize>,
+    /// An image of the empty scene (raw left camera, RGB) that keys out what it shows, as
+    /// `replay --plate` does.
+    pub plate: Option<Vec<u8>>,
 }
 
 impl Default for Table1Options {
@@ -68,6 +71,7 @@ impl Default for Table1Options {
             granularities: Vec::new(),
             registration: RegistrationParams::default(),
             fig_frame: None,
+            plate: None,
         }
     }
 }
@@ -274,6 +278,9 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         pipes.push(Pipeline::new(&rec.calib, rec.image_size, o).map_err(|source| BenchError::Pipeline { seq: 0, source })?);
     }
     let size = (rec.image_size.0 as usize, rec.image_size.1 as usize);
+    if let Some(p) = opts.plate.as_ref().filter(|p| p.len() != size.0 * size.1 * 3) {
+        return Err(BenchError::Recording(format!("the plate holds {} bytes; the recording's {}×{} RGB images take {}", p.len(), size.0, size.1, size.0 * size.1 * 3)));
+    }
     let params = pipes[0].matcher().params().clone();
     let range = (params.min_disparity, params.max_disparity());
 
@@ -282,7 +289,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
     let (mut screen_not_found, mut object_on_edge) = (Vec::new(), Vec::new());
     for i in 0..n {
         let f = rec.load_frame(i).map_err(|e| BenchError::Recording(e.to_string()))?;
-        let p = pipes[0].prepare_frame(&f, true, None).map_err(|e| BenchError::Recording(format!("frame seq {}: {e}", f.seq)))?;
+        let p = pipes[0].prepare_frame(&f, true, opts.plate.as_deref()).map_err(|e| BenchError::Recording(format!("frame seq {}: {e}", f.seq)))?;
         if p.key.is_some_and(|k| k.source == KeySource::NotFound) {
             screen_not_found.push(f.seq);
         }

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use clap::{Args, Subcommand};
 use serde_json::json;
 
-use super::{input, output, progress, AssistArgs, Failure, KeyColourArgs, MatchArgs};
+use super::{input, output, progress, AssistArgs, Failure, KeyArgs, MatchArgs};
 use spinscan::assist::{AssistMode, Granularity};
 use spinscan::io;
 use spinscan::pipeline::PipelineOptions;
@@ -63,7 +63,7 @@ pub struct Table1Args {
     #[command(flatten)]
     pub matching: MatchArgs,
     #[command(flatten)]
-    pub key: KeyColourArgs,
+    pub key: KeyArgs,
 }
 
 /// `spinscan bench live`'s arguments.
@@ -170,8 +170,16 @@ pub fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
             granularities.push(g);
         }
     }
+    let plate = match &a.key.plate {
+        Some(_) => {
+            let (w, h) = spinscan::recording::Recording::open(&a.recording).map_err(input)?.image_size;
+            a.key.load_plate((w as usize, h as usize), "the recording's images")?
+        }
+        None => None,
+    };
     let opts = spinscan::bench::Table1Options {
         pipeline: PipelineOptions { min_disparity: a.matching.min_disparity, matching: matchers[0].clone(), chroma: a.key.chroma(), ..Default::default() },
+        plate,
         matchers,
         weights: a.weights.clone(),
         predicted: !a.no_predicted,

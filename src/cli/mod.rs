@@ -237,6 +237,17 @@ impl KeyArgs {
     pub fn chroma(&self) -> ChromaKey {
         self.colour.chroma()
     }
+
+    /// The plate's RGB, checked against the size of the images it keys (`what`: the images
+    /// named in the message).
+    pub fn load_plate(&self, size: (usize, usize), what: &str) -> Result<Option<Vec<u8>>, Failure> {
+        let Some(p) = &self.plate else { return Ok(None) };
+        let img = spinscan::io::load_image(p).map_err(input)?;
+        if (img.width, img.height) != size {
+            return Err(input(format!("plate {} is {}×{} but {what} are {}×{}", p.display(), img.width, img.height, size.0, size.1)));
+        }
+        Ok(Some(img.rgb))
+    }
 }
 
 #[derive(Args, Clone)]

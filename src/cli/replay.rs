@@ -6,7 +6,6 @@ use clap::Args;
 use serde_json::json;
 
 use super::{input, output, progress, AssistModeArgs, Failure, KeyArgs, MatchArgs, RectArgs, RegistrationArgs};
-use spinscan::io;
 use spinscan::pipeline::replay::{self, ReplayOptions};
 use spinscan::pipeline::PipelineOptions;
 use spinscan::recording::Recording;
@@ -52,17 +51,10 @@ pub fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
     if let Some(line) = rec.torn_line {
         eprintln!("replay: warning: skipped the torn last line {line} of {}", a.dir.join("frames.jsonl").display());
     }
-    let plate = match &a.key.plate {
-        Some(p) if a.no_segment => return Err(input(format!("--plate {} is used by the blue-screen segmentation, which --no-segment turns off", p.display()))),
-        Some(p) => {
-            let img = io::load_image(p).map_err(input)?;
-            if (img.width as u32, img.height as u32) != rec.image_size {
-                return Err(input(format!("plate {} is {}×{} but the recording's images are {}×{}", p.display(), img.width, img.height, rec.image_size.0, rec.image_size.1)));
-            }
-            Some(img.rgb)
-        }
-        None => None,
-    };
+    if let (Some(p), true) = (&a.key.plate, a.no_segment) {
+        return Err(input(format!("--plate {} is used by the blue-screen segmentation, which --no-segment turns off", p.display())));
+    }
+    let plate = a.key.load_plate((rec.image_size.0 as usize, rec.image_size.1 as usize), "the recording's images")?;
     let opts = ReplayOptions {
         max_frames: a.frames,
         segment: !a.no_segment,

@@ -188,16 +188,7 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
         chroma: a.key.chroma(),
     };
     let mut pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts).map_err(input)?;
-    let plate = match &a.key.plate {
-        Some(p) => {
-            let img = io::load_image(p).map_err(input)?;
-            if (img.width, img.height) != (l.width, l.height) {
-                return Err(input(format!("plate {} is {}×{} but the images are {}×{}", p.display(), img.width, img.height, l.width, l.height)));
-            }
-            Some(img.rgb)
-        }
-        None => None,
-    };
+    let plate = a.key.load_plate((l.width, l.height), "the images")?;
     if plate.is_some() && a.mask.as_deref() != Some("auto") {
         return Err(input("--plate is used by the blue-screen segmentation: add --mask auto"));
     }

@@ -3,6 +3,7 @@
 //! equal). Unknown keys are errors, so a typo never silently falls back to a default.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
@@ -297,6 +298,8 @@ pub struct MatchingSection {
     pub segment: bool,
     /// The screen's colour: "auto" (found in each frame's border) or "R,G,B".
     pub key_color: String,
+    /// An image of the empty scene from the left camera (PNG or JPEG), "" for none.
+    pub plate: PathBuf,
 }
 
 impl Default for MatchingSection {
@@ -304,7 +307,7 @@ impl Default for MatchingSection {
         // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
         // about 330 mm on.
         let m = crate::stereo::MatchParams::default();
-        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string() }
+        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string(), plate: PathBuf::new() }
     }
 }
 
@@ -435,6 +438,9 @@ impl Config {
         if let Err(e) = self.matching.key_color.parse::<KeyColour>() {
             return bad("matching.key_color", e.to_string());
         }
+        if let Err(e) = self.plate() {
+            return bad("matching.plate", format!("{e} (expected an image of the empty scene from the left camera, PNG or JPEG, or \"\" for none)"));
+        }
         if let Err(e) = self.assist() {
             let key = if matches!(e, AssistModeError::Granularity(_)) { "matching.assist_granularity" } else { "matching.assist" };
             return bad(key, e.to_string());
@@ -473,6 +479,11 @@ impl Config {
         PipelineSettings {
             pipeline,
             segment: config.matching.segment,
+            // Checked by `validate`; a file gone since is a warning and no plate.
+            plate: config.plate().unwrap_or_else(|e| {
+                tracing::warn!("matching.plate: {e}; scans key by the screen's colour alone");
+                None
+            }),
             // An unknown mode is refused by `validate`; unvalidated configs match full range.
         assist: if registration.is_some() { config.assist().ok().flatten() } else { None },
             registration,
@@ -487,6 +498,15 @@ impl Config {
                 None
             }),
         }
+    }
+
+    /// The background plate, when `matching.plate` names one.
+    pub fn plate(&self) -> Result<Option<Arc<crate::io::LoadedImage>>, crate::io::ImageIoError> {
+        let path = &self.matching.plate;
+        if path.as_os_str().is_empty() {
+            return Ok(None);
+        }
+        crate::io::load_image(path).map(|i| Some(Arc::new(i)))
     }
 
     /// The calibrated turntable axis, when `cameras.turntable_axis` names one.
@@ -556,6 +576,15 @@ mod tests {
             let e = Config::parse(p, &format!("[matching]\nkey_color = \"{text}\"\n")).unwrap_err().to_string();
             assert!(e.contains("matching.key_color") && e.contains("expected `auto` or R,G,B"), "{text}: {e}");
         }
+        let e = Config::parse(p, "[matching]\nplate = \"/no/such/plate.png\"\n").unwrap_err().to_string();
+        assert!(e.contains("matching.plate") && e.contains("/no/such/plate.png") && e.contains("empty scene"), "{e}");
+        let plate = std::env::temp_dir().join(format!("spinscan-config-plate-{}.png", std::process::id()));
+        crate::io::write_rgb_png(&plate, 3, 2, &[90; 18]).unwrap();
+        let c = Config::parse(p, &format!("[matching]\nplate = \"{}\"\n", plate.display())).unwrap();
+        let loaded = c.pipeline_settings().plate.expect("the plate");
+        assert_eq!((loaded.width, loaded.height, loaded.rgb.len()), (3, 2, 18));
+        assert!(Config::default().pipeline_settings().plate.is_none());
+        std::fs::remove_file(&plate).unwrap();
         let c = Config::parse(p, "[matching]\nkey_color = \"0, 71, 187\"\n").unwrap();
         assert_eq!(c.pipeline_settings().pipeline.chroma.key, crate::segment::KeyColour::Rgb([0, 71, 187]));
         assert_eq!(Config::default().pipeline_settings().pipeline.chroma.key, crate::segment::KeyColour::Auto);

@@ -222,7 +222,7 @@ impl ResultsWriter {
         let on_edge = |f: &Value| f["segmentation"]["edge_object_share"].as_f64().is_some_and(|s| s >= EDGE_WARN_SHARE as f64);
         if on_edge(&entry) && !self.frames.iter().any(on_edge) {
             let share = entry["segmentation"]["edge_object_share"].as_f64().unwrap_or(0.0) as f32;
-            tracing::warn!("frame seq {}: {}; cover it in the screen's colour, or replay with a background plate (`--plate`)", entry["seq"], object_on_edge(share));
+            tracing::warn!("frame seq {}: {}; cover it in the screen's colour, or give a background plate (`--plate`, the daemon's `[matching] plate`)", entry["seq"], object_on_edge(share));
         }
         self.frames.push(entry);
         self.write_manifest("running", None)

@@ -72,6 +72,9 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
         Ok((w, h, _)) => (w as u32, h as u32),
         Err(source) => return ScanEnd::failed(ScanError::FirstFrame(crate::pipeline::FrameError::Decode { side: "left", source })),
     };
+    if let Some(p) = settings.plate.as_ref().filter(|p| (p.width as u32, p.height as u32) != size) {
+        return ScanEnd::failed(ScanError::PlateSize { plate_w: p.width, plate_h: p.height, w: size.0, h: size.1 });
+    }
 
     // Recorder.
     let (rec_tx, rec_rx) = crossbeam_channel::unbounded::<StereoFrame>();
@@ -258,6 +261,7 @@ mod tests {
         let settings = PipelineSettings {
             pipeline: crate::pipeline::PipelineOptions::default(),
             segment: true,
+            plate: None,
             registration: Some(Default::default()),
             assist: None,
             matcher_threads: 1,
@@ -315,6 +319,37 @@ mod tests {
         let shared = ScanShared::new(spec, std::env::temp_dir(), Box::new(|_, _| {}));
         let first = capture::capture_first(&mut devices, &shared).unwrap().unwrap();
         assert_eq!(first.seq, 101, "a pair from after the scan started");
+    }
+
+    /// A background plate of another size than the cameras' images stops the scan before
+    /// anything is written, naming both sizes.
+    #[test]
+    fn a_plate_of_another_size_stops_the_scan_and_says_why() {
+        let dir = std::env::temp_dir().join(format!("spinscan-scan-plate-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let calib = crate::hw::sim::ideal_calib(64, 48, 70.0, 60.0);
+        let mut devices = Devices { source: Box::new(Streaming { calib, waiting: Default::default(), next_seq: 0 }), turntable: None };
+        let spec = ScanSpec { name: "plate".into(), mode: ScanMode::Continuous, step_deg: 1.0, total_deg: 360.0, speed_deg_s: 6.0, max_views: None };
+        let shared = Arc::new(ScanShared::new(spec, dir.clone(), Box::new(|_, _| {})));
+        let plate = crate::io::LoadedImage { width: 2, height: 2, rgb: vec![0; 12], gray: vec![0; 4] };
+        let settings = PipelineSettings {
+            pipeline: crate::pipeline::PipelineOptions::default(),
+            segment: true,
+            plate: Some(Arc::new(plate)),
+            registration: None,
+            assist: None,
+            matcher_threads: 1,
+            queue_depth: 4,
+            record: true,
+            pace_hz: None,
+            register_newest_when_behind: false,
+            calibrated_axis: None,
+        };
+        let end = run(&mut devices, shared, &settings);
+        assert_eq!(end.status, "failed");
+        assert!(end.reason.as_deref().unwrap().contains("background plate is 2×2 but the cameras deliver 1×1"), "{end:?}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     /// A table turning at 10° per second of the monotonic clock, queried late.
@@ -395,6 +430,7 @@ mod tests {
         let settings = PipelineSettings {
             pipeline: crate::pipeline::PipelineOptions::default(),
             segment: false,
+            plate: None,
             registration: None,
             assist: None,
             matcher_threads: 1,

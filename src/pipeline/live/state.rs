@@ -159,6 +159,8 @@ pub enum ScanError {
     Recording { seq: u64, source: RecordingError },
     #[error("first frame: {0}")]
     FirstFrame(FrameError),
+    #[error("the background plate is {plate_w}×{plate_h} but the cameras deliver {w}×{h} (expected an image of the empty scene from the left camera at its resolution)")]
+    PlateSize { plate_w: usize, plate_h: usize, w: u32, h: u32 },
     #[error("pipeline: {0}")]
     Pipeline(#[from] PipelineError),
     #[error("model: {0}")]
@@ -172,6 +174,10 @@ pub enum ScanError {
 pub struct PipelineSettings {
     pub pipeline: PipelineOptions,
     pub segment: bool,
+    /// An image of the empty scene from the left camera (raw, RGB): pixels close to it are
+    /// background too (`segment::ChromaKey`); for what the key leaves, such as a turntable
+    /// not in the screen's colour.
+    pub plate: Option<Arc<crate::io::LoadedImage>>,
     pub registration: Option<RegistrationParams>,
     pub assist: Option<AssistParams>,
     pub matcher_threads: usize,
