@@ -218,13 +218,18 @@ fn help_defaults_match_the_library_defaults() {
     assert!(text.contains(&format!("[default: {k}]")), "{text}");
 }
 
+/// `spinscan points --mask auto` on a pair matched with `dir`'s calibration.
+fn points_with_auto_mask(dir: &Path, l: &Path, r: &Path) -> std::process::Output {
+    spinscan(&["points", "--calib", dir.join("calib.yaml").to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--mask", "auto", "--max-disparity", "48", "-o", dir.join("p.ply").to_str().unwrap()])
+}
+
 /// `--mask auto` finds the simulated lab's screen without a word, and says so where grey
 /// images give it no colour to find.
 #[test]
 fn points_on_grey_images_says_no_screen_was_found() {
     let dir = support::temp_dir("cli-grey-screen");
     let (l, r) = sim_pair(&dir);
-    let points = |l: &Path, r: &Path| spinscan(&["points", "--calib", dir.join("calib.yaml").to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--mask", "auto", "--max-disparity", "48", "-o", dir.join("p.ply").to_str().unwrap()]);
+    let points = |l: &Path, r: &Path| points_with_auto_mask(&dir, l, r);
     let o = points(&l, &r);
     assert!(o.status.success() && !stderr(&o).contains("no coloured screen"), "{}", stderr(&o));
     let grey = |p: &Path| {
@@ -243,7 +248,7 @@ fn points_on_grey_images_says_no_screen_was_found() {
 fn points_says_when_the_mask_reaches_the_image_s_edge() {
     let dir = support::temp_dir("cli-edge");
     let (l, r) = sim_pair(&dir);
-    let points = |l: &Path, r: &Path| spinscan(&["points", "--calib", dir.join("calib.yaml").to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--mask", "auto", "--max-disparity", "48", "-o", dir.join("p.ply").to_str().unwrap()]);
+    let points = |l: &Path, r: &Path| points_with_auto_mask(&dir, l, r);
     let o = points(&l, &r);
     assert!(o.status.success() && !stderr(&o).contains("edge is kept as object"), "{}", stderr(&o));
     let blue = spinscan::segment::ChromaKey { key: spinscan::segment::KeyColour::Rgb(spinscan::segment::DEFAULT_KEY_RGB), ..Default::default() };

@@ -234,6 +234,31 @@ mod tests {
     use crate::hw::{CaptureError, StereoSource};
     use serde_json::Value;
 
+    /// The settings these tests start from: segmented, recorded, one matcher, nothing else.
+    fn test_settings() -> PipelineSettings {
+        PipelineSettings {
+            pipeline: crate::pipeline::PipelineOptions::default(),
+            segment: true,
+            plate: None,
+            registration: None,
+            assist: None,
+            matcher_threads: 1,
+            queue_depth: 4,
+            record: true,
+            pace_hz: None,
+            register_newest_when_behind: false,
+            calibrated_axis: None,
+        }
+    }
+
+    /// An empty scan folder of this test run.
+    fn empty_scan_dir(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("spinscan-scan-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
     /// A camera that never delivers.
     struct Dead(StereoCalib);
 
@@ -251,26 +276,12 @@ mod tests {
 
     #[test]
     fn a_scan_that_fails_before_its_first_view_still_leaves_a_manifest() {
-        let dir = std::env::temp_dir().join(format!("spinscan-scan-dead-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = empty_scan_dir("dead");
         let calib = crate::hw::sim::ideal_calib(64, 48, 70.0, 60.0);
         let mut devices = Devices { source: Box::new(Dead(calib)), turntable: None };
         let spec = ScanSpec { name: "dead".into(), mode: ScanMode::Continuous, step_deg: 1.0, total_deg: 360.0, speed_deg_s: 6.0, max_views: None };
         let shared = Arc::new(ScanShared::new(spec, dir.clone(), Box::new(|_, _| {})));
-        let settings = PipelineSettings {
-            pipeline: crate::pipeline::PipelineOptions::default(),
-            segment: true,
-            plate: None,
-            registration: Some(Default::default()),
-            assist: None,
-            matcher_threads: 1,
-            queue_depth: 4,
-            record: true,
-            pace_hz: None,
-            register_newest_when_behind: false,
-            calibrated_axis: None,
-        };
+        let settings = PipelineSettings { registration: Some(Default::default()), ..test_settings() };
         let end = run(&mut devices, shared, &settings);
         assert_eq!(end.status, "failed");
         assert!(end.reason.as_deref().unwrap().contains("left camera delivered no frame"), "{end:?}");
@@ -325,27 +336,13 @@ mod tests {
     /// anything is written, naming both sizes.
     #[test]
     fn a_plate_of_another_size_stops_the_scan_and_says_why() {
-        let dir = std::env::temp_dir().join(format!("spinscan-scan-plate-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = empty_scan_dir("plate");
         let calib = crate::hw::sim::ideal_calib(64, 48, 70.0, 60.0);
         let mut devices = Devices { source: Box::new(Streaming { calib, waiting: Default::default(), next_seq: 0 }), turntable: None };
         let spec = ScanSpec { name: "plate".into(), mode: ScanMode::Continuous, step_deg: 1.0, total_deg: 360.0, speed_deg_s: 6.0, max_views: None };
         let shared = Arc::new(ScanShared::new(spec, dir.clone(), Box::new(|_, _| {})));
         let plate = crate::io::LoadedImage { width: 2, height: 2, rgb: vec![0; 12], gray: vec![0; 4] };
-        let settings = PipelineSettings {
-            pipeline: crate::pipeline::PipelineOptions::default(),
-            segment: true,
-            plate: Some(Arc::new(plate)),
-            registration: None,
-            assist: None,
-            matcher_threads: 1,
-            queue_depth: 4,
-            record: true,
-            pace_hz: None,
-            register_newest_when_behind: false,
-            calibrated_axis: None,
-        };
+        let settings = PipelineSettings { plate: Some(Arc::new(plate)), ..test_settings() };
         let end = run(&mut devices, shared, &settings);
         assert_eq!(end.status, "failed");
         assert!(end.reason.as_deref().unwrap().contains("background plate is 2×2 but the cameras deliver 1×1"), "{end:?}");
@@ -427,19 +424,7 @@ mod tests {
         let (jobs, jobs_rx) = crossbeam_channel::unbounded();
         let (notes, _notes_rx) = crossbeam_channel::unbounded();
         let (recorder, _rec_rx) = crossbeam_channel::unbounded();
-        let settings = PipelineSettings {
-            pipeline: crate::pipeline::PipelineOptions::default(),
-            segment: false,
-            plate: None,
-            registration: None,
-            assist: None,
-            matcher_threads: 1,
-            queue_depth: 8,
-            record: false,
-            pace_hz: None,
-            register_newest_when_behind: false,
-            calibrated_axis: None,
-        };
+        let settings = PipelineSettings { segment: false, queue_depth: 8, record: false, ..test_settings() };
         capture::capture(&mut devices, &shared, first, &jobs, &jobs_rx, &notes, &recorder, &settings).unwrap();
         let angles: Vec<Option<f64>> = jobs_rx.try_iter().map(|j| j.frame.table_deg).collect();
         assert_eq!(angles, vec![Some(0.0), Some(400.0 / 8.889), Some(800.0 / 8.889)]);
