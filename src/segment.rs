@@ -433,8 +433,6 @@ mod tests {
         assert!(matches!(used.source, KeySource::Found { .. }) && (used.chroma.1 - 0.275).abs() < 0.01, "{used:?}");
     }
 
-    /// Where the border shows no coloured screen — grey frames, or an object over most of
-    /// it — `auto` keys by the default colour and says so; a given colour is used as given.
     /// The edge share counts each outermost pixel once, corners included, on masks of one
     /// row or column too.
     #[test]
@@ -461,6 +459,8 @@ mod tests {
         assert!(object_on_edge(0.44).starts_with("44 % of the left image's edge"), "{}", object_on_edge(0.44));
     }
 
+    /// Where the border shows no coloured screen — grey frames, or an object over most of
+    /// it — `auto` keys by the default colour and says so; a given colour is used as given.
     #[test]
     fn auto_falls_back_where_the_border_shows_no_screen() {
         let (w, h) = (48, 32);
