@@ -281,6 +281,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
     if let Some(p) = opts.plate.as_ref().filter(|p| p.len() != size.0 * size.1 * 3) {
         return Err(BenchError::Recording(format!("the plate holds {} bytes; the recording's {}×{} RGB images take {}", p.len(), size.0, size.1, size.0 * size.1 * 3)));
     }
+    let plate = opts.plate.as_deref().map(|p| pipes[0].rectify_plate(p));
     let params = pipes[0].matcher().params().clone();
     let range = (params.min_disparity, params.max_disparity());
 
@@ -289,7 +290,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
     let (mut screen_not_found, mut object_on_edge) = (Vec::new(), Vec::new());
     for i in 0..n {
         let f = rec.load_frame(i).map_err(|e| BenchError::Recording(e.to_string()))?;
-        let p = pipes[0].prepare_frame(&f, true, opts.plate.as_deref()).map_err(|e| BenchError::Recording(format!("frame seq {}: {e}", f.seq)))?;
+        let p = pipes[0].prepare_frame(&f, true, plate.as_ref()).map_err(|e| BenchError::Recording(format!("frame seq {}: {e}", f.seq)))?;
         if p.key.is_some_and(|k| k.source == KeySource::NotFound) {
             screen_not_found.push(f.seq);
         }

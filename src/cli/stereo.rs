@@ -194,7 +194,7 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
     }
     let view = match a.mask.as_deref() {
         None => pipe.process_rgb(&l.rgb, &r.rgb, false),
-        Some("auto") => pipe.process_rgb_with_plate(&l.rgb, &r.rgb, true, plate.as_deref()),
+        Some("auto") => pipe.process_rgb_with_plate(&l.rgb, &r.rgb, true, plate.map(|p| pipe.rectify_plate(&p)).as_ref()),
         Some(file) => {
             let m = io::load_image(Path::new(file)).map_err(input)?;
             if (m.width, m.height) != (l.width, l.height) {

@@ -124,6 +124,11 @@ pub struct View {
     pub key: Option<KeyUsed>,
 }
 
+/// A background plate (an image of the empty scene) in rectified left coordinates, RGB, from
+/// [`Pipeline::rectify_plate`].
+#[derive(Debug, Clone)]
+pub struct RectifiedPlate(Vec<u8>);
+
 /// A rectified, segmented pair ready to match.
 #[derive(Debug, Clone)]
 pub struct Prepared {
@@ -237,7 +242,7 @@ impl Pipeline {
     }
 
     /// Decodes, rectifies and (with `segment`) segments a frame for matching.
-    pub fn prepare_frame(&self, frame: &StereoFrame, segment: bool, plate: Option<&[u8]>) -> Result<Prepared, FrameError> {
+    pub fn prepare_frame(&self, frame: &StereoFrame, segment: bool, plate: Option<&RectifiedPlate>) -> Result<Prepared, FrameError> {
         let (left, right) = self.decode(frame)?;
         Ok(self.prepare_rgb(&left, &right, segment, plate)?)
     }
@@ -258,7 +263,7 @@ impl Pipeline {
 
     /// One frame's whole path: decode and size check → rectify and segment → assisted or
     /// full-range match → triangulate.
-    pub fn process_frame(&mut self, frame: &StereoFrame, segment: bool, plate: Option<&[u8]>, assist: Option<Assist>) -> Result<View, FrameError> {
+    pub fn process_frame(&mut self, frame: &StereoFrame, segment: bool, plate: Option<&RectifiedPlate>, assist: Option<Assist>) -> Result<View, FrameError> {
         let prepared = self.prepare_frame(frame, segment, plate)?;
         let m = self.match_frame(frame.seq, &prepared, assist)?;
         Ok(self.finish_view(prepared, m))
@@ -270,6 +275,12 @@ impl Pipeline {
         (self.maps.0.remap::<3>(left, w, h), self.maps.1.remap::<3>(right, w, h))
     }
 
+    /// Rectifies a background plate (raw left image of the empty scene, RGB, the cameras'
+    /// size), once for all the frames it keys.
+    pub fn rectify_plate(&self, raw: &[u8]) -> RectifiedPlate {
+        RectifiedPlate(self.maps.0.remap::<3>(raw, self.size.0 as u32, self.size.1 as u32))
+    }
+
     /// Rectifies a mask given in raw left coordinates.
     pub fn rectify_left_mask(&self, mask: &[u8]) -> Vec<u8> {
         let m = self.maps.0.remap::<1>(mask, self.size.0 as u32, self.size.1 as u32);
@@ -277,14 +288,13 @@ impl Pipeline {
     }
 
     /// Rectifies (and, with `segment`, segments) a raw RGB pair for matching.
-    pub fn prepare_rgb(&self, left: &[u8], right: &[u8], segment: bool, plate: Option<&[u8]>) -> Result<Prepared, PipelineError> {
+    pub fn prepare_rgb(&self, left: &[u8], right: &[u8], segment: bool, plate: Option<&RectifiedPlate>) -> Result<Prepared, PipelineError> {
         let (w, h) = self.size;
         // The right image is matched in grey only: sampled and converted in one pass.
         let (left_rgb, left_gray) = self.maps.0.remap_rgb_gray(left, w as u32, h as u32);
         let right_gray = self.maps.1.remap_gray(right, w as u32, h as u32);
         let (mask, key) = if segment {
-            let plate = plate.map(|p| self.maps.0.remap::<3>(p, w as u32, h as u32));
-            let (mask, key) = self.chroma.segment_keyed(&left_rgb, w, h, plate.as_deref())?;
+            let (mask, key) = self.chroma.segment_keyed(&left_rgb, w, h, plate.map(|p| &p.0[..]))?;
             (Some(mask), Some(key))
         } else {
             (None, None)
@@ -331,9 +341,9 @@ impl Pipeline {
         self.process_rgb_with_plate(left, right, segment, None)
     }
 
-    /// As [`Pipeline::process_rgb`], with an optional background plate (raw left image of the
-    /// empty scene, RGB) that the segmentation also keys against.
-    pub fn process_rgb_with_plate(&mut self, left: &[u8], right: &[u8], segment: bool, plate: Option<&[u8]>) -> Result<View, PipelineError> {
+    /// As [`Pipeline::process_rgb`], with an optional background plate
+    /// ([`Pipeline::rectify_plate`]) that the segmentation also keys against.
+    pub fn process_rgb_with_plate(&mut self, left: &[u8], right: &[u8], segment: bool, plate: Option<&RectifiedPlate>) -> Result<View, PipelineError> {
         let frame = self.prepare_rgb(left, right, segment, plate)?;
         self.process_prepared(frame)
     }

@@ -18,7 +18,7 @@ use std::sync::Arc;
 use serde_json::{json, Value};
 
 use super::results::{finish_registration, register_view, score_against_gt, GtScore, ModelOptions, RegistrationInputs, ResultsError, ResultsWriter};
-use super::{Assist, FrameError, Pipeline, PipelineError, PipelineOptions};
+use super::{Assist, FrameError, Pipeline, PipelineError, PipelineOptions, RectifiedPlate};
 use crate::assist::{AssistParams, Assistant};
 use crate::hw::{CaptureError, StereoFrame, StereoSource};
 use crate::io;
@@ -145,7 +145,8 @@ pub fn run(
         (Some(a), Some(_)) => Some(pipe.assistant(a.clone())),
         _ => None,
     };
-    let run = Run { pipe: &mut pipe, results: &mut results, opts, gt_for, registrar: registrar.as_mut(), assistant: assistant.as_mut(), store: &store, progress };
+    let plate = opts.plate.as_deref().map(|p| pipe.rectify_plate(p));
+    let run = Run { pipe: &mut pipe, plate: plate.as_ref(), results: &mut results, opts, gt_for, registrar: registrar.as_mut(), assistant: assistant.as_mut(), store: &store, progress };
     let outcome = run.all(source, first).and_then(|mut summary| {
         if let Some(reg) = registrar.as_mut() {
             summary.registration = Some(finish_registration(reg, &mut results, &opts.model, inputs)?);
@@ -160,6 +161,8 @@ pub fn run(
 /// One run's pipeline, results, registration and assistance.
 struct Run<'a> {
     pipe: &'a mut Pipeline,
+    /// `opts.plate`, rectified.
+    plate: Option<&'a RectifiedPlate>,
     results: &'a mut ResultsWriter,
     opts: &'a ReplayOptions,
     gt_for: &'a dyn Fn(u64) -> Option<PathBuf>,
@@ -178,7 +181,7 @@ impl Run<'_> {
             let seq = frame.seq;
             let poses = self.store.snapshot();
             let assist = self.assistant.as_deref_mut().map(|assistant| Assist { assistant, poses: &poses });
-            let view = self.pipe.process_frame(&frame, self.opts.segment, self.opts.plate.as_deref(), assist).map_err(|source| ReplayError::Frame { seq, source })?;
+            let view = self.pipe.process_frame(&frame, self.opts.segment, self.plate, assist).map_err(|source| ReplayError::Frame { seq, source })?;
             let mut entry = self.results.write_view(&frame, &view, self.opts.assist.as_ref())?;
             if let Some(gt_path) = (self.gt_for)(seq) {
                 let bad = |what: String| ReplayError::GroundTruth { seq, what };

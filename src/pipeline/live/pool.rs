@@ -25,6 +25,7 @@ pub(super) fn matcher_loop(mut pipe: Pipeline, jobs: Receiver<Job>, notes: Sende
         _ => None,
     };
     let c = &shared.counters;
+    let plate = settings.plate.as_ref().map(|p| pipe.rectify_plate(&p.rgb));
     for job in jobs {
         c.queued.fetch_sub(1, Ordering::Relaxed);
         let seq = job.frame.seq;
@@ -37,7 +38,7 @@ pub(super) fn matcher_loop(mut pipe: Pipeline, jobs: Receiver<Job>, notes: Sende
         let assist = assistant.as_mut().map(|assistant| Assist { assistant, poses: &poses });
         // `Pipeline::process_frame`'s three steps, each timed (`scan.progress`'s `stage_ms`).
         let t0 = Instant::now();
-        let view = pipe.prepare_frame(&job.frame, settings.segment, settings.plate.as_ref().map(|p| &p.rgb[..])).and_then(|prepared| {
+        let view = pipe.prepare_frame(&job.frame, settings.segment, plate.as_ref()).and_then(|prepared| {
             c.add_stage(Stage::Prepare, ms_since(t0));
             let m = pipe.match_frame(seq, &prepared, assist)?;
             c.add_stage(Stage::Match, m.outcome.match_ms);
