@@ -525,7 +525,9 @@ impl Assistant {
         let (lo, hi, range, region) = (&self.lo, &self.hi, self.range, self.region);
         // Per row holding holes: the bounds' extremes down each column of the FILL rows
         // around it (element-wise over the holes' columns, so that it vectorises), then per
-        // hole across the FILL columns around it. (The bounds are never NaN.)
+        // hole across the FILL columns around it. (The bounds are never NaN. `min` and `max`,
+        // not a comparison that keeps the old value: LLVM makes a store of `v < m ? v : m` to
+        // m's place an AVX masked store, which is slow on AMD's cores.)
         let (mut col_lo, mut col_hi) = (Vec::new(), Vec::new());
         let mut start = 0;
         while start < holes.len() {
@@ -552,10 +554,10 @@ impl Assistant {
                 for yy in rows.clone() {
                     let row = yy * w;
                     for (m, &v) in col_lo[ca..cb].iter_mut().zip(&lo[row + seg_start..row + seg_end]) {
-                        *m = if v < *m { v } else { *m };
+                        *m = m.min(v);
                     }
                     for (m, &v) in col_hi[ca..cb].iter_mut().zip(&hi[row + seg_start..row + seg_end]) {
-                        *m = if v > *m { v } else { *m };
+                        *m = m.max(v);
                     }
                 }
             }
