@@ -112,8 +112,8 @@ pub enum AssistModeError {
 #[derive(Debug, Clone, PartialEq)]
 pub struct AssistParams {
     pub mode: AssistMode,
-    /// One interval per pixel, or per matcher tile (the hull of its pixels'; tiles.rs), or
-    /// whichever measured faster for the mode (`Auto`).
+    /// One interval per pixel, or per plan tile of 16 × 8 pixels (the hull of its pixels';
+    /// tiles.rs), or whichever measured faster for the mode (`Auto`).
     pub granularity: Granularity,
     /// Smallest half-width of an interval, pixels (the sub-pixel fit needs a neighbour on
     /// each side of the best disparity).

@@ -174,8 +174,8 @@ impl Assistant {
 #[target_feature(enable = "avx2")]
 unsafe fn tiles_row_avx2(p: &Projection, base: [f32; 3], u_col: &[f32], d_row: &[f32], cols: u32, tiles: &mut TileBounds) {
     use std::arch::x86_64::*;
-    const TW: u32 = crate::stereo::BAND_TILE.0 as u32;
-    const TH: u32 = crate::stereo::BAND_TILE.1 as u32;
+    const TW: u32 = tiles::TW as u32;
+    const TH: u32 = tiles::TH as u32;
     const _: () = assert!(TW.is_power_of_two() && TH.is_power_of_two(), "tile sides are shifts here");
     let n = u_col.len().min(d_row.len());
     let s = |v: f32| _mm256_set1_ps(v);
@@ -351,7 +351,7 @@ mod tests {
                 c: [1e-6 * unit(), -2e-7 * unit(), 1e-6 * unit(), 1e-5 * unit(), -1e-5 * unit(), 0.5 * unit()],
                 bounds: [region.0 as f32, (region.1 - 1) as f32, region.2 as f32, (region.3 - 1) as f32],
             };
-            let cols = w.div_ceil(crate::stereo::BAND_TILE.0) as u32;
+            let cols = w.div_ceil(tiles::TW) as u32;
             let u_col: Vec<f32> = (region.0..region.1).map(|x| (x as f32 - cx) * (1.0 / fx)).collect();
             let (mut want, mut got) = (TileBounds::default(), TileBounds::default());
             want.reset(w, h);

@@ -195,7 +195,7 @@ fn predicted_intervals_hold_the_true_disparity_and_are_narrow() {
     let truth = scene.disparity(4.0);
     let mask = Scene::mask(&truth);
     // ±(3 × 0.5 px) around the prediction, rounded outwards, hull of 2 × 2 splats; per tile,
-    // the hull over 32 × 16 pixels of the sphere's slanting surface.
+    // the hull over 16 × 8 pixels of the sphere's slanting surface.
     for (granularity, narrow) in [(Granularity::Pixel, 7.0), (Granularity::Tile, 12.0)] {
         let mut p = assistant_at(&scene, AssistMode::Predicted, granularity, 4);
         let plan = p.plan(4, Some(&mask), &scene.poses(0..4));
@@ -483,7 +483,7 @@ fn holes_take_the_hull_of_the_bounds_around_them() {
 /// (`predicted`, whose splats go straight into the tiles, foreground or not).
 #[test]
 fn tile_intervals_are_the_hull_of_the_pixel_rule_over_each_tile() {
-    use crate::stereo::BAND_TILE;
+    use super::tiles::{TH, TW};
     let scene = Scene::new();
     let truth = scene.disparity(4.0);
     let mask = Scene::mask(&truth);
@@ -503,9 +503,9 @@ fn tile_intervals_are_the_hull_of_the_pixel_rule_over_each_tile() {
         let (px, _) = with(Granularity::Pixel);
         let (_, tiled) = with(Granularity::Tile);
         let (mut checked, mut fg_px) = (0, 0);
-        for ty in 0..h.div_ceil(BAND_TILE.1) {
-            for tx in 0..w.div_ceil(BAND_TILE.0) {
-                let pixels: Vec<(usize, usize)> = (ty * BAND_TILE.1..((ty + 1) * BAND_TILE.1).min(h)).flat_map(|y| (tx * BAND_TILE.0..((tx + 1) * BAND_TILE.0).min(w)).map(move |x| (x, y))).collect();
+        for ty in 0..h.div_ceil(TH) {
+            for tx in 0..w.div_ceil(TW) {
+                let pixels: Vec<(usize, usize)> = (ty * TH..((ty + 1) * TH).min(h)).flat_map(|y| (tx * TW..((tx + 1) * TW).min(w)).map(move |x| (x, y))).collect();
                 let hull = |only_fg: bool| {
                     let inside = |&&(x, y): &&(usize, usize)| (!only_fg || mask[y * w + x] != 0) && px.region.xs().contains(&x) && px.region.ys().contains(&y);
                     let a = pixels.iter().filter(inside).map(|&(x, y)| px.lo[y * w + x]).fold(f32::INFINITY, f32::min);

@@ -54,7 +54,7 @@ pub struct Table1Args {
     #[arg(long)]
     pub no_predicted: bool,
     /// How finely the assisted rows set their search ranges: `pixel` (each pixel its own
-    /// interval), `tile` (one per matcher tile) or `auto` (tiles for predicted, pixels for
+    /// interval), `tile` (one per 16 × 8 tile) or `auto` (tiles for predicted, pixels for
     /// paper); a list (e.g. `pixel,tile`) runs the assisted rows once per entry, side by side.
     #[arg(long, default_value = "auto", value_delimiter = ',')]
     pub assist_granularity: Vec<String>,

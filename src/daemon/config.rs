@@ -292,7 +292,7 @@ pub struct MatchingSection {
     /// The paper's weighting factor w (mode "paper").
     pub assist_w: f64,
     /// "auto" (tiles for "predicted", pixels for "paper"), "pixel" (each pixel its own
-    /// search interval) or "tile" (one per matcher tile).
+    /// search interval) or "tile" (one per 16 × 8 tile).
     pub assist_granularity: String,
     /// Segment the blue screen.
     pub segment: bool,
