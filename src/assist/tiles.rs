@@ -159,12 +159,18 @@ impl TileBounds {
 
     /// Counts the foreground pixels of each tile over `region`.
     pub(super) fn count(&mut self, masks: &MaskRows, region: &Region) {
-        for y in region.ys() {
-            let m_row = masks.row(y);
-            let trow = y / TH * self.cols;
+        // Per tile row: each column's foreground count over its rows (element-wise over the
+        // row, so that it vectorises), then the tiles' sums of their columns.
+        let mut cols = vec![0u16; region.x1 - region.x0];
+        for (ty, ys) in tile_rows(region) {
+            cols.fill(0);
+            for y in ys {
+                for (c, &m) in cols.iter_mut().zip(masks.row(y)) {
+                    *c += (m != 0) as u16;
+                }
+            }
             for (xs, t) in segments(region) {
-                let m = &m_row[xs.start - region.x0..xs.end - region.x0];
-                self.fg[trow + t] += m.iter().fold(0u32, |c, &m| c + (m != 0) as u32);
+                self.fg[ty * self.cols + t] += cols[xs.start - region.x0..xs.end - region.x0].iter().map(|&c| c as u32).sum::<u32>();
             }
         }
     }
@@ -210,15 +216,21 @@ impl TileBounds {
                 bands[t] = (a as i16, b as i16);
             }
         }
-        for y in region.ys() {
-            let m_row = masks.row(y);
-            let trow = y / TH * self.cols;
-            let (out_lo, out_hi) = iv.row_mut(y);
+        // Per tile row: its tiles' bands spread over the region's columns once, then each of
+        // its pixel rows written in one pass (branch-free and element-wise, so that it
+        // vectorises).
+        let n = region.x1 - region.x0;
+        let (mut row_a, mut row_b) = (vec![1i16; n], vec![0i16; n]);
+        for (ty, ys) in tile_rows(region) {
             for (xs, t) in segments(region) {
-                let (a, b) = bands[trow + t];
-                let m = &m_row[xs.start - region.x0..xs.end - region.x0];
-                // Branch-free, so that it vectorises.
-                for ((&m, l), u) in m.iter().zip(&mut out_lo[xs.clone()]).zip(&mut out_hi[xs.clone()]) {
+                let (a, b) = bands[ty * self.cols + t];
+                row_a[xs.start - region.x0..xs.end - region.x0].fill(a);
+                row_b[xs.start - region.x0..xs.end - region.x0].fill(b);
+            }
+            for y in ys {
+                let (out_lo, out_hi) = iv.row_mut(y);
+                let pixels = masks.row(y).iter().zip(&mut out_lo[region.xs()]).zip(&mut out_hi[region.xs()]);
+                for (((&m, l), u), (&a, &b)) in pixels.zip(row_a.iter().zip(&row_b)) {
                     (*l, *u) = if m != 0 { (a, b) } else { (1, 0) };
                 }
             }
@@ -227,6 +239,11 @@ impl TileBounds {
 }
 
 /// The columns of `region` cut at tile boundaries, with each piece's tile column.
+/// The region's tile rows: each one's index and its pixel rows inside the region.
+fn tile_rows(region: &Region) -> impl Iterator<Item = (usize, std::ops::Range<usize>)> + '_ {
+    (region.y0 / TH..region.y1.div_ceil(TH)).map(move |ty| (ty, (ty * TH).max(region.y0)..((ty + 1) * TH).min(region.y1)))
+}
+
 fn segments(region: &Region) -> impl Iterator<Item = (std::ops::Range<usize>, usize)> + '_ {
     (region.x0 / TW..region.x1.div_ceil(TW)).map(move |t| ((t * TW).max(region.x0)..((t + 1) * TW).min(region.x1), t))
 }
