@@ -238,12 +238,12 @@ impl TileBounds {
     }
 }
 
-/// The columns of `region` cut at tile boundaries, with each piece's tile column.
 /// The region's tile rows: each one's index and its pixel rows inside the region.
 fn tile_rows(region: &Region) -> impl Iterator<Item = (usize, std::ops::Range<usize>)> + '_ {
     (region.y0 / TH..region.y1.div_ceil(TH)).map(move |ty| (ty, (ty * TH).max(region.y0)..((ty + 1) * TH).min(region.y1)))
 }
 
+/// The columns of `region` cut at tile boundaries, with each piece's tile column.
 fn segments(region: &Region) -> impl Iterator<Item = (std::ops::Range<usize>, usize)> + '_ {
     (region.x0 / TW..region.x1.div_ceil(TW)).map(move |t| ((t * TW).max(region.x0)..((t + 1) * TW).min(region.x1), t))
 }
