@@ -500,6 +500,14 @@ impl Sgm {
                     }
                 }
                 self.h_cur.prepare(0, n, a, m);
+                #[cfg(target_arch = "x86_64")]
+                if AVX2 {
+                    // As in the runs (`simd::run`): the volume's lines of a pixel further on the
+                    // sweep asked for ahead of their use.
+                    let ahead = if up { i.saturating_sub(simd::AHEAD as usize) } else { (i + simd::AHEAD as usize).min(w * h - 1) };
+                    let o = self.off[ahead];
+                    simd::prefetch(&self.sum[o..], &self.cost[o..], m, up);
+                }
                 let c = &self.cost[self.off[i]..][..m];
                 let s = &mut self.sum[self.off[i]..][..m];
                 let [v0, v1, v2] = &mut self.vert_cur;
