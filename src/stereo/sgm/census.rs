@@ -17,6 +17,8 @@
 /// with the intensity term.
 pub(super) const CENSUS_W: usize = 7;
 pub(super) const CENSUS_H: usize = 5;
+/// Bits of a census word: the most a pair's census cost can be.
+pub(super) const MAX_BITS: usize = CENSUS_W * CENSUS_H - 1;
 
 /// The census comparisons of every pixel of `img` (`w × h`, row-major), row by row:
 /// `emit(y, planes)` receives row `y`'s five byte planes (`w` bytes each; comparison t at bit

@@ -200,17 +200,42 @@ struct Geo {
     pad_l: usize,
     /// Padded right row length.
     wr: usize,
+    /// Whether pass one stores each sum with its cost above it (`simd::FOLD_SHIFT`), so
+    /// that the costs need no volume of their own: `cost` then holds one row's costs, and
+    /// pass two reads them from the sums — 6 bytes of memory traffic a pair between the
+    /// passes instead of 8, which pays when other programs load the memory too
+    /// (docs/matcher.md). Four paths on AVX2 only, and only where the words hold both
+    /// ([`folds`]): the defaults do.
+    folded: bool,
+}
+
+/// Whether a pixel's sum of pass one's two paths and its cost fit one 16-bit word with `p`'s
+/// penalties and cost: a path's value lies in 0 … C + P2 (the jump term bounds it), so the
+/// sum is at most 2 · (C_max + P2), which must stay below 2⁹; the cost, at most C_max = 34
+/// census bits + the intensity term's cap, takes the 7 bits above.
+#[cfg(target_arch = "x86_64")]
+fn folds(p: &ValidMatchParams) -> bool {
+    let c_max = census::MAX_BITS as u32 + p.sgm_ad_cap as u32;
+    p.sgm_paths == 4 && c_max < 1 << (16 - simd::FOLD_SHIFT) && 2 * (c_max + p.p2 as u32) < 1 << simd::FOLD_SHIFT
 }
 
 /// The `N` paths of one pass at one pixel (two or four): writes each path's values and adds
-/// (or, on the first pass, writes) their sum; returns each path's minimum.
+/// (or, on the first pass, writes) their sum; returns each path's minimum. `folded` as
+/// [`Geo::folded`] (pass two does not read `c` then).
 #[inline(always)]
-fn step<const AVX2: bool, const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut [u16]; N], sum: &mut [u16], add: bool) -> [u16; N] {
+fn step<const AVX2: bool, const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut [u16]; N], sum: &mut [u16], add: bool, folded: bool) -> [u16; N] {
     #[cfg(target_arch = "x86_64")]
     if AVX2 {
         // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU.
-        return unsafe { simd::step(c, from, p1, out, sum, add) };
+        return unsafe {
+            if folded {
+                simd::step::<N, true>(c, from, p1, out, sum, add)
+            } else {
+                simd::step::<N, false>(c, from, p1, out, sum, add)
+            }
+        };
     }
+    debug_assert!(!folded, "the portable build keeps the cost volume");
     step_portable(c, from, p1, out, sum, add)
 }
 
@@ -277,7 +302,11 @@ impl Sgm {
         // Right pixels x − d for d in dmin … dmin + n − 1 and x in 0 … w − 1.
         let pad_l = (dmin + n as i32 - 1).max(0) as usize;
         let pad_r = (-dmin).max(0) as usize;
-        let g = Geo { w, h, n, dmin, pad_l, wr: pad_l + w + pad_r };
+        #[cfg(target_arch = "x86_64")]
+        let folded = AVX2 && folds(p);
+        #[cfg(not(target_arch = "x86_64"))]
+        let folded = false;
+        let g = Geo { w, h, n, dmin, pad_l, wr: pad_l + w + pad_r, folded };
         let t0 = std::time::Instant::now();
         // The census comparisons: the AVX2 copy where the CPU has it.
         let planes_of = |rows: &[u8], w: usize, planes: &mut [u8]| {
@@ -304,8 +333,10 @@ impl Sgm {
         let mut stats = MatchStats { prefilter_ns: t0.elapsed().as_nanos() as u64, ..MatchStats::default() };
         self.bands(p, g, intervals, keep.clone(), &mut stats);
         let total = self.off[w * h];
-        // Pass one writes every cost and sum before anything reads them: no clearing.
-        self.cost.resize(total, 0);
+        // Pass one writes every cost and sum before anything reads them: no clearing. Folded,
+        // the costs of the row being stepped only.
+        let costs = if folded { (0..h).map(|y| self.off[(y + 1) * w] - self.off[y * w]).max().unwrap_or(0) } else { total };
+        self.cost.resize(costs, 0);
         // (One more: the selection's gathers read each sum as the low half of 32 bits.)
         self.sum.resize(total + 1, 0);
         self.fresh.clear();
@@ -392,7 +423,7 @@ impl Sgm {
     /// four, then selecting each row).
     #[inline(always)]
     fn pass<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, left: &[u8], up: bool, keep: Range<usize>, out: &mut [f32], stats: &mut MatchStats) {
-        let Geo { w, h, n, .. } = g;
+        let Geo { w, h, n, folded, .. } = g;
         let (p1, p2) = (p.p1, p.p2);
         // Eight paths: all three from the previous row; four: only the one above (below).
         let eight = p.sgm_paths == 8;
@@ -409,6 +440,9 @@ impl Sgm {
         let vpopcnt = AVX2 && !up && simd::has_vpopcnt();
         for step_y in 0..h {
             let y = if up { h - 1 - step_y } else { step_y };
+            // Where the row's costs lie in `cost`: at their packed offsets, or (folded) from
+            // the start.
+            let cbase = if folded { self.off[y * w] } else { 0 };
             if !up {
                 let cl = &self.census_l[y * w..][..w];
                 let il = &left[y * w..][..w];
@@ -438,7 +472,7 @@ impl Sgm {
                     // Right pixel of disparity index k: x − dmin − k, at x − dmin − k + pad_l in
                     // the padded row.
                     let start = (x as i32 + g.pad_l as i32 - g.dmin - a as i32) as usize;
-                    let out = &mut self.cost[self.off[i]..][..len * m];
+                    let out = &mut self.cost[self.off[i] - cbase..][..len * m];
                     #[cfg(target_arch = "x86_64")]
                     if AVX2 {
                         let (cr_lo, cr_hi) = (&self.census_r_lo[y * g.wr..][..g.wr], &self.census_r_hi[y * g.wr..][..g.wr]);
@@ -483,7 +517,7 @@ impl Sgm {
                 let a = self.band_a[i] as usize;
                 #[cfg(target_arch = "x86_64")]
                 if AVX2 && !eight && h_live && has_prev_row && self.h_prev.band[0] == (a as u16, m as u16) {
-                    let len = self.run::<AVX2>(p, g, y, step_x, up);
+                    let len = self.run::<AVX2>(p, g, y, step_x, up, cbase);
                     if len > 0 {
                         step_x += len;
                         continue;
@@ -503,12 +537,13 @@ impl Sgm {
                 #[cfg(target_arch = "x86_64")]
                 if AVX2 {
                     // As in the runs (`simd::run`): the volume's lines of a pixel further on the
-                    // sweep asked for ahead of their use.
+                    // sweep asked for ahead of their use (folded, pass two's costs are in them).
                     let ahead = if up { i.saturating_sub(simd::AHEAD as usize) } else { (i + simd::AHEAD as usize).min(w * h - 1) };
                     let o = self.off[ahead];
-                    simd::prefetch(&self.sum[o..], &self.cost[o..], m, up);
+                    simd::prefetch(&self.sum[o..], &self.cost[o.min(self.cost.len())..], m, up && !folded);
                 }
-                let c = &self.cost[self.off[i]..][..m];
+                // (Folded, pass two reads the costs from the sums.)
+                let c = if folded && up { &[][..] } else { &self.cost[self.off[i] - cbase..][..m] };
                 let s = &mut self.sum[self.off[i]..][..m];
                 let [v0, v1, v2] = &mut self.vert_cur;
                 v1.prepare(x, n, a, m);
@@ -516,11 +551,11 @@ impl Sgm {
                     v0.prepare(x, n, a, m);
                     v2.prepare(x, n, a, m);
                     let outs = [v0.band_mut(x, n, a, m), v1.band_mut(x, n, a, m), v2.band_mut(x, n, a, m), self.h_cur.band_mut(0, n, a, m)];
-                    let [m0, m1, m2, mh] = step::<AVX2, 4>(c, [vf[0], vf[1], vf[2], hf], p1, outs, s, up);
+                    let [m0, m1, m2, mh] = step::<AVX2, 4>(c, [vf[0], vf[1], vf[2], hf], p1, outs, s, up, folded);
                     (v0.min[x], v1.min[x], v2.min[x], self.h_cur.min[0]) = (m0, m1, m2, mh);
                 } else {
                     let outs = [v1.band_mut(x, n, a, m), self.h_cur.band_mut(0, n, a, m)];
-                    let [m1, mh] = step::<AVX2, 2>(c, [vf[1], hf], p1, outs, s, up);
+                    let [m1, mh] = step::<AVX2, 2>(c, [vf[1], hf], p1, outs, s, up, folded);
                     (v1.min[x], self.h_cur.min[0]) = (m1, mh);
                 }
                 std::mem::swap(&mut self.h_prev, &mut self.h_cur);
@@ -541,8 +576,8 @@ impl Sgm {
     /// length (0: none, the pixel takes the general step).
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    fn run<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, y: usize, step_x: usize, up: bool) -> usize {
-        let Geo { w, n, .. } = g;
+    fn run<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, y: usize, step_x: usize, up: bool, cbase: usize) -> usize {
+        let Geo { w, n, folded, .. } = g;
         let x0 = if up { w - 1 - step_x } else { step_x };
         let band = self.h_prev.band[0];
         let (a, m) = (band.0 as usize, band.1 as usize);
@@ -595,9 +630,11 @@ impl Sgm {
         let i0 = y * w + x0;
         let off = self.off[i0];
         // The run's packed costs and sums, and its slots, from its first to its last pixel.
+        // (Folded, pass two reads the costs from the sums.)
         let span = (len - 1) * m;
         let (first, last) = if up { (off - span, off + m) } else { (off, off + span + m) };
-        let (costs, sums) = (&self.cost[first..last], &mut self.sum[first..last]);
+        let costs = if folded && up { &[][..] } else { &self.cost[first - cbase..last - cbase] };
+        let sums = &mut self.sum[first..last];
         let stride = n + 2;
         let slots = if up { (x0 + 1 - len) * stride..(x0 + 1) * stride } else { x0 * stride..(x0 + len) * stride };
         let (vp, vc) = (&self.vert_prev[1], &mut self.vert_cur[1]);
@@ -617,20 +654,30 @@ impl Sgm {
         };
         let h_min = self.h_prev.min[0];
         let h = self.h_prev.band_mut(0, n, a, m);
-        let (c, s) = (costs[k0..].as_ptr(), sums[k0..].as_mut_ptr());
+        let (c, s) = (costs.get(k0..).map_or(std::ptr::null(), <[u8]>::as_ptr), sums[k0..].as_mut_ptr());
         // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the slices above
-        // hold every pixel of the run (costs and sums `len · m`, slots `len · stride` with the
-        // band inside each, minima `len`), walked along `dir` from the pointers.
+        // hold every pixel of the run (sums `len · m`, and so do the costs but where pass two
+        // reads them from the folded sums, slots `len · stride` with the band inside each,
+        // minima `len`), walked along `dir` from the pointers.
         let last_min = unsafe {
-            match blocks {
-                1 => simd::run::<1>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                2 => simd::run::<2>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                3 => simd::run::<3>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                4 => simd::run::<4>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                5 => simd::run::<5>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                6 => simd::run::<6>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                7 => simd::run::<7>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
-                _ => simd::run::<8>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+            macro_rules! runs {
+                ($folded:literal) => {
+                    match blocks {
+                        1 => simd::run::<1, $folded>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                        2 => simd::run::<2, $folded>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                        3 => simd::run::<3, $folded>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                        4 => simd::run::<4, $folded>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                        5 => simd::run::<5, $folded>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                        6 => simd::run::<6, $folded>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                        7 => simd::run::<7, $folded>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                        _ => simd::run::<8, $folded>(c, s, dir, len, &rows, h, h_min, p.p1, p.p2, up),
+                    }
+                };
+            }
+            if folded {
+                runs!(true)
+            } else {
+                runs!(false)
             }
         };
         self.h_prev.min[0] = last_min;

@@ -10,16 +10,20 @@ use std::arch::x86_64::*;
 use super::census::{CENSUS_H, CENSUS_W};
 use super::{From, LANES};
 
-/// [`super::step`] on AVX2.
+/// [`super::step`] on AVX2, over the band of `sum.len()` disparities. With `FOLDED`
+/// ([`super::Geo::folded`]) the first pass stores each sum with its cost above it
+/// ([`FOLD_SHIFT`]), and the second pass reads the costs from there (`c` unused) and stores
+/// the plain sums.
 ///
 /// # Safety
-/// The CPU supports AVX2. Lengths are checked: `c.len()` a multiple of [`LANES`], every
-/// `from[j].around` at least `c.len() + 2` long, every `out[j]` and `sum` at least `c.len()`.
+/// The CPU supports AVX2. Lengths are checked: `sum.len()` a multiple of [`LANES`], every
+/// `from[j].around` at least `sum.len() + 2` long, every `out[j]` and (unless it is read
+/// from the sums) `c` at least `sum.len()`.
 #[target_feature(enable = "avx2")]
 #[inline]
-pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut [u16]; N], sum: &mut [u16], add: bool) -> [u16; N] {
-    let m = c.len();
-    assert!(m % LANES == 0 && sum.len() >= m);
+pub(super) unsafe fn step<const N: usize, const FOLDED: bool>(c: &[u8], from: [From; N], p1: u16, out: [&mut [u16]; N], sum: &mut [u16], add: bool) -> [u16; N] {
+    let m = sum.len();
+    assert!(m % LANES == 0 && (FOLDED && add || c.len() >= m));
     for j in 0..N {
         assert!(from[j].around.len() >= m + 2 && out[j].len() >= m);
     }
@@ -42,9 +46,13 @@ pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, ou
     while b < m {
         // SAFETY: b + LANES ≤ m and the lengths asserted above.
         unsafe {
-            let cc = _mm256_cvtepu8_epi16(_mm_loadu_si128(c.as_ptr().add(b) as *const __m128i));
             let sp = sum.as_mut_ptr().add(b) as *mut __m256i;
-            let mut acc = if add { _mm256_loadu_si256(sp) } else { _mm256_setzero_si256() };
+            let (cc, mut acc) = if FOLDED && add {
+                unfold(_mm256_loadu_si256(sp))
+            } else {
+                let cc = _mm256_cvtepu8_epi16(_mm_loadu_si128(c.as_ptr().add(b) as *const __m128i));
+                (cc, if add { _mm256_loadu_si256(sp) } else { _mm256_setzero_si256() })
+            };
             let hn = if b + LANES < m { _mm256_loadu_si256(h.as_ptr().add(1 + b + LANES) as *const __m256i) } else { _mm256_set1_epi16(h[m + 1] as i16) };
             for j in 0..N {
                 let (l, mid, r) = if j == N - 1 {
@@ -62,12 +70,30 @@ pub(super) unsafe fn step<const N: usize>(c: &[u8], from: [From; N], p1: u16, ou
                 mn[j] = _mm256_min_epu16(mn[j], v);
                 acc = _mm256_add_epi16(acc, v);
             }
-            _mm256_storeu_si256(sp, acc);
+            _mm256_storeu_si256(sp, if FOLDED && !add { fold(acc, cc) } else { acc });
             (hp, hm) = (hm, hn);
         }
         b += LANES;
     }
     mn.map(|v| hmin(v))
+}
+
+/// Where a folded word keeps its cost: the first pass's sum of two paths below, at most
+/// 2 · (C_max + P2) < 2⁹ ([`super::Geo::folded`]), the cost (< 2⁷) above.
+pub(super) const FOLD_SHIFT: i32 = 9;
+
+/// The first pass's word: its two paths' sum `s` with the cost `cc` above it.
+#[target_feature(enable = "avx2")]
+#[inline]
+fn fold(s: __m256i, cc: __m256i) -> __m256i {
+    _mm256_or_si256(s, _mm256_slli_epi16::<FOLD_SHIFT>(cc))
+}
+
+/// A folded word's cost and sum.
+#[target_feature(enable = "avx2")]
+#[inline]
+fn unfold(word: __m256i) -> (__m256i, __m256i) {
+    (_mm256_srli_epi16::<FOLD_SHIFT>(word), _mm256_and_si256(word, _mm256_set1_epi16((1 << FOLD_SHIFT) - 1)))
 }
 
 /// A path's term from its previous pixel, per disparity lane: the least of staying
@@ -479,7 +505,7 @@ pub(super) struct RunRows {
 /// `k · dir · stride` from the first. Returns the row path's values (in `h`) and minimum at
 /// the last pixel. Beside the band the row path's values are `UNREACHED` (equal bands), and
 /// a previous-row slot holds `UNREACHED` outside its own band: both read as [`step`] reads
-/// them.
+/// them. `FOLDED` as in [`step`] (the second pass does not read `c`).
 ///
 /// # Safety
 /// The CPU supports AVX2; every pointer addresses what is described above for all `len`
@@ -487,7 +513,7 @@ pub(super) struct RunRows {
 #[target_feature(enable = "avx2")]
 #[inline]
 #[allow(clippy::too_many_arguments)]
-pub(super) unsafe fn run<const B: usize>(c: *const u8, sum: *mut u16, dir: isize, len: usize, v: &RunRows, h: &mut [u16], h_min: u16, p1: u16, p2: u16, add: bool) -> u16 {
+pub(super) unsafe fn run<const B: usize, const FOLDED: bool>(c: *const u8, sum: *mut u16, dir: isize, len: usize, v: &RunRows, h: &mut [u16], h_min: u16, p1: u16, p2: u16, add: bool) -> u16 {
     assert!(h.len() == B * LANES);
     let m = (B * LANES) as isize;
     let p1v = _mm256_set1_epi16(p1 as i16);
@@ -503,18 +529,18 @@ pub(super) unsafe fn run<const B: usize>(c: *const u8, sum: *mut u16, dir: isize
     for k in 0..len as isize {
         // SAFETY: the caller's contract, for pixel k < len.
         unsafe {
-            let (cp, sp) = (c.offset(k * dir * m), sum.offset(k * dir * m));
-            // At full range both passes stream through volumes larger than the caches (three
-            // bytes a pair), pass two backwards; left to the hardware, the loads wait for
-            // memory. The sums (and in pass two the costs) of the pixel `AHEAD` steps on are
-            // asked for now. (Past the run's end too: a prefetch is only a hint.)
+            let sp = sum.offset(k * dir * m);
+            // At full range both passes stream through volumes larger than the caches, pass
+            // two backwards; left to the hardware, the loads wait for memory. The sums (and in
+            // pass two the costs, unless they are folded into the sums) of the pixel `AHEAD`
+            // steps on are asked for now. (Past the run's end too: a prefetch is only a hint.)
             let ahead = AHEAD * dir * m;
             let sn = sp.wrapping_offset(ahead) as *const i8;
             for line in (0..B * LANES * 2).step_by(64) {
                 _mm_prefetch::<_MM_HINT_T0>(sn.wrapping_add(line));
             }
-            if add {
-                let cn = cp.wrapping_offset(ahead) as *const i8;
+            if add && !FOLDED {
+                let cn = c.wrapping_offset(k * dir * m + ahead) as *const i8;
                 for line in (0..B * LANES).step_by(64) {
                     _mm_prefetch::<_MM_HINT_T0>(cn.wrapping_add(line));
                 }
@@ -527,7 +553,13 @@ pub(super) unsafe fn run<const B: usize>(c: *const u8, sum: *mut u16, dir: isize
             let (mut vmn, mut hmn) = (unreached, unreached);
             let mut nh = [_mm256_setzero_si256(); B];
             for b in 0..B {
-                let cc = _mm256_cvtepu8_epi16(_mm_loadu_si128(cp.add(b * LANES) as *const __m128i));
+                let (cc, prior) = if FOLDED && add {
+                    unfold(_mm256_loadu_si256(sp.add(b * LANES) as *const __m256i))
+                } else {
+                    let cp = c.offset(k * dir * m + (b * LANES) as isize);
+                    let cc = _mm256_cvtepu8_epi16(_mm_loadu_si128(cp as *const __m128i));
+                    (cc, if add { _mm256_loadu_si256(sp.add(b * LANES) as *const __m256i) } else { _mm256_setzero_si256() })
+                };
                 let q = vp.add(b * LANES);
                 let (l, mid, r) = (_mm256_loadu_si256(q as *const __m256i), _mm256_loadu_si256(q.add(1) as *const __m256i), _mm256_loadu_si256(q.add(2) as *const __m256i));
                 let best = best_from(mid, l, r, p1v, vjump);
@@ -543,9 +575,8 @@ pub(super) unsafe fn run<const B: usize>(c: *const u8, sum: *mut u16, dir: isize
                 let hh = _mm256_sub_epi16(_mm256_add_epi16(cc, best), hbase);
                 nh[b] = hh;
                 hmn = _mm256_min_epu16(hmn, hh);
-                let s = _mm256_add_epi16(vv, hh);
-                let s = if add { _mm256_add_epi16(s, _mm256_loadu_si256(sp.add(b * LANES) as *const __m256i)) } else { s };
-                _mm256_storeu_si256(sp.add(b * LANES) as *mut __m256i, s);
+                let s = _mm256_add_epi16(_mm256_add_epi16(vv, hh), prior);
+                _mm256_storeu_si256(sp.add(b * LANES) as *mut __m256i, if FOLDED && !add { fold(s, cc) } else { s });
             }
             *v.cur_min.offset(k * dir) = hmin(vmn);
             hv = nh;

@@ -373,3 +373,27 @@ fn the_vector_census_planes_are_the_portable_ones() {
         }
     }
 }
+
+/// Pass one folds each cost into the word above its two paths' sum where the penalties and
+/// the cost's cap let them fit (`folds`): at the largest P2 that folds and the first that
+/// does not, on a right image unrelated to the left (high costs, so path values near
+/// C + P2), the AVX2 build gives the portable map, which keeps the cost volume.
+#[test]
+#[cfg(target_arch = "x86_64")]
+fn folded_sums_hold_the_largest_path_values() {
+    let (w, h) = (90, 40);
+    let (l, _) = pair(w, h, |_, _| 0.0);
+    let r: Vec<u8> = l.iter().rev().copied().collect();
+    // 2 · (C_max + P2) < 2⁹ with C_max = 34 census bits + the default cap of 25.
+    let largest = 255 - (census::MAX_BITS as u16 + 25);
+    for (p2, folded) in [(largest, true), (largest + 1, false)] {
+        for iv in [DisparityIntervals::full(w, h, 0, 63), wide_patches(w, h)] {
+            let p = MatchParams { p2, ..(*params(64)).clone() }.validate().unwrap();
+            assert_eq!(folds(&p), folded, "P2 {p2}");
+            let (fast, _) = run(&p, &l, &r, w, h, &iv);
+            let mut portable = DisparityMap::new(w, h);
+            Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), &iv, 0..h, &mut portable);
+            assert!(fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits()), "P2 {p2}");
+        }
+    }
+}
