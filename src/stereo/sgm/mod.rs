@@ -202,9 +202,9 @@ struct Geo {
     wr: usize,
     /// Whether pass one stores each sum with its cost above it (`simd::FOLD_SHIFT`), so
     /// that the costs need no volume of their own: `cost` then holds one row's costs, and
-    /// pass two reads them from the sums — 6 bytes of memory traffic a pair between the
-    /// passes instead of 8, which pays when other programs load the memory too
-    /// (docs/matcher.md). Four paths on AVX2 only, and only where the words hold both
+    /// pass two reads them from the sums: the volume between the passes a third smaller, and
+    /// 6 bytes of memory traffic a pair instead of 8 (the clock shows little of it:
+    /// docs/matcher.md). Four paths on AVX2 only, and only where the words hold both
     /// ([`folds`]): the defaults do.
     folded: bool,
 }
