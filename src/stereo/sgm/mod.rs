@@ -540,7 +540,10 @@ impl Sgm {
                     // sweep asked for ahead of their use (folded, pass two's costs are in them).
                     let ahead = if up { i.saturating_sub(simd::AHEAD as usize) } else { (i + simd::AHEAD as usize).min(w * h - 1) };
                     let o = self.off[ahead];
-                    simd::prefetch(&self.sum[o..], &self.cost[o.min(self.cost.len())..], m, up && !folded);
+                    simd::prefetch(self.sum[o..].as_ptr(), 2 * m);
+                    if up && !folded {
+                        simd::prefetch(self.cost[o..].as_ptr(), m);
+                    }
                 }
                 // (Folded, pass two reads the costs from the sums.)
                 let c = if folded && up { &[][..] } else { &self.cost[self.off[i] - cbase..][..m] };

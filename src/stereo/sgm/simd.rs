@@ -467,20 +467,14 @@ unsafe fn costs_impl<const VPOPCNT: bool>(run: super::census::Run, start: usize,
 /// no faster on a 450 × 384 pair at 128 disparities).
 pub(super) const AHEAD: isize = 8;
 
-/// Asks for the lines of `m` sums from `sum` (and with `costs`, of `m` costs from `cost`)
-/// ahead of their use; the slices may be shorter (a prefetch is only a hint).
+/// Asks for the 64-byte lines of `bytes` bytes from `at` ahead of their use. Any address
+/// will do: a prefetch is only a hint, nothing is read.
 #[inline(always)]
-pub(super) fn prefetch(sum: &[u16], cost: &[u8], m: usize, costs: bool) {
-    let (s, c) = (sum.as_ptr() as *const i8, cost.as_ptr() as *const i8);
-    for line in (0..m * 2).step_by(64) {
+pub(super) fn prefetch<T>(at: *const T, bytes: usize) {
+    let at = at as *const i8;
+    for line in (0..bytes).step_by(64) {
         // SAFETY: a prefetch of any address is only a hint; nothing is read.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(s.wrapping_add(line)) };
-    }
-    if costs {
-        for line in (0..m).step_by(64) {
-            // SAFETY: as above.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(c.wrapping_add(line)) };
-        }
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(at.wrapping_add(line)) };
     }
 }
 
@@ -535,15 +529,9 @@ pub(super) unsafe fn run<const B: usize, const FOLDED: bool>(c: *const u8, sum: 
             // pass two the costs, unless they are folded into the sums) of the pixel `AHEAD`
             // steps on are asked for now. (Past the run's end too: a prefetch is only a hint.)
             let ahead = AHEAD * dir * m;
-            let sn = sp.wrapping_offset(ahead) as *const i8;
-            for line in (0..B * LANES * 2).step_by(64) {
-                _mm_prefetch::<_MM_HINT_T0>(sn.wrapping_add(line));
-            }
+            prefetch(sp.wrapping_offset(ahead), B * LANES * 2);
             if add && !FOLDED {
-                let cn = c.wrapping_offset(k * dir * m + ahead) as *const i8;
-                for line in (0..B * LANES).step_by(64) {
-                    _mm_prefetch::<_MM_HINT_T0>(cn.wrapping_add(line));
-                }
+                prefetch(c.wrapping_offset(k * dir * m + ahead), B * LANES);
             }
             let slot = k * dir * v.stride as isize;
             let (vp, vc) = (v.prev.offset(slot), v.cur.offset(slot));
