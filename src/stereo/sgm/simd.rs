@@ -563,7 +563,9 @@ pub(super) unsafe fn run<const B: usize, const FOLDED: bool>(c: *const u8, sum: 
                 let hh = _mm256_sub_epi16(_mm256_add_epi16(cc, best), hbase);
                 nh[b] = hh;
                 hmn = _mm256_min_epu16(hmn, hh);
-                let s = _mm256_add_epi16(_mm256_add_epi16(vv, hh), prior);
+                let s = _mm256_add_epi16(vv, hh);
+                // (Pass one has no earlier sum: no add of a zero.)
+                let s = if add { _mm256_add_epi16(s, prior) } else { s };
                 _mm256_storeu_si256(sp.add(b * LANES) as *mut __m256i, if FOLDED && !add { fold(s, cc) } else { s });
             }
             *v.cur_min.offset(k * dir) = hmin(vmn);
