@@ -93,7 +93,9 @@ pub struct MatchArgs {
     /// SGM: penalty for a larger disparity jump between neighbours.
     #[arg(long, default_value_t = MatchParams::default().p2)]
     pub p2: u16,
-    /// SGM: aggregation paths, 4 (rows and columns) or 8 (and the diagonals).
+    /// SGM: aggregation paths, 4 (rows and columns), 8 (and the diagonals), or 5 (the row both
+    /// ways and the three from above, in one pass down the image: memory of one row instead of
+    /// a volume of the image times the range, for large images; less accurate).
     #[arg(long, default_value_t = MatchParams::default().sgm_paths)]
     pub sgm_paths: u8,
     /// SGM: cap, in grey levels, of the per-pixel intensity term |left − right| added to the

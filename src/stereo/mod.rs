@@ -1,6 +1,7 @@
 //! The stereo core: rectification, correlation matching and triangulation. Pure
 //! computation on in-memory images — this module does no IO.
 
+mod buffer;
 pub mod disparity;
 mod kernels;
 pub mod matcher;

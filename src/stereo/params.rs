@@ -14,7 +14,9 @@ pub struct MatchParams {
     pub p1: u16,
     /// SGM: penalty for a larger disparity jump between neighbours (> `p1`).
     pub p2: u16,
-    /// SGM: aggregation paths, 4 (horizontal and vertical) or 8 (and the diagonals).
+    /// SGM: aggregation paths, 4 (horizontal and vertical), 8 (and the diagonals), or 5 (from
+    /// the left, the right and the three above, in one pass: memory of one row instead of a
+    /// volume, less accurate).
     pub sgm_paths: u8,
     /// SGM: the per-pixel intensity term added to the census cost, |left − right| in grey
     /// levels (the right image first matched to the left's mean and spread), capped at this
@@ -229,8 +231,8 @@ impl MatchParams {
         if self.sgm_ad_cap > 100 {
             return err("sgm_ad_cap", self.sgm_ad_cap.to_string(), "must be within 0 (census alone) … 100 grey levels");
         }
-        if self.sgm_paths != 4 && self.sgm_paths != 8 {
-            return err("sgm_paths", self.sgm_paths.to_string(), "must be 4 or 8");
+        if ![4, 5, 8].contains(&self.sgm_paths) {
+            return err("sgm_paths", self.sgm_paths.to_string(), "must be 4, 5 or 8");
         }
         if self.threads > 1024 {
             return err("threads", self.threads.to_string(), "must be within 0 (all cores)…1024");

@@ -47,6 +47,7 @@ use super::params::ValidMatchParams;
 mod census;
 pub(super) use census::level_map;
 mod select;
+mod single;
 #[cfg(target_arch = "x86_64")]
 mod simd;
 #[cfg(test)]
@@ -219,6 +220,15 @@ fn folds(p: &ValidMatchParams) -> bool {
     p.sgm_paths == 4 && c_max < 1 << (16 - simd::FOLD_SHIFT) && 2 * (c_max + p.p2 as u32) < 1 << simd::FOLD_SHIFT
 }
 
+/// Whether the costs count bits with `vpopcntd` (AVX-512, [`simd::has_vpopcnt`]): asked once
+/// a pass, not once a run of pixels.
+fn has_vpopcnt() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return simd::has_vpopcnt();
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
 /// The `N` paths of one pass at one pixel (two or four): writes each path's values and adds
 /// (or, on the first pass, writes) their sum; returns each path's minimum. `folded` as
 /// [`Geo::folded`] (pass two does not read `c` then).
@@ -331,14 +341,15 @@ impl Sgm {
         }
         census::pad_rows(right.data, w, h, (pad_l, pad_r), levels, &mut self.levels_r);
         let mut stats = MatchStats { prefilter_ns: t0.elapsed().as_nanos() as u64, ..MatchStats::default() };
-        self.bands(p, g, intervals, keep.clone(), &mut stats);
+        let single = p.sgm_paths == 5;
+        let row_max = self.bands(p, g, intervals, keep.clone(), single, &mut stats);
         let total = self.off[w * h];
         // Pass one writes every cost and sum before anything reads them: no clearing. Folded,
-        // the costs of the row being stepped only.
-        let costs = if folded { (0..h).map(|y| self.off[(y + 1) * w] - self.off[y * w]).max().unwrap_or(0) } else { total };
-        self.cost.resize(costs, 0);
+        // the costs of the row being stepped only; in one pass, the costs and sums of one row.
+        let (costs, sums) = if single { (row_max, row_max) } else { (if folded { row_max } else { total }, total) };
+        super::buffer::resize_for_overwrite(&mut self.cost, costs);
         // (One more: the selection's gathers read each sum as the low half of 32 bits.)
-        self.sum.resize(total + 1, 0);
+        super::buffer::resize_for_overwrite(&mut self.sum, sums + 1);
         self.fresh.clear();
         self.fresh.resize(n + 2, UNREACHED);
         self.right_best.resize(w, 0);
@@ -352,15 +363,20 @@ impl Sgm {
         // Each kept row is written whole by its selection; the other rows stay unmatched.
         vals[..keep.start * w].fill(f32::NAN);
         vals[keep.end * w..].fill(f32::NAN);
-        self.pass::<AVX2>(p, g, left.data, false, keep.clone(), vals, &mut stats);
-        self.pass::<AVX2>(p, g, left.data, true, keep, vals, &mut stats);
+        if single {
+            self.single_pass::<AVX2>(p, g, left.data, keep, vals, &mut stats);
+        } else {
+            self.pass::<AVX2>(p, g, left.data, false, keep.clone(), vals, &mut stats);
+            self.pass::<AVX2>(p, g, left.data, true, keep, vals, &mut stats);
+        }
         stats
     }
 
     /// Each pixel's interval clipped to the range and to right pixels inside the image, the
-    /// band of whole blocks around it, and the packed offsets.
+    /// band of whole blocks around it, and the packed offsets: over the whole image, or
+    /// (`per_row`) from each row's start. Returns the most values a row packs.
     #[inline(always)]
-    fn bands(&mut self, p: &ValidMatchParams, g: Geo, iv: &DisparityIntervals, keep: Range<usize>, stats: &mut MatchStats) {
+    fn bands(&mut self, p: &ValidMatchParams, g: Geo, iv: &DisparityIntervals, keep: Range<usize>, per_row: bool, stats: &mut MatchStats) -> usize {
         let Geo { w, h, dmin, .. } = g;
         let dmax = p.max_disparity();
         for v in [&mut self.band_a, &mut self.band_m, &mut self.lo, &mut self.hi] {
@@ -368,8 +384,11 @@ impl Sgm {
         }
         self.off.resize(w * h + 1, 0);
         self.span.resize(h, 0..0);
-        let mut total = 0usize;
+        let (mut total, mut row_max) = (0usize, 0usize);
         for y in 0..h {
+            if per_row {
+                total = 0;
+            }
             let row = y * w..(y + 1) * w;
             let (ilo, ihi) = (&iv.lo[row.clone()], &iv.hi[row.clone()]);
             let (band_a, band_m) = (&mut self.band_a[row.clone()], &mut self.band_m[row.clone()]);
@@ -410,12 +429,14 @@ impl Sgm {
             let last = inside.iter().rposition(|&m| m > 0);
             self.span[y] = first.zip(last).map_or(0..0, |(a, b)| searched_px.start + a..searched_px.start + b + 1);
             total += row_total;
+            row_max = row_max.max(row_total);
             if keep.contains(&y) {
                 stats.searched += row_searched;
                 stats.evaluated += row_total as u64;
             }
         }
         self.off[w * h] = total;
+        row_max
     }
 
     /// One pass: down the image left to right (`up = false`: the costs, from the census words
@@ -434,69 +455,14 @@ impl Sgm {
         }
         self.h_prev.fit(1, n);
         self.h_cur.fit(1, n);
-        // Whether the costs count bits with `vpopcntd` (AVX-512): asked once a pass, not
-        // once a run of pixels.
-        #[cfg(target_arch = "x86_64")]
-        let vpopcnt = AVX2 && !up && simd::has_vpopcnt();
+        let vpopcnt = AVX2 && !up && has_vpopcnt();
         for step_y in 0..h {
             let y = if up { h - 1 - step_y } else { step_y };
             // Where the row's costs lie in `cost`: at their packed offsets, or (folded) from
             // the start.
             let cbase = if folded { self.off[y * w] } else { 0 };
             if !up {
-                let cl = &self.census_l[y * w..][..w];
-                let il = &left[y * w..][..w];
-                let ir_row = &self.levels_r[y * g.wr..][..g.wr];
-                // Runs of pixels of one band at once (their costs are packed one after the
-                // other; the right pixel of each moves one column on).
-                let end = self.span[y].end;
-                let mut x = self.span[y].start;
-                while x < end {
-                    let i = y * w + x;
-                    let (a, m) = (self.band_a[i], self.band_m[i] as usize);
-                    if m == 0 {
-                        x += 1;
-                        continue;
-                    }
-                    // (The rest of the span at once when it all holds the band — the full range —
-                    // checked without a branch per pixel.)
-                    let holds = |px: Range<usize>| all_eq(&self.band_a[px.clone()], a) && all_eq(&self.band_m[px], m as u16);
-                    let mut len = if holds(i..y * w + end) { end - x } else { 1 };
-                    // Sixteen at a time, then one by one.
-                    while x + len + LANES <= w && holds(i + len..i + len + LANES) {
-                        len += LANES;
-                    }
-                    while x + len < w && self.band_m[i + len] as usize == m && self.band_a[i + len] == a {
-                        len += 1;
-                    }
-                    // Right pixel of disparity index k: x − dmin − k, at x − dmin − k + pad_l in
-                    // the padded row.
-                    let start = (x as i32 + g.pad_l as i32 - g.dmin - a as i32) as usize;
-                    let out = &mut self.cost[self.off[i] - cbase..][..len * m];
-                    #[cfg(target_arch = "x86_64")]
-                    if AVX2 {
-                        let (cr_lo, cr_hi) = (&self.census_r_lo[y * g.wr..][..g.wr], &self.census_r_hi[y * g.wr..][..g.wr]);
-                        let run = census::Run { cl: &cl[x..x + len], il: &il[x..x + len], cr_lo, cr_hi, ir_row, cap: p.sgm_ad_cap };
-                        // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU, and
-                        // `vpopcnt` only where it has `costs_vpopcnt`'s features; the padded
-                        // right rows hold every disparity of every band.
-                        unsafe {
-                            if vpopcnt {
-                                simd::costs_vpopcnt(run, start, m, out)
-                            } else {
-                                simd::costs_avx2(run, start, m, out)
-                            }
-                        };
-                        x += len;
-                        continue;
-                    }
-                    let cr_row = &self.census_r[y * g.wr..][..g.wr];
-                    for (k, out) in out.chunks_exact_mut(m).enumerate() {
-                        let px = census::Pixel { cl: cl[x + k], il: il[x + k], cr_row, ir_row, cap: p.sgm_ad_cap };
-                        census::costs(px, start + k, out);
-                    }
-                    x += len;
-                }
+                self.costs_row::<AVX2>(p, g, left, y, cbase, vpopcnt);
             }
             // The previous row of the vertical paths (none at the first row of the pass).
             let py = if up { y + 1 } else { y.wrapping_sub(1) };
@@ -569,6 +535,66 @@ impl Sgm {
             if up && keep.contains(&y) {
                 self.select::<AVX2>(p, g, y, &mut out[y * w..][..w], stats);
             }
+        }
+    }
+
+    /// Row `y`'s census costs, every searched pixel's band, into `cost` from `off[y·w] − cbase`
+    /// on (`vpopcnt`: count bits with `vpopcntd`, [`has_vpopcnt`]).
+    #[inline(always)]
+    fn costs_row<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, left: &[u8], y: usize, cbase: usize, vpopcnt: bool) {
+        let w = g.w;
+        let cl = &self.census_l[y * w..][..w];
+        let il = &left[y * w..][..w];
+        let ir_row = &self.levels_r[y * g.wr..][..g.wr];
+        // Runs of pixels of one band at once (their costs are packed one after the
+        // other; the right pixel of each moves one column on).
+        let end = self.span[y].end;
+        let mut x = self.span[y].start;
+        while x < end {
+            let i = y * w + x;
+            let (a, m) = (self.band_a[i], self.band_m[i] as usize);
+            if m == 0 {
+                x += 1;
+                continue;
+            }
+            // (The rest of the span at once when it all holds the band — the full range —
+            // checked without a branch per pixel.)
+            let holds = |px: Range<usize>| all_eq(&self.band_a[px.clone()], a) && all_eq(&self.band_m[px], m as u16);
+            let mut len = if holds(i..y * w + end) { end - x } else { 1 };
+            // Sixteen at a time, then one by one.
+            while x + len + LANES <= w && holds(i + len..i + len + LANES) {
+                len += LANES;
+            }
+            while x + len < w && self.band_m[i + len] as usize == m && self.band_a[i + len] == a {
+                len += 1;
+            }
+            // Right pixel of disparity index k: x − dmin − k, at x − dmin − k + pad_l in
+            // the padded row.
+            let start = (x as i32 + g.pad_l as i32 - g.dmin - a as i32) as usize;
+            let out = &mut self.cost[self.off[i] - cbase..][..len * m];
+            #[cfg(target_arch = "x86_64")]
+            if AVX2 {
+                let (cr_lo, cr_hi) = (&self.census_r_lo[y * g.wr..][..g.wr], &self.census_r_hi[y * g.wr..][..g.wr]);
+                let run = census::Run { cl: &cl[x..x + len], il: &il[x..x + len], cr_lo, cr_hi, ir_row, cap: p.sgm_ad_cap };
+                // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU, and
+                // `vpopcnt` only where it has `costs_vpopcnt`'s features; the padded
+                // right rows hold every disparity of every band.
+                unsafe {
+                    if vpopcnt {
+                        simd::costs_vpopcnt(run, start, m, out)
+                    } else {
+                        simd::costs_avx2(run, start, m, out)
+                    }
+                };
+                x += len;
+                continue;
+            }
+            let cr_row = &self.census_r[y * g.wr..][..g.wr];
+            for (k, out) in out.chunks_exact_mut(m).enumerate() {
+                let px = census::Pixel { cl: cl[x + k], il: il[x + k], cr_row, ir_row, cap: p.sgm_ad_cap };
+                census::costs(px, start + k, out);
+            }
+            x += len;
         }
     }
 

@@ -188,7 +188,7 @@ fn the_portable_build_gives_the_same_map() {
     let wide = wide_patches(w, h);
     for (iv, range, what) in [(&full, 40, "full range"), (&patches, 128, "patches"), (&wide, 128, "wide patches")] {
         // (Uniqueness 15 and 0, SGM's default: without the test the fits run in the lanes.)
-        for (paths, uniqueness_ratio) in [(4, 15), (8, 15), (4, 0), (8, 0)] {
+        for (paths, uniqueness_ratio) in [(4, 15), (5, 15), (8, 15), (4, 0), (5, 0), (8, 0)] {
             let p = MatchParams { sgm_paths: paths, uniqueness_ratio, ..(*params(range)).clone() }.validate().unwrap();
             let (fast, _) = run(&p, &l, &r, w, h, iv);
             let mut portable = DisparityMap::new(w, h);
@@ -395,5 +395,68 @@ fn folded_sums_hold_the_largest_path_values() {
             Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), &iv, 0..h, &mut portable);
             assert!(fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits()), "P2 {p2}");
         }
+    }
+}
+
+/// The single pass (`sgm_paths = 5`) keeps one row of sums; after a call they are the last
+/// row's. Written out from the recurrence, pair by pair, the five paths from the left, the
+/// right, the upper left, above and the upper right sum to them — in the portable build and,
+/// where the CPU has it, the AVX2 one. One block of sixteen disparities, so every pixel's band
+/// is the same and the recurrence needs no bands.
+#[test]
+fn one_pass_sums_are_the_five_paths_of_the_recurrence() {
+    let (w, h) = (50, 12);
+    let (l, r) = pair(w, h, |x, y| 3.0 + ((x / 9 + y / 4) % 3) as f32 * 4.0);
+    let p = MatchParams { sgm_paths: 5, ..(*params(16)).clone() }.validate().unwrap();
+    let (n, pad_l) = (LANES, LANES - 1);
+    let (lv, rv, levels) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), level_map(&l, &r));
+    let mut sgm = Sgm::default();
+    let mut out = DisparityMap::new(w, h);
+    sgm.compute_impl::<false>(&p, lv, rv, &levels, &DisparityIntervals::full(w, h, 0, 15), 0..h, &mut out);
+    let wr = sgm.census_r.len() / h;
+    let cost = |x: usize, y: usize| {
+        let px = census::Pixel { cl: sgm.census_l[y * w + x], il: l[y * w + x], cr_row: &sgm.census_r[y * wr..][..wr], ir_row: &sgm.levels_r[y * wr..][..wr], cap: p.sgm_ad_cap };
+        let mut c = vec![0u8; n];
+        census::costs(px, x + pad_l, &mut c);
+        c.into_iter().map(u32::from).collect::<Vec<u32>>()
+    };
+    let costs: Vec<Vec<u32>> = (0..w * h).map(|i| cost(i % w, i / w)).collect();
+    let (p1, p2) = (p.p1 as u32, p.p2 as u32);
+    let mut want = vec![0u32; w * n];
+    for (dx, dy) in [(1i32, 0i32), (-1, 0), (1, 1), (0, 1), (-1, 1)] {
+        // Pixels in the path's order: rows down, and along each row away from the path's source.
+        let mut path = vec![vec![0u32; n]; w * h];
+        for y in 0..h {
+            let xs: Vec<usize> = if dx < 0 { (0..w).rev().collect() } else { (0..w).collect() };
+            for x in xs {
+                let (qx, qy) = (x as i32 - dx, y as i32 - dy);
+                let c = &costs[y * w + x];
+                let v: Vec<u32> = if qx < 0 || qx >= w as i32 || qy < 0 {
+                    c.clone()
+                } else {
+                    let q = &path[qy as usize * w + qx as usize];
+                    let mn = *q.iter().min().unwrap();
+                    (0..n).map(|k| {
+                        let near = [k.checked_sub(1), (k + 1 < n).then_some(k + 1)].into_iter().flatten().map(|j| q[j] + p1).min().unwrap();
+                        c[k] + q[k].min(near).min(mn + p2) - mn
+                    }).collect()
+                };
+                path[y * w + x] = v;
+            }
+        }
+        for x in 0..w {
+            for k in 0..n {
+                want[x * n + k] += path[(h - 1) * w + x][k];
+            }
+        }
+    }
+    let got = |sgm: &Sgm| sgm.sum[..w * n].iter().map(|&v| v as u32).collect::<Vec<u32>>();
+    assert_eq!(got(&sgm), want, "portable");
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("popcnt") {
+        let mut fast = Sgm::default();
+        // SAFETY: the CPU has AVX2 and POPCNT, checked just above.
+        unsafe { fast.compute_avx2(&p, lv, rv, &levels, &DisparityIntervals::full(w, h, 0, 15), 0..h, &mut out) };
+        assert_eq!(got(&fast), want, "AVX2");
     }
 }
