@@ -3,7 +3,8 @@
 //! # The method
 //! The cost of a (pixel, disparity) pair is the Hamming distance of the two pixels' census
 //! words (`census.rs`). Along each of four directions r (rows and columns, both ways; eight
-//! with the diagonals, `sgm_paths`) it is aggregated by the recurrence
+//! with the diagonals; five: the row both ways and the three from above, `sgm_paths`) it is
+//! aggregated by the recurrence
 //!
 //! `L_r(p, d) = C(p, d) + min(L_r(q, d), L_r(q, d ± 1) + P1, min_k L_r(q, k) + P2) − min_k L_r(q, k)`
 //!
@@ -29,7 +30,9 @@
 //! Pass one goes down the image, left to right, with the paths from the left and above
 //! (and the upper left and upper right); pass two goes up, right to left, with the others,
 //! and selects each row as soon as its sums are complete. Both walk each row only over its
-//! span, from its first to its last searched pixel.
+//! span, from its first to its last searched pixel. With five paths (`single.rs`) there is
+//! one pass down the image, and no volume: each row's sums are complete after its own two
+//! sweeps.
 //!
 //! # Runs
 //! With four paths, a run of pixels that share one band with the pixel before them on the
@@ -230,7 +233,7 @@ fn has_vpopcnt() -> bool {
     false
 }
 
-/// The `N` paths of one pass at one pixel (two or four): writes each path's values and adds
+/// The `N` paths of one pass at one pixel (one, two or four): writes each path's values and adds
 /// (or, on the first pass, writes) their sum; returns each path's minimum. `folded` as
 /// [`Geo::folded`] (pass two does not read `c` then).
 #[inline(always)]
