@@ -115,6 +115,45 @@ fn bad_inputs_give_one_clear_line() {
     check_bad_input(&["points", "--calib", empty.to_str().unwrap(), "--left", l, "--right", r, "-o", out], "holds no calibration");
 }
 
+/// A semi-global volume larger than the memory the process may take (`ulimit -v`: 400 MB of
+/// address space against ≈ 940 MB of sums for 2000 × 300 pixels at up to 1024 disparities)
+/// is one clear line that names the way out, not an abort; the same call with a volume that
+/// fits still runs under that limit.
+#[test]
+fn sgm_without_the_memory_for_its_volume_says_so_in_one_line() {
+    let dir = support::temp_dir("cli-sgm-memory");
+    let (w, h) = (2000, 300);
+    let mut state = 0x9E37_79B9_7F4A_7C15u64;
+    let noise: Vec<u8> = (0..w * h)
+        .map(|_| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 56) as u8
+        })
+        .collect();
+    let (l, r) = (dir.join("l.png"), dir.join("r.png"));
+    spinscan::io::write_gray_png(&l, w, h, &noise).unwrap();
+    spinscan::io::write_gray_png(&r, w, h, &noise).unwrap();
+    let out = dir.join("o.png");
+    let run = |disparities: &str| {
+        Command::new("sh")
+            .args(["-c", "ulimit -v 400000 && exec \"$0\" \"$@\"", env!("CARGO_BIN_EXE_spinscan")])
+            .args(["disparity", "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--method", "sgm", "--threads", "1"])
+            .args(["--num-disparities", disparities, "-o", out.to_str().unwrap()])
+            .output()
+            .expect("sh runs")
+    };
+    let o = run("1024");
+    assert_eq!(o.status.code(), Some(3), "stderr: {}", stderr(&o));
+    let err = stderr(&o);
+    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
+    assert!(err.contains("2000×300") && err.contains("1024 disparities") && err.contains("--sgm-paths 5"), "{err}");
+    // 16 disparities: 19 MB of sums.
+    let o = run("16");
+    assert!(o.status.success(), "stderr: {}", stderr(&o));
+}
+
 #[test]
 fn points_and_rectify_on_the_real_negative_disparity_rig() {
     let data = support::shared_data("stereo-calib-chessboard-ximea");

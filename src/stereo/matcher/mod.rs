@@ -66,6 +66,8 @@ pub enum MatchError {
     TooSmall(usize, usize, u32),
     #[error("image buffer holds {0} bytes, expected {1} (width × height)")]
     Buffer(usize, usize),
+    #[error("semi-global matching of {width}×{height} pixels over {disparities} disparities needs {mib} MiB for its aggregated costs, which the system refused; match with `--sgm-paths 5` (`[matching] sgm_paths = 5`: one pass, memory of one row), fewer disparities, smaller images, or `--method bm`")]
+    Memory { width: usize, height: usize, disparities: usize, mib: u64 },
 }
 
 
@@ -212,7 +214,7 @@ impl StereoMatcher {
             return Ok(MatchStats::default());
         };
         if crop.x0 == 0 && crop.y0 == 0 && crop.w == w && crop.h == h {
-            return Ok(self.compute_whole(left, right, intervals, out));
+            return self.compute_whole(left, right, intervals, out);
         }
         let cut = |img: GrayView, buf: &mut Vec<u8>| {
             buf.clear();
@@ -239,6 +241,14 @@ impl StereoMatcher {
         let lv = GrayView { width: crop.w, height: crop.h, data: &lbuf };
         let rv = GrayView { width: crop.w, height: crop.h, data: &rbuf };
         let stats = self.compute_whole(lv, rv, &civ, &mut cout);
+        // (The crop's buffers are kept for the next call either way.)
+        let stats = match stats {
+            Ok(s) => s,
+            Err(e) => {
+                (self.crop_left, self.crop_right, self.crop_intervals, self.crop_out) = (lbuf, rbuf, civ, cout);
+                return Err(e);
+            }
+        };
         // The crop's rows copied in, everything around them unmatched.
         let vals = out.values_mut();
         vals[..crop.y0 * w].fill(f32::NAN);
@@ -254,9 +264,9 @@ impl StereoMatcher {
     }
 
     /// [`StereoMatcher::compute`] over the whole of checked inputs.
-    fn compute_whole(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
+    fn compute_whole(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
         let mut totals = if self.params.method == Method::Sgm {
-            let mut totals = self.compute_sgm(left, right, intervals, out);
+            let mut totals = self.compute_sgm(left, right, intervals, out)?;
             if self.params.subpixel && self.params.sgm_refine {
                 // A mask (the object segmented from the blue screen) marks a scan's view.
                 let masked = intervals.lo.iter().zip(&intervals.hi).any(|(a, b)| a > b);
@@ -268,7 +278,7 @@ impl StereoMatcher {
             self.correlate(&params, left, right, intervals, out)
         };
         self.speckle_filter(out, &mut totals);
-        totals
+        Ok(totals)
     }
 
     /// The correlation matcher (`bm`) with `params` over the whole of checked inputs, without
@@ -323,7 +333,7 @@ impl StereoMatcher {
     /// whole method over its rows and [`SGM_OVERLAP`] more above and below, and keeps its own
     /// rows: the vertical paths start that far outside the rows they decide (one thread: no
     /// stripes, and exactly the single-stripe map).
-    fn compute_sgm(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
+    fn compute_sgm(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
         let (w, h) = (left.width, left.height);
         let stripes = self.params.thread_count().min(h / SGM_MIN_ROWS).max(1);
         // The intensity term's level map, over the whole images (not per stripe).
@@ -335,7 +345,9 @@ impl StereoMatcher {
         self.sgm.resize_with(stripes, Default::default);
         let rows_per = h.div_ceil(stripes);
         let params = &self.params;
-        let results: Vec<(Range<usize>, Range<usize>, DisparityMap, MatchStats)> = std::thread::scope(|scope| {
+        // Per stripe: its rows, the rows it ran over, its map and what it counted.
+        type Stripe = (Range<usize>, Range<usize>, DisparityMap, Result<MatchStats, MatchError>);
+        let results: Vec<Stripe> = std::thread::scope(|scope| {
             let handles: Vec<_> = self
                 .sgm
                 .iter_mut()
@@ -361,6 +373,7 @@ impl StereoMatcher {
         });
         let mut totals = MatchStats::default();
         for (rows, ext, part, s) in results {
+            let s = s?;
             let src = &part.values()[(rows.start - ext.start) * w..(rows.end - ext.start) * w];
             out.values_mut()[rows.start * w..rows.end * w].copy_from_slice(src);
             totals.searched += s.searched;
@@ -370,7 +383,7 @@ impl StereoMatcher {
             totals.lr_candidates += s.lr_candidates;
             totals.lr_passed += s.lr_passed;
         }
-        totals
+        Ok(totals)
     }
 
     /// The speckle filter over a finished map, and the count of what is left.

@@ -301,7 +301,7 @@ fn matching_the_crop_gives_what_matching_the_whole_image_gives() {
         let mut cropped = DisparityMap::new(w, h);
         let stats = m.compute(lv, rv, &iv, &mut cropped).unwrap();
         let mut whole = DisparityMap::new(w, h);
-        let whole_stats = m.compute_whole(lv, rv, &iv, &mut whole);
+        let whole_stats = m.compute_whole(lv, rv, &iv, &mut whole).unwrap();
         assert_eq!((stats.searched, stats.evaluated, stats.matched), (whole_stats.searched, whole_stats.evaluated, whole_stats.matched));
         assert!(same_map(cropped.values(), whole.values()));
         assert!(stats.matched > 2000, "{}", stats.matched);

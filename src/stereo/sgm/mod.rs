@@ -45,6 +45,7 @@
 use std::ops::Range;
 
 use super::disparity::{searched_span, DisparityIntervals, DisparityMap, GrayView, MatchStats};
+use super::matcher::MatchError;
 use super::params::ValidMatchParams;
 
 mod census;
@@ -292,7 +293,7 @@ impl Sgm {
     /// and counts) the rows `keep` — the others only feed the paths; the speckle filter is the
     /// caller's. `levels` maps `right`'s grey levels onto the left image's for the intensity
     /// term ([`level_map`], over the whole images).
-    pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
+    pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("popcnt") {
             // SAFETY: the CPU supports AVX2 and POPCNT, checked just above.
@@ -303,13 +304,13 @@ impl Sgm {
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,popcnt")]
-    unsafe fn compute_avx2(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
+    unsafe fn compute_avx2(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
         self.compute_impl::<true>(p, left, right, levels, intervals, keep, out)
     }
 
     /// The whole matcher; inlined into each SIMD-level wrapper so the loops vectorise for it.
     #[inline(always)]
-    fn compute_impl<const AVX2: bool>(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> MatchStats {
+    fn compute_impl<const AVX2: bool>(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
         let (w, h) = (left.width, left.height);
         let n = (p.num_disparities as usize).div_ceil(LANES) * LANES;
         let dmin = p.min_disparity;
@@ -351,9 +352,10 @@ impl Sgm {
         // Pass one writes every cost and sum before anything reads them: no clearing. Folded,
         // the costs of the row being stepped only; in one pass, the costs and sums of one row.
         let (costs, sums) = if single { (row_max, row_max) } else { (if folded { row_max } else { total }, total) };
-        super::buffer::resize_for_overwrite(&mut self.cost, costs);
-        // (One more: the selection's gathers read each sum as the low half of 32 bits.)
-        super::buffer::resize_for_overwrite(&mut self.sum, sums + 1);
+        // (One more sum: the selection's gathers read each sum as the low half of 32 bits.)
+        let refused = |_| MatchError::Memory { width: w, height: h, disparities: n, mib: ((costs + 2 * (sums + 1)) >> 20) as u64 };
+        super::buffer::resize_for_overwrite(&mut self.cost, costs).map_err(refused)?;
+        super::buffer::resize_for_overwrite(&mut self.sum, sums + 1).map_err(refused)?;
         self.fresh.clear();
         self.fresh.resize(n + 2, UNREACHED);
         self.right_best.resize(w, 0);
@@ -373,7 +375,7 @@ impl Sgm {
             self.pass::<AVX2>(p, g, left.data, false, keep.clone(), vals, &mut stats);
             self.pass::<AVX2>(p, g, left.data, true, keep, vals, &mut stats);
         }
-        stats
+        Ok(stats)
     }
 
     /// Each pixel's interval clipped to the range and to right pixels inside the image, the

@@ -40,7 +40,7 @@ fn params(n: u32) -> ValidMatchParams {
 
 fn run(p: &ValidMatchParams, l: &[u8], r: &[u8], w: usize, h: usize, iv: &DisparityIntervals) -> (DisparityMap, MatchStats) {
     let mut out = DisparityMap::new(w, h);
-    let stats = Sgm::default().compute(p, GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), &level_map(l, r), iv, 0..h, &mut out);
+    let stats = Sgm::default().compute(p, GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), &level_map(l, r), iv, 0..h, &mut out).unwrap();
     (out, stats)
 }
 
@@ -146,7 +146,7 @@ fn every_pixel_is_costed_over_its_own_band() {
     let p = params(128);
     let mut sgm = Sgm::default();
     let mut out = DisparityMap::new(w, h);
-    sgm.compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), &wide_patches(w, h), 0..h, &mut out);
+    sgm.compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), &wide_patches(w, h), 0..h, &mut out).unwrap();
     let (n, dmin) = (128, p.min_disparity);
     let pad_l = (dmin + n - 1).max(0) as usize;
     let wr = sgm.census_r.len() / h;
@@ -192,7 +192,7 @@ fn the_portable_build_gives_the_same_map() {
             let p = MatchParams { sgm_paths: paths, uniqueness_ratio, ..(*params(range)).clone() }.validate().unwrap();
             let (fast, _) = run(&p, &l, &r, w, h, iv);
             let mut portable = DisparityMap::new(w, h);
-            Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), iv, 0..h, &mut portable);
+            Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), iv, 0..h, &mut portable).unwrap();
             let same = fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits());
             assert!(same, "{what}, {paths} paths, uniqueness {uniqueness_ratio}");
             assert!(fast.valid_count() * 5 > w * h, "{what}, {paths} paths, uniqueness {uniqueness_ratio}: {} matched", fast.valid_count());
@@ -392,7 +392,7 @@ fn folded_sums_hold_the_largest_path_values() {
             assert_eq!(folds(&p), folded, "P2 {p2}");
             let (fast, _) = run(&p, &l, &r, w, h, &iv);
             let mut portable = DisparityMap::new(w, h);
-            Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), &iv, 0..h, &mut portable);
+            Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), &iv, 0..h, &mut portable).unwrap();
             assert!(fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits()), "P2 {p2}");
         }
     }
@@ -412,7 +412,7 @@ fn one_pass_sums_are_the_five_paths_of_the_recurrence() {
     let (lv, rv, levels) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), level_map(&l, &r));
     let mut sgm = Sgm::default();
     let mut out = DisparityMap::new(w, h);
-    sgm.compute_impl::<false>(&p, lv, rv, &levels, &DisparityIntervals::full(w, h, 0, 15), 0..h, &mut out);
+    sgm.compute_impl::<false>(&p, lv, rv, &levels, &DisparityIntervals::full(w, h, 0, 15), 0..h, &mut out).unwrap();
     let wr = sgm.census_r.len() / h;
     let cost = |x: usize, y: usize| {
         let px = census::Pixel { cl: sgm.census_l[y * w + x], il: l[y * w + x], cr_row: &sgm.census_r[y * wr..][..wr], ir_row: &sgm.levels_r[y * wr..][..wr], cap: p.sgm_ad_cap };
@@ -456,7 +456,7 @@ fn one_pass_sums_are_the_five_paths_of_the_recurrence() {
     if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("popcnt") {
         let mut fast = Sgm::default();
         // SAFETY: the CPU has AVX2 and POPCNT, checked just above.
-        unsafe { fast.compute_avx2(&p, lv, rv, &levels, &DisparityIntervals::full(w, h, 0, 15), 0..h, &mut out) };
+        unsafe { fast.compute_avx2(&p, lv, rv, &levels, &DisparityIntervals::full(w, h, 0, 15), 0..h, &mut out) }.unwrap();
         assert_eq!(got(&fast), want, "AVX2");
     }
 }
