@@ -142,6 +142,21 @@ struct From<'a> {
     jump: u16,
 }
 
+impl<'a> From<'a> {
+    /// A path that starts at this pixel: an `UNREACHED` slot (`fresh`, `n + 2` long) over the
+    /// band `a … a + m`.
+    #[inline(always)]
+    fn start(fresh: &'a [u16], a: usize, m: usize) -> From<'a> {
+        From { around: &fresh[a..a + m + 2], min: 0, jump: 0 }
+    }
+
+    /// A path that continues from slot `i` of `row` over the band `a … a + m`.
+    #[inline(always)]
+    fn after(row: &'a PathRow, i: usize, n: usize, a: usize, m: usize, p2: u16) -> From<'a> {
+        From { around: row.around(i, n, a, m), min: row.min[i], jump: row.min[i] + p2 }
+    }
+}
+
 /// Reusable buffers of the semi-global matcher.
 #[derive(Default)]
 pub(super) struct Sgm {
@@ -495,14 +510,13 @@ impl Sgm {
                         continue;
                     }
                 }
-                let fresh = From { around: &self.fresh[a..a + m + 2], min: 0, jump: 0 };
-                let hf = if h_live { From { around: self.h_prev.around(0, n, a, m), min: self.h_prev.min[0], jump: self.h_prev.min[0] + p2 } } else { fresh };
+                let fresh = From::start(&self.fresh, a, m);
+                let hf = if h_live { From::after(&self.h_prev, 0, n, a, m, p2) } else { fresh };
                 let mut vf = [fresh; 3];
                 for (j, f) in vf.iter_mut().enumerate() {
                     let qx = (x + j).wrapping_sub(1);
                     if (eight || j == 1) && has_prev_row && qx < w && self.band_m[py * w + qx] > 0 {
-                        let row = &self.vert_prev[j];
-                        *f = From { around: row.around(qx, n, a, m), min: row.min[qx], jump: row.min[qx] + p2 };
+                        *f = From::after(&self.vert_prev[j], qx, n, a, m, p2);
                     }
                 }
                 self.h_cur.prepare(0, n, a, m);
