@@ -70,6 +70,12 @@ pub enum MatchError {
     Memory { width: usize, height: usize, disparities: usize, mib: u64 },
 }
 
+impl std::convert::From<super::sgm::VolumeRefused> for MatchError {
+    fn from(v: super::sgm::VolumeRefused) -> MatchError {
+        MatchError::Memory { width: v.width, height: v.height, disparities: v.disparities, mib: v.bytes >> 20 }
+    }
+}
+
 
 /// The matcher's tiles, `(width, height)` in pixels, counted from the image's top-left corner
 /// (the crop and the threads' stripes start on tile boundaries): a caller that gives every
@@ -340,13 +346,13 @@ impl StereoMatcher {
         let levels = if self.params.sgm_ad_cap > 0 { super::sgm::level_map(left.data, right.data) } else { std::array::from_fn(|v| v as u8) };
         if stripes == 1 {
             self.sgm.resize_with(1, Default::default);
-            return self.sgm[0].compute(&self.params, left, right, &levels, intervals, 0..h, out);
+            return Ok(self.sgm[0].compute(&self.params, left, right, &levels, intervals, 0..h, out)?);
         }
         self.sgm.resize_with(stripes, Default::default);
         let rows_per = h.div_ceil(stripes);
         let params = &self.params;
         // Per stripe: its rows, the rows it ran over, its map and what it counted.
-        type Stripe = (Range<usize>, Range<usize>, DisparityMap, Result<MatchStats, MatchError>);
+        type Stripe = (Range<usize>, Range<usize>, DisparityMap, Result<MatchStats, super::sgm::VolumeRefused>);
         let results: Vec<Stripe> = std::thread::scope(|scope| {
             let handles: Vec<_> = self
                 .sgm

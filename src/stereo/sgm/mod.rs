@@ -45,7 +45,6 @@
 use std::ops::Range;
 
 use super::disparity::{searched_span, DisparityIntervals, DisparityMap, GrayView, MatchStats};
-use super::matcher::MatchError;
 use super::params::ValidMatchParams;
 
 mod census;
@@ -155,6 +154,16 @@ impl<'a> From<'a> {
     fn after(row: &'a PathRow, i: usize, n: usize, a: usize, m: usize, p2: u16) -> From<'a> {
         From { around: row.around(i, n, a, m), min: row.min[i], jump: row.min[i] + p2 }
     }
+}
+
+/// The system refused the memory of a call's costs and sums (`bytes`, for `width × height`
+/// pixels over `disparities`, the range rounded up to blocks).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) struct VolumeRefused {
+    pub(super) width: usize,
+    pub(super) height: usize,
+    pub(super) disparities: usize,
+    pub(super) bytes: u64,
 }
 
 /// Reusable buffers of the semi-global matcher.
@@ -308,7 +317,7 @@ impl Sgm {
     /// and counts) the rows `keep` — the others only feed the paths; the speckle filter is the
     /// caller's. `levels` maps `right`'s grey levels onto the left image's for the intensity
     /// term ([`level_map`], over the whole images).
-    pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
+    pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, VolumeRefused> {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("popcnt") {
             // SAFETY: the CPU supports AVX2 and POPCNT, checked just above.
@@ -319,13 +328,13 @@ impl Sgm {
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,popcnt")]
-    unsafe fn compute_avx2(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
+    unsafe fn compute_avx2(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, VolumeRefused> {
         self.compute_impl::<true>(p, left, right, levels, intervals, keep, out)
     }
 
     /// The whole matcher; inlined into each SIMD-level wrapper so the loops vectorise for it.
     #[inline(always)]
-    fn compute_impl<const AVX2: bool>(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
+    fn compute_impl<const AVX2: bool>(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, VolumeRefused> {
         let (w, h) = (left.width, left.height);
         let n = (p.num_disparities as usize).div_ceil(LANES) * LANES;
         let dmin = p.min_disparity;
@@ -368,7 +377,7 @@ impl Sgm {
         // the costs of the row being stepped only; in one pass, the costs and sums of one row.
         let (costs, sums) = if single { (row_max, row_max) } else { (if folded { row_max } else { total }, total) };
         // (One more sum: the selection's gathers read each sum as the low half of 32 bits.)
-        let refused = |_| MatchError::Memory { width: w, height: h, disparities: n, mib: ((costs + 2 * (sums + 1)) >> 20) as u64 };
+        let refused = |_| VolumeRefused { width: w, height: h, disparities: n, bytes: costs as u64 + 2 * (sums as u64 + 1) };
         super::buffer::resize_for_overwrite(&mut self.cost, costs).map_err(refused)?;
         super::buffer::resize_for_overwrite(&mut self.sum, sums + 1).map_err(refused)?;
         self.fresh.clear();
