@@ -255,20 +255,23 @@ fn narrow_intervals_are_searched_and_nothing_else() {
 fn stripes_on_threads_give_the_one_thread_map_but_at_their_seams() {
     let (w, h) = (80, 300);
     let (l, r) = pair(w, h, |x, y| 5.0 + (x + y) as f32 * 0.02);
-    let run_with = |threads: usize| {
-        let p = MatchParams { threads, ..(*params(32)).clone() }.validate().unwrap();
-        let mut m = crate::stereo::StereoMatcher::new(p);
-        let iv = m.full_intervals(w, h, None);
-        let mut out = DisparityMap::new(w, h);
-        let stats = m.compute(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut out).unwrap();
-        (out, stats)
-    };
-    let (one, s1) = run_with(1);
-    let (three, s3) = run_with(3);
-    assert_eq!((s1.searched, s1.evaluated), (s3.searched, s3.evaluated));
-    let same = one.values().iter().zip(three.values()).filter(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())).count();
-    assert!(same * 100 >= w * h * 97, "{same} of {} pixels as with one thread", w * h);
-    assert!(three.valid_count() * 10 >= w * h * 9);
+    // (Both the two passes and the single pass of five paths keep only their stripe's rows.)
+    for sgm_paths in [4, 5] {
+        let run_with = |threads: usize| {
+            let p = MatchParams { threads, sgm_paths, ..(*params(32)).clone() }.validate().unwrap();
+            let mut m = crate::stereo::StereoMatcher::new(p);
+            let iv = m.full_intervals(w, h, None);
+            let mut out = DisparityMap::new(w, h);
+            let stats = m.compute(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut out).unwrap();
+            (out, stats)
+        };
+        let (one, s1) = run_with(1);
+        let (three, s3) = run_with(3);
+        assert_eq!((s1.searched, s1.evaluated), (s3.searched, s3.evaluated), "{sgm_paths} paths");
+        let same = one.values().iter().zip(three.values()).filter(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())).count();
+        assert!(same * 100 >= w * h * 97, "{sgm_paths} paths: {same} of {} pixels as with one thread", w * h);
+        assert!(three.valid_count() * 10 >= w * h * 9, "{sgm_paths} paths");
+    }
 }
 
 #[test]
