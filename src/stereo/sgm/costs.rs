@@ -14,6 +14,9 @@ impl Sgm {
     #[inline(always)]
     pub(super) fn costs_row<const AVX2: bool>(&mut self, p: &ValidMatchParams, g: Geo, left: &[u8], y: usize, cbase: usize, vpopcnt: bool) {
         let w = g.w;
+        // (Only the AVX2 costs can count with `vpopcntd`.)
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = vpopcnt;
         let cl = &self.census_l[y * w..][..w];
         let il = &left[y * w..][..w];
         let ir_row = &self.levels_r[y * g.wr..][..g.wr];
