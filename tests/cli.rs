@@ -137,7 +137,10 @@ fn sgm_without_the_memory_for_its_volume_says_so_in_one_line() {
     spinscan::io::write_gray_png(&r, w, h, &noise).unwrap();
     let out = dir.join("o.png");
     let run = |disparities: &str| {
+        // (One malloc arena: on a machine of many cores, glibc's per-thread arenas reserve
+        // address space that `ulimit -v` counts.)
         Command::new("sh")
+            .env("MALLOC_ARENA_MAX", "1")
             .args(["-c", "ulimit -v 400000 && exec \"$0\" \"$@\"", env!("CARGO_BIN_EXE_spinscan")])
             .args(["disparity", "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--method", "sgm", "--threads", "1"])
             .args(["--num-disparities", disparities, "-o", out.to_str().unwrap()])
