@@ -44,6 +44,8 @@ fn disparity_prints_its_json_contract_and_writes_every_format() {
     assert!(o.status.success(), "{}", stderr(&o));
     let j = json_line(&o);
     assert!(j["match_ms"].as_f64().unwrap() > 0.0);
+    // The warm-up's time, reported apart.
+    assert!(j["first_call_ms"].as_f64().unwrap() > 0.0);
     assert!((0.0..=1.0).contains(&j["valid_fraction"].as_f64().unwrap()));
     assert_eq!(j["disparity_sign"], 1);
     let png = spinscan::io::read_disparity_png(&out, 1.0).unwrap();
@@ -57,6 +59,8 @@ fn disparity_prints_its_json_contract_and_writes_every_format() {
     let o = spinscan(&["disparity", "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--num-disparities", "48", "--threads", "1", "-o", out2.to_str().unwrap()]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert_eq!((json_line(&o)["num_disparities"].as_u64(), j["num_disparities"].as_u64()), (Some(48), Some(48)));
+    // One call: it is the first call.
+    assert_eq!(json_line(&o)["first_call_ms"], json_line(&o)["match_ms"]);
     assert_eq!(std::fs::read(&out2).unwrap(), std::fs::read(&out).unwrap(), "the same count, the same map");
 }
 
