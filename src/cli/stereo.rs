@@ -29,7 +29,7 @@ pub struct DisparityArgs {
     pub matching: MatchArgs,
     /// Times the matcher K times and reports the median as `match_ms`; with K > 1 a warm-up
     /// run comes first (as the peer script does for OpenCV), kept out of the median.
-    /// `first_call_ms` is always the process's first call, buffers' first touch included
+    /// `first_call_ms` is always the matcher's first call, its buffers' first touch included
     /// (the warm-up's, or with K = 1 the one call's).
     #[arg(long, default_value_t = 1)]
     pub repeat: u32,
