@@ -247,26 +247,21 @@ impl StereoMatcher {
         let lv = GrayView { width: crop.w, height: crop.h, data: &lbuf };
         let rv = GrayView { width: crop.w, height: crop.h, data: &rbuf };
         let stats = self.compute_whole(lv, rv, &civ, &mut cout);
-        // (The crop's buffers are kept for the next call either way.)
-        let stats = match stats {
-            Ok(s) => s,
-            Err(e) => {
-                (self.crop_left, self.crop_right, self.crop_intervals, self.crop_out) = (lbuf, rbuf, civ, cout);
-                return Err(e);
+        if stats.is_ok() {
+            // The crop's rows copied in, everything around them unmatched.
+            let vals = out.values_mut();
+            vals[..crop.y0 * w].fill(f32::NAN);
+            vals[(crop.y0 + crop.h) * w..].fill(f32::NAN);
+            for (y, src) in cout.values().chunks(crop.w).enumerate() {
+                let row = &mut vals[(crop.y0 + y) * w..][..w];
+                row[..crop.x0].fill(f32::NAN);
+                row[crop.x0..crop.x0 + crop.w].copy_from_slice(src);
+                row[crop.x0 + crop.w..].fill(f32::NAN);
             }
-        };
-        // The crop's rows copied in, everything around them unmatched.
-        let vals = out.values_mut();
-        vals[..crop.y0 * w].fill(f32::NAN);
-        vals[(crop.y0 + crop.h) * w..].fill(f32::NAN);
-        for (y, src) in cout.values().chunks(crop.w).enumerate() {
-            let row = &mut vals[(crop.y0 + y) * w..][..w];
-            row[..crop.x0].fill(f32::NAN);
-            row[crop.x0..crop.x0 + crop.w].copy_from_slice(src);
-            row[crop.x0 + crop.w..].fill(f32::NAN);
         }
+        // (The crop's buffers are kept for the next call, whether this one matched or not.)
         (self.crop_left, self.crop_right, self.crop_intervals, self.crop_out) = (lbuf, rbuf, civ, cout);
-        Ok(stats)
+        stats
     }
 
     /// [`StereoMatcher::compute`] over the whole of checked inputs.
