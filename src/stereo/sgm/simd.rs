@@ -47,12 +47,7 @@ pub(super) unsafe fn step<const N: usize, const FOLDED: bool>(c: &[u8], from: [F
         // SAFETY: b + LANES ≤ m and the lengths asserted above.
         unsafe {
             let sp = sum.as_mut_ptr().add(b) as *mut __m256i;
-            let (cc, mut acc) = if FOLDED && add {
-                unfold(_mm256_loadu_si256(sp))
-            } else {
-                let cc = _mm256_cvtepu8_epi16(_mm_loadu_si128(c.as_ptr().add(b) as *const __m128i));
-                (cc, if add { _mm256_loadu_si256(sp) } else { _mm256_setzero_si256() })
-            };
+            let (cc, mut acc) = cost_and_prior::<FOLDED>(c.as_ptr().wrapping_add(b), sp, add);
             let hn = if b + LANES < m { _mm256_loadu_si256(h.as_ptr().add(1 + b + LANES) as *const __m256i) } else { _mm256_set1_epi16(h[m + 1] as i16) };
             for j in 0..N {
                 let (l, mid, r) = if j == N - 1 {
@@ -70,7 +65,7 @@ pub(super) unsafe fn step<const N: usize, const FOLDED: bool>(c: &[u8], from: [F
                 mn[j] = _mm256_min_epu16(mn[j], v);
                 acc = _mm256_add_epi16(acc, v);
             }
-            _mm256_storeu_si256(sp, if FOLDED && !add { fold(acc, cc) } else { acc });
+            store_sum::<FOLDED>(sp, acc, cc, add);
             (hp, hm) = (hm, hn);
         }
         b += LANES;
@@ -94,6 +89,36 @@ fn fold(s: __m256i, cc: __m256i) -> __m256i {
 #[inline]
 fn unfold(word: __m256i) -> (__m256i, __m256i) {
     (_mm256_srli_epi16::<FOLD_SHIFT>(word), _mm256_and_si256(word, _mm256_set1_epi16((1 << FOLD_SHIFT) - 1)))
+}
+
+/// A block's sixteen costs and the sums it adds to, for [`step`] and [`run`]: in pass two
+/// (`add`) folded, both from the stored word at `sp`; otherwise the costs from `c` and, in pass
+/// two, the stored sums (zero in pass one).
+///
+/// # Safety
+/// `sp` addresses sixteen sums; `c` sixteen costs unless they are read from the folded word.
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn cost_and_prior<const FOLDED: bool>(c: *const u8, sp: *const __m256i, add: bool) -> (__m256i, __m256i) {
+    // SAFETY: the caller's contract.
+    unsafe {
+        if FOLDED && add {
+            return unfold(_mm256_loadu_si256(sp));
+        }
+        let cc = _mm256_cvtepu8_epi16(_mm_loadu_si128(c as *const __m128i));
+        (cc, if add { _mm256_loadu_si256(sp) } else { _mm256_setzero_si256() })
+    }
+}
+
+/// Stores a block's sums `s` at `sp`: folded with their costs `cc` in pass one, plain otherwise.
+///
+/// # Safety
+/// `sp` addresses sixteen sums.
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn store_sum<const FOLDED: bool>(sp: *mut __m256i, s: __m256i, cc: __m256i, add: bool) {
+    // SAFETY: the caller's contract.
+    unsafe { _mm256_storeu_si256(sp, if FOLDED && !add { fold(s, cc) } else { s }) }
 }
 
 /// A path's term from its previous pixel, per disparity lane: the least of staying
@@ -541,13 +566,8 @@ pub(super) unsafe fn run<const B: usize, const FOLDED: bool>(c: *const u8, sum: 
             let (mut vmn, mut hmn) = (unreached, unreached);
             let mut nh = [_mm256_setzero_si256(); B];
             for b in 0..B {
-                let (cc, prior) = if FOLDED && add {
-                    unfold(_mm256_loadu_si256(sp.add(b * LANES) as *const __m256i))
-                } else {
-                    let cp = c.offset(k * dir * m + (b * LANES) as isize);
-                    let cc = _mm256_cvtepu8_epi16(_mm_loadu_si128(cp as *const __m128i));
-                    (cc, if add { _mm256_loadu_si256(sp.add(b * LANES) as *const __m256i) } else { _mm256_setzero_si256() })
-                };
+                let sb = sp.add(b * LANES) as *mut __m256i;
+                let (cc, prior) = cost_and_prior::<FOLDED>(c.wrapping_offset(k * dir * m + (b * LANES) as isize), sb, add);
                 let q = vp.add(b * LANES);
                 let (l, mid, r) = (_mm256_loadu_si256(q as *const __m256i), _mm256_loadu_si256(q.add(1) as *const __m256i), _mm256_loadu_si256(q.add(2) as *const __m256i));
                 let best = best_from(mid, l, r, p1v, vjump);
@@ -566,7 +586,7 @@ pub(super) unsafe fn run<const B: usize, const FOLDED: bool>(c: *const u8, sum: 
                 let s = _mm256_add_epi16(vv, hh);
                 // (Pass one has no earlier sum: no add of a zero.)
                 let s = if add { _mm256_add_epi16(s, prior) } else { s };
-                _mm256_storeu_si256(sp.add(b * LANES) as *mut __m256i, if FOLDED && !add { fold(s, cc) } else { s });
+                store_sum::<FOLDED>(sb, s, cc, add);
             }
             *v.cur_min.offset(k * dir) = hmin(vmn);
             hv = nh;
