@@ -100,7 +100,7 @@ fn run(m: &mut StereoMatcher, (lv, rv): (GrayView, GrayView), iv: &DisparityInte
     }
     let mut stats = Default::default();
     let mut out = DisparityMap::new(lv.width, lv.height);
-    let (min, med) = time(15, || stats = m.compute(lv, rv, iv, &mut out).unwrap());
+    let (min, med) = time(std::env::var("RUNS").ok().and_then(|s| s.parse().ok()).unwrap_or(15), || stats = m.compute(lv, rv, iv, &mut out).unwrap());
     println!("{name:<34} {min:>9.2} {med:>9.2} {:>10.1}", stats.mean_search_px());
 }
 

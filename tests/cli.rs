@@ -122,7 +122,8 @@ fn bad_inputs_give_one_clear_line() {
 /// A semi-global volume larger than the memory the process may take (`ulimit -v`: 400 MB of
 /// address space against ≈ 940 MB of sums for 2000 × 300 pixels at up to 1024 disparities)
 /// is one clear line that names the way out, not an abort; the same call with a volume that
-/// fits still runs under that limit.
+/// fits still runs under that limit, and so does the call seeded from the half-size pair (the
+/// default), whose tiles aggregate one block of disparities around what it matched.
 #[test]
 fn sgm_without_the_memory_for_its_volume_says_so_in_one_line() {
     let dir = support::temp_dir("cli-sgm-memory");
@@ -140,7 +141,7 @@ fn sgm_without_the_memory_for_its_volume_says_so_in_one_line() {
     spinscan::io::write_gray_png(&l, w, h, &noise).unwrap();
     spinscan::io::write_gray_png(&r, w, h, &noise).unwrap();
     let out = dir.join("o.png");
-    let run = |disparities: &str| {
+    let run = |disparities: &str, seed: &[&str]| {
         // (One malloc arena: on a machine of many cores, glibc's per-thread arenas reserve
         // address space that `ulimit -v` counts.)
         Command::new("sh")
@@ -148,17 +149,24 @@ fn sgm_without_the_memory_for_its_volume_says_so_in_one_line() {
             .args(["-c", "ulimit -v 400000 && exec \"$0\" \"$@\"", env!("CARGO_BIN_EXE_spinscan")])
             .args(["disparity", "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--method", "sgm", "--threads", "1"])
             .args(["--num-disparities", disparities, "-o", out.to_str().unwrap()])
+            .args(seed)
             .output()
             .expect("sh runs")
     };
-    let o = run("1024");
+    let o = run("1024", &["--no-sgm-seed"]);
     assert_eq!(o.status.code(), Some(3), "stderr: {}", stderr(&o));
     let err = stderr(&o);
     assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
     assert!(err.contains("2000×300") && err.contains("1024 disparities") && err.contains("--sgm-paths 5"), "{err}");
     // 16 disparities: 19 MB of sums.
-    let o = run("16");
+    let o = run("16", &["--no-sgm-seed"]);
     assert!(o.status.success(), "stderr: {}", stderr(&o));
+    // Seeded: the same pair matched at 1/2 … 1/16 of its size first, then a block a pixel.
+    let o = run("1024", &[]);
+    assert!(o.status.success(), "stderr: {}", stderr(&o));
+    let json = json_line(&o);
+    // (The images are equal: every pixel matches, most at disparity 0.)
+    assert!(json["valid_fraction"].as_f64().unwrap() > 0.9 && json["mean_search_px"].as_f64().unwrap() < 64.0, "{json}");
 }
 
 #[test]

@@ -107,6 +107,11 @@ pub struct MatchArgs {
     /// correlation cost around each winner (faster, less precise on slanted surfaces).
     #[arg(long)]
     pub no_sgm_refine: bool,
+    /// SGM: aggregate every pixel's whole interval, instead of seeding wide searches (80
+    /// disparities a pixel or more) from the pair matched at half size and searching each
+    /// tile around that (docs/matcher.md, "Seeded from the pair at half size").
+    #[arg(long)]
+    pub no_sgm_seed: bool,
     /// SGM: side of the refinement's correlation window (odd, 3…31; `--block` is bm's). Larger
     /// gives smoother single views but more bias on curved surfaces, which a fused model keeps
     /// (docs/matcher.md, "The rim").
@@ -168,6 +173,7 @@ impl MatchArgs {
             sgm_paths: self.sgm_paths,
             sgm_ad_cap: self.sgm_ad_cap,
             sgm_refine: !self.no_sgm_refine,
+            sgm_seed: !self.no_sgm_seed,
             sgm_refine_block: self.sgm_refine_block,
             min_disparity: self.min_disparity.unwrap_or(0),
             num_disparities: self.num_disparities.unwrap_or(default_range),

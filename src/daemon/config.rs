@@ -287,6 +287,8 @@ pub struct MatchingSection {
     pub sgm_refine: bool,
     /// That correlation's window side (odd, 3 … 31).
     pub sgm_refine_block: u32,
+    /// Wide SGM searches seeded from the pair matched at half size.
+    pub sgm_seed: bool,
     /// "predicted", "paper" or "none".
     pub assist: String,
     /// The paper's weighting factor w (mode "paper").
@@ -307,7 +309,7 @@ impl Default for MatchingSection {
         // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
         // about 330 mm on.
         let m = crate::stereo::MatchParams::default();
-        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string(), plate: PathBuf::new() }
+        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, sgm_seed: m.sgm_seed, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string(), plate: PathBuf::new() }
     }
 }
 
@@ -459,7 +461,7 @@ impl Config {
         let config = self;
         let mut pipeline = crate::pipeline::PipelineOptions::default();
         let m = &config.matching;
-        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, ..crate::stereo::MatchParams::for_method(m.method) };
+        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, sgm_seed: m.sgm_seed, ..crate::stereo::MatchParams::for_method(m.method) };
         // Parallelism comes from the pool: one thread per matcher.
         pipeline.matching.threads = 1;
         // (An unknown colour is refused by `validate`; unvalidated configs find the screen.)

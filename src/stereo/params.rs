@@ -27,6 +27,10 @@ pub struct MatchParams {
     /// from it, instead of from SGM's own sums alone (sharper on slanted surfaces; about 25 ns
     /// per matched pixel more).
     pub sgm_refine: bool,
+    /// SGM: search wide intervals (80 disparities a pixel or more) only around what the pair
+    /// matched at half size, per matcher tile (`matcher/seed.rs`): faster the wider the range,
+    /// and fewer gross errors; off, every pixel aggregates its whole interval.
+    pub sgm_seed: bool,
     /// SGM: side of the refinement's square correlation window, odd, 3…31 pixels (`block`
     /// is `bm`'s own window).
     pub sgm_refine_block: u32,
@@ -69,6 +73,7 @@ impl Default for MatchParams {
             sgm_paths: 4,
             sgm_ad_cap: 25,
             sgm_refine: true,
+            sgm_seed: true,
             sgm_refine_block: 9,
             min_disparity: 0,
             num_disparities: 64,
@@ -178,6 +183,14 @@ impl ValidMatchParams {
     /// Largest disparity searched.
     pub fn max_disparity(&self) -> i32 {
         self.min_disparity + self.num_disparities as i32 - 1
+    }
+
+    /// These parameters for the pair halved in both directions: the range's ends halved
+    /// outwards, `⌊min / 2⌋ … ⌈max / 2⌉` (still within the checked bounds).
+    pub(super) fn halved(&self) -> ValidMatchParams {
+        let lo = self.min_disparity.div_euclid(2);
+        let hi = (self.max_disparity() + 1).div_euclid(2);
+        ValidMatchParams(MatchParams { min_disparity: lo, num_disparities: (hi - lo + 1) as u32, ..self.0.clone() })
     }
 
     /// Worker threads actually used.

@@ -51,6 +51,7 @@ use scratch::{Geometry, StripeInput, StripeScratch, TileSums, PF_SLACK, TILE_H, 
 mod refine;
 mod rows;
 mod scratch;
+mod seed;
 mod tiles;
 #[cfg(test)]
 mod tests;
@@ -110,6 +111,8 @@ pub struct StereoMatcher {
     crop_out: DisparityMap,
     /// SGM's refinement pass's buffers (`refine.rs`), reused.
     refine: refine::RefineScratch,
+    /// The half-size match that seeds wide SGM searches (`seed.rs`), reused.
+    seed: Option<Box<seed::SeedScratch>>,
 }
 
 /// The rectangle of a call that matters: the searched pixels' rows and columns, with the
@@ -177,6 +180,7 @@ impl StereoMatcher {
             crop_intervals: DisparityIntervals::empty(0, 0),
             crop_out: DisparityMap::new(0, 0),
             refine: Default::default(),
+            seed: None,
         }
     }
 
@@ -335,56 +339,7 @@ impl StereoMatcher {
     /// rows: the vertical paths start that far outside the rows they decide (one thread: no
     /// stripes, and exactly the single-stripe map).
     fn compute_sgm(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
-        let (w, h) = (left.width, left.height);
-        let stripes = self.params.thread_count().min(h / SGM_MIN_ROWS).max(1);
-        // The intensity term's level map, over the whole images (not per stripe).
-        let levels = if self.params.sgm_ad_cap > 0 { super::sgm::level_map(left.data, right.data) } else { std::array::from_fn(|v| v as u8) };
-        if stripes == 1 {
-            self.sgm.resize_with(1, Default::default);
-            return Ok(self.sgm[0].compute(&self.params, left, right, &levels, intervals, 0..h, out)?);
-        }
-        self.sgm.resize_with(stripes, Default::default);
-        let rows_per = h.div_ceil(stripes);
-        let params = &self.params;
-        // Per stripe: its rows, the rows it ran over, its map and what it counted.
-        type Stripe = (Range<usize>, Range<usize>, DisparityMap, Result<MatchStats, super::sgm::VolumeRefused>);
-        let results: Vec<Stripe> = std::thread::scope(|scope| {
-            let handles: Vec<_> = self
-                .sgm
-                .iter_mut()
-                .enumerate()
-                .map(|(i, sgm)| {
-                    let rows = i * rows_per..((i + 1) * rows_per).min(h);
-                    let ext = rows.start.saturating_sub(SGM_OVERLAP)..(rows.end + SGM_OVERLAP).min(h);
-                    std::thread::Builder::new()
-                        .name(format!("sgm-{i}"))
-                        .spawn_scoped(scope, move || {
-                            let n = ext.len();
-                            let (l, r) = (&left.data[ext.start * w..ext.end * w], &right.data[ext.start * w..ext.end * w]);
-                            let iv = DisparityIntervals { width: w, height: n, lo: intervals.lo[ext.start * w..ext.end * w].to_vec(), hi: intervals.hi[ext.start * w..ext.end * w].to_vec() };
-                            let mut part = DisparityMap::new(w, n);
-                            let keep = rows.start - ext.start..rows.end - ext.start;
-                            let stats = sgm.compute(params, GrayView { width: w, height: n, data: l }, GrayView { width: w, height: n, data: r }, &levels, &iv, keep, &mut part);
-                            (rows, ext, part, stats)
-                        })
-                        .expect("spawning a matcher thread")
-                })
-                .collect();
-            handles.into_iter().map(|h| h.join().expect("matcher thread panicked")).collect()
-        });
-        let mut totals = MatchStats::default();
-        for (rows, ext, part, s) in results {
-            let s = s?;
-            let src = &part.values()[(rows.start - ext.start) * w..(rows.end - ext.start) * w];
-            out.values_mut()[rows.start * w..rows.end * w].copy_from_slice(src);
-            totals.searched += s.searched;
-            totals.evaluated += s.evaluated;
-            totals.prefilter_ns = totals.prefilter_ns.max(s.prefilter_ns);
-            totals.lr_check_ns += s.lr_check_ns;
-            totals.lr_candidates += s.lr_candidates;
-            totals.lr_passed += s.lr_passed;
-        }
-        Ok(totals)
+        seed::sgm_seeded(&self.params, &mut self.sgm, &mut self.seed, left, right, intervals, out)
     }
 
     /// The speckle filter over a finished map, and the count of what is left.
@@ -397,6 +352,59 @@ impl StereoMatcher {
         }
         totals.matched = out.valid_count();
     }
+}
+
+/// Semi-global matching with `params` in stripes of rows on its threads, with one of `sgms`'
+/// buffers per stripe (see [`StereoMatcher::compute_sgm`]).
+fn sgm_stripes(params: &ValidMatchParams, sgms: &mut Vec<super::sgm::Sgm>, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
+    let (w, h) = (left.width, left.height);
+    let stripes = params.thread_count().min(h / SGM_MIN_ROWS).max(1);
+    // The intensity term's level map, over the whole images (not per stripe).
+    let levels = if params.sgm_ad_cap > 0 { super::sgm::level_map(left.data, right.data) } else { std::array::from_fn(|v| v as u8) };
+    if stripes == 1 {
+        sgms.resize_with(1, Default::default);
+        return Ok(sgms[0].compute(params, left, right, &levels, intervals, 0..h, out)?);
+    }
+    sgms.resize_with(stripes, Default::default);
+    let rows_per = h.div_ceil(stripes);
+    // Per stripe: its rows, the rows it ran over, its map and what it counted.
+    type Stripe = (Range<usize>, Range<usize>, DisparityMap, Result<MatchStats, super::sgm::VolumeRefused>);
+    let results: Vec<Stripe> = std::thread::scope(|scope| {
+        let handles: Vec<_> = sgms
+            .iter_mut()
+            .enumerate()
+            .map(|(i, sgm)| {
+                let rows = i * rows_per..((i + 1) * rows_per).min(h);
+                let ext = rows.start.saturating_sub(SGM_OVERLAP)..(rows.end + SGM_OVERLAP).min(h);
+                std::thread::Builder::new()
+                    .name(format!("sgm-{i}"))
+                    .spawn_scoped(scope, move || {
+                        let n = ext.len();
+                        let (l, r) = (&left.data[ext.start * w..ext.end * w], &right.data[ext.start * w..ext.end * w]);
+                        let iv = DisparityIntervals { width: w, height: n, lo: intervals.lo[ext.start * w..ext.end * w].to_vec(), hi: intervals.hi[ext.start * w..ext.end * w].to_vec() };
+                        let mut part = DisparityMap::new(w, n);
+                        let keep = rows.start - ext.start..rows.end - ext.start;
+                        let stats = sgm.compute(params, GrayView { width: w, height: n, data: l }, GrayView { width: w, height: n, data: r }, &levels, &iv, keep, &mut part);
+                        (rows, ext, part, stats)
+                    })
+                    .expect("spawning a matcher thread")
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().expect("matcher thread panicked")).collect()
+    });
+    let mut totals = MatchStats::default();
+    for (rows, ext, part, s) in results {
+        let s = s?;
+        let src = &part.values()[(rows.start - ext.start) * w..(rows.end - ext.start) * w];
+        out.values_mut()[rows.start * w..rows.end * w].copy_from_slice(src);
+        totals.searched += s.searched;
+        totals.evaluated += s.evaluated;
+        totals.prefilter_ns = totals.prefilter_ns.max(s.prefilter_ns);
+        totals.lr_check_ns += s.lr_check_ns;
+        totals.lr_candidates += s.lr_candidates;
+        totals.lr_passed += s.lr_passed;
+    }
+    Ok(totals)
 }
 
 /// `d.round() as i32` (halves away from zero) of a finite `d` with |d| < 2²³: without a

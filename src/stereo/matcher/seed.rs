@@ -1,0 +1,206 @@
+//! Wide semi-global searches seeded from the pair at half size (`sgm_seed`).
+//!
+//! SGM's passes cost in proportion to the disparities each pixel aggregates. Where a call
+//! searches wide intervals (a full-range frame, a Middlebury pair), the pair is first matched
+//! at half its size over half the range — a quarter of the pixels, an eighth of the pairs —
+//! and each matcher tile (`BAND_TILE`) then searches at full size only the band of
+//! disparities that the half-size match found over the tile and one half-size pixel around
+//! it, doubled and widened by [`SEED_MARGIN`] on each side, within each pixel's own interval.
+//! A tile where fewer than a quarter of the searched half-size pixels matched (occlusions,
+//! a blank wall, the image's left edge) keeps its own intervals. The half-size call is
+//! itself seeded where its intervals are still wide enough, so a range of 256 is narrowed
+//! twice. Narrow calls (the assisted rows) are left as they are.
+//!
+//! The bands are whole tiles' hulls, so a depth edge inside a tile keeps both sides' ranges.
+//! What the seed can lose is a structure too thin to match at half size (under two pixels
+//! there) whose disparity lies outside its tile's band; docs/matcher.md, "Seeded from the
+//! pair at half size", measures what it gains and loses.
+
+use super::*;
+use crate::stereo::sgm::Sgm;
+
+/// Calls whose searched pixels search at least this many disparities on average are seeded:
+/// five blocks of 16. At four (64 disparities) the half-size call cost more than it saved
+/// (Teddy: 8.2 against 7.5 ms).
+const SEED_MIN_WIDTH: usize = 80;
+/// Disparities added on each side of a tile's seeded band: the half-size match's error,
+/// doubled, with room to spare.
+const SEED_MARGIN: i32 = 4;
+
+/// The seed's buffers, reused from call to call.
+pub(super) struct SeedScratch {
+    left: Vec<u8>,
+    right: Vec<u8>,
+    /// The half-size call's intervals and map, and its own matcher's buffers.
+    intervals: DisparityIntervals,
+    map: DisparityMap,
+    sgm: Vec<Sgm>,
+    /// The next level down, where the half-size call is seeded in turn.
+    next: Option<Box<SeedScratch>>,
+    /// The intervals the full-size call searches.
+    seeded: DisparityIntervals,
+}
+
+impl Default for SeedScratch {
+    fn default() -> Self {
+        SeedScratch {
+            left: Vec::new(),
+            right: Vec::new(),
+            intervals: DisparityIntervals::empty(0, 0),
+            map: DisparityMap::new(0, 0),
+            sgm: Vec::new(),
+            next: None,
+            seeded: DisparityIntervals::empty(0, 0),
+        }
+    }
+}
+
+/// Semi-global matching over `intervals`, seeded from the half-size pair where they are
+/// wide and `params.sgm_seed` is set, in stripes otherwise as always ([`sgm_stripes`]).
+/// The half-size calls' pairs count in `evaluated`.
+pub(super) fn sgm_seeded(
+    params: &ValidMatchParams,
+    sgms: &mut Vec<Sgm>,
+    seed: &mut Option<Box<SeedScratch>>,
+    left: GrayView,
+    right: GrayView,
+    intervals: &DisparityIntervals,
+    out: &mut DisparityMap,
+) -> Result<MatchStats, MatchError> {
+    if !params.sgm_seed || !wide(intervals) {
+        return sgm_stripes(params, sgms, left, right, intervals, out);
+    }
+    let s = seed.get_or_insert_with(Default::default);
+    let half = s.seed(params, left, right, intervals)?;
+    let mut stats = sgm_stripes(params, sgms, left, right, &s.seeded, out)?;
+    stats.evaluated += half.evaluated;
+    Ok(stats)
+}
+
+/// Whether `intervals` are wide enough to seed, over an image of at least two tiles each way.
+fn wide(intervals: &DisparityIntervals) -> bool {
+    if intervals.width < 2 * TILE_W || intervals.height < 2 * TILE_H {
+        return false;
+    }
+    // Branch-free, so that it vectorises.
+    let (mut pixels, mut pairs) = (0u64, 0u64);
+    for (&a, &b) in intervals.lo.iter().zip(&intervals.hi) {
+        let ok = a <= b;
+        pixels += ok as u64;
+        pairs += if ok { (b as i32 - a as i32 + 1) as u64 } else { 0 };
+    }
+    pixels > 0 && pairs >= SEED_MIN_WIDTH as u64 * pixels
+}
+
+/// The mean of each 2 × 2 block of `img`, rounded (the last column and row of an odd size
+/// left out); returns the half size.
+fn halve(img: GrayView, out: &mut Vec<u8>) -> (usize, usize) {
+    let (w, h) = (img.width, img.height);
+    let (cw, ch) = (w / 2, h / 2);
+    out.clear();
+    out.reserve(cw * ch);
+    for y in 0..ch {
+        let (a, b) = (&img.data[2 * y * w..][..2 * cw], &img.data[(2 * y + 1) * w..][..2 * cw]);
+        out.extend(a.chunks_exact(2).zip(b.chunks_exact(2)).map(|(a, b)| ((a[0] as u16 + a[1] as u16 + b[0] as u16 + b[1] as u16 + 2) >> 2) as u8));
+    }
+    (cw, ch)
+}
+
+/// The half-size intervals of `iv` into `out` (`cw × ch`): each half-size pixel searches the
+/// hull of its four pixels' searched intervals, halved outwards (`⌊lo / 2⌋ … ⌈hi / 2⌉`),
+/// within `range`; nothing where none of the four searches.
+fn halve_intervals(iv: &DisparityIntervals, (cw, ch): (usize, usize), range: (i32, i32), out: &mut DisparityIntervals) {
+    let w = iv.width;
+    (out.width, out.height) = (cw, ch);
+    out.lo.clear();
+    out.hi.clear();
+    let (cmin, cmax) = (range.0 as i16, range.1 as i16);
+    for y in 0..ch {
+        let (top, bottom) = (2 * y * w..2 * y * w + 2 * cw, (2 * y + 1) * w..(2 * y + 1) * w + 2 * cw);
+        let (lo0, lo1, hi0, hi1) = (&iv.lo[top.clone()], &iv.lo[bottom.clone()], &iv.hi[top], &iv.hi[bottom]);
+        for x in 0..cw {
+            let (mut lo, mut hi) = (i16::MAX, i16::MIN);
+            for (l, h) in [(lo0[2 * x], hi0[2 * x]), (lo0[2 * x + 1], hi0[2 * x + 1]), (lo1[2 * x], hi1[2 * x]), (lo1[2 * x + 1], hi1[2 * x + 1])] {
+                let ok = l <= h;
+                lo = lo.min(if ok { l } else { i16::MAX });
+                hi = hi.max(if ok { h } else { i16::MIN });
+            }
+            // (An arithmetic shift is the floor of a half, negative disparities included.)
+            let (a, b) = ((lo >> 1).max(cmin), ((hi as i32 + 1) >> 1).min(cmax as i32) as i16);
+            let ok = lo <= hi && a <= b;
+            out.lo.push(if ok { a } else { 1 });
+            out.hi.push(if ok { b } else { 0 });
+        }
+    }
+}
+
+impl SeedScratch {
+    /// Matches the pair at half size and writes `self.seeded`: `intervals`, each pixel's cut
+    /// to its tile's band (see the module's text). Returns what the half-size call counted.
+    fn seed(&mut self, params: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals) -> Result<MatchStats, MatchError> {
+        let (cw, ch) = halve(left, &mut self.left);
+        halve(right, &mut self.right);
+        let half = params.halved();
+        halve_intervals(intervals, (cw, ch), (half.min_disparity, half.max_disparity()), &mut self.intervals);
+        if (self.map.width, self.map.height) != (cw, ch) {
+            self.map = DisparityMap::new(cw, ch);
+        }
+        let lv = GrayView { width: cw, height: ch, data: &self.left };
+        let rv = GrayView { width: cw, height: ch, data: &self.right };
+        let stats = sgm_seeded(&half, &mut self.sgm, &mut self.next, lv, rv, &self.intervals, &mut self.map)?;
+        cut_to_bands(intervals, &self.intervals, &self.map, &mut self.seeded);
+        Ok(stats)
+    }
+}
+
+/// `intervals` into `out`, each searched pixel's cut to the band of its matcher tile: the
+/// hull of the half-size matches (`map`, over `half`'s searched pixels) over the tile and one
+/// half-size pixel around it, doubled and widened by [`SEED_MARGIN`]. A tile where fewer
+/// than a quarter of those searched pixels matched, and a pixel whose own interval misses
+/// its band, keep their intervals.
+fn cut_to_bands(intervals: &DisparityIntervals, half: &DisparityIntervals, map: &DisparityMap, out: &mut DisparityIntervals) {
+    let (w, h) = (intervals.width, intervals.height);
+    let (cw, ch) = (half.width, half.height);
+    (out.width, out.height) = (w, h);
+    out.lo.clear();
+    out.lo.extend_from_slice(&intervals.lo);
+    out.hi.clear();
+    out.hi.extend_from_slice(&intervals.hi);
+    let map = map.values();
+    for ty in (0..h).step_by(TILE_H) {
+        for tx in (0..w).step_by(TILE_W) {
+            let (x1, y1) = ((tx + TILE_W).min(w), (ty + TILE_H).min(h));
+            // The half-size pixels over the tile, and one around it.
+            let xs = (tx / 2).saturating_sub(1)..(x1.div_ceil(2) + 1).min(cw);
+            let ys = (ty / 2).saturating_sub(1)..(y1.div_ceil(2) + 1).min(ch);
+            let (mut searched, mut matched) = (0usize, 0usize);
+            let (mut dlo, mut dhi) = (f32::INFINITY, f32::NEG_INFINITY);
+            for y in ys {
+                for i in xs.clone().map(|x| y * cw + x) {
+                    let d = map[i];
+                    searched += (half.lo[i] <= half.hi[i]) as usize;
+                    if !d.is_nan() {
+                        matched += 1;
+                        dlo = dlo.min(d);
+                        dhi = dhi.max(d);
+                    }
+                }
+            }
+            if matched == 0 || 4 * matched < searched {
+                continue;
+            }
+            let blo = (2.0 * dlo).floor() as i32 - SEED_MARGIN;
+            let bhi = (2.0 * dhi).ceil() as i32 + SEED_MARGIN;
+            for y in ty..y1 {
+                let row = y * w + tx..y * w + x1;
+                for (lo, hi) in out.lo[row.clone()].iter_mut().zip(&mut out.hi[row]) {
+                    let (a, b) = ((*lo as i32).max(blo), (*hi as i32).min(bhi));
+                    // (An unsearched pixel has lo > hi, so a > b: it stays unsearched.)
+                    if a <= b {
+                        (*lo, *hi) = (a as i16, b as i16);
+                    }
+                }
+            }
+        }
+    }
+}
