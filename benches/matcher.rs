@@ -1,8 +1,8 @@
 //! `cargo bench --bench matcher [-- FILTER]`: times the matcher (full range and narrow
 //! intervals, per pixel and per tile; both methods, `bm` and `sgm`, each with its defaults)
 //! on the Middlebury pairs in `../shared/data` when present, and on a simulated pair always.
-//! Prints min and median milliseconds per case over repeated runs; `-- sgm` runs the
-//! semi-global cases alone.
+//! Prints min and median milliseconds per case over repeated runs (15, or `RUNS=N` in the
+//! environment: more for a profiler); `-- sgm` runs the semi-global cases alone.
 //!
 //! For the side-by-side comparison with OpenCV use `../shared/bench/peer_stereo.py` with
 //! `--eval-cmd "spinscan disparity … --threads 1 --repeat 5 -o {out}"` (see README).

@@ -204,3 +204,144 @@ fn cut_to_bands(intervals: &DisparityIntervals, half: &DisparityIntervals, map: 
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stereo::MatchParams;
+
+    fn intervals(w: usize, h: usize, v: &[Option<(i16, i16)>]) -> DisparityIntervals {
+        let mut iv = DisparityIntervals::empty(w, h);
+        for (i, b) in v.iter().enumerate() {
+            if let Some((lo, hi)) = *b {
+                (iv.lo[i], iv.hi[i]) = (lo, hi);
+            }
+        }
+        iv
+    }
+
+    #[test]
+    fn half_size_intervals_are_the_hull_of_four_halved_outwards() {
+        // Four half-size pixels (and an odd last column, left out): all searched; one of the
+        // four; none; negative disparities, clipped to the half range.
+        let full = intervals(
+            9,
+            2,
+            &[
+                Some((3, 9)), Some((0, 4)), Some((5, 5)), None, None, None, Some((-7, -3)), Some((-40, -6)), Some((0, 0)),
+                Some((2, 2)), Some((1, 11)), None, None, None, None, None, Some((-1, -1)), Some((0, 0)),
+            ],
+        );
+        let mut half = DisparityIntervals::empty(0, 0);
+        halve_intervals(&full, (4, 1), (-16, 6), &mut half);
+        assert_eq!((half.width, half.height), (4, 1));
+        // ⌊0 / 2⌋ … ⌈11 / 2⌉; ⌊5 / 2⌋ … ⌈5 / 2⌉; nothing; ⌊−40 / 2⌋ = −20 → −16 … ⌈−1 / 2⌉ = 0.
+        assert_eq!(half.lo, [0, 2, 1, -16]);
+        assert_eq!(half.hi, [6, 3, 0, 0]);
+    }
+
+    #[test]
+    fn each_tile_searches_around_its_half_size_matches() {
+        // Three tiles of 32 × 16 in a row (96 × 16); at half size, matched at 10 … 12; a
+        // quarter matched at −3; an eighth matched.
+        let (w, h) = (96, 16);
+        let full = DisparityIntervals::full(w, h, -40, 60);
+        let (cw, ch) = (48, 8);
+        let half = DisparityIntervals::full(cw, ch, -20, 30);
+        let mut map = DisparityMap::new(cw, ch);
+        for y in 0..ch {
+            for x in 0..cw {
+                let d = match x {
+                    // (Columns 16 and 32 are the next tiles' border: 10 … 12 there too.)
+                    0..=16 => Some(10.0 + (x % 3) as f32),
+                    17..=31 => (x % 2 == 0 && y % 2 == 0).then_some(-3.0),
+                    32 => Some(11.0),
+                    _ => (x % 8 == 0).then_some(25.0),
+                };
+                map.values_mut()[y * cw + x] = d.unwrap_or(f32::NAN);
+            }
+        }
+        let mut out = DisparityIntervals::empty(0, 0);
+        cut_to_bands(&full, &half, &map, &mut out);
+        // Tile 0 (half-size columns 0 … 16): 2 · 10 − 4 … 2 · 12 + 4.
+        assert_eq!(out.get(5, 3), Some((16, 28)));
+        // Tile 1 (half-size columns 15 … 32, 144 pixels): 15 and 16 at 10 and 11, 32 at 11,
+        // seven columns at −3 on four rows: 52 matched, over a quarter: −6 − 4 … 22 + 4.
+        assert_eq!(out.get(40, 10), Some((-10, 26)));
+        // Tile 2 (columns 31 … 47, 136 pixels): 32 and 40 matched, 16 pixels, fewer than a
+        // quarter: its intervals as they were.
+        assert_eq!(out.get(80, 15), Some((-40, 60)));
+
+        // A pixel searching nothing stays so; one whose interval misses its band keeps it.
+        let mut own = full.clone();
+        own.set(1, 1, None);
+        own.set(2, 1, Some((40, 50)));
+        own.set(3, 1, Some((20, 50)));
+        cut_to_bands(&own, &half, &map, &mut out);
+        assert_eq!((out.get(1, 1), out.get(2, 1), out.get(3, 1)), (None, Some((40, 50)), Some((20, 28))));
+    }
+
+    /// A textured plane at disparity `back` with a textured rectangle at `front` before it.
+    fn two_planes(w: usize, h: usize, back: usize, front: usize) -> (Vec<u8>, Vec<u8>, impl Fn(usize, usize) -> usize) {
+        let depth = move |x: usize, y: usize| if (70..170).contains(&x) && (30..80).contains(&y) { front } else { back };
+        let mut state = 7u32;
+        let mut noise = || {
+            state = state.wrapping_mul(1664525).wrapping_add(1013904223);
+            (state >> 24) as u8
+        };
+        // Each plane's texture, by the left pixel that sees it.
+        let (tex_back, tex_front): (Vec<u8>, Vec<u8>) = (0..w * h).map(|_| (noise(), noise())).unzip();
+        let left: Vec<u8> = (0..w * h).map(|i| if depth(i % w, i / w) == front { tex_front[i] } else { tex_back[i] }).collect();
+        // Right pixel xr sees the front plane where left pixel xr + front is on it, the back
+        // plane otherwise (left pixel xr + back; the texture past the image is the first row's).
+        let mut right = vec![0u8; w * h];
+        for y in 0..h {
+            for xr in 0..w {
+                let xf = xr + front;
+                right[y * w + xr] = if xf < w && depth(xf, y) == front { tex_front[y * w + xf] } else { tex_back[(y * w + xr + back) % (w * h)] };
+            }
+        }
+        (left, right, depth)
+    }
+
+    fn run(seed: bool, min_disparity: i32, l: &[u8], r: &[u8], w: usize, h: usize) -> (DisparityMap, MatchStats) {
+        let p = MatchParams { sgm_seed: seed, min_disparity, num_disparities: 128, threads: 1, speckle_window: 0, ..MatchParams::for_method(crate::stereo::Method::Sgm) };
+        let mut m = StereoMatcher::new(p.validate().unwrap());
+        let mut out = DisparityMap::new(w, h);
+        let iv = m.full_intervals(w, h, None);
+        let stats = m.compute(GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), &iv, &mut out).unwrap();
+        (out, stats)
+    }
+
+    #[test]
+    fn a_seeded_search_finds_both_sides_of_a_depth_edge_with_less_work() {
+        let (w, h) = (256, 112);
+        let (l, r, depth) = two_planes(w, h, 20, 100);
+        let ((seeded, s), (full, f)) = (run(true, 0, &l, &r, w, h), run(false, 0, &l, &r, w, h));
+        // Right of the range's reach (x ≥ 128), away from the rectangle's occluded strip.
+        let good = |map: &DisparityMap, front: bool| {
+            let px = (0..h).flat_map(|y| (128..w).map(move |x| (x, y))).filter(|&(x, y)| (depth(x, y) == 100) == front);
+            let (n, ok) = px.fold((0, 0), |(n, ok), (x, y)| (n + 1, ok + map.get(x, y).is_some_and(|d| (d - depth(x, y) as f32).abs() <= 1.0) as usize));
+            ok as f64 / n as f64
+        };
+        for front in [true, false] {
+            assert!(good(&seeded, front) >= 0.97 && good(&seeded, front) >= good(&full, front) - 0.01, "front {front}: {} seeded, {} full", good(&seeded, front), good(&full, front));
+        }
+        // Fewer pairs aggregated, the half-size call's included, though the tiles along the
+        // rectangle's edges search both planes' disparities.
+        assert!(s.evaluated * 4 < f.evaluated * 3, "{} seeded, {} full", s.evaluated, f.evaluated);
+    }
+
+    #[test]
+    fn negative_ranges_are_seeded_too() {
+        // The same scene seen with the images swapped: disparities −20 and −100.
+        let (w, h) = (256, 112);
+        let (l, r, _) = two_planes(w, h, 20, 100);
+        let ((seeded, s), (_, f)) = (run(true, -127, &r, &l, w, h), run(false, -127, &r, &l, w, h));
+        // The rows above and below the rectangle, where both images see the back plane alone.
+        let back = (0..h).filter(|y| !(30..80).contains(y)).flat_map(|y| (0..200).map(move |x| (x, y)));
+        let (n, ok) = back.fold((0, 0), |(n, ok), (x, y)| (n + 1, ok + seeded.get(x, y).is_some_and(|d| (d + 20.0).abs() <= 1.0) as usize));
+        assert!(ok * 100 >= n * 95, "{ok} of {n} at −20");
+        assert!(s.evaluated * 4 < f.evaluated * 3, "{} seeded, {} full", s.evaluated, f.evaluated);
+    }
+}
