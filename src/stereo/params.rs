@@ -185,11 +185,12 @@ impl ValidMatchParams {
         self.min_disparity + self.num_disparities as i32 - 1
     }
 
-    /// These parameters for the pair halved in both directions: the range's ends halved
-    /// outwards, `⌊min / 2⌋ … ⌈max / 2⌉` (still within the checked bounds).
+    /// These parameters for the pair halved in both directions: the disparities whose double
+    /// lies in the range, `⌈min / 2⌉ … ⌊max / 2⌋` (half as many: 0 … 127 gives 0 … 63, four
+    /// blocks of 16 rather than five), at least one; still within the checked bounds.
     pub(super) fn halved(&self) -> ValidMatchParams {
-        let lo = self.min_disparity.div_euclid(2);
-        let hi = (self.max_disparity() + 1).div_euclid(2);
+        let lo = -(-self.min_disparity).div_euclid(2);
+        let hi = self.max_disparity().div_euclid(2).max(lo);
         ValidMatchParams(MatchParams { min_disparity: lo, num_disparities: (hi - lo + 1) as u32, ..self.0.clone() })
     }
 

@@ -241,6 +241,18 @@ mod tests {
     }
 
     #[test]
+    fn the_half_size_range_holds_the_disparities_whose_double_is_in_range() {
+        let half = |min_disparity, num_disparities| {
+            let p = MatchParams { min_disparity, num_disparities, ..MatchParams::for_method(crate::stereo::Method::Sgm) }.validate().unwrap().halved();
+            (p.min_disparity, p.max_disparity())
+        };
+        assert_eq!(half(0, 128), (0, 63));
+        assert_eq!(half(-127, 128), (-63, 0));
+        assert_eq!(half(5, 96), (3, 50));
+        assert_eq!(half(-3, 1), (-1, -1));
+    }
+
+    #[test]
     fn each_tile_searches_around_its_half_size_matches() {
         // Three tiles of 32 × 16 in a row (96 × 16); at half size, matched at 10 … 12; a
         // quarter matched at −3; an eighth matched.
