@@ -107,11 +107,13 @@ pub struct MatchArgs {
     /// correlation cost around each winner (faster, less precise on slanted surfaces).
     #[arg(long)]
     pub no_sgm_refine: bool,
-    /// SGM: aggregate every pixel's whole interval, instead of seeding wide searches (80
-    /// disparities a pixel or more) from the pair matched at half size and searching each
-    /// tile around that (docs/matcher.md, "Seeded from the pair at half size").
-    #[arg(long)]
-    pub no_sgm_seed: bool,
+    /// Seed wide searches (sgm: 80 disparities a pixel or more; bm: 64) from the pair matched
+    /// at half size, each tile then searching only around that (faster, fewer gross errors;
+    /// bm's seeded maps are denser, with a slightly larger median error in a scan's views;
+    /// docs/matcher.md, "Seeded from the pair at half size"): on or off. Default: on for
+    /// sgm, off for bm.
+    #[arg(long, value_name = "on|off", value_parser = on_off)]
+    pub seed: Option<bool>,
     /// SGM: side of the refinement's correlation window (odd, 3…31; `--block` is bm's). Larger
     /// gives smoother single views but more bias on curved surfaces, which a fused model keeps
     /// (docs/matcher.md, "The rim").
@@ -151,6 +153,15 @@ pub struct MatchArgs {
     pub speckle_range: Option<f32>,
 }
 
+/// `on` or `off` (a switch whose default depends on other flags).
+fn on_off(s: &str) -> Result<bool, String> {
+    match s {
+        "on" => Ok(true),
+        "off" => Ok(false),
+        _ => Err("expected on or off".into()),
+    }
+}
+
 impl MatchArgs {
     pub fn params(&self) -> Result<MatchParams, Failure> {
         self.params_with_default(64)
@@ -173,7 +184,7 @@ impl MatchArgs {
             sgm_paths: self.sgm_paths,
             sgm_ad_cap: self.sgm_ad_cap,
             sgm_refine: !self.no_sgm_refine,
-            sgm_seed: !self.no_sgm_seed,
+            seed: self.seed.unwrap_or(base.seed),
             sgm_refine_block: self.sgm_refine_block,
             min_disparity: self.min_disparity.unwrap_or(0),
             num_disparities: self.num_disparities.unwrap_or(default_range),

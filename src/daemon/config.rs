@@ -287,8 +287,9 @@ pub struct MatchingSection {
     pub sgm_refine: bool,
     /// That correlation's window side (odd, 3 … 31).
     pub sgm_refine_block: u32,
-    /// Wide SGM searches seeded from the pair matched at half size.
-    pub sgm_seed: bool,
+    /// Wide searches seeded from the pair matched at half size: "auto" (the method's
+    /// default: on for sgm, off for bm), "on" or "off".
+    pub seed: SeedSetting,
     /// "predicted", "paper" or "none".
     pub assist: String,
     /// The paper's weighting factor w (mode "paper").
@@ -304,12 +305,59 @@ pub struct MatchingSection {
     pub plate: PathBuf,
 }
 
+/// `[matching] seed`: whether wide searches are seeded from the half-size pair. Written
+/// `"auto"`, `"on"` or `"off"`; `true` and `false` are read as on and off.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase", try_from = "SeedWritten")]
+pub enum SeedSetting {
+    /// The method's default (`MatchParams::for_method`): on for sgm, off for bm.
+    #[default]
+    Auto,
+    On,
+    Off,
+}
+
+/// `seed` as a config file may write it.
+#[derive(serde::Deserialize)]
+#[serde(untagged)]
+enum SeedWritten {
+    Flag(bool),
+    Word(String),
+    Other(serde::de::IgnoredAny),
+}
+
+impl TryFrom<SeedWritten> for SeedSetting {
+    type Error = String;
+    fn try_from(v: SeedWritten) -> Result<Self, String> {
+        match v {
+            SeedWritten::Flag(on) => Ok(if on { SeedSetting::On } else { SeedSetting::Off }),
+            SeedWritten::Word(w) => match w.as_str() {
+                "auto" => Ok(SeedSetting::Auto),
+                "on" => Ok(SeedSetting::On),
+                "off" => Ok(SeedSetting::Off),
+                _ => Err(format!("seed = {w:?}: expected \"auto\", \"on\", \"off\", true or false")),
+            },
+            SeedWritten::Other(_) => Err("seed: expected \"auto\", \"on\", \"off\", true or false".into()),
+        }
+    }
+}
+
+impl SeedSetting {
+    pub fn resolve(self, method: crate::stereo::Method) -> bool {
+        match self {
+            SeedSetting::Auto => crate::stereo::MatchParams::for_method(method).seed,
+            SeedSetting::On => true,
+            SeedSetting::Off => false,
+        }
+    }
+}
+
 impl Default for MatchingSection {
     fn default() -> Self {
         // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
         // about 330 mm on.
         let m = crate::stereo::MatchParams::default();
-        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, sgm_seed: m.sgm_seed, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string(), plate: PathBuf::new() }
+        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, seed: SeedSetting::Auto, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string(), plate: PathBuf::new() }
     }
 }
 
@@ -461,7 +509,7 @@ impl Config {
         let config = self;
         let mut pipeline = crate::pipeline::PipelineOptions::default();
         let m = &config.matching;
-        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, sgm_seed: m.sgm_seed, ..crate::stereo::MatchParams::for_method(m.method) };
+        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, seed: m.seed.resolve(m.method), ..crate::stereo::MatchParams::for_method(m.method) };
         // Parallelism comes from the pool: one thread per matcher.
         pipeline.matching.threads = 1;
         // (An unknown colour is refused by `validate`; unvalidated configs find the screen.)
@@ -595,7 +643,7 @@ mod tests {
     #[test]
     fn matcher_parameters_follow_the_matchers_rules_and_every_accepted_value_builds() {
         let p = Path::new("x.toml");
-        for (text, key) in [("p1 = 0", "matching.p1"), ("p2 = 9000", "matching.p2"), ("sgm_paths = 6", "matching.sgm_paths"), ("sgm_ad_cap = 101", "matching.sgm_ad_cap"), ("method = \"census\"", "expected `bm` or `sgm`"), ("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("sgm_refine_block = 8", "matching.sgm_refine_block"), ("sgm_refine_block = 33", "matching.sgm_refine_block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities")] {
+        for (text, key) in [("p1 = 0", "matching.p1"), ("p2 = 9000", "matching.p2"), ("sgm_paths = 6", "matching.sgm_paths"), ("sgm_ad_cap = 101", "matching.sgm_ad_cap"), ("method = \"census\"", "expected `bm` or `sgm`"), ("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("sgm_refine_block = 8", "matching.sgm_refine_block"), ("sgm_refine_block = 33", "matching.sgm_refine_block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities"), ("seed = \"maybe\"", "expected \"auto\", \"on\", \"off\", true or false"), ("seed = 1", "seed: expected \"auto\"")] {
             let e = Config::parse(p, &format!("[matching]\n{text}\n")).unwrap_err().to_string();
             assert!(e.contains(key), "{text}: {e}");
         }
@@ -609,6 +657,11 @@ mod tests {
         let c = Config::parse(p, "[matching]\nmethod = \"sgm\"\np1 = 7\np2 = 2000\nsgm_paths = 8\n").unwrap();
         let m = c.pipeline_settings().pipeline.matching;
         assert_eq!((m.method, m.p1, m.p2, m.sgm_paths, m.uniqueness_ratio), (crate::stereo::Method::Sgm, 7, 2000, 8, 0));
+        // `seed`: the method's default unless said.
+        for (text, seed) in [("method = \"sgm\"", true), ("method = \"bm\"", false), ("method = \"sgm\"\nseed = \"off\"", false), ("method = \"bm\"\nseed = \"on\"", true), ("method = \"bm\"\nseed = true", true)] {
+            let c = Config::parse(p, &format!("[matching]\n{text}\n")).unwrap();
+            assert_eq!(c.pipeline_settings().pipeline.matching.seed, seed, "{text}");
+        }
     }
 
     #[test]

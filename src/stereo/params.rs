@@ -27,10 +27,12 @@ pub struct MatchParams {
     /// from it, instead of from SGM's own sums alone (sharper on slanted surfaces; about 25 ns
     /// per matched pixel more).
     pub sgm_refine: bool,
-    /// SGM: search wide intervals (80 disparities a pixel or more) only around what the pair
-    /// matched at half size, per matcher tile (`matcher/seed.rs`): faster the wider the range,
-    /// and fewer gross errors; off, every pixel aggregates its whole interval.
-    pub sgm_seed: bool,
+    /// Search wide intervals (sgm: 80 disparities a pixel or more; bm: 64) only around what
+    /// the pair matched at half size, per matcher tile (`matcher/seed.rs`): faster the wider
+    /// the range, and fewer gross errors; off, every pixel searches its whole interval. On
+    /// for sgm, off for bm (whose seeded matches are denser but, in a scan's views, a little
+    /// further from the surface: docs/matcher.md, "Seeded from the pair at half size").
+    pub seed: bool,
     /// SGM: side of the refinement's square correlation window, odd, 3…31 pixels (`block`
     /// is `bm`'s own window).
     pub sgm_refine_block: u32,
@@ -73,7 +75,7 @@ impl Default for MatchParams {
             sgm_paths: 4,
             sgm_ad_cap: 25,
             sgm_refine: true,
-            sgm_seed: true,
+            seed: false,
             sgm_refine_block: 9,
             min_disparity: 0,
             num_disparities: 64,
@@ -99,7 +101,7 @@ impl MatchParams {
     pub fn for_method(method: Method) -> MatchParams {
         match method {
             Method::Bm => MatchParams::default(),
-            Method::Sgm => MatchParams { method, uniqueness_ratio: 0, speckle_range_px: 2.0, texture_threshold: 0, ..MatchParams::default() },
+            Method::Sgm => MatchParams { method, uniqueness_ratio: 0, speckle_range_px: 2.0, texture_threshold: 0, seed: true, ..MatchParams::default() },
         }
     }
 }

@@ -102,8 +102,9 @@ pub struct StereoMatcher {
     right_pf_rev: Vec<u8>,
     stripes: Vec<StripeScratch>,
     speckle: SpeckleFilter,
-    /// The semi-global matcher's buffers (`--method sgm`), one per stripe.
-    sgm: Vec<super::sgm::Sgm>,
+    /// The semi-global matcher's buffers (`--method sgm`), one per stripe, for each level of
+    /// a seeded search (`seed.rs`; 0: the pair as given).
+    sgm_levels: Vec<Vec<super::sgm::Sgm>>,
     /// The cropped inputs and output (see [`Crop`]), reused.
     crop_left: Vec<u8>,
     crop_right: Vec<u8>,
@@ -111,8 +112,8 @@ pub struct StereoMatcher {
     crop_out: DisparityMap,
     /// SGM's refinement pass's buffers (`refine.rs`), reused.
     refine: refine::RefineScratch,
-    /// The half-size match that seeds wide SGM searches (`seed.rs`), reused.
-    seed: Option<Box<seed::SeedScratch>>,
+    /// The half-size matches that seed wide searches (`seed.rs`), one per level, reused.
+    seeds: Vec<seed::SeedScratch>,
 }
 
 /// The rectangle of a call that matters: the searched pixels' rows and columns, with the
@@ -174,13 +175,13 @@ impl StereoMatcher {
             right_pf_rev: Vec::new(),
             stripes: Vec::new(),
             speckle: SpeckleFilter::default(),
-            sgm: Vec::new(),
+            sgm_levels: Vec::new(),
             crop_left: Vec::new(),
             crop_right: Vec::new(),
             crop_intervals: DisparityIntervals::empty(0, 0),
             crop_out: DisparityMap::new(0, 0),
             refine: Default::default(),
-            seed: None,
+            seeds: Vec::new(),
         }
     }
 
@@ -268,20 +269,16 @@ impl StereoMatcher {
         stats
     }
 
-    /// [`StereoMatcher::compute`] over the whole of checked inputs.
+    /// [`StereoMatcher::compute`] over the whole of checked inputs: the method's call (seeded
+    /// from the half-size pair where wide, `seed.rs`), SGM's refinement, the speckle filter.
     fn compute_whole(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
-        let mut totals = if self.params.method == Method::Sgm {
-            let mut totals = self.compute_sgm(left, right, intervals, out)?;
-            if self.params.subpixel && self.params.sgm_refine {
-                // A mask (the object segmented from the blue screen) marks a scan's view.
-                let masked = intervals.lo.iter().zip(&intervals.hi).any(|(a, b)| a > b);
-                self.refine_subpixel(left, right, intervals, out, masked, &mut totals);
-            }
-            totals
-        } else {
-            let params = self.params.clone();
-            self.correlate(&params, left, right, intervals, out)
-        };
+        let params = self.params.clone();
+        let mut totals = seed::match_level(self, &params, 0, left, right, intervals, out)?;
+        if params.method == Method::Sgm && params.subpixel && params.sgm_refine {
+            // A mask (the object segmented from the blue screen) marks a scan's view.
+            let masked = intervals.lo.iter().zip(&intervals.hi).any(|(a, b)| a > b);
+            self.refine_subpixel(left, right, intervals, out, masked, &mut totals);
+        }
         self.speckle_filter(out, &mut totals);
         Ok(totals)
     }
@@ -334,14 +331,6 @@ impl StereoMatcher {
         totals
     }
 
-    /// Semi-global matching, in stripes of rows on `threads` threads. Each stripe runs the
-    /// whole method over its rows and [`SGM_OVERLAP`] more above and below, and keeps its own
-    /// rows: the vertical paths start that far outside the rows they decide (one thread: no
-    /// stripes, and exactly the single-stripe map).
-    fn compute_sgm(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
-        seed::sgm_seeded(&self.params, &mut self.sgm, &mut self.seed, left, right, intervals, out)
-    }
-
     /// The speckle filter over a finished map, and the count of what is left.
     fn speckle_filter(&mut self, out: &mut DisparityMap, totals: &mut MatchStats) {
         let params = &self.params;
@@ -354,8 +343,11 @@ impl StereoMatcher {
     }
 }
 
-/// Semi-global matching with `params` in stripes of rows on its threads, with one of `sgms`'
-/// buffers per stripe (see [`StereoMatcher::compute_sgm`]).
+/// Semi-global matching with `params`, in stripes of rows on its threads, with one of
+/// `sgms`' buffers per stripe. Each stripe runs the whole method over its rows and
+/// [`SGM_OVERLAP`] more above and below, and keeps its own rows: the vertical paths start that
+/// far outside the rows they decide (one thread: no stripes, and exactly the single-stripe
+/// map).
 fn sgm_stripes(params: &ValidMatchParams, sgms: &mut Vec<super::sgm::Sgm>, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
     let (w, h) = (left.width, left.height);
     let stripes = params.thread_count().min(h / SGM_MIN_ROWS).max(1);

@@ -1,15 +1,15 @@
-//! Wide semi-global searches seeded from the pair at half size (`sgm_seed`).
+//! Wide searches seeded from the pair at half size (`MatchParams::seed`).
 //!
-//! SGM's passes cost in proportion to the disparities each pixel aggregates. Where a call
-//! searches wide intervals (a full-range frame, a Middlebury pair), the pair is first matched
-//! at half its size over half the range — a quarter of the pixels, an eighth of the pairs —
-//! and each matcher tile (`BAND_TILE`) then searches at full size only the band of
-//! disparities that the half-size match found over the tile and one half-size pixel around
-//! it, doubled and widened by [`SEED_MARGIN`] on each side, within each pixel's own interval.
-//! A tile where fewer than a quarter of the searched half-size pixels matched (occlusions,
-//! a blank wall, the image's left edge) keeps its own intervals. The half-size call is
-//! itself seeded where its intervals are still wide enough, so a range of 256 is narrowed
-//! twice. Narrow calls (the assisted rows) are left as they are.
+//! Both matchers cost more the more disparities each pixel searches — SGM's passes most of
+//! all. Where a call searches wide intervals (a full-range frame, a Middlebury pair), the pair
+//! is first matched at half its size over half the range — a quarter of the pixels, an
+//! eighth of the pairs — with the same method, and each matcher tile (`BAND_TILE`) then
+//! searches at full size only the band of disparities that the half-size match found over
+//! the tile and one half-size pixel around it, doubled and widened by [`SEED_MARGIN`] on each
+//! side, within each pixel's own interval. A tile where fewer than a quarter of the searched
+//! half-size pixels matched (occlusions, a blank wall, the image's left edge) keeps its own
+//! intervals. The half-size call is itself seeded where its intervals are still wide enough,
+//! so a range of 256 is narrowed twice. Narrow calls (the assisted rows) are left as they are.
 //!
 //! The bands are whole tiles' hulls, so a depth edge inside a tile keeps both sides' ranges.
 //! What the seed can lose is a structure too thin to match at half size (under two pixels
@@ -17,68 +17,76 @@
 //! pair at half size", measures what it gains and loses.
 
 use super::*;
-use crate::stereo::sgm::Sgm;
 
-/// Calls whose searched pixels search at least this many disparities on average are seeded:
-/// five blocks of 16. At four (64 disparities) the half-size call cost more than it saved
-/// (Teddy: 8.2 against 7.5 ms).
-const SEED_MIN_WIDTH: usize = 80;
+/// Calls whose searched pixels search at least this many disparities on average are seeded.
+/// SGM: five blocks of 16; at four (64 disparities) its half-size call cost more than it
+/// saved (Teddy: 8.2 against 7.5 ms). bm, whose cost per pair is a fraction of SGM's: 64
+/// (Teddy: 3.1 against 4.0 ms).
+fn min_width(method: Method) -> usize {
+    match method {
+        Method::Sgm => 80,
+        Method::Bm => 64,
+    }
+}
+
 /// Disparities added on each side of a tile's seeded band: the half-size match's error,
 /// doubled, with room to spare.
 const SEED_MARGIN: i32 = 4;
 
-/// The seed's buffers, reused from call to call.
+/// One level's buffers: the half-size pair, its intervals and map, and the intervals the
+/// level above searches; reused from call to call.
 pub(super) struct SeedScratch {
     left: Vec<u8>,
     right: Vec<u8>,
-    /// The half-size call's intervals and map, and its own matcher's buffers.
     intervals: DisparityIntervals,
     map: DisparityMap,
-    sgm: Vec<Sgm>,
-    /// The next level down, where the half-size call is seeded in turn.
-    next: Option<Box<SeedScratch>>,
-    /// The intervals the full-size call searches.
     seeded: DisparityIntervals,
 }
 
 impl Default for SeedScratch {
     fn default() -> Self {
-        SeedScratch {
-            left: Vec::new(),
-            right: Vec::new(),
-            intervals: DisparityIntervals::empty(0, 0),
-            map: DisparityMap::new(0, 0),
-            sgm: Vec::new(),
-            next: None,
-            seeded: DisparityIntervals::empty(0, 0),
+        SeedScratch { left: Vec::new(), right: Vec::new(), intervals: DisparityIntervals::empty(0, 0), map: DisparityMap::new(0, 0), seeded: DisparityIntervals::empty(0, 0) }
+    }
+}
+
+/// The matcher's call (`correlate` or semi-global matching in stripes, without SGM's
+/// refinement or the speckle filter) with `params` over `intervals` at level `depth` (0 the
+/// pair as given, 1 at half size, …), seeded from the level below where `params.seed` is set
+/// and the intervals are wide. The levels below count their pairs in `evaluated`.
+pub(super) fn match_level(m: &mut StereoMatcher, params: &ValidMatchParams, depth: usize, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
+    if !params.seed || !wide(intervals, min_width(params.method)) {
+        return match_plain(m, params, depth, left, right, intervals, out);
+    }
+    if m.seeds.len() <= depth {
+        m.seeds.resize_with(depth + 1, Default::default);
+    }
+    // (Taken out for the call, which borrows the matcher; put back whatever it returns.)
+    let mut s = std::mem::take(&mut m.seeds[depth]);
+    let result = s.seed(m, params, depth, left, right, intervals).and_then(|half| {
+        let mut stats = match_plain(m, params, depth, left, right, &s.seeded, out)?;
+        stats.evaluated += half.evaluated;
+        Ok(stats)
+    });
+    m.seeds[depth] = s;
+    result
+}
+
+/// The method's own call at level `depth`, each level of SGM with its own buffers.
+fn match_plain(m: &mut StereoMatcher, params: &ValidMatchParams, depth: usize, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
+    match params.method {
+        Method::Bm => Ok(m.correlate(params, left, right, intervals, out)),
+        Method::Sgm => {
+            if m.sgm_levels.len() <= depth {
+                m.sgm_levels.resize_with(depth + 1, Vec::new);
+            }
+            sgm_stripes(params, &mut m.sgm_levels[depth], left, right, intervals, out)
         }
     }
 }
 
-/// Semi-global matching over `intervals`, seeded from the half-size pair where they are
-/// wide and `params.sgm_seed` is set, in stripes otherwise as always ([`sgm_stripes`]).
-/// The half-size calls' pairs count in `evaluated`.
-pub(super) fn sgm_seeded(
-    params: &ValidMatchParams,
-    sgms: &mut Vec<Sgm>,
-    seed: &mut Option<Box<SeedScratch>>,
-    left: GrayView,
-    right: GrayView,
-    intervals: &DisparityIntervals,
-    out: &mut DisparityMap,
-) -> Result<MatchStats, MatchError> {
-    if !params.sgm_seed || !wide(intervals) {
-        return sgm_stripes(params, sgms, left, right, intervals, out);
-    }
-    let s = seed.get_or_insert_with(Default::default);
-    let half = s.seed(params, left, right, intervals)?;
-    let mut stats = sgm_stripes(params, sgms, left, right, &s.seeded, out)?;
-    stats.evaluated += half.evaluated;
-    Ok(stats)
-}
-
-/// Whether `intervals` are wide enough to seed, over an image of at least two tiles each way.
-fn wide(intervals: &DisparityIntervals) -> bool {
+/// Whether `intervals` search at least `min_width` disparities a pixel on average, over an
+/// image of at least two tiles each way.
+fn wide(intervals: &DisparityIntervals, min_width: usize) -> bool {
     if intervals.width < 2 * TILE_W || intervals.height < 2 * TILE_H {
         return false;
     }
@@ -89,7 +97,7 @@ fn wide(intervals: &DisparityIntervals) -> bool {
         pixels += ok as u64;
         pairs += if ok { (b as i32 - a as i32 + 1) as u64 } else { 0 };
     }
-    pixels > 0 && pairs >= SEED_MIN_WIDTH as u64 * pixels
+    pixels > 0 && pairs >= min_width as u64 * pixels
 }
 
 /// The mean of each 2 × 2 block of `img`, rounded (the last column and row of an odd size
@@ -135,9 +143,10 @@ fn halve_intervals(iv: &DisparityIntervals, (cw, ch): (usize, usize), range: (i3
 }
 
 impl SeedScratch {
-    /// Matches the pair at half size and writes `self.seeded`: `intervals`, each pixel's cut
-    /// to its tile's band (see the module's text). Returns what the half-size call counted.
-    fn seed(&mut self, params: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals) -> Result<MatchStats, MatchError> {
+    /// Matches the pair at half size (level `depth + 1`) and writes `self.seeded`:
+    /// `intervals`, each pixel's cut to its tile's band (see the module's text). Returns what
+    /// the half-size call counted.
+    fn seed(&mut self, m: &mut StereoMatcher, params: &ValidMatchParams, depth: usize, left: GrayView, right: GrayView, intervals: &DisparityIntervals) -> Result<MatchStats, MatchError> {
         let (cw, ch) = halve(left, &mut self.left);
         halve(right, &mut self.right);
         let half = params.halved();
@@ -147,7 +156,7 @@ impl SeedScratch {
         }
         let lv = GrayView { width: cw, height: ch, data: &self.left };
         let rv = GrayView { width: cw, height: ch, data: &self.right };
-        let stats = sgm_seeded(&half, &mut self.sgm, &mut self.next, lv, rv, &self.intervals, &mut self.map)?;
+        let stats = match_level(m, &half, depth + 1, lv, rv, &self.intervals, &mut self.map)?;
         cut_to_bands(intervals, &self.intervals, &self.map, &mut self.seeded);
         Ok(stats)
     }
@@ -316,8 +325,8 @@ mod tests {
         (left, right, depth)
     }
 
-    fn run(seed: bool, min_disparity: i32, l: &[u8], r: &[u8], w: usize, h: usize) -> (DisparityMap, MatchStats) {
-        let p = MatchParams { sgm_seed: seed, min_disparity, num_disparities: 128, threads: 1, speckle_window: 0, ..MatchParams::for_method(crate::stereo::Method::Sgm) };
+    fn run(method: Method, seed: bool, min_disparity: i32, l: &[u8], r: &[u8], w: usize, h: usize) -> (DisparityMap, MatchStats) {
+        let p = MatchParams { seed, min_disparity, num_disparities: 128, threads: 1, speckle_window: 0, ..MatchParams::for_method(method) };
         let mut m = StereoMatcher::new(p.validate().unwrap());
         let mut out = DisparityMap::new(w, h);
         let iv = m.full_intervals(w, h, None);
@@ -326,22 +335,25 @@ mod tests {
     }
 
     #[test]
-    fn a_seeded_search_finds_both_sides_of_a_depth_edge_with_less_work() {
+    fn a_seeded_search_finds_both_sides_of_a_depth_edge_with_less_work_with_either_method() {
         let (w, h) = (256, 112);
         let (l, r, depth) = two_planes(w, h, 20, 100);
-        let ((seeded, s), (full, f)) = (run(true, 0, &l, &r, w, h), run(false, 0, &l, &r, w, h));
         // Right of the range's reach (x ≥ 128), away from the rectangle's occluded strip.
         let good = |map: &DisparityMap, front: bool| {
             let px = (0..h).flat_map(|y| (128..w).map(move |x| (x, y))).filter(|&(x, y)| (depth(x, y) == 100) == front);
             let (n, ok) = px.fold((0, 0), |(n, ok), (x, y)| (n + 1, ok + map.get(x, y).is_some_and(|d| (d - depth(x, y) as f32).abs() <= 1.0) as usize));
             ok as f64 / n as f64
         };
-        for front in [true, false] {
-            assert!(good(&seeded, front) >= 0.97 && good(&seeded, front) >= good(&full, front) - 0.01, "front {front}: {} seeded, {} full", good(&seeded, front), good(&full, front));
+        for method in [Method::Sgm, Method::Bm] {
+            let ((seeded, s), (full, f)) = (run(method, true, 0, &l, &r, w, h), run(method, false, 0, &l, &r, w, h));
+            for front in [true, false] {
+                let (a, b) = (good(&seeded, front), good(&full, front));
+                assert!(a >= 0.95 && a >= b - 0.01, "{method}, front {front}: {a} seeded, {b} full");
+            }
+            // Fewer pairs searched, the half-size call's included, though the tiles along the
+            // rectangle's edges search both planes' disparities.
+            assert!(s.evaluated * 4 < f.evaluated * 3, "{method}: {} seeded, {} full", s.evaluated, f.evaluated);
         }
-        // Fewer pairs aggregated, the half-size call's included, though the tiles along the
-        // rectangle's edges search both planes' disparities.
-        assert!(s.evaluated * 4 < f.evaluated * 3, "{} seeded, {} full", s.evaluated, f.evaluated);
     }
 
     #[test]
@@ -349,7 +361,7 @@ mod tests {
         // The same scene seen with the images swapped: disparities −20 and −100.
         let (w, h) = (256, 112);
         let (l, r, _) = two_planes(w, h, 20, 100);
-        let ((seeded, s), (_, f)) = (run(true, -127, &r, &l, w, h), run(false, -127, &r, &l, w, h));
+        let ((seeded, s), (_, f)) = (run(Method::Sgm, true, -127, &r, &l, w, h), run(Method::Sgm, false, -127, &r, &l, w, h));
         // The rows above and below the rectangle, where both images see the back plane alone.
         let back = (0..h).filter(|y| !(30..80).contains(y)).flat_map(|y| (0..200).map(move |x| (x, y)));
         let (n, ok) = back.fold((0, 0), |(n, ok), (x, y)| (n + 1, ok + seeded.get(x, y).is_some_and(|d| (d + 20.0).abs() <= 1.0) as usize));
