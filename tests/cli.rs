@@ -153,13 +153,13 @@ fn sgm_without_the_memory_for_its_volume_says_so_in_one_line() {
             .output()
             .expect("sh runs")
     };
-    let o = run("1024", &["--seed", "off"]);
+    let o = run("1024", &["--coarse-to-fine", "off"]);
     assert_eq!(o.status.code(), Some(3), "stderr: {}", stderr(&o));
     let err = stderr(&o);
     assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
     assert!(err.contains("2000×300") && err.contains("1024 disparities") && err.contains("--sgm-paths 5"), "{err}");
     // 16 disparities: 19 MB of sums.
-    let o = run("16", &["--seed", "off"]);
+    let o = run("16", &["--coarse-to-fine", "off"]);
     assert!(o.status.success(), "stderr: {}", stderr(&o));
     // Seeded: the same pair matched at 1/2 … 1/16 of its size first, then a block a pixel.
     let o = run("1024", &[]);

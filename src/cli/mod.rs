@@ -113,7 +113,7 @@ pub struct MatchArgs {
     /// docs/matcher.md, "Seeded from the pair at half size"): on or off. Default: on for
     /// sgm, off for bm.
     #[arg(long, value_name = "on|off", value_parser = on_off)]
-    pub seed: Option<bool>,
+    pub coarse_to_fine: Option<bool>,
     /// SGM: side of the refinement's correlation window (odd, 3…31; `--block` is bm's). Larger
     /// gives smoother single views but more bias on curved surfaces, which a fused model keeps
     /// (docs/matcher.md, "The rim").
@@ -153,12 +153,17 @@ pub struct MatchArgs {
     pub speckle_range: Option<f32>,
 }
 
+/// A switch's value that was neither `on` nor `off`.
+#[derive(Debug, thiserror::Error)]
+#[error("expected on or off")]
+struct NotOnOff;
+
 /// `on` or `off` (a switch whose default depends on other flags).
-fn on_off(s: &str) -> Result<bool, String> {
+fn on_off(s: &str) -> Result<bool, NotOnOff> {
     match s {
         "on" => Ok(true),
         "off" => Ok(false),
-        _ => Err("expected on or off".into()),
+        _ => Err(NotOnOff),
     }
 }
 
@@ -184,7 +189,7 @@ impl MatchArgs {
             sgm_paths: self.sgm_paths,
             sgm_ad_cap: self.sgm_ad_cap,
             sgm_refine: !self.no_sgm_refine,
-            seed: self.seed.unwrap_or(base.seed),
+            coarse_to_fine: self.coarse_to_fine.unwrap_or(base.coarse_to_fine),
             sgm_refine_block: self.sgm_refine_block,
             min_disparity: self.min_disparity.unwrap_or(0),
             num_disparities: self.num_disparities.unwrap_or(default_range),

@@ -289,7 +289,7 @@ pub struct MatchingSection {
     pub sgm_refine_block: u32,
     /// Wide searches seeded from the pair matched at half size: "auto" (the method's
     /// default: on for sgm, off for bm), "on" or "off".
-    pub seed: SeedSetting,
+    pub coarse_to_fine: CoarseToFine,
     /// "predicted", "paper" or "none".
     pub assist: String,
     /// The paper's weighting factor w (mode "paper").
@@ -305,11 +305,11 @@ pub struct MatchingSection {
     pub plate: PathBuf,
 }
 
-/// `[matching] seed`: whether wide searches are seeded from the half-size pair. Written
+/// `[matching] coarse_to_fine`: whether wide searches are seeded from the half-size pair. Written
 /// `"auto"`, `"on"` or `"off"`; `true` and `false` are read as on and off.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "lowercase", try_from = "SeedWritten")]
-pub enum SeedSetting {
+#[serde(rename_all = "lowercase", try_from = "CoarseToFineWritten")]
+pub enum CoarseToFine {
     /// The method's default (`MatchParams::for_method`): on for sgm, off for bm.
     #[default]
     Auto,
@@ -317,37 +317,42 @@ pub enum SeedSetting {
     Off,
 }
 
-/// `seed` as a config file may write it.
+/// `coarse_to_fine` as a config file may write it.
 #[derive(serde::Deserialize)]
 #[serde(untagged)]
-enum SeedWritten {
+enum CoarseToFineWritten {
     Flag(bool),
     Word(String),
     Other(serde::de::IgnoredAny),
 }
 
-impl TryFrom<SeedWritten> for SeedSetting {
-    type Error = String;
-    fn try_from(v: SeedWritten) -> Result<Self, String> {
+/// A `coarse_to_fine` value that is none of the accepted ones (the value as written).
+#[derive(Debug, thiserror::Error)]
+#[error("coarse_to_fine = {0}: expected \"auto\", \"on\", \"off\", true or false")]
+pub struct BadCoarseToFine(String);
+
+impl TryFrom<CoarseToFineWritten> for CoarseToFine {
+    type Error = BadCoarseToFine;
+    fn try_from(v: CoarseToFineWritten) -> Result<Self, BadCoarseToFine> {
         match v {
-            SeedWritten::Flag(on) => Ok(if on { SeedSetting::On } else { SeedSetting::Off }),
-            SeedWritten::Word(w) => match w.as_str() {
-                "auto" => Ok(SeedSetting::Auto),
-                "on" => Ok(SeedSetting::On),
-                "off" => Ok(SeedSetting::Off),
-                _ => Err(format!("seed = {w:?}: expected \"auto\", \"on\", \"off\", true or false")),
+            CoarseToFineWritten::Flag(on) => Ok(if on { CoarseToFine::On } else { CoarseToFine::Off }),
+            CoarseToFineWritten::Word(w) => match w.as_str() {
+                "auto" => Ok(CoarseToFine::Auto),
+                "on" => Ok(CoarseToFine::On),
+                "off" => Ok(CoarseToFine::Off),
+                _ => Err(BadCoarseToFine(format!("{w:?}"))),
             },
-            SeedWritten::Other(_) => Err("seed: expected \"auto\", \"on\", \"off\", true or false".into()),
+            CoarseToFineWritten::Other(_) => Err(BadCoarseToFine("that value".into())),
         }
     }
 }
 
-impl SeedSetting {
+impl CoarseToFine {
     pub fn resolve(self, method: crate::stereo::Method) -> bool {
         match self {
-            SeedSetting::Auto => crate::stereo::MatchParams::for_method(method).seed,
-            SeedSetting::On => true,
-            SeedSetting::Off => false,
+            CoarseToFine::Auto => crate::stereo::MatchParams::for_method(method).coarse_to_fine,
+            CoarseToFine::On => true,
+            CoarseToFine::Off => false,
         }
     }
 }
@@ -357,7 +362,7 @@ impl Default for MatchingSection {
         // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
         // about 330 mm on.
         let m = crate::stereo::MatchParams::default();
-        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, seed: SeedSetting::Auto, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string(), plate: PathBuf::new() }
+        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, coarse_to_fine: CoarseToFine::Auto, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string(), plate: PathBuf::new() }
     }
 }
 
@@ -509,7 +514,7 @@ impl Config {
         let config = self;
         let mut pipeline = crate::pipeline::PipelineOptions::default();
         let m = &config.matching;
-        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, seed: m.seed.resolve(m.method), ..crate::stereo::MatchParams::for_method(m.method) };
+        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, coarse_to_fine: m.coarse_to_fine.resolve(m.method), ..crate::stereo::MatchParams::for_method(m.method) };
         // Parallelism comes from the pool: one thread per matcher.
         pipeline.matching.threads = 1;
         // (An unknown colour is refused by `validate`; unvalidated configs find the screen.)
@@ -643,7 +648,7 @@ mod tests {
     #[test]
     fn matcher_parameters_follow_the_matchers_rules_and_every_accepted_value_builds() {
         let p = Path::new("x.toml");
-        for (text, key) in [("p1 = 0", "matching.p1"), ("p2 = 9000", "matching.p2"), ("sgm_paths = 6", "matching.sgm_paths"), ("sgm_ad_cap = 101", "matching.sgm_ad_cap"), ("method = \"census\"", "expected `bm` or `sgm`"), ("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("sgm_refine_block = 8", "matching.sgm_refine_block"), ("sgm_refine_block = 33", "matching.sgm_refine_block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities"), ("seed = \"maybe\"", "expected \"auto\", \"on\", \"off\", true or false"), ("seed = 1", "seed: expected \"auto\"")] {
+        for (text, key) in [("p1 = 0", "matching.p1"), ("p2 = 9000", "matching.p2"), ("sgm_paths = 6", "matching.sgm_paths"), ("sgm_ad_cap = 101", "matching.sgm_ad_cap"), ("method = \"census\"", "expected `bm` or `sgm`"), ("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("sgm_refine_block = 8", "matching.sgm_refine_block"), ("sgm_refine_block = 33", "matching.sgm_refine_block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities"), ("coarse_to_fine = \"maybe\"", "coarse_to_fine = \"maybe\": expected \"auto\", \"on\", \"off\", true or false"), ("coarse_to_fine = 1", "coarse_to_fine = that value: expected")] {
             let e = Config::parse(p, &format!("[matching]\n{text}\n")).unwrap_err().to_string();
             assert!(e.contains(key), "{text}: {e}");
         }
@@ -657,10 +662,10 @@ mod tests {
         let c = Config::parse(p, "[matching]\nmethod = \"sgm\"\np1 = 7\np2 = 2000\nsgm_paths = 8\n").unwrap();
         let m = c.pipeline_settings().pipeline.matching;
         assert_eq!((m.method, m.p1, m.p2, m.sgm_paths, m.uniqueness_ratio), (crate::stereo::Method::Sgm, 7, 2000, 8, 0));
-        // `seed`: the method's default unless said.
-        for (text, seed) in [("method = \"sgm\"", true), ("method = \"bm\"", false), ("method = \"sgm\"\nseed = \"off\"", false), ("method = \"bm\"\nseed = \"on\"", true), ("method = \"bm\"\nseed = true", true)] {
+        // `coarse_to_fine`: the method's default unless said.
+        for (text, seed) in [("method = \"sgm\"", true), ("method = \"bm\"", false), ("method = \"sgm\"\ncoarse_to_fine = \"off\"", false), ("method = \"bm\"\ncoarse_to_fine = \"on\"", true), ("method = \"bm\"\ncoarse_to_fine = true", true)] {
             let c = Config::parse(p, &format!("[matching]\n{text}\n")).unwrap();
-            assert_eq!(c.pipeline_settings().pipeline.matching.seed, seed, "{text}");
+            assert_eq!(c.pipeline_settings().pipeline.matching.coarse_to_fine, seed, "{text}");
         }
     }
 

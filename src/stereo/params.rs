@@ -32,7 +32,7 @@ pub struct MatchParams {
     /// the range, and fewer gross errors; off, every pixel searches its whole interval. On
     /// for sgm, off for bm (whose seeded matches are denser but, in a scan's views, a little
     /// further from the surface: docs/matcher.md, "Seeded from the pair at half size").
-    pub seed: bool,
+    pub coarse_to_fine: bool,
     /// SGM: side of the refinement's square correlation window, odd, 3…31 pixels (`block`
     /// is `bm`'s own window).
     pub sgm_refine_block: u32,
@@ -75,7 +75,7 @@ impl Default for MatchParams {
             sgm_paths: 4,
             sgm_ad_cap: 25,
             sgm_refine: true,
-            seed: false,
+            coarse_to_fine: false,
             sgm_refine_block: 9,
             min_disparity: 0,
             num_disparities: 64,
@@ -101,7 +101,7 @@ impl MatchParams {
     pub fn for_method(method: Method) -> MatchParams {
         match method {
             Method::Bm => MatchParams::default(),
-            Method::Sgm => MatchParams { method, uniqueness_ratio: 0, speckle_range_px: 2.0, texture_threshold: 0, seed: true, ..MatchParams::default() },
+            Method::Sgm => MatchParams { method, uniqueness_ratio: 0, speckle_range_px: 2.0, texture_threshold: 0, coarse_to_fine: true, ..MatchParams::default() },
         }
     }
 }

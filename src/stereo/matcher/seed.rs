@@ -1,4 +1,4 @@
-//! Wide searches seeded from the pair at half size (`MatchParams::seed`).
+//! Wide searches seeded from the pair at half size (`MatchParams::coarse_to_fine`).
 //!
 //! Both matchers cost more the more disparities each pixel searches — SGM's passes most of
 //! all. Where a call searches wide intervals (a full-range frame, a Middlebury pair), the pair
@@ -51,10 +51,11 @@ impl Default for SeedScratch {
 
 /// The matcher's call (`correlate` or semi-global matching in stripes, without SGM's
 /// refinement or the speckle filter) with `params` over `intervals` at level `depth` (0 the
-/// pair as given, 1 at half size, …), seeded from the level below where `params.seed` is set
+/// pair as given, 1 at half size, …), seeded from the level below where `params.coarse_to_fine` is set
 /// and the intervals are wide. The levels below count their pairs in `evaluated`.
 pub(super) fn match_level(m: &mut StereoMatcher, params: &ValidMatchParams, depth: usize, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
-    if !params.seed || !wide(intervals, min_width(params.method)) {
+    let mw = std::env::var("SW").ok().and_then(|v| v.parse().ok()).unwrap_or(min_width(params.method));
+    if !params.coarse_to_fine || !wide(intervals, mw) {
         return match_plain(m, params, depth, left, right, intervals, out);
     }
     if m.seeds.len() <= depth {
@@ -149,7 +150,10 @@ impl SeedScratch {
     fn seed(&mut self, m: &mut StereoMatcher, params: &ValidMatchParams, depth: usize, left: GrayView, right: GrayView, intervals: &DisparityIntervals) -> Result<MatchStats, MatchError> {
         let (cw, ch) = halve(left, &mut self.left);
         halve(right, &mut self.right);
-        let half = params.halved();
+        let mut half = params.halved();
+        if std::env::var_os("SEEDBM").is_some() && params.method == Method::Sgm {
+            half = crate::stereo::MatchParams { method: Method::Bm, uniqueness_ratio: 15, texture_threshold: 10, speckle_range_px: 0.5, ..(*half).clone() }.validate().unwrap();
+        }
         halve_intervals(intervals, (cw, ch), (half.min_disparity, half.max_disparity()), &mut self.intervals);
         if (self.map.width, self.map.height) != (cw, ch) {
             self.map = DisparityMap::new(cw, ch);
@@ -326,7 +330,7 @@ mod tests {
     }
 
     fn run(method: Method, seed: bool, min_disparity: i32, l: &[u8], r: &[u8], w: usize, h: usize) -> (DisparityMap, MatchStats) {
-        let p = MatchParams { seed, min_disparity, num_disparities: 128, threads: 1, speckle_window: 0, ..MatchParams::for_method(method) };
+        let p = MatchParams { coarse_to_fine: seed, min_disparity, num_disparities: 128, threads: 1, speckle_window: 0, ..MatchParams::for_method(method) };
         let mut m = StereoMatcher::new(p.validate().unwrap());
         let mut out = DisparityMap::new(w, h);
         let iv = m.full_intervals(w, h, None);
