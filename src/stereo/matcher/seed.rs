@@ -54,8 +54,7 @@ impl Default for SeedScratch {
 /// pair as given, 1 at half size, …), seeded from the level below where `params.coarse_to_fine` is set
 /// and the intervals are wide. The levels below count their pairs in `evaluated`.
 pub(super) fn match_level(m: &mut StereoMatcher, params: &ValidMatchParams, depth: usize, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
-    let mw = std::env::var("SW").ok().and_then(|v| v.parse().ok()).unwrap_or(min_width(params.method));
-    if !params.coarse_to_fine || !wide(intervals, mw) {
+    if !params.coarse_to_fine || !wide(intervals, min_width(params.method)) {
         return match_plain(m, params, depth, left, right, intervals, out);
     }
     if m.seeds.len() <= depth {
@@ -150,10 +149,7 @@ impl SeedScratch {
     fn seed(&mut self, m: &mut StereoMatcher, params: &ValidMatchParams, depth: usize, left: GrayView, right: GrayView, intervals: &DisparityIntervals) -> Result<MatchStats, MatchError> {
         let (cw, ch) = halve(left, &mut self.left);
         halve(right, &mut self.right);
-        let mut half = params.halved();
-        if std::env::var_os("SEEDBM").is_some() && params.method == Method::Sgm {
-            half = crate::stereo::MatchParams { method: Method::Bm, uniqueness_ratio: 15, texture_threshold: 10, speckle_range_px: 0.5, ..(*half).clone() }.validate().unwrap();
-        }
+        let half = params.halved();
         halve_intervals(intervals, (cw, ch), (half.min_disparity, half.max_disparity()), &mut self.intervals);
         if (self.map.width, self.map.height) != (cw, ch) {
             self.map = DisparityMap::new(cw, ch);
