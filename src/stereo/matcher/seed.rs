@@ -51,8 +51,9 @@ impl Default for SeedScratch {
 
 /// The matcher's call (`correlate` or semi-global matching in stripes, without SGM's
 /// refinement or the speckle filter) with `params` over `intervals` at level `depth` (0 the
-/// pair as given, 1 at half size, …), seeded from the level below where `params.coarse_to_fine` is set
-/// and the intervals are wide. The levels below count their pairs in `evaluated`.
+/// pair as given, 1 at half size, …), seeded from the level below where
+/// `params.coarse_to_fine` is set and the intervals are wide. The levels below count their
+/// pairs in `evaluated`.
 pub(super) fn match_level(m: &mut StereoMatcher, params: &ValidMatchParams, depth: usize, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
     if !params.coarse_to_fine || !wide(intervals, min_width(params.method)) {
         return match_plain(m, params, depth, left, right, intervals, out);
