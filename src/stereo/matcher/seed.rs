@@ -203,12 +203,12 @@ fn cut_to_bands(intervals: &DisparityIntervals, half: &DisparityIntervals, map: 
             let bhi = (2.0 * dhi).ceil() as i32 + SEED_MARGIN;
             for y in ty..y1 {
                 let row = y * w + tx..y * w + x1;
+                // Branch-free, so that it vectorises. (An unsearched pixel has lo > hi, so
+                // a > b: it stays unsearched.)
                 for (lo, hi) in out.lo[row.clone()].iter_mut().zip(&mut out.hi[row]) {
                     let (a, b) = ((*lo as i32).max(blo), (*hi as i32).min(bhi));
-                    // (An unsearched pixel has lo > hi, so a > b: it stays unsearched.)
-                    if a <= b {
-                        (*lo, *hi) = (a as i16, b as i16);
-                    }
+                    let cut = a <= b;
+                    (*lo, *hi) = (if cut { a as i16 } else { *lo }, if cut { b as i16 } else { *hi });
                 }
             }
         }
