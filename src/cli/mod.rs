@@ -107,7 +107,7 @@ pub struct MatchArgs {
     /// correlation cost around each winner (faster, less precise on slanted surfaces).
     #[arg(long)]
     pub no_sgm_refine: bool,
-    /// Seed wide searches (sgm: 80 disparities a pixel or more; bm: 64) from the pair matched
+    /// Seed wide searches (64 disparities a pixel or more) from the pair matched
     /// at half size, each tile then searching only around that (faster, fewer gross errors;
     /// bm's seeded maps are denser, with a slightly larger median error in a scan's views;
     /// docs/matcher.md, "Seeded from the pair at half size"): on or off. Default: on for

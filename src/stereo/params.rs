@@ -27,7 +27,7 @@ pub struct MatchParams {
     /// from it, instead of from SGM's own sums alone (sharper on slanted surfaces; about 25 ns
     /// per matched pixel more).
     pub sgm_refine: bool,
-    /// Search wide intervals (sgm: 80 disparities a pixel or more; bm: 64) only around what
+    /// Search wide intervals (64 disparities a pixel or more) only around what
     /// the pair matched at half size, per matcher tile (`matcher/seed.rs`): faster the wider
     /// the range, and fewer gross errors; off, every pixel searches its whole interval. On
     /// for sgm, off for bm (whose seeded matches are denser but, in a scan's views, a little
