@@ -83,15 +83,21 @@ fn match_plain(m: &mut StereoMatcher, params: &ValidMatchParams, depth: usize, l
 /// Whether `intervals` search at least `min_width` disparities a pixel on average, over an
 /// image of at least two tiles each way.
 fn wide(intervals: &DisparityIntervals, min_width: usize) -> bool {
-    if intervals.width < 2 * TILE_W || intervals.height < 2 * TILE_H {
+    let w = intervals.width;
+    if w < 2 * TILE_W || intervals.height < 2 * TILE_H {
         return false;
     }
-    // Branch-free, so that it vectorises.
+    // Branch-free, and in 32 bits within a row (a row's pairs fit: 65 536 disparities times
+    // the width), so that it vectorises.
     let (mut pixels, mut pairs) = (0u64, 0u64);
-    for (&a, &b) in intervals.lo.iter().zip(&intervals.hi) {
-        let ok = a <= b;
-        pixels += ok as u64;
-        pairs += if ok { (b as i32 - a as i32 + 1) as u64 } else { 0 };
+    for (lo, hi) in intervals.lo.chunks_exact(w).zip(intervals.hi.chunks_exact(w)) {
+        let (mut px, mut pr) = (0u32, 0u32);
+        for (&a, &b) in lo.iter().zip(hi) {
+            let ok = a <= b;
+            px += ok as u32;
+            pr += if ok { (b as i32 - a as i32 + 1) as u32 } else { 0 };
+        }
+        (pixels, pairs) = (pixels + px as u64, pairs + pr as u64);
     }
     pixels > 0 && pairs >= min_width as u64 * pixels
 }
@@ -116,24 +122,26 @@ fn halve(img: GrayView, out: &mut Vec<u8>) -> (usize, usize) {
 fn halve_intervals(iv: &DisparityIntervals, (cw, ch): (usize, usize), range: (i32, i32), out: &mut DisparityIntervals) {
     let w = iv.width;
     (out.width, out.height) = (cw, ch);
-    out.lo.clear();
-    out.hi.clear();
-    let (cmin, cmax) = (range.0 as i16, range.1 as i16);
+    // (Every element is written below.)
+    out.lo.resize(cw * ch, 0);
+    out.hi.resize(cw * ch, 0);
+    let (cmin, cmax) = (range.0, range.1);
     for y in 0..ch {
         let (top, bottom) = (2 * y * w..2 * y * w + 2 * cw, (2 * y + 1) * w..(2 * y + 1) * w + 2 * cw);
         let (lo0, lo1, hi0, hi1) = (&iv.lo[top.clone()], &iv.lo[bottom.clone()], &iv.hi[top], &iv.hi[bottom]);
-        for x in 0..cw {
-            let (mut lo, mut hi) = (i16::MAX, i16::MIN);
-            for (l, h) in [(lo0[2 * x], hi0[2 * x]), (lo0[2 * x + 1], hi0[2 * x + 1]), (lo1[2 * x], hi1[2 * x]), (lo1[2 * x + 1], hi1[2 * x + 1])] {
+        let outs = out.lo[y * cw..(y + 1) * cw].iter_mut().zip(&mut out.hi[y * cw..(y + 1) * cw]);
+        let ins = lo0.chunks_exact(2).zip(lo1.chunks_exact(2)).zip(hi0.chunks_exact(2).zip(hi1.chunks_exact(2)));
+        for ((ol, oh), ((l0, l1), (h0, h1))) in outs.zip(ins) {
+            let (mut lo, mut hi) = (i32::MAX, i32::MIN);
+            for (l, h) in [(l0[0], h0[0]), (l0[1], h0[1]), (l1[0], h1[0]), (l1[1], h1[1])] {
                 let ok = l <= h;
-                lo = lo.min(if ok { l } else { i16::MAX });
-                hi = hi.max(if ok { h } else { i16::MIN });
+                lo = lo.min(if ok { l as i32 } else { i32::MAX });
+                hi = hi.max(if ok { h as i32 } else { i32::MIN });
             }
             // (An arithmetic shift is the floor of a half, negative disparities included.)
-            let (a, b) = ((lo >> 1).max(cmin), ((hi as i32 + 1) >> 1).min(cmax as i32) as i16);
+            let (a, b) = ((lo >> 1).max(cmin), ((hi + 1) >> 1).min(cmax));
             let ok = lo <= hi && a <= b;
-            out.lo.push(if ok { a } else { 1 });
-            out.hi.push(if ok { b } else { 0 });
+            (*ol, *oh) = (if ok { a as i16 } else { 1 }, if ok { b as i16 } else { 0 });
         }
     }
 }
@@ -167,44 +175,50 @@ fn cut_to_bands(intervals: &DisparityIntervals, half: &DisparityIntervals, map: 
     let (w, h) = (intervals.width, intervals.height);
     let (cw, ch) = (half.width, half.height);
     (out.width, out.height) = (w, h);
-    out.lo.clear();
-    out.lo.extend_from_slice(&intervals.lo);
-    out.hi.clear();
-    out.hi.extend_from_slice(&intervals.hi);
+    // (Every element is written below.)
+    out.lo.resize(w * h, 0);
+    out.hi.resize(w * h, 0);
     let map = map.values();
+    // Each column's band over the tile row; a tile that keeps its intervals has the widest.
+    let (mut band_lo, mut band_hi) = (vec![i16::MIN; w], vec![i16::MAX; w]);
     for ty in (0..h).step_by(TILE_H) {
+        let y1 = (ty + TILE_H).min(h);
         for tx in (0..w).step_by(TILE_W) {
-            let (x1, y1) = ((tx + TILE_W).min(w), (ty + TILE_H).min(h));
-            // The half-size pixels over the tile, and one around it.
+            let x1 = (tx + TILE_W).min(w);
+            // The half-size pixels over the tile, and one around it; branch-free.
             let xs = (tx / 2).saturating_sub(1)..(x1.div_ceil(2) + 1).min(cw);
             let ys = (ty / 2).saturating_sub(1)..(y1.div_ceil(2) + 1).min(ch);
-            let (mut searched, mut matched) = (0usize, 0usize);
+            let (mut searched, mut matched) = (0u32, 0u32);
             let (mut dlo, mut dhi) = (f32::INFINITY, f32::NEG_INFINITY);
             for y in ys {
-                for i in xs.clone().map(|x| y * cw + x) {
-                    let d = map[i];
-                    searched += (half.lo[i] <= half.hi[i]) as usize;
-                    if !d.is_nan() {
-                        matched += 1;
-                        dlo = dlo.min(d);
-                        dhi = dhi.max(d);
-                    }
+                let row = y * cw + xs.start..y * cw + xs.end;
+                for ((&d, &a), &b) in map[row.clone()].iter().zip(&half.lo[row.clone()]).zip(&half.hi[row]) {
+                    let ok = !d.is_nan();
+                    searched += (a <= b) as u32;
+                    matched += ok as u32;
+                    dlo = dlo.min(if ok { d } else { f32::INFINITY });
+                    dhi = dhi.max(if ok { d } else { f32::NEG_INFINITY });
                 }
             }
-            if matched == 0 || 4 * matched < searched {
-                continue;
-            }
-            let blo = (2.0 * dlo).floor() as i32 - SEED_MARGIN;
-            let bhi = (2.0 * dhi).ceil() as i32 + SEED_MARGIN;
-            for y in ty..y1 {
-                let row = y * w + tx..y * w + x1;
-                // Branch-free, so that it vectorises. (An unsearched pixel has lo > hi, so
-                // a > b: it stays unsearched.)
-                for (lo, hi) in out.lo[row.clone()].iter_mut().zip(&mut out.hi[row]) {
-                    let (a, b) = ((*lo as i32).max(blo), (*hi as i32).min(bhi));
-                    let cut = a <= b;
-                    (*lo, *hi) = (if cut { a as i16 } else { *lo }, if cut { b as i16 } else { *hi });
-                }
+            let (blo, bhi) = if matched == 0 || 4 * matched < searched {
+                (i16::MIN, i16::MAX)
+            } else {
+                let clamp = |v: f32| v.clamp(i16::MIN as f32, i16::MAX as f32) as i16;
+                (clamp((2.0 * dlo).floor() - SEED_MARGIN as f32), clamp((2.0 * dhi).ceil() + SEED_MARGIN as f32))
+            };
+            band_lo[tx..x1].fill(blo);
+            band_hi[tx..x1].fill(bhi);
+        }
+        // Each pixel's interval cut to its column's band, branch-free so that it vectorises.
+        // (An unsearched pixel has lo > hi, so a > b: it stays as it was, unsearched; so does
+        // a pixel whose own interval misses its band.)
+        for y in ty..y1 {
+            let row = y * w..(y + 1) * w;
+            let ins = intervals.lo[row.clone()].iter().zip(&intervals.hi[row.clone()]).zip(band_lo.iter().zip(&band_hi));
+            for ((ol, oh), ((&lo, &hi), (&blo, &bhi))) in out.lo[row.clone()].iter_mut().zip(&mut out.hi[row]).zip(ins) {
+                let (a, b) = (lo.max(blo), hi.min(bhi));
+                let cut = a <= b;
+                (*ol, *oh) = (if cut { a } else { lo }, if cut { b } else { hi });
             }
         }
     }
