@@ -90,6 +90,10 @@ pub enum BenchError {
 #[derive(Debug, Clone)]
 pub struct Row {
     pub method: Method,
+    /// Whether the matcher seeds its wide searches from the half-size pair
+    /// (`MatchParams::coarse_to_fine`): the row without assistance is then not a search of
+    /// every disparity.
+    pub coarse_to_fine: bool,
     pub mode: AssistMode,
     /// How finely the assisted rows set their ranges (None: no assistance).
     pub granularity: Option<Granularity>,
@@ -135,9 +139,10 @@ fn mean(v: &[f64]) -> Option<f64> {
 }
 
 impl Row {
-    fn new(method: Method, mode: AssistMode, granularity: Granularity) -> Row {
+    fn new(matcher: &MatchParams, mode: AssistMode, granularity: Granularity) -> Row {
         Row {
-            method,
+            method: matcher.method,
+            coarse_to_fine: matcher.coarse_to_fine,
             mode,
             granularity: (mode != AssistMode::None).then_some(granularity.resolve(mode)),
             frame_ms: vec![],
@@ -201,6 +206,7 @@ impl Row {
     pub fn to_json(&self) -> Value {
         json!({
             "method": self.method.name(),
+            "coarse_to_fine": self.coarse_to_fine,
             "mode": self.mode.name(),
             "w": self.mode.w(),
             "granularity": self.granularity.map(|g| g.name()),
@@ -336,7 +342,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         .map(|(k, (mode, granularity))| {
             let store = Arc::new(PoseStore::new());
             let registrar = (mode != AssistMode::None).then(|| crate::pipeline::registrar(opts.registration.clone(), calibrated.as_ref(), None, store.clone()));
-            let row = Row::new(matchers[k].method, mode, granularity);
+            let row = Row::new(&matchers[k], mode, granularity);
             RowState { pipe: k, row, assistant: pipes[k].assistant(AssistParams { mode, granularity, ..opts.assist.clone() }), store, registrar }
         })
         .collect();

@@ -91,6 +91,9 @@ fn table1_runs_every_row_for_each_listed_method() {
     let rows = t["rows"].as_array().unwrap();
     let keys: Vec<(&str, &str)> = rows.iter().map(|r| (r["method"].as_str().unwrap(), r["mode"].as_str().unwrap())).collect();
     assert_eq!(keys, [("bm", "none"), ("bm", "paper"), ("bm", "predicted"), ("sgm", "none"), ("sgm", "paper"), ("sgm", "predicted")]);
+    // Each row says whether its matcher seeds wide searches: by default sgm does, bm not.
+    let seeded: Vec<bool> = rows.iter().map(|r| r["coarse_to_fine"].as_bool().unwrap()).collect();
+    assert_eq!(seeded, [false, false, false, true, true, true]);
     // Each method's ratios are taken against its own no-assistance row.
     assert_eq!(rows[0]["ratio_to_none"].as_f64(), Some(1.0));
     assert_eq!(rows[3]["ratio_to_none"].as_f64(), Some(1.0));

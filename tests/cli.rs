@@ -48,6 +48,7 @@ fn disparity_prints_its_json_contract_and_writes_every_format() {
     assert!(j["first_call_ms"].as_f64().unwrap() > 0.0);
     assert!((0.0..=1.0).contains(&j["valid_fraction"].as_f64().unwrap()));
     assert_eq!(j["disparity_sign"], 1);
+    assert_eq!(j["coarse_to_fine"], false, "bm searches every disparity unless asked");
     let png = spinscan::io::read_disparity_png(&out, 1.0).unwrap();
     let pfm = spinscan::io::read_pfm(&dir.join("d.pfm")).unwrap();
     assert_eq!(png.valid_count(), pfm.valid_count());

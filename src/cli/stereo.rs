@@ -147,6 +147,7 @@ pub fn cmd_disparity(a: DisparityArgs) -> Result<(), Failure> {
         "match_ms": median(times),
         "first_call_ms": first_call_ms,
         "method": params.method.name(),
+        "coarse_to_fine": params.coarse_to_fine,
         "valid_fraction": stats.valid_fraction(),
         "disparity_sign": sign,
         "width": w,
