@@ -125,6 +125,9 @@ struct Crop {
     y0: usize,
     w: usize,
     h: usize,
+    /// Disparities from the lowest searched to the highest, within the range: no pixel's
+    /// interval is wider (what lets a narrow call skip the seed's test, `seed.rs`).
+    span: usize,
 }
 
 impl Crop {
@@ -151,6 +154,7 @@ impl Crop {
             return None;
         }
         let (dlo, dhi) = (dlo.clamp(dmin, dmax), dhi.clamp(dmin, dmax));
+        let span = (dhi - dlo + 1).max(0) as usize;
         let m = p.reach() as i64 + 1;
         let left = (x0 as i64 - m - dhi.max(0) as i64).max(0) as usize;
         let right = ((x1 as i64 + m - dlo.min(0) as i64) as usize).min(w - 1);
@@ -161,9 +165,9 @@ impl Crop {
         let bottom = (y1 + m as usize).min(h - 1);
         // Too narrow a crop to hold a window: match the whole image.
         if right - left + 1 < 2 {
-            return Some(Crop { x0: 0, y0: 0, w, h });
+            return Some(Crop { x0: 0, y0: 0, w, h, span });
         }
-        Some(Crop { x0: left, y0: top, w: right - left + 1, h: bottom - top + 1 })
+        Some(Crop { x0: left, y0: top, w: right - left + 1, h: bottom - top + 1, span })
     }
 }
 
@@ -219,13 +223,15 @@ impl StereoMatcher {
         // Only the rectangle the searched pixels' windows and right correspondences need is
         // matched: the results are the same (every window and every right pixel searched lies
         // inside it, and where it meets the image border, the border is the image's), and
-        // rows and columns of background cost nothing.
+        // rows and columns of background cost nothing. (With `sgm`, two things see the crop
+        // rather than the image: the intensity term's level map, from the images' histograms,
+        // and a seeded call's half-size matches within a few pixels of the crop's edge.)
         let Some(crop) = Crop::of(intervals, &self.params) else {
             out.values_mut().fill(f32::NAN);
             return Ok(MatchStats::default());
         };
         if crop.x0 == 0 && crop.y0 == 0 && crop.w == w && crop.h == h {
-            return self.compute_whole(left, right, intervals, out);
+            return self.compute_whole(left, right, intervals, crop.span, out);
         }
         let cut = |img: GrayView, buf: &mut Vec<u8>| {
             buf.clear();
@@ -251,7 +257,7 @@ impl StereoMatcher {
         }
         let lv = GrayView { width: crop.w, height: crop.h, data: &lbuf };
         let rv = GrayView { width: crop.w, height: crop.h, data: &rbuf };
-        let stats = self.compute_whole(lv, rv, &civ, &mut cout);
+        let stats = self.compute_whole(lv, rv, &civ, crop.span, &mut cout);
         if stats.is_ok() {
             // The crop's rows copied in, everything around them unmatched.
             let vals = out.values_mut();
@@ -269,11 +275,12 @@ impl StereoMatcher {
         stats
     }
 
-    /// [`StereoMatcher::compute`] over the whole of checked inputs: the method's call (seeded
-    /// from the half-size pair where wide, `seed.rs`), SGM's refinement, the speckle filter.
-    fn compute_whole(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
+    /// [`StereoMatcher::compute`] over the whole of checked inputs, whose searched disparities
+    /// span `span`: the method's call (seeded from the half-size pair where wide, `seed.rs`),
+    /// SGM's refinement, the speckle filter.
+    fn compute_whole(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, span: usize, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
         let params = self.params.clone();
-        let mut totals = seed::match_level(self, &params, 0, left, right, intervals, out)?;
+        let mut totals = seed::match_level(self, &params, 0, left, right, intervals, span, out)?;
         if params.method == Method::Sgm && params.subpixel && params.sgm_refine {
             // A mask (the object segmented from the blue screen) marks a scan's view.
             let masked = intervals.lo.iter().zip(&intervals.hi).any(|(a, b)| a > b);

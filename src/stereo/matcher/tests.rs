@@ -301,13 +301,35 @@ fn matching_the_crop_gives_what_matching_the_whole_image_gives() {
         let mut cropped = DisparityMap::new(w, h);
         let stats = m.compute(lv, rv, &iv, &mut cropped).unwrap();
         let mut whole = DisparityMap::new(w, h);
-        let whole_stats = m.compute_whole(lv, rv, &iv, &mut whole).unwrap();
+        let whole_stats = m.compute_whole(lv, rv, &iv, crop.span, &mut whole).unwrap();
         assert_eq!((stats.searched, stats.evaluated, stats.matched), (whole_stats.searched, whole_stats.evaluated, whole_stats.matched));
         assert!(same_map(cropped.values(), whole.values()));
         assert!(stats.matched > 2000, "{}", stats.matched);
         iv.set(0, 0, Some((min_d, min_d + 5)));
         assert_eq!(Crop::of(&iv, &m.params).unwrap().x0, 0);
     }
+    // A wide search seeded from the half-size pair. SGM's level map (the intensity term) and
+    // the half-size matches near the crop's edge see the crop, not the image, so the two
+    // maps may differ at a few pixels; the crop's tiles are the image's, so the seed's are.
+    let sgm = MatchParams { num_disparities: 128, threads: 1, ..MatchParams::for_method(crate::stereo::Method::Sgm) }.validate().unwrap();
+    let mut m = StereoMatcher::new(sgm.clone());
+    let mut iv = DisparityIntervals::empty(w, h);
+    for y in 20..80 {
+        for x in 40..190 {
+            iv.set(x, y, Some((0, 127)));
+        }
+    }
+    let crop = Crop::of(&iv, &m.params).unwrap();
+    assert!(crop.w < w && crop.h < h && crop.span == 128, "{crop:?}");
+    let (mut cropped, mut whole) = (DisparityMap::new(w, h), DisparityMap::new(w, h));
+    let stats = m.compute(lv, rv, &iv, &mut cropped).unwrap();
+    let whole_stats = m.compute_whole(lv, rv, &iv, crop.span, &mut whole).unwrap();
+    let both = cropped.values().iter().zip(whole.values()).filter(|(a, b)| !a.is_nan() && !b.is_nan());
+    let (n, near) = both.fold((0, 0), |(n, k), (a, b)| (n + 1, k + ((a - b).abs() <= 0.5) as usize));
+    assert!(n * 100 >= whole_stats.matched * 99 && near * 100 >= n * 99, "{near} of {n} within 0.5 px, {} and {} matched", stats.matched, whole_stats.matched);
+    let unseeded = StereoMatcher::new(MatchParams { coarse_to_fine: false, ..(*sgm).clone() }.validate().unwrap()).compute(lv, rv, &iv, &mut whole).unwrap();
+    assert!(stats.evaluated < unseeded.evaluated, "seeded {} against {}", stats.evaluated, unseeded.evaluated);
+
     let mut m = StereoMatcher::new(params(16));
     let mut out = DisparityMap::new(w, h);
     assert_eq!(m.compute(lv, rv, &DisparityIntervals::empty(w, h), &mut out).unwrap().searched, 0);
