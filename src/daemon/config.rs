@@ -326,10 +326,16 @@ enum CoarseToFineWritten {
     Other(serde::de::IgnoredAny),
 }
 
-/// A `coarse_to_fine` value that is none of the accepted ones (the value as written).
+/// A `coarse_to_fine` value that is none of the accepted ones.
 #[derive(Debug, thiserror::Error)]
-#[error("coarse_to_fine = {0}: expected \"auto\", \"on\", \"off\", true or false")]
-pub struct BadCoarseToFine(String);
+pub enum BadCoarseToFine {
+    /// A string, as written.
+    #[error("coarse_to_fine = {0}: expected \"auto\", \"on\", \"off\", true or false")]
+    Word(String),
+    /// Neither a string nor a boolean.
+    #[error("coarse_to_fine: expected \"auto\", \"on\", \"off\", true or false")]
+    Other,
+}
 
 impl TryFrom<CoarseToFineWritten> for CoarseToFine {
     type Error = BadCoarseToFine;
@@ -340,9 +346,9 @@ impl TryFrom<CoarseToFineWritten> for CoarseToFine {
                 "auto" => Ok(CoarseToFine::Auto),
                 "on" => Ok(CoarseToFine::On),
                 "off" => Ok(CoarseToFine::Off),
-                _ => Err(BadCoarseToFine(format!("{w:?}"))),
+                _ => Err(BadCoarseToFine::Word(format!("{w:?}"))),
             },
-            CoarseToFineWritten::Other(_) => Err(BadCoarseToFine("that value".into())),
+            CoarseToFineWritten::Other(_) => Err(BadCoarseToFine::Other),
         }
     }
 }
@@ -648,7 +654,7 @@ mod tests {
     #[test]
     fn matcher_parameters_follow_the_matchers_rules_and_every_accepted_value_builds() {
         let p = Path::new("x.toml");
-        for (text, key) in [("p1 = 0", "matching.p1"), ("p2 = 9000", "matching.p2"), ("sgm_paths = 6", "matching.sgm_paths"), ("sgm_ad_cap = 101", "matching.sgm_ad_cap"), ("method = \"census\"", "expected `bm` or `sgm`"), ("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("sgm_refine_block = 8", "matching.sgm_refine_block"), ("sgm_refine_block = 33", "matching.sgm_refine_block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities"), ("coarse_to_fine = \"maybe\"", "coarse_to_fine = \"maybe\": expected \"auto\", \"on\", \"off\", true or false"), ("coarse_to_fine = 1", "coarse_to_fine = that value: expected")] {
+        for (text, key) in [("p1 = 0", "matching.p1"), ("p2 = 9000", "matching.p2"), ("sgm_paths = 6", "matching.sgm_paths"), ("sgm_ad_cap = 101", "matching.sgm_ad_cap"), ("method = \"census\"", "expected `bm` or `sgm`"), ("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("sgm_refine_block = 8", "matching.sgm_refine_block"), ("sgm_refine_block = 33", "matching.sgm_refine_block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities"), ("coarse_to_fine = \"maybe\"", "coarse_to_fine = \"maybe\": expected \"auto\", \"on\", \"off\", true or false"), ("coarse_to_fine = 1", "coarse_to_fine: expected \"auto\"")] {
             let e = Config::parse(p, &format!("[matching]\n{text}\n")).unwrap_err().to_string();
             assert!(e.contains(key), "{text}: {e}");
         }
