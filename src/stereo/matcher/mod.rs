@@ -350,6 +350,16 @@ impl StereoMatcher {
     }
 }
 
+/// Widest interval that says where a pixel corresponds (for the intensity term's level map):
+/// 24 disparities — a seeded band, an assisted interval — and under half the range, so that a
+/// narrow full range (Tsukuba's 16) is not taken for one.
+fn prior_width(params: &ValidMatchParams) -> i32 {
+    PRIOR_MAX_WIDTH.min(params.num_disparities as i32 / 2 - 1)
+}
+
+/// See [`prior_width`].
+const PRIOR_MAX_WIDTH: i32 = 24;
+
 /// Semi-global matching with `params`, in stripes of rows on its threads, with one of
 /// `sgms`' buffers per stripe. Each stripe runs the whole method over its rows and
 /// [`SGM_OVERLAP`] more above and below, and keeps its own rows: the vertical paths start that
@@ -358,8 +368,13 @@ impl StereoMatcher {
 fn sgm_stripes(params: &ValidMatchParams, sgms: &mut Vec<super::sgm::Sgm>, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
     let (w, h) = (left.width, left.height);
     let stripes = params.thread_count().min(h / SGM_MIN_ROWS).max(1);
-    // The intensity term's level map, over the whole images (not per stripe).
-    let levels = if params.sgm_ad_cap > 0 { super::sgm::level_map(left.data, right.data) } else { std::array::from_fn(|v| v as u8) };
+    // The intensity term's level map, one for the call (not per stripe): over the pixels
+    // that correspond by the intervals where they are priors, else over the whole images.
+    let levels = if params.sgm_ad_cap > 0 {
+        super::sgm::level_map_from_prior(left, right, intervals, prior_width(params)).unwrap_or_else(|| super::sgm::level_map(left.data, right.data))
+    } else {
+        std::array::from_fn(|v| v as u8)
+    };
     if stripes == 1 {
         sgms.resize_with(1, Default::default);
         return Ok(sgms[0].compute(params, left, right, &levels, intervals, 0..h, out)?);

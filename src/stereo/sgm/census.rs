@@ -12,6 +12,8 @@
 //! Mei et al. 2011). It is not invariant to the cameras' gain and offset, so the right image
 //! is first mapped linearly onto the left's mean and standard deviation ([`level_map`]).
 
+use crate::stereo::disparity::{DisparityIntervals, GrayView};
+
 /// Census window width and height (odd). 7 × 5 − 1 = 34 bits, in a `u64` per pixel: chosen
 /// by measurement on the Middlebury pairs (docs/matcher.md) — 9 × 7 was best alone, 7 × 5
 /// with the intensity term.
@@ -132,7 +134,9 @@ pub(super) fn transform_into(img: &[u8], w: usize, h: usize, pad: (usize, usize)
 /// The map of the right image's grey levels onto the left's mean and standard deviation
 /// (both over the whole images): a gain and offset between the cameras removed before the
 /// intensity term compares levels. One table for a call, so that every stripe of rows
-/// compares the same levels.
+/// compares the same levels. Two views of different content (more of a dark background on
+/// one side) differ in these statistics too; where the call's intervals say what corresponds,
+/// [`level_map_from_prior`] compares like with like.
 pub(in crate::stereo) fn level_map(left: &[u8], right: &[u8]) -> [u8; 256] {
     // From each image's histogram: one pass of integer counting per image, into four
     // histograms taken in turn (a blue screen repeats one level pixel after pixel, and one
@@ -154,7 +158,62 @@ pub(in crate::stereo) fn level_map(left: &[u8], right: &[u8]) -> [u8; 256] {
         let var = hist.iter().enumerate().map(|(v, &c)| (v as f64 - mean).powi(2) * c as f64).sum::<f64>() / n;
         (mean, var.sqrt().max(1.0))
     };
-    let ((ml, sl), (mr, sr)) = (stats(left), stats(right));
+    linear_map(stats(left), stats(right))
+}
+
+/// Fewest corresponding pairs [`level_map_from_prior`] takes its statistics over.
+pub(in crate::stereo) const MIN_PRIOR_PAIRS: u64 = 512;
+
+/// [`level_map_from_prior`] samples every this many rows.
+const PRIOR_ROW_STEP: usize = 4;
+
+/// [`level_map_from_prior`] takes a left pixel only where the pixels this far on either side
+/// are searched too: away from the object's silhouette, where a correspondence a few pixels
+/// off would sample the background.
+const PRIOR_INNER: usize = 8;
+
+/// The map of [`level_map`], with both statistics taken over corresponding pixels: each left
+/// pixel whose interval is a prior — searched, at most `max_width` disparities wide — and
+/// the right pixel at the interval's middle disparity (inside the image), on every
+/// [`PRIOR_ROW_STEP`]-th row and [`PRIOR_INNER`] pixels or more inside the searched pixels. A seeded call's
+/// bands and an assisted call's intervals are such priors; the pixels then sample the same
+/// surface in both images, within a few pixels, whatever else each view holds. `None` with
+/// fewer than [`MIN_PRIOR_PAIRS`] such pairs (a full-range call: then [`level_map`]).
+pub(in crate::stereo) fn level_map_from_prior(left: GrayView, right: GrayView, intervals: &DisparityIntervals, max_width: i32) -> Option<[u8; 256]> {
+    let w = left.width;
+    let (mut n, mut sl, mut sl2, mut sr, mut sr2) = (0u64, 0u64, 0u64, 0u64, 0u64);
+    // Every PRIOR_ROW_STEP-th row: thousands of pairs still, at a quarter of the pass.
+    for (y, (lo, hi)) in intervals.lo.chunks_exact(w).zip(intervals.hi.chunks_exact(w)).enumerate().step_by(PRIOR_ROW_STEP) {
+        let (lrow, rrow) = (&left.data[y * w..][..w], &right.data[y * w..][..w]);
+        let (mut rn, mut rl, mut rl2, mut rr, mut rr2) = (0u64, 0u64, 0u64, 0u64, 0u64);
+        for (x, (&a, &b)) in lo.iter().zip(hi).enumerate() {
+            let (a, b) = (a as i32, b as i32);
+            let xr = x as i32 - ((a + b) >> 1);
+            let inner = x >= PRIOR_INNER && x + PRIOR_INNER < w && lo[x - PRIOR_INNER] <= hi[x - PRIOR_INNER] && lo[x + PRIOR_INNER] <= hi[x + PRIOR_INNER];
+            if inner && a <= b && b - a <= max_width && xr >= 0 && (xr as usize) < w {
+                let (l, r) = (lrow[x] as u64, rrow[xr as usize] as u64);
+                rn += 1;
+                rl += l;
+                rl2 += l * l;
+                rr += r;
+                rr2 += r * r;
+            }
+        }
+        (n, sl, sl2, sr, sr2) = (n + rn, sl + rl, sl2 + rl2, sr + rr, sr2 + rr2);
+    }
+    if n < MIN_PRIOR_PAIRS {
+        return None;
+    }
+    let stats = |s: u64, s2: u64| {
+        let mean = s as f64 / n as f64;
+        let var = (s2 as f64 / n as f64 - mean * mean).max(0.0);
+        (mean, var.sqrt().max(1.0))
+    };
+    Some(linear_map(stats(sl, sl2), stats(sr, sr2)))
+}
+
+/// The table taking levels of mean `mr` and deviation `sr` onto `ml` and `sl`, rounded.
+fn linear_map((ml, sl): (f64, f64), (mr, sr): (f64, f64)) -> [u8; 256] {
     std::array::from_fn(|v| ((v as f64 - mr) * sl / sr + ml).round().clamp(0.0, 255.0) as u8)
 }
 
@@ -292,6 +351,66 @@ mod tests {
         assert_eq!((&padded[..3], padded[12], &padded[13..16]), (&[left[0], left[0], left[0]][..], left[9], &[left[10], left[10], left[10]][..]));
         pad_rows(&right[..20], 10, 2, (2, 1), &map, &mut padded);
         assert!(padded[2..12].iter().zip(&left[..10]).all(|(a, b)| a.abs_diff(*b) <= 1));
+    }
+
+    /// A scene whose two views differ in content as well as in gain: the object (a texture
+    /// over columns 40 … 159 of the left image, 12 px further left in the right one) and, in
+    /// the right image only, a dark strip where the left sees bright background.
+    fn gain_and_content(w: usize, h: usize) -> (Vec<u8>, Vec<u8>, DisparityIntervals) {
+        let texture = |x: usize, y: usize| (40 + (x * 37 + y * 91 + (x * y) % 23) % 150) as f64;
+        let left: Vec<u8> = (0..w * h).map(|i| if (40..160).contains(&(i % w)) { texture(i % w, i / w) as u8 } else { 200 }).collect();
+        let right: Vec<u8> = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                let v = if (28..148).contains(&x) { texture(x + 12, y) } else if x >= 150 { 5.0 } else { 200.0 };
+                (1.2 * v + 9.0).round().min(255.0) as u8
+            })
+            .collect();
+        // The object's pixels search 12 ± 3 (an assisted call's prior).
+        let mut iv = DisparityIntervals::empty(w, h);
+        for y in 0..h {
+            for x in 40..160 {
+                iv.set(x, y, Some((9, 15)));
+            }
+        }
+        (left, right, iv)
+    }
+
+    #[test]
+    fn the_prior_level_map_compares_the_pixels_that_correspond() {
+        let (w, h) = (200, 40);
+        let (left, right, iv) = gain_and_content(w, h);
+        let (lv, rv) = (GrayView::new(w, h, &left).unwrap(), GrayView::new(w, h, &right).unwrap());
+        let off = |map: &[u8; 256]| (0..h).flat_map(|y| (40..160).map(move |x| (x, y))).map(|(x, y)| left[y * w + x].abs_diff(map[right[y * w + x - 12] as usize])).max().unwrap();
+        let prior = level_map_from_prior(lv, rv, &iv, 24).expect("the object's pixels are priors");
+        assert!(off(&prior) <= 1, "the prior's map is {} levels off", off(&prior));
+        // The whole images' statistics see the dark strip and the background as well.
+        let whole = level_map(&left, &right);
+        assert!(off(&whole) > 10, "the whole images' map is {} levels off", off(&whole));
+    }
+
+    #[test]
+    fn a_full_range_or_too_few_pixels_is_no_prior() {
+        let (w, h) = (200, 40);
+        let (left, right, iv) = gain_and_content(w, h);
+        let (lv, rv) = (GrayView::new(w, h, &left).unwrap(), GrayView::new(w, h, &right).unwrap());
+        // Intervals wider than the prior's width.
+        assert!(level_map_from_prior(lv, rv, &iv, 5).is_none());
+        assert!(level_map_from_prior(lv, rv, &DisparityIntervals::full(w, h, 0, 63), 24).is_none());
+        // Under MIN_PRIOR_PAIRS sampled pairs: one row of the object.
+        let mut few = DisparityIntervals::empty(w, h);
+        for x in 40..160 {
+            few.set(x, 0, Some((9, 15)));
+        }
+        assert!(level_map_from_prior(lv, rv, &few, 24).is_none());
+        // Nothing whose correspondence falls off the image.
+        let mut outside = DisparityIntervals::empty(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                outside.set(x, y, Some((x as i32 + 1, x as i32 + 3)));
+            }
+        }
+        assert!(level_map_from_prior(lv, rv, &outside, 24).is_none());
     }
 
     #[test]

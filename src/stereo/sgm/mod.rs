@@ -49,7 +49,7 @@ use super::params::ValidMatchParams;
 
 mod census;
 mod costs;
-pub(super) use census::level_map;
+pub(super) use census::{level_map, level_map_from_prior};
 mod select;
 mod single;
 #[cfg(target_arch = "x86_64")]
@@ -316,7 +316,7 @@ impl Sgm {
     /// Matches checked inputs (same size, at least 2 × 1) over `intervals`, and keeps (writes
     /// and counts) the rows `keep` — the others only feed the paths; the speckle filter is the
     /// caller's. `levels` maps `right`'s grey levels onto the left image's for the intensity
-    /// term ([`level_map`], over the whole images).
+    /// term ([`level_map_from_prior`], or [`level_map`] over the whole images).
     pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, VolumeRefused> {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("popcnt") {
