@@ -224,8 +224,9 @@ impl StereoMatcher {
         // matched: the results are the same (every window and every right pixel searched lies
         // inside it, and where it meets the image border, the border is the image's), and
         // rows and columns of background cost nothing. (With `sgm`, two things see the crop
-        // rather than the image: the intensity term's level map, from the images' histograms,
-        // and a seeded call's half-size matches within a few pixels of the crop's edge.)
+        // rather than the image: the intensity term's level map where it comes from the
+        // images' histograms (a call without priors), and a seeded call's half-size matches
+        // within a few pixels of the crop's edge.)
         let Some(crop) = Crop::of(intervals, &self.params) else {
             out.values_mut().fill(f32::NAN);
             return Ok(MatchStats::default());
