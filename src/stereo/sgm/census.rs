@@ -162,7 +162,7 @@ pub(in crate::stereo) fn level_map(left: &[u8], right: &[u8]) -> [u8; 256] {
 }
 
 /// Fewest corresponding pairs [`level_map_from_prior`] takes its statistics over.
-pub(in crate::stereo) const MIN_PRIOR_PAIRS: u64 = 512;
+const MIN_PRIOR_PAIRS: u64 = 512;
 
 /// [`level_map_from_prior`] samples every this many rows.
 const PRIOR_ROW_STEP: usize = 4;
@@ -175,10 +175,11 @@ const PRIOR_INNER: usize = 8;
 /// The map of [`level_map`], with both statistics taken over corresponding pixels: each left
 /// pixel whose interval is a prior — searched, at most `max_width` disparities wide — and
 /// the right pixel at the interval's middle disparity (inside the image), on every
-/// [`PRIOR_ROW_STEP`]-th row and [`PRIOR_INNER`] pixels or more inside the searched pixels. A seeded call's
-/// bands and an assisted call's intervals are such priors; the pixels then sample the same
-/// surface in both images, within a few pixels, whatever else each view holds. `None` with
-/// fewer than [`MIN_PRIOR_PAIRS`] such pairs (a full-range call: then [`level_map`]).
+/// [`PRIOR_ROW_STEP`]-th row and [`PRIOR_INNER`] pixels or more inside the searched pixels.
+/// A seeded call's bands and an assisted call's intervals are such priors; the pixels then
+/// sample the same surface in both images, within a few pixels, whatever else each view
+/// holds. `None` with fewer than [`MIN_PRIOR_PAIRS`] such pairs (a full-range call: then
+/// [`level_map`]).
 pub(in crate::stereo) fn level_map_from_prior(left: GrayView, right: GrayView, intervals: &DisparityIntervals, max_width: i32) -> Option<[u8; 256]> {
     let w = left.width;
     let (mut n, mut sl, mut sl2, mut sr, mut sr2) = (0u64, 0u64, 0u64, 0u64, 0u64);
