@@ -10,7 +10,9 @@
 //! The intensity term, `min(|I_left − I_right|, cap)`, is what census lacks: the pixel's own
 //! level, sharp at depth edges where the census window straddles two surfaces (AD-census,
 //! Mei et al. 2011). It is not invariant to the cameras' gain and offset, so the right image
-//! is first mapped linearly onto the left's mean and standard deviation ([`level_map`]).
+//! is first mapped linearly onto the left's mean and standard deviation: over the pixels the
+//! call's intervals say correspond ([`level_map_from_prior`]), else over the whole images
+//! ([`level_map`]).
 
 use crate::stereo::disparity::{DisparityIntervals, GrayView};
 
