@@ -363,7 +363,10 @@ mod tests {
             let ((seeded, s), (full, f)) = (run(method, true, 0, &l, &r, w, h), run(method, false, 0, &l, &r, w, h));
             for front in [true, false] {
                 let (a, b) = (good(&seeded, front), good(&full, front));
-                assert!(a >= 0.95 && a >= b - 0.01, "{method}, front {front}: {a} seeded, {b} full");
+                // SGM's bar is the one it had alone; `bm` leaves a few more of the rectangle's
+                // edge pixels unmatched whether seeded or not (0.963 of the front at full range).
+                let floor = if method == Method::Sgm { 0.97 } else { 0.95 };
+                assert!(a >= floor && a >= b - 0.01, "{method}, front {front}: {a} seeded, {b} full");
             }
             // Fewer pairs searched, the half-size call's included, though the tiles along the
             // rectangle's edges search both planes' disparities.
