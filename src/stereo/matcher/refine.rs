@@ -19,15 +19,37 @@ use crate::stereo::disparity::{searched_span, DisparityIntervals, DisparityMap, 
 const AGREE_PX: f32 = 1.0;
 
 /// The share of SGM's own sub-pixel value in a refined disparity, as a deviation from the
-/// correlation's: `c + OWN_WEIGHT · (d − c − offset)`, where the correlation `c` and SGM's own
-/// value `d` agree. The two fits err partly independently (their noise differs: the
-/// correlation's median error is about half SGM's own), so the blend is closer than either;
-/// but SGM's fit through its penalised sums leans one way, by an amount that follows the
-/// surface's slant (on the ideal egg −0.11 px on average, −0.01 to −0.18 px by slant), which
-/// a fused model would keep: `offset` is the mean of `d − c` over each [`OFFSET_TILE`]-pixel
-/// square's agreeing pixels, so the blend takes SGM's deviations around it and not the lean
-/// itself (docs/matcher.md, "Two sub-pixel estimates").
+/// correlation's, where the two lie within [`OWN_WEIGHT_FROM_PX`]: `c + w · (d − c − offset)`,
+/// where the correlation `c` and SGM's own value `d` agree, with `w` = [`own_weight`]. The two fits err partly
+/// independently (their noise differs: the correlation's median error is about half SGM's
+/// own), so the blend is closer than either; but SGM's fit through its penalised sums leans
+/// one way, by an amount that follows the surface's slant (on the ideal egg −0.11 px on
+/// average, −0.01 to −0.18 px by slant), which a fused model would keep: `offset` is the mean
+/// of `d − c` over each [`OFFSET_TILE`]-pixel square's agreeing pixels, so the blend takes
+/// SGM's deviations around it and not the lean itself (docs/matcher.md, "Two sub-pixel
+/// estimates").
 pub(super) const OWN_WEIGHT: f32 = 0.2;
+
+/// How far apart, pixels, SGM's value and the correlation's may lie before SGM's share of the
+/// blend grows beyond [`OWN_WEIGHT`]; from there it grows evenly, to [`OWN_WEIGHT_MAX`] at
+/// [`AGREE_PX`]. Where the two disagree, the truth lies mostly between them: on the ideal egg,
+/// torus, faint egg and bunny, the pixels 0.75–1 px apart had the correlation's value at a
+/// median error of 0.42–0.64 px, SGM's own at 0.31–0.48, and their even mean at 0.28–0.34; but between 0.25 and 0.5 px apart, a larger share of SGM's value already blurred
+/// the bunny's finer shape (docs/matcher.md, "SGM's share of the blend grows with the
+/// disagreement").
+pub(super) const OWN_WEIGHT_FROM_PX: f32 = 0.25;
+
+/// SGM's largest share of the blend, where the two values lie [`AGREE_PX`] apart: an even mean.
+pub(super) const OWN_WEIGHT_MAX: f32 = 0.5;
+
+/// SGM's share of the blend of its value `d` with the correlation's `c`: [`OWN_WEIGHT`] where
+/// they lie within [`OWN_WEIGHT_FROM_PX`], rising evenly to [`OWN_WEIGHT_MAX`] at
+/// [`AGREE_PX`] apart (and no further).
+#[inline(always)]
+pub(super) fn own_weight(d: f32, c: f32) -> f32 {
+    let t = ((d - c).abs() - OWN_WEIGHT_FROM_PX) / (AGREE_PX - OWN_WEIGHT_FROM_PX);
+    OWN_WEIGHT + (OWN_WEIGHT_MAX - OWN_WEIGHT) * t.clamp(0.0, 1.0)
+}
 
 /// Side of the squares over which SGM's lean from the correlation ([`OWN_WEIGHT`]) is
 /// averaged, pixels. Smaller squares take out more of the lean's slow changes and leave more
@@ -70,7 +92,7 @@ impl StereoMatcher {
     /// correlated again (the `bm` cost, the `sgm_refine_block` window, no uniqueness,
     /// texture, left–right or speckle test) over its SGM disparity ± 2, and where the
     /// correlation's sub-pixel disparity lies within 1 of SGM's, the two are blended
-    /// ([`OWN_WEIGHT`]).
+    /// ([`own_weight`]).
     /// Where they disagree in a `masked` match (a scan's view: the object segmented, the
     /// background unsearched, as `searched` tells), the match is dropped — a view's missing
     /// pixel is seen by its neighbours while a wrong one spoils the fused surface — unless
@@ -203,7 +225,7 @@ impl StereoMatcher {
                     // Branch-free: an unmatched pixel stays unmatched.
                     let agrees = agrees(*d, c);
                     let kept = if masked { f32::NAN } else { *d };
-                    *d = if agrees { c + OWN_WEIGHT * (*d - c - lean) } else { kept };
+                    *d = if agrees { c + own_weight(*d, c) * (*d - c - lean) } else { kept };
                 }
             }
         }

@@ -424,10 +424,10 @@ fn the_avx2_refinement_is_the_portable_one() {
 }
 
 /// Where the correlation agrees, the refined value is the correlation's plus a share
-/// (`OWN_WEIGHT`) of SGM's deviation from it, around their mean lean over the pixel's square
-/// (`OFFSET_TILE`): raising one SGM value by 0.2 raises its refined value by `OWN_WEIGHT` ·
-/// 0.2 (less its own part of the lean), lowers the rest of its square a little, and leaves
-/// the other squares alone.
+/// (`own_weight`) of SGM's deviation from it, around their mean lean over the pixel's square
+/// (`OFFSET_TILE`): raising one SGM value raises its refined value by that share of the raise
+/// (less its own part of the lean), lowers the rest of its square a little, and leaves
+/// the other squares alone; raised further from the correlation's value, SGM's share grows.
 #[test]
 fn the_blend_takes_sgm_s_deviation_around_its_lean() {
     let (w, h) = (96, 40);
@@ -437,22 +437,37 @@ fn the_blend_takes_sgm_s_deviation_around_its_lean() {
     // The raised pixel, in the middle of the first square.
     let (t, c) = (refine::OFFSET_TILE, refine::OFFSET_TILE / 2);
     assert!(3 * t <= w && t <= h);
-    let refined = |m: &mut StereoMatcher, raised: bool| {
+    let refined = |m: &mut StereoMatcher, raised: Option<f32>| {
         let mut out = DisparityMap::new(w, h);
         out.values_mut().fill(7.1);
-        if raised {
-            out.values_mut()[c * w + c] = 7.3;
+        if let Some(v) = raised {
+            out.values_mut()[c * w + c] = v;
         }
         let searched = DisparityIntervals::full(w, h, 0, 15);
         m.refine_subpixel(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &searched, &mut out, false, &mut MatchStats::default());
         out
     };
-    let (before, after) = (refined(&mut m, false), refined(&mut m, true));
-    let change = |x: usize, y: usize| after.values()[y * w + x] - before.values()[y * w + x];
-    let own = refine::OWN_WEIGHT * 0.2;
-    assert!((change(c, c) - own).abs() < own / 100.0, "{} against {own}", change(c, c));
-    assert!(change(c + 1, c - 1) < 0.0 && change(c + 1, c - 1) > -own / 100.0, "{}", change(c + 1, c - 1));
-    assert_eq!(change(c + t, c), 0.0);
+    let before = refined(&mut m, None);
+    // Every SGM value of the square equal, its deviation around the lean is about nil: the
+    // refined value is about the correlation's own.
+    let corr = before.values()[c * w + c];
+    assert!((corr - 7.0).abs() < 0.05, "the correlation finds the shift: {corr}");
+    let mut shares = vec![];
+    for raised in [7.25f32, 7.6, 7.8] {
+        let after = refined(&mut m, Some(raised));
+        let change = |x: usize, y: usize| after.values()[y * w + x] - before.values()[y * w + x];
+        // The lean over the square's 256 agreeing pixels rises by a 256th of the raise.
+        // Within a twentieth: the correlation's values differ a little from pixel to pixel, and
+        // the pixel's weight before the raise was its own.
+        let lift = raised - 7.1;
+        let own = refine::own_weight(raised, corr) * lift * (1.0 - 1.0 / (t * t) as f32);
+        assert!((change(c, c) - own).abs() < own / 20.0, "{raised}: {} against {own}", change(c, c));
+        assert!(change(c + 1, c - 1) < 0.0 && change(c + 1, c - 1) > -own / 100.0, "{}", change(c + 1, c - 1));
+        assert_eq!(change(c + t, c), 0.0);
+        shares.push(change(c, c) / lift);
+    }
+    // Near the correlation's value SGM's share is the least; it grows the further apart.
+    assert!((shares[0] - refine::OWN_WEIGHT).abs() < 0.01 && shares[1] > shares[0] + 0.05 && shares[2] > shares[1] + 0.05, "SGM's share grows with the disagreement: {shares:?}");
 }
 
 /// On a scan's rim the refinement correlates over the object's pixels alone where the whole
