@@ -287,6 +287,9 @@ pub struct MatchingSection {
     pub sgm_refine: bool,
     /// That correlation's window side (odd, 3 … 31).
     pub sgm_refine_block: u32,
+    /// How close (pixels, 0.1 … 2) that correlation's value must come to SGM's own to keep
+    /// a view's match.
+    pub sgm_refine_agree: f32,
     /// Wide searches seeded from the pair matched at half size: "auto" (the method's
     /// default: on for sgm, off for bm), "on" or "off".
     pub coarse_to_fine: CoarseToFine,
@@ -368,7 +371,7 @@ impl Default for MatchingSection {
         // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
         // about 330 mm on.
         let m = crate::stereo::MatchParams::default();
-        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, coarse_to_fine: CoarseToFine::Auto, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string(), plate: PathBuf::new() }
+        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, sgm_refine_agree: m.sgm_refine_agree, coarse_to_fine: CoarseToFine::Auto, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string(), plate: PathBuf::new() }
     }
 }
 
@@ -492,6 +495,7 @@ impl Config {
                 "sgm_paths" => "matching.sgm_paths",
                 "sgm_ad_cap" => "matching.sgm_ad_cap",
                 "sgm_refine_block" => "matching.sgm_refine_block",
+                "sgm_refine_agree" => "matching.sgm_refine_agree",
                 _ => "matching",
             };
             return bad(key, format!("{}, got {}", e.expected, e.value));
@@ -520,7 +524,7 @@ impl Config {
         let config = self;
         let mut pipeline = crate::pipeline::PipelineOptions::default();
         let m = &config.matching;
-        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, coarse_to_fine: m.coarse_to_fine.resolve(m.method), ..crate::stereo::MatchParams::for_method(m.method) };
+        pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, sgm_refine_agree: m.sgm_refine_agree, coarse_to_fine: m.coarse_to_fine.resolve(m.method), ..crate::stereo::MatchParams::for_method(m.method) };
         // Parallelism comes from the pool: one thread per matcher.
         pipeline.matching.threads = 1;
         // (An unknown colour is refused by `validate`; unvalidated configs find the screen.)
@@ -654,7 +658,7 @@ mod tests {
     #[test]
     fn matcher_parameters_follow_the_matchers_rules_and_every_accepted_value_builds() {
         let p = Path::new("x.toml");
-        for (text, key) in [("p1 = 0", "matching.p1"), ("p2 = 9000", "matching.p2"), ("sgm_paths = 6", "matching.sgm_paths"), ("sgm_ad_cap = 101", "matching.sgm_ad_cap"), ("method = \"census\"", "expected `bm` or `sgm`"), ("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("sgm_refine_block = 8", "matching.sgm_refine_block"), ("sgm_refine_block = 33", "matching.sgm_refine_block"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities"), ("coarse_to_fine = \"maybe\"", "coarse_to_fine = \"maybe\": expected \"auto\", \"on\", \"off\", true or false"), ("coarse_to_fine = 1", "coarse_to_fine: expected \"auto\"")] {
+        for (text, key) in [("p1 = 0", "matching.p1"), ("p2 = 9000", "matching.p2"), ("sgm_paths = 6", "matching.sgm_paths"), ("sgm_ad_cap = 101", "matching.sgm_ad_cap"), ("method = \"census\"", "expected `bm` or `sgm`"), ("block = 33", "matching.block"), ("block = 4", "matching.block"), ("block = 1", "matching.block"), ("sgm_refine_block = 8", "matching.sgm_refine_block"), ("sgm_refine_block = 33", "matching.sgm_refine_block"), ("sgm_refine_agree = 0.05", "matching.sgm_refine_agree"), ("sgm_refine_agree = 2.5", "matching.sgm_refine_agree"), ("num_disparities = 0", "matching.num_disparities"), ("num_disparities = 2000", "matching.num_disparities"), ("coarse_to_fine = \"maybe\"", "coarse_to_fine = \"maybe\": expected \"auto\", \"on\", \"off\", true or false"), ("coarse_to_fine = 1", "coarse_to_fine: expected \"auto\"")] {
             let e = Config::parse(p, &format!("[matching]\n{text}\n")).unwrap_err().to_string();
             assert!(e.contains(key), "{text}: {e}");
         }

@@ -15,9 +15,6 @@ use super::scratch::{Geometry, PF_SLACK};
 use super::{round_half_away_within, Method, StereoMatcher};
 use crate::stereo::disparity::{searched_span, DisparityIntervals, DisparityMap, GrayView, MatchStats};
 
-/// How close the correlation's sub-pixel disparity must come to SGM's value to refine it.
-const AGREE_PX: f32 = 1.0;
-
 /// The share of SGM's own sub-pixel value in a refined disparity, as a deviation from the
 /// correlation's, where the two lie within [`OWN_WEIGHT_FROM_PX`]: `c + w · (d − c − offset)`,
 /// where the correlation `c` and SGM's own value `d` agree, with `w` = [`own_weight`]. The two fits err partly
@@ -32,22 +29,26 @@ pub(super) const OWN_WEIGHT: f32 = 0.2;
 
 /// How far apart, pixels, SGM's value and the correlation's may lie before SGM's share of the
 /// blend grows beyond [`OWN_WEIGHT`]; from there it grows evenly, to [`OWN_WEIGHT_MAX`] at
-/// [`AGREE_PX`]. Where the two disagree, the truth lies mostly between them: on the ideal egg,
+/// [`OWN_WEIGHT_MAX_PX`]. Where the two disagree, the truth lies mostly between them: on the ideal egg,
 /// torus, faint egg and bunny, the pixels 0.75–1 px apart had the correlation's value at a
 /// median error of 0.42–0.64 px, SGM's own at 0.31–0.48, and their even mean at 0.28–0.34; but between 0.25 and 0.5 px apart, a larger share of SGM's value already blurred
 /// the bunny's finer shape (docs/matcher.md, "SGM's share of the blend grows with the
 /// disagreement").
 pub(super) const OWN_WEIGHT_FROM_PX: f32 = 0.25;
 
-/// SGM's largest share of the blend, where the two values lie [`AGREE_PX`] apart: an even mean.
+/// SGM's largest share of the blend: an even mean.
 pub(super) const OWN_WEIGHT_MAX: f32 = 0.5;
+
+/// How far apart, pixels, the two values lie where the blend becomes an even mean (the
+/// default `sgm_refine_agree`, the furthest apart they are blended unless asked for more).
+pub(super) const OWN_WEIGHT_MAX_PX: f32 = 1.0;
 
 /// SGM's share of the blend of its value `d` with the correlation's `c`: [`OWN_WEIGHT`] where
 /// they lie within [`OWN_WEIGHT_FROM_PX`], rising evenly to [`OWN_WEIGHT_MAX`] at
-/// [`AGREE_PX`] apart (and no further).
+/// [`OWN_WEIGHT_MAX_PX`] apart (and no further).
 #[inline(always)]
 pub(super) fn own_weight(d: f32, c: f32) -> f32 {
-    let t = ((d - c).abs() - OWN_WEIGHT_FROM_PX) / (AGREE_PX - OWN_WEIGHT_FROM_PX);
+    let t = ((d - c).abs() - OWN_WEIGHT_FROM_PX) / (OWN_WEIGHT_MAX_PX - OWN_WEIGHT_FROM_PX);
     OWN_WEIGHT + (OWN_WEIGHT_MAX - OWN_WEIGHT) * t.clamp(0.0, 1.0)
 }
 
@@ -59,7 +60,7 @@ pub(super) fn own_weight(d: f32, c: f32) -> f32 {
 pub(super) const OFFSET_TILE: usize = 16;
 
 /// How close the rim's correlation over the object must come to SGM's value to stand for the
-/// correlation's (elsewhere [`AGREE_PX`]): its window holds fewer pixels, and each rim pixel a
+/// correlation's (elsewhere `sgm_refine_agree`, when that is not closer still): its window holds fewer pixels, and each rim pixel a
 /// view gains is less precise than its median one — at 1 px the realistic egg ring's views'
 /// median distance rose above `bm`'s, at 0.5 px it did not (docs/matcher.md, "The rim").
 const RIM_AGREE_PX: f32 = 0.5;
@@ -91,13 +92,14 @@ impl StereoMatcher {
     /// SGM's sub-pixel disparities taken from the correlation cost: each matched pixel is
     /// correlated again (the `bm` cost, the `sgm_refine_block` window, no uniqueness,
     /// texture, left–right or speckle test) over its SGM disparity ± 2, and where the
-    /// correlation's sub-pixel disparity lies within 1 of SGM's, the two are blended
-    /// ([`own_weight`]).
+    /// correlation's sub-pixel disparity lies within `sgm_refine_agree` (1 px) of SGM's, the
+    /// two are blended ([`own_weight`]).
     /// Where they disagree in a `masked` match (a scan's view: the object segmented, the
     /// background unsearched, as `searched` tells), the match is dropped — a view's missing
     /// pixel is seen by its neighbours while a wrong one spoils the fused surface — unless
     /// its window reaches the background and the correlation over the window's searched
-    /// pixels alone ([`RimRows`]) lies within [`RIM_AGREE_PX`] of SGM's value, with which it
+    /// pixels alone ([`RimRows`]) lies within [`RIM_AGREE_PX`] (or `sgm_refine_agree` where
+    /// closer) of SGM's value, with which it
     /// is then blended. On a whole image (a single pair) SGM's value stays where they disagree:
     /// there density matters and there is no rim.
     pub(super) fn refine_subpixel(&mut self, left: GrayView, right: GrayView, searched: &DisparityIntervals, out: &mut DisparityMap, masked: bool, totals: &mut MatchStats) {
@@ -125,6 +127,7 @@ impl StereoMatcher {
         let (w, h) = (left.width, left.height);
         let p = &self.params;
         let (dmin, dmax) = (p.min_disparity, p.max_disparity());
+        let agree = p.sgm_refine_agree;
         let bm = crate::stereo::MatchParams { method: Method::Bm, uniqueness_ratio: 0, texture_threshold: 0, lr_max_diff: None, speckle_window: 0, block: p.sgm_refine_block, ..(**p).clone() }.validate().expect("the sgm parameters with the correlation's tests off are valid");
         let mut s = std::mem::take(&mut self.refine);
         let iv = &mut s.intervals;
@@ -170,14 +173,14 @@ impl StereoMatcher {
                 let (dc, cc) = (ds.chunks_exact(8), cs.chunks_exact(8));
                 let tail = row.start + dc.len() * 8;
                 for (k, (d8, c8)) in dc.clone().zip(cc.clone()).enumerate() {
-                    let mut bits = disagree_bits::<AVX2>(d8, c8);
+                    let mut bits = disagree_bits::<AVX2>(d8, c8, agree);
                     while bits != 0 {
                         s.candidates.push((row.start + k * 8 + bits.trailing_zeros() as usize) as u32);
                         bits &= bits - 1;
                     }
                 }
                 for (j, (&d, &c)) in dc.remainder().iter().zip(cc.remainder()).enumerate() {
-                    if disagrees(d, c) {
+                    if disagrees(d, c, agree) {
                         s.candidates.push((tail + j) as u32);
                     }
                 }
@@ -191,7 +194,7 @@ impl StereoMatcher {
                     if let Some(costs) = s.rim.costs(g, &self.right_pf_rev, i % w, i / w, lo, hi) {
                         totals.evaluated += (hi - lo + 1) as u64;
                         let c = lo as f32 + fit(&costs[..(hi - lo + 1) as usize]);
-                        s.corr.values_mut()[i] = if (c - out.values()[i]).abs() <= RIM_AGREE_PX { c } else { f32::NAN };
+                        s.corr.values_mut()[i] = if (c - out.values()[i]).abs() <= RIM_AGREE_PX.min(agree) { c } else { f32::NAN };
                     }
                 }
             }
@@ -208,7 +211,7 @@ impl StereoMatcher {
             let t0 = y / OFFSET_TILE * tiles_x;
             for (tx, cols) in tile_chunks(span.clone()) {
                 let row = y * w + cols.start..y * w + cols.end;
-                let (sum, n) = lean_sum(&out.values()[row.clone()], &s.corr.values()[row]);
+                let (sum, n) = lean_sum(&out.values()[row.clone()], &s.corr.values()[row], agree);
                 s.lean[t0 + tx] += sum;
                 s.agreeing[t0 + tx] += n;
             }
@@ -223,7 +226,7 @@ impl StereoMatcher {
                 let lean = s.lean[t0 + tx];
                 for (d, &c) in out.values_mut()[row.clone()].iter_mut().zip(&s.corr.values()[row]) {
                     // Branch-free: an unmatched pixel stays unmatched.
-                    let agrees = agrees(*d, c);
+                    let agrees = agrees(*d, c, agree);
                     let kept = if masked { f32::NAN } else { *d };
                     *d = if agrees { c + own_weight(*d, c) * (*d - c - lean) } else { kept };
                 }
@@ -233,29 +236,30 @@ impl StereoMatcher {
     }
 }
 
-/// Whether SGM's value `d` and the correlation's `c` agree ([`AGREE_PX`]). NaN fails every
+/// Whether SGM's value `d` and the correlation's `c` agree: lie within `agree` pixels
+/// (`sgm_refine_agree`). NaN fails every
 /// comparison: an unmatched pixel or a missing correlation disagrees.
 #[inline(always)]
-fn agrees(d: f32, c: f32) -> bool {
-    (c - d).abs() <= AGREE_PX
+fn agrees(d: f32, c: f32, agree: f32) -> bool {
+    (c - d).abs() <= agree
 }
 
 /// Whether SGM's `d` (matched) and the correlation's `c` disagree.
 #[inline(always)]
-fn disagrees(d: f32, c: f32) -> bool {
-    !d.is_nan() && !agrees(d, c)
+fn disagrees(d: f32, c: f32, agree: f32) -> bool {
+    !d.is_nan() && !agrees(d, c, agree)
 }
 
 /// Bit j set where `d[j]` and `c[j]` [`disagrees`], for eight pixels (`d` and `c` hold
 /// eight values): on AVX2 by one vector compare, else branch-free, so that it vectorises.
 #[inline(always)]
-fn disagree_bits<const AVX2: bool>(d: &[f32], c: &[f32]) -> u32 {
+fn disagree_bits<const AVX2: bool>(d: &[f32], c: &[f32], agree: f32) -> u32 {
     #[cfg(target_arch = "x86_64")]
     if AVX2 {
         // SAFETY: AVX2 is only set by `refine_avx2`, whose caller checked the CPU.
-        return unsafe { disagree_bits_avx2(d, c) };
+        return unsafe { disagree_bits_avx2(d, c, agree) };
     }
-    (0..8).fold(0u32, |m, j| m | (disagrees(d[j], c[j]) as u32) << j)
+    (0..8).fold(0u32, |m, j| m | (disagrees(d[j], c[j], agree) as u32) << j)
 }
 
 /// [`disagree_bits`] by one compare each.
@@ -265,26 +269,26 @@ fn disagree_bits<const AVX2: bool>(d: &[f32], c: &[f32]) -> u32 {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]
-unsafe fn disagree_bits_avx2(d: &[f32], c: &[f32]) -> u32 {
+unsafe fn disagree_bits_avx2(d: &[f32], c: &[f32], agree: f32) -> u32 {
     use std::arch::x86_64::*;
     assert!(d.len() == 8 && c.len() == 8);
     // SAFETY: eight values each, asserted above.
     let (d, c) = unsafe { (_mm256_loadu_ps(d.as_ptr()), _mm256_loadu_ps(c.as_ptr())) };
-    // |c − d| ≤ AGREE_PX, false where either is NaN (an ordered compare), as `agrees`.
+    // |c − d| ≤ agree, false where either is NaN (an ordered compare), as `agrees`.
     let off = _mm256_andnot_ps(_mm256_set1_ps(-0.0), _mm256_sub_ps(c, d));
-    let agree = _mm256_cmp_ps::<_CMP_LE_OQ>(off, _mm256_set1_ps(AGREE_PX));
+    let agree = _mm256_cmp_ps::<_CMP_LE_OQ>(off, _mm256_set1_ps(agree));
     let matched = _mm256_cmp_ps::<_CMP_ORD_Q>(d, d);
     _mm256_movemask_ps(_mm256_andnot_ps(agree, matched)) as u32
 }
 
 /// The sum of `d − c` over the pixels where SGM's `d` and the correlation's `c` agree, and
 /// their count. Eight running sums, so that it vectorises (one sum waits on each add).
-fn lean_sum(d: &[f32], c: &[f32]) -> (f32, u32) {
+fn lean_sum(d: &[f32], c: &[f32], agree: f32) -> (f32, u32) {
     const LANES: usize = 8;
     let (mut sums, mut counts) = ([0.0f32; LANES], [0u32; LANES]);
     let add = |sums: &mut [f32; LANES], counts: &mut [u32; LANES], k: usize, d: f32, c: f32| {
         // Branch-free.
-        let agrees = agrees(d, c);
+        let agrees = agrees(d, c, agree);
         sums[k] += if agrees { d - c } else { 0.0 };
         counts[k] += agrees as u32;
     };

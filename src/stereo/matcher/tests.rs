@@ -380,6 +380,36 @@ fn refinement_keeps_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
     }
 }
 
+/// `sgm_refine_agree` sets how close the two values must come: SGM values 0.3 and 0.7 px
+/// from the correlation's are both refined at the default 1 px; at 0.5 px a scan drops the
+/// second and a whole image keeps SGM's own value there.
+#[test]
+fn a_closer_agreement_drops_the_further_values_of_a_scan() {
+    let (w, h) = (96, 40);
+    let wave = |x: f64| (128.0 + 100.0 * (std::f64::consts::TAU * x / 40.0).sin()).round() as u8;
+    let l: Vec<u8> = (0..w * h).map(|i| wave((i % w) as f64)).collect();
+    let r: Vec<u8> = (0..w * h).map(|i| wave((i % w) as f64 + 7.0)).collect();
+    for (agree, masked) in [(1.0, true), (0.5, true), (0.5, false)] {
+        let p = MatchParams { method: crate::stereo::Method::Sgm, num_disparities: 16, threads: 1, sgm_refine_agree: agree, ..Default::default() }.validate().unwrap();
+        let mut m = StereoMatcher::new(p);
+        let mut out = DisparityMap::new(w, h);
+        // The true shift is whole (7): 0.3 px off on the left half, 0.7 px on the right.
+        for (i, d) in out.values_mut().iter_mut().enumerate() {
+            *d = if i % w < w / 2 { 7.3 } else { 7.7 };
+        }
+        let searched = DisparityIntervals::full(w, h, 0, 15);
+        m.refine_subpixel(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &searched, &mut out, masked, &mut MatchStats::default());
+        let at = |x: usize, y: usize| out.values()[y * w + x];
+        // (Columns where the wave's correlation finds the whole shift, as in the test above.)
+        assert!((at(30, 10) - 7.0).abs() < 0.1, "agree {agree}: {}", at(30, 10));
+        match (agree, masked) {
+            (1.0, _) => assert!((at(70, 10) - 7.0).abs() < 0.1, "agree {agree}: {}", at(70, 10)),
+            (_, true) => assert!(at(70, 10).is_nan(), "agree {agree}: {}", at(70, 10)),
+            (_, false) => assert_eq!(at(70, 10), 7.7),
+        }
+    }
+}
+
 /// The refinement compiled for AVX2 (its search for disagreeing pixels in vector compares)
 /// gives the portable build's values to the bit: SGM values near and far from the
 /// correlation's, unmatched pixels, on a masked match with a rim and on a whole image.
