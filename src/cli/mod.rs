@@ -121,7 +121,7 @@ pub struct MatchArgs {
     pub sgm_refine_block: u32,
     /// SGM: how close (pixels, 0.1…2) the refinement's correlation value must come to SGM's own
     /// to keep a scan's match (on a whole image, SGM's value stays where they disagree). 0.5
-    /// keeps 6–8 % fewer pixels in a scan's views, closer to the surface, and gives closer
+    /// keeps 6–10 % fewer pixels in a scan's views, closer to the surface, and gives closer
     /// fused meshes; the default keeps the denser maps (docs/matcher.md, "How close the two
     /// values must agree").
     #[arg(long, value_name = "PX", default_value_t = MatchParams::default().sgm_refine_agree)]

@@ -39,7 +39,7 @@ pub struct MatchParams {
     /// SGM: how close, pixels, the refinement's correlation value must come to SGM's own for
     /// the two to be blended (0.1…2). Where they lie further apart, a scan's view drops the
     /// match and a whole image keeps SGM's value. Lower keeps fewer, closer matches: at 0.5 a
-    /// scan's views lose 6–8 % of their pixels (a faint texture's 30 %) and the fused meshes
+    /// scan's views lose 6–10 % of their pixels (a faint texture's 28 %) and the fused meshes
     /// come out closer to the surface (docs/matcher.md, "How close the two values must
     /// agree").
     pub sgm_refine_agree: f32,
