@@ -182,6 +182,16 @@ fn an_assisted_replay_says_per_frame_how_it_searched() {
         assert!(f["gt_bad2_of_matched"].as_f64().unwrap() < 0.05, "{f}");
     }
     assert_eq!(report["summary"]["full_range_frames"], 2);
+    // The report says how the views were made.
+    let m = &report["matching"];
+    assert_eq!((m["method"].as_str(), m["num_disparities"].as_u64(), m["assist"].as_str(), m["assist_w"].as_f64()), (Some("bm"), Some(64), Some("paper"), Some(0.8)), "{m}");
+    assert!(m.get("p1").is_none(), "SGM's settings only with SGM: {m}");
+    let sgm = dir.join("sgm");
+    let o = spinscan(&["replay", rec.to_str().unwrap(), "-o", sgm.to_str().unwrap(), "--max-disparity", "64", "--frames", "2", "--method", "sgm", "--sgm-refine-agree", "0.5", "--no-register"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: Value = serde_json::from_str(&std::fs::read_to_string(sgm.join("report.json")).unwrap()).unwrap();
+    let m = &report["matching"];
+    assert_eq!((m["method"].as_str(), m["assist"].as_str(), m["sgm_refine_agree"].as_f64(), m["p2"].as_u64()), (Some("sgm"), Some("none"), Some(0.5), Some(100)), "without registration no frame is assisted: {m}");
 
     // Assistance needs registration.
     let o = spinscan(&["replay", rec.to_str().unwrap(), "-o", dir.join("x").to_str().unwrap(), "--assist", "paper", "--no-register"]);

@@ -118,6 +118,37 @@ fn segmentation_entry(k: &KeyUsed, edge: f32) -> Value {
     json!({"key": key, "chromaticity": [k.chroma.0, k.chroma.1], "border_share": share, "edge_object_share": edge})
 }
 
+/// `report.json`'s `matching`: the matcher and search the results were made with, so that a
+/// results folder says how to make it again. `assist` is `None` where no frame is assisted
+/// (`--assist none`, or no registration to take the motion from).
+pub fn matching_entry(p: &crate::stereo::MatchParams, assist: Option<&AssistParams>) -> Value {
+    let mut m = json!({
+        "method": p.method.name(),
+        "min_disparity": p.min_disparity,
+        "num_disparities": p.num_disparities,
+        "block": p.block,
+        "prefilter_cap": p.prefilter_cap,
+        "uniqueness_ratio": p.uniqueness_ratio,
+        "texture_threshold": p.texture_threshold,
+        "lr_max_diff": p.lr_max_diff,
+        "speckle_window": p.speckle_window,
+        "speckle_range_px": p.speckle_range_px,
+        "subpixel": p.subpixel,
+        "coarse_to_fine": p.coarse_to_fine,
+        "assist": assist.map_or("none", |a| a.mode.name()),
+    });
+    if let Some(a) = assist {
+        m["assist_w"] = json!(a.mode.w());
+        m["assist_granularity"] = json!(a.granularity.resolve(a.mode).name());
+    }
+    if p.method == crate::stereo::Method::Sgm {
+        for (k, v) in [("p1", json!(p.p1)), ("p2", json!(p.p2)), ("sgm_paths", json!(p.sgm_paths)), ("sgm_ad_cap", json!(p.sgm_ad_cap)), ("sgm_refine", json!(p.sgm_refine)), ("sgm_refine_block", json!(p.sgm_refine_block)), ("sgm_refine_agree", json!(p.sgm_refine_agree))] {
+            m[k] = v;
+        }
+    }
+    m
+}
+
 /// The results folder, kept consistent on disk after every frame.
 pub struct ResultsWriter {
     dir: PathBuf,
@@ -130,6 +161,8 @@ pub struct ResultsWriter {
     pub manifest_extra: serde_json::Map<String, Value>,
     /// Captured pairs that produced no view (dropped before matching, or unmatchable), with why.
     skipped: Vec<Value>,
+    /// `report.json`'s `matching` ([`matching_entry`]), once the matcher is set up.
+    matching: Option<Value>,
 }
 
 impl ResultsWriter {
@@ -138,7 +171,7 @@ impl ResultsWriter {
             let d = dir.join(sub);
             std::fs::create_dir_all(&d).map_err(|e| ResultsError::Output { path: d, what: e.to_string() })?;
         }
-        let w = ResultsWriter { dir: dir.to_path_buf(), source: source.to_string(), frames: Vec::new(), disparity_sign, started: Instant::now(), registration: None, manifest_extra: serde_json::Map::new(), skipped: Vec::new() };
+        let w = ResultsWriter { dir: dir.to_path_buf(), source: source.to_string(), frames: Vec::new(), disparity_sign, started: Instant::now(), registration: None, manifest_extra: serde_json::Map::new(), skipped: Vec::new(), matching: None };
         w.write_manifest("running", None)?;
         Ok(w)
     }
@@ -202,6 +235,11 @@ impl ResultsWriter {
             }
         }
         Ok(entry)
+    }
+
+    /// Records the matcher and search the views are made with (`report.json`'s `matching`).
+    pub fn set_matching(&mut self, entry: Value) {
+        self.matching = Some(entry);
     }
 
     /// Frames written so far.
@@ -281,6 +319,9 @@ impl ResultsWriter {
         });
         if !self.skipped.is_empty() {
             report["skipped"] = json!(self.skipped);
+        }
+        if let Some(m) = &self.matching {
+            report["matching"] = m.clone();
         }
         self.write_json("report.json", &report)
     }

@@ -111,13 +111,15 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
     };
 
     let mut settings = settings.clone();
-    let sign = match Pipeline::new(&calib, size, settings.pipeline.clone()) {
+    let (sign, matching) = match Pipeline::new(&calib, size, settings.pipeline.clone()) {
         Ok(p) => {
             // The registration thread tracks texture in the rectified left images.
             if let Some(r) = settings.registration.as_mut() {
                 r.track_camera = crate::pipeline::track_camera(&p.rect);
             }
-            p.rect.disparity_sign
+            // Assistance takes its motion from registration: without it every frame is full range.
+            let assist = settings.assist.as_ref().filter(|_| settings.registration.is_some());
+            (p.rect.disparity_sign, super::results::matching_entry(p.matcher().params(), assist))
         }
         Err(e) => return ScanEnd::failed(ScanError::Pipeline(e)),
     };
@@ -127,6 +129,7 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
             r.manifest_extra.insert("mode".into(), json!(spec.mode.name()));
             r.manifest_extra.insert("step_deg".into(), json!((spec.mode == ScanMode::Step).then_some(spec.step_deg)));
             r.manifest_extra.insert("total_deg".into(), json!(spec.total_deg));
+            r.set_matching(matching);
             r
         }
         Err(e) => return ScanEnd::failed(ScanError::Results(e)),
