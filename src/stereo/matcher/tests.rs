@@ -348,16 +348,22 @@ fn size_mismatch_is_an_error() {
     assert_eq!(err, MatchError::SizeMismatch(20, 10, 20, 11));
 }
 
+/// A long wave along the rows (a period of 40 px), shifted by 7 px between the views.
+fn wave_pair(w: usize, h: usize) -> (Vec<u8>, Vec<u8>) {
+    let wave = |x: f64| (128.0 + 100.0 * (std::f64::consts::TAU * x / 40.0).sin()).round() as u8;
+    let l: Vec<u8> = (0..w * h).map(|i| wave((i % w) as f64)).collect();
+    let r: Vec<u8> = (0..w * h).map(|i| wave((i % w) as f64 + 7.0)).collect();
+    (l, r)
+}
+
 /// SGM's values are refined by the correlation's where the two agree (they end near it);
 /// where they disagree a value is dropped in a masked (scan) match and kept on a whole image.
 #[test]
 fn refinement_keeps_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
     let (w, h) = (96, 40);
-    // A long wave: the correlation cost falls steadily towards the true shift (7) from 20 px
-    // either side, so a search of 3.0 ± 2 ends at its edge, 5.
-    let wave = |x: f64| (128.0 + 100.0 * (std::f64::consts::TAU * x / 40.0).sin()).round() as u8;
-    let l: Vec<u8> = (0..w * h).map(|i| wave((i % w) as f64)).collect();
-    let r: Vec<u8> = (0..w * h).map(|i| wave((i % w) as f64 + 7.0)).collect();
+    // The correlation cost falls steadily towards the true shift (7) from 20 px either side,
+    // so a search of 3.0 ± 2 ends at its edge, 5.
+    let (l, r) = wave_pair(w, h);
     let p = MatchParams { method: crate::stereo::Method::Sgm, num_disparities: 16, threads: 1, ..Default::default() }.validate().unwrap();
     let mut m = StereoMatcher::new(p);
     for masked in [true, false] {
@@ -386,9 +392,7 @@ fn refinement_keeps_agreeing_values_and_drops_disagreeing_ones_in_a_scan() {
 #[test]
 fn a_closer_agreement_drops_the_further_values_of_a_scan() {
     let (w, h) = (96, 40);
-    let wave = |x: f64| (128.0 + 100.0 * (std::f64::consts::TAU * x / 40.0).sin()).round() as u8;
-    let l: Vec<u8> = (0..w * h).map(|i| wave((i % w) as f64)).collect();
-    let r: Vec<u8> = (0..w * h).map(|i| wave((i % w) as f64 + 7.0)).collect();
+    let (l, r) = wave_pair(w, h);
     for (agree, masked) in [(1.0, true), (0.5, true), (0.5, false)] {
         let p = MatchParams { method: crate::stereo::Method::Sgm, num_disparities: 16, threads: 1, sgm_refine_agree: agree, ..Default::default() }.validate().unwrap();
         let mut m = StereoMatcher::new(p);
