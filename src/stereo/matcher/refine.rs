@@ -15,24 +15,25 @@ use super::scratch::{Geometry, PF_SLACK};
 use super::{round_half_away_within, Method, StereoMatcher};
 use crate::stereo::disparity::{searched_span, DisparityIntervals, DisparityMap, GrayView, MatchStats};
 
-/// The share of SGM's own sub-pixel value in a refined disparity, as a deviation from the
-/// correlation's, where the two lie within [`OWN_WEIGHT_FROM_PX`]: `c + w · (d − c − offset)`,
-/// where the correlation `c` and SGM's own value `d` agree, with `w` = [`own_weight`]. The two fits err partly
-/// independently (their noise differs: the correlation's median error is about half SGM's
-/// own), so the blend is closer than either; but SGM's fit through its penalised sums leans
-/// one way, by an amount that follows the surface's slant (on the ideal egg −0.11 px on
-/// average, −0.01 to −0.18 px by slant), which a fused model would keep: `offset` is the mean
-/// of `d − c` over each [`OFFSET_TILE`]-pixel square's agreeing pixels, so the blend takes
-/// SGM's deviations around it and not the lean itself (docs/matcher.md, "Two sub-pixel
-/// estimates").
+/// SGM's share of a refined disparity where its own sub-pixel value `d` and the correlation's
+/// `c` lie within [`OWN_WEIGHT_FROM_PX`] of each other. Wherever the two agree, the refined
+/// value is `c + w · (d − c − offset)`, with `w` = [`own_weight`]: this share near agreement,
+/// more further apart. The two fits err partly independently (their noise differs: the
+/// correlation's median error is about half SGM's own), so the blend is closer than either;
+/// but SGM's fit through its penalised sums leans one way, by an amount that follows the
+/// surface's slant (on the ideal egg −0.11 px on average, −0.01 to −0.18 px by slant), which
+/// a fused model would keep: `offset` is the mean of `d − c` over each [`OFFSET_TILE`]-pixel
+/// square's agreeing pixels, so the blend takes SGM's deviations around it and not the lean
+/// itself (docs/matcher.md, "Two sub-pixel estimates").
 pub(super) const OWN_WEIGHT: f32 = 0.2;
 
 /// How far apart, pixels, SGM's value and the correlation's may lie before SGM's share of the
 /// blend grows beyond [`OWN_WEIGHT`]; from there it grows evenly, to [`OWN_WEIGHT_MAX`] at
-/// [`OWN_WEIGHT_MAX_PX`]. Where the two disagree, the truth lies mostly between them: on the ideal egg,
-/// torus, faint egg and bunny, the pixels 0.75–1 px apart had the correlation's value at a
-/// median error of 0.42–0.64 px, SGM's own at 0.31–0.48, and their even mean at 0.28–0.34; but between 0.25 and 0.5 px apart, a larger share of SGM's value already blurred
-/// the bunny's finer shape (docs/matcher.md, "SGM's share of the blend grows with the
+/// [`OWN_WEIGHT_MAX_PX`]. Where the two disagree, the truth lies mostly between them: on the
+/// ideal egg, torus, faint egg and bunny, the pixels 0.75–1 px apart had the correlation's
+/// value at a median error of 0.42–0.64 px, SGM's own at 0.31–0.48, and their even mean at
+/// 0.28–0.34. But between 0.25 and 0.5 px apart, a larger share of SGM's value already
+/// blurred the bunny's finer shape (docs/matcher.md, "SGM's share of the blend grows with the
 /// disagreement").
 pub(super) const OWN_WEIGHT_FROM_PX: f32 = 0.25;
 
@@ -60,9 +61,10 @@ pub(super) fn own_weight(d: f32, c: f32) -> f32 {
 pub(super) const OFFSET_TILE: usize = 16;
 
 /// How close the rim's correlation over the object must come to SGM's value to stand for the
-/// correlation's (elsewhere `sgm_refine_agree`, when that is not closer still): its window holds fewer pixels, and each rim pixel a
-/// view gains is less precise than its median one — at 1 px the realistic egg ring's views'
-/// median distance rose above `bm`'s, at 0.5 px it did not (docs/matcher.md, "The rim").
+/// correlation's (elsewhere `sgm_refine_agree`; here that where it is closer still): its
+/// window holds fewer pixels, and each rim pixel a view gains is less precise than its median
+/// one — at 1 px the realistic egg ring's views' median distance rose above `bm`'s, at 0.5 px
+/// it did not (docs/matcher.md, "The rim").
 const RIM_AGREE_PX: f32 = 0.5;
 
 /// The refinement's buffers, reused between calls.
@@ -99,8 +101,7 @@ impl StereoMatcher {
     /// pixel is seen by its neighbours while a wrong one spoils the fused surface — unless
     /// its window reaches the background and the correlation over the window's searched
     /// pixels alone ([`RimRows`]) lies within [`RIM_AGREE_PX`] (or `sgm_refine_agree` where
-    /// closer) of SGM's value, with which it
-    /// is then blended. On a whole image (a single pair) SGM's value stays where they disagree:
+    /// closer) of SGM's value, with which it is then blended. On a whole image (a single pair) SGM's value stays where they disagree:
     /// there density matters and there is no rim.
     pub(super) fn refine_subpixel(&mut self, left: GrayView, right: GrayView, searched: &DisparityIntervals, out: &mut DisparityMap, masked: bool, totals: &mut MatchStats) {
         #[cfg(target_arch = "x86_64")]
@@ -237,8 +238,8 @@ impl StereoMatcher {
 }
 
 /// Whether SGM's value `d` and the correlation's `c` agree: lie within `agree` pixels
-/// (`sgm_refine_agree`). NaN fails every
-/// comparison: an unmatched pixel or a missing correlation disagrees.
+/// (`sgm_refine_agree`). NaN fails every comparison: an unmatched pixel or a missing
+/// correlation disagrees.
 #[inline(always)]
 fn agrees(d: f32, c: f32, agree: f32) -> bool {
     (c - d).abs() <= agree
@@ -276,9 +277,9 @@ unsafe fn disagree_bits_avx2(d: &[f32], c: &[f32], agree: f32) -> u32 {
     let (d, c) = unsafe { (_mm256_loadu_ps(d.as_ptr()), _mm256_loadu_ps(c.as_ptr())) };
     // |c − d| ≤ agree, false where either is NaN (an ordered compare), as `agrees`.
     let off = _mm256_andnot_ps(_mm256_set1_ps(-0.0), _mm256_sub_ps(c, d));
-    let agree = _mm256_cmp_ps::<_CMP_LE_OQ>(off, _mm256_set1_ps(agree));
+    let close = _mm256_cmp_ps::<_CMP_LE_OQ>(off, _mm256_set1_ps(agree));
     let matched = _mm256_cmp_ps::<_CMP_ORD_Q>(d, d);
-    _mm256_movemask_ps(_mm256_andnot_ps(agree, matched)) as u32
+    _mm256_movemask_ps(_mm256_andnot_ps(close, matched)) as u32
 }
 
 /// The sum of `d − c` over the pixels where SGM's `d` and the correlation's `c` agree, and
