@@ -145,7 +145,7 @@ pub fn run(
         (Some(a), Some(_)) => Some(pipe.assistant(a.clone())),
         _ => None,
     };
-    results.set_matching(super::results::matching_entry(pipe.matcher().params(), opts.assist.as_ref().filter(|_| registrar.is_some())));
+    results.set_matching(super::results::matching_entry(pipe.matcher().params(), assistant.as_ref().map(|a| a.params())));
     let plate = opts.plate.as_deref().map(|p| pipe.rectify_plate(p));
     let run = Run { pipe: &mut pipe, plate: plate.as_ref(), results: &mut results, opts, gt_for, registrar: registrar.as_mut(), assistant: assistant.as_mut(), store: &store, progress };
     let outcome = run.all(source, first).and_then(|mut summary| {

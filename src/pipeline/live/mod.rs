@@ -117,9 +117,7 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
             if let Some(r) = settings.registration.as_mut() {
                 r.track_camera = crate::pipeline::track_camera(&p.rect);
             }
-            // Assistance takes its motion from registration: without it every frame is full range.
-            let assist = settings.assist.as_ref().filter(|_| settings.registration.is_some());
-            (p.rect.disparity_sign, super::results::matching_entry(p.matcher().params(), assist))
+            (p.rect.disparity_sign, super::results::matching_entry(p.matcher().params(), settings.assist_in_use()))
         }
         Err(e) => return ScanEnd::failed(ScanError::Pipeline(e)),
     };

@@ -20,10 +20,7 @@ pub(super) const MATCHER_NICE: i32 = 2;
 
 pub(super) fn matcher_loop(mut pipe: Pipeline, jobs: Receiver<Job>, notes: Sender<Note>, observed: Receiver<(u64, f64, f64)>, store: Arc<PoseStore>, shared: Arc<ScanShared>, settings: PipelineSettings) {
     lower_priority(MATCHER_NICE);
-    let mut assistant = match (&settings.assist, &settings.registration) {
-        (Some(a), Some(_)) => Some(pipe.assistant(a.clone())),
-        _ => None,
-    };
+    let mut assistant = settings.assist_in_use().map(|a| pipe.assistant(a.clone()));
     let c = &shared.counters;
     let plate = settings.plate.as_ref().map(|p| pipe.rectify_plate(&p.rgb));
     for job in jobs {

@@ -195,6 +195,14 @@ pub struct PipelineSettings {
     pub calibrated_axis: Option<crate::recording::TurntableAxis>,
 }
 
+impl PipelineSettings {
+    /// The assistance the matchers use: `assist`, where registration gives them the motion
+    /// (without it every frame is full range).
+    pub fn assist_in_use(&self) -> Option<&AssistParams> {
+        self.assist.as_ref().filter(|_| self.registration.is_some())
+    }
+}
+
 /// Live counters of a scan, read by `status` and `scan.progress`.
 #[derive(Debug, Default)]
 pub struct Counters {
