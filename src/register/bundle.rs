@@ -14,7 +14,7 @@
 //! interleaved sets): neighbouring tracks share texture and view, so single observations are
 //! not independent, while sets spread over the whole object nearly are.
 
-use nalgebra::{Isometry3, Matrix2, Matrix3, Matrix3x4, Matrix4, SymmetricEigen, Vector3, Vector4};
+use nalgebra::{Isometry3, Matrix2, Matrix3, Matrix3x4, Matrix4, Rotation3, SymmetricEigen, Vector3, Vector4};
 
 use super::refine::{AxisFit, Line, TrackFigures};
 use super::tracks::{TrackCamera, TrackObs};
@@ -87,7 +87,6 @@ pub fn fit_axis_to_tracks(obs: &[TrackObs], table_deg: &[f64], camera: &TrackCam
             by_track.entry(o.track).or_default().push(i);
         }
     }
-    let mut line = Line::new(init.0, init.1);
     let mut tracks: Vec<Track> = Vec::new();
     let mut points: Vec<Vector3<f64>> = Vec::new();
     for (_, ids) in by_track {
@@ -164,40 +163,56 @@ pub fn fit_axis_to_tracks(obs: &[TrackObs], table_deg: &[f64], camera: &TrackCam
         }
         Normal { a, g, per_track, cost, reduced }
     };
-    let mut lambda = 1e-3;
-    let mut last = normal(&line, &points);
-    for _ in 0..p.rounds {
-        let mut moved = false;
-        for _ in 0..10 {
-            // The reduced system with damping on both blocks.
-            let mut s = last.a + Matrix4::from_diagonal(&last.a.diagonal()) * lambda;
-            let mut rhs = last.g;
-            let mut inverses = Vec::with_capacity(tracks.len());
-            for (u, w, gx) in &last.per_track {
-                let damped = u + Matrix3::from_diagonal(&u.diagonal()) * lambda + Matrix3::identity() * 1e-9;
-                let ui = damped.try_inverse().unwrap_or_else(Matrix3::zeros);
-                s -= w.transpose() * ui * w;
-                rhs -= w.transpose() * ui * gx;
-                inverses.push(ui);
+    // Levenberg–Marquardt from a start: the line, the points and the last round's system.
+    let solve = |start: (Vector3<f64>, Vector3<f64>), mut points: Vec<Vector3<f64>>| -> (Line, Vec<Vector3<f64>>, Normal) {
+        let mut line = Line::new(start.0, start.1);
+        let mut lambda = 1e-3;
+        let mut last = normal(&line, &points);
+        for _ in 0..p.rounds {
+            let mut moved = false;
+            for _ in 0..10 {
+                // The reduced system with damping on both blocks.
+                let mut s = last.a + Matrix4::from_diagonal(&last.a.diagonal()) * lambda;
+                let mut rhs = last.g;
+                let mut inverses = Vec::with_capacity(tracks.len());
+                for (u, w, gx) in &last.per_track {
+                    let damped = u + Matrix3::from_diagonal(&u.diagonal()) * lambda + Matrix3::identity() * 1e-9;
+                    let ui = damped.try_inverse().unwrap_or_else(Matrix3::zeros);
+                    s -= w.transpose() * ui * w;
+                    rhs -= w.transpose() * ui * gx;
+                    inverses.push(ui);
+                }
+                let Some(da) = s.lu().solve(&(-rhs)) else { break };
+                let new_line = moved_line(&line, &da);
+                let moved_points: Vec<Vector3<f64>> = points.iter().zip(&last.per_track).zip(&inverses).map(|((pt, (_, w, gx)), ui)| pt - ui * (gx + w * da)).collect();
+                if total_cost(&new_line, &moved_points) < last.cost {
+                    line = new_line;
+                    points = moved_points;
+                    lambda = (lambda / 3.0).max(1e-9);
+                    moved = true;
+                    break;
+                }
+                lambda *= 10.0;
             }
-            let Some(da) = s.lu().solve(&(-rhs)) else { break };
-            let new_line = moved_line(&line, &da);
-            let moved_points: Vec<Vector3<f64>> = points.iter().zip(&last.per_track).zip(&inverses).map(|((pt, (_, w, gx)), ui)| pt - ui * (gx + w * da)).collect();
-            if total_cost(&new_line, &moved_points) < last.cost {
-                line = new_line;
-                points = moved_points;
-                lambda = (lambda / 3.0).max(1e-9);
-                moved = true;
+            let previous_cost = last.cost;
+            last = normal(&line, &points);
+            if !moved || previous_cost - last.cost < 1e-9 * previous_cost {
                 break;
             }
-            lambda *= 10.0;
         }
-        let previous_cost = last.cost;
-        last = normal(&line, &points);
-        if !moved || previous_cost - last.cost < 1e-9 * previous_cost {
-            break;
+        (line, points, last)
+    };
+    // From the start given, and from the motion the tracks themselves show between two views
+    // (`motion_start`): a start far round from the axis — the points' fit of a ball, which
+    // leaves the axis free — can end in another minimum. The lower cost is kept.
+    let mut best = solve(init, points.clone());
+    if let Some(own) = motion_start(obs, &tracks, table_deg, camera).filter(|own| own.1.angle(&best.0.dir).to_degrees() > SAME_START_DEG) {
+        let other = solve(own, points);
+        if other.2.cost < best.2.cost {
+            best = other;
         }
     }
+    let (line, points, last) = best;
     // Jackknife over interleaved sets of tracks: the step each leave-one-set-out system
     // takes from the solution.
     let groups = p.groups.clamp(2, tracks.len());
@@ -243,10 +258,91 @@ pub fn fit_axis_to_tracks(obs: &[TrackObs], table_deg: &[f64], camera: &TrackCam
             worst_view_px = worst_view_px.max(offs[offs.len() / 2]);
         }
     }
-    let dir = if line.dir.dot(&init.1) < 0.0 { -line.dir } else { line.dir };
+    // The direction as fitted, whatever the start's sign: the table's angles turn the points
+    // about it, so its sign is the turn's sense, which the tracks decide. (Taking the start's
+    // sign, as this did, turned the model the wrong way wherever the fit came more than a
+    // right angle round: a ball's views 2θ off.)
+    let dir = line.dir;
     let point = line.point + dir * dir.dot(&(init.0 - line.point));
     let figures = TrackFigures { tracks: tracks.len(), observations: count, rms_px: (ss / count.max(1) as f64).sqrt(), worst_view_px, views_unconfirmed };
     Ok(AxisFit { point, dir, sigma_dir_deg, sigma_point_mm, rms_mm: f64::NAN, pairs: 0, correspondences: 0, tracks: Some(figures) })
+}
+
+/// Two starts whose directions lie within this many degrees end in the same minimum: the
+/// tracks' own start ([`motion_start`]) is tried only when the fit from the start given ended
+/// further from it.
+const SAME_START_DEG: f64 = 5.0;
+
+/// The fewest tracks two views must share to give [`motion_start`] their motion.
+const MIN_SHARED_TRACKS: usize = 12;
+
+/// The smallest turn, degrees, between two views whose motion gives [`motion_start`] an axis:
+/// over a smaller one the stereo points' noise swamps the rotation.
+const MIN_START_TURN_DEG: f64 = 5.0;
+
+/// An axis from the tracks alone, for a start that does not depend on the object's shape:
+/// the two views whose shared tracks and turn between them give the most rotation to see
+/// (tracks × |sin turn|, at least [`MIN_SHARED_TRACKS`] tracks over [`MIN_START_TURN_DEG`]),
+/// the rigid motion between their tracks' points (Kabsch; once more without the points
+/// further than three times the median from it), its rotation axis signed by the table's
+/// turn, and the axis's point nearest the points. None when no two views qualify.
+fn motion_start(obs: &[TrackObs], tracks: &[Track], table_deg: &[f64], camera: &TrackCamera) -> Option<(Vector3<f64>, Vector3<f64>)> {
+    let key = |a: u32, b: u32| (a.min(b), a.max(b));
+    let mut shared: std::collections::HashMap<(u32, u32), usize> = std::collections::HashMap::new();
+    for t in tracks {
+        for (k, &i) in t.obs.iter().enumerate() {
+            for &j in &t.obs[k + 1..] {
+                *shared.entry(key(obs[i].view, obs[j].view)).or_default() += 1;
+            }
+        }
+    }
+    let turn = |(a, b): (u32, u32)| table_deg[b as usize] - table_deg[a as usize];
+    let ((a, b), _) = shared
+        .into_iter()
+        .filter(|&(pair, n)| n >= MIN_SHARED_TRACKS && turn(pair).abs() >= MIN_START_TURN_DEG)
+        .map(|(pair, n)| (pair, n as f64 * turn(pair).to_radians().sin().abs()))
+        .max_by(|x, y| x.1.total_cmp(&y.1).then(y.0.cmp(&x.0)))?;
+    // Each shared track's point in view a and in view b.
+    let place = |i: usize| camera.unproject(obs[i].x as f64, obs[i].y as f64, obs[i].d as f64);
+    let mut pairs: Vec<(Vector3<f64>, Vector3<f64>)> = tracks
+        .iter()
+        .filter_map(|t| {
+            let at = |v: u32| t.obs.iter().copied().find(|&i| obs[i].view == v);
+            Some((place(at(a)?)?, place(at(b)?)?))
+        })
+        .collect();
+    // b's points from a's: p_b = R·p_a + t.
+    let kabsch = |pairs: &[(Vector3<f64>, Vector3<f64>)]| -> Option<(Matrix3<f64>, Vector3<f64>)> {
+        let n = pairs.len() as f64;
+        let (ca, cb) = (pairs.iter().map(|p| p.0).sum::<Vector3<f64>>() / n, pairs.iter().map(|p| p.1).sum::<Vector3<f64>>() / n);
+        let h: Matrix3<f64> = pairs.iter().map(|(pa, pb)| (pa - ca) * (pb - cb).transpose()).sum();
+        let svd = h.svd(true, true);
+        let (u, v) = (svd.u?, svd.v_t?.transpose());
+        let d = Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, (v * u.transpose()).determinant().signum()));
+        let r = v * d * u.transpose();
+        Some((r, cb - r * ca))
+    };
+    let (mut r, mut t) = kabsch(&pairs)?;
+    let mut off: Vec<f64> = pairs.iter().map(|(pa, pb)| (r * pa + t - pb).norm()).collect();
+    off.sort_by(f64::total_cmp);
+    let limit = 3.0 * off[off.len() / 2];
+    pairs.retain(|(pa, pb)| (r * pa + t - pb).norm() <= limit);
+    if pairs.len() >= MIN_SHARED_TRACKS {
+        (r, t) = kabsch(&pairs)?;
+    }
+    let axis = Rotation3::from_matrix_unchecked(r).scaled_axis();
+    if !(axis.norm() > 1e-6) {
+        return None;
+    }
+    // R turns by +|angle| about `axis`: the table's turn from a to b is about `dir`.
+    let dir = if turn((a, b)) > 0.0 { axis.normalize() } else { -axis.normalize() };
+    // The point: (I − R)·c = t across the axis, and nearest the points' centroid along it.
+    let m = pairs.iter().map(|p| p.0).sum::<Vector3<f64>>() / pairs.len() as f64;
+    let ia = Matrix3::identity() - r;
+    let w = (ia.transpose() * ia).norm().max(1e-12);
+    let lhs = ia.transpose() * ia + dir * dir.transpose() * w;
+    let c = lhs.lu().solve(&(ia.transpose() * t + dir * dir.dot(&m) * w))?;
+    (c.iter().chain(dir.iter()).all(|v| v.is_finite())).then_some((c, dir))
 }
 
 #[cfg(test)]
@@ -297,6 +393,18 @@ mod tests {
         // An object that moved on the table: the views after it stand out.
         let moved = fit_axis_to_tracks(&slipped, &angles, &cam, init, &BundleParams::default()).unwrap().tracks.unwrap();
         assert!(moved.worst_view_px > 0.4, "{moved:?}");
+        // Started more than a right angle off (as from the points' fit of a ball, which
+        // leaves the axis free): the tracks still decide the turn's sense, so the fit must
+        // come back to the axis the table turns about, not to the line's other direction.
+        // (From 91° the fit comes round by itself; from further, and from the very opposite
+        // direction, it needs the start the tracks' own motion gives.)
+        for deg in [91.0f64, 100.0, 180.0] {
+            let across = nalgebra::UnitQuaternion::from_scaled_axis(Vector3::new(deg.to_radians(), 0.0, 0.0));
+            let far = fit_axis_to_tracks(&obs, &angles, &cam, (init.0 + Vector3::new(0.0, 0.0, 30.0), across * truth.1), &BundleParams::default()).unwrap();
+            let err = far.dir.angle(&truth.1).to_degrees();
+            let off = (far.point - truth.0 - truth.1 * truth.1.dot(&(far.point - truth.0))).norm();
+            assert!(err < 0.05 && off < 0.2, "started {deg}° off: direction {err}° from the axis the table turns about, point {off} mm off (σ {}°)", far.sigma_dir_deg);
+        }
         // Too few tracks: a clear error.
         let few: Vec<TrackObs> = obs.iter().filter(|o| o.track < 5).copied().collect();
         let err = fit_axis_to_tracks(&few, &angles, &cam, init, &BundleParams::default()).unwrap_err().to_string();

@@ -62,8 +62,9 @@ impl Default for RefineParams {
 /// A fitted axis and how well it is known.
 #[derive(Debug, Clone, PartialEq)]
 pub struct AxisFit {
-    /// A point on the axis (the one nearest the initial point) and its unit direction, which
-    /// keeps the initial direction's sign.
+    /// A point on the axis (the one nearest the initial point) and its unit direction, the
+    /// one the table's angles turn the views about (right-handed): its sign is the turn's
+    /// sense, fitted like the rest, not taken from the start.
     pub point: Vector3<f64>,
     pub dir: Vector3<f64>,
     /// One standard deviation of the direction (the larger of its two tilts), degrees, and
@@ -320,8 +321,10 @@ impl<'a> RefineSet<'a> {
             Some(c) => (spread(c.fixed_view::<2, 2>(0, 0).into_owned()).to_degrees(), spread(c.fixed_view::<2, 2>(2, 2).into_owned())),
             None => (f64::INFINITY, f64::INFINITY),
         };
-        // The point nearest the initial one, the initial direction's sign.
-        let dir = if line.dir.dot(&init.1) < 0.0 { -line.dir } else { line.dir };
+        // The point nearest the initial one. The direction as fitted: the views are turned by
+        // the table's angles about it, so its sign is the turn's sense (the start's sign would
+        // reverse the turn wherever the fit came more than a right angle round).
+        let dir = line.dir;
         let point = line.point + dir * dir.dot(&(init.0 - line.point));
         Ok(AxisFit { point, dir, sigma_dir_deg, sigma_point_mm, rms_mm: rms, pairs: pairs.len(), correspondences: count, tracks: None })
     }
@@ -393,6 +396,11 @@ mod tests {
         assert!(off.norm() < 0.2, "point {} mm off", off.norm());
         assert!(fit.sigma_dir_deg < 0.05, "σ {}", fit.sigma_dir_deg);
         assert!(fit.rms_mm < 0.05, "rms {}", fit.rms_mm);
+        // Started just over a right angle off, the fit comes round to the axis the views turn
+        // about, and keeps the direction that turns them (not the start's side of it).
+        let across = nalgebra::UnitQuaternion::from_scaled_axis(Vector3::x() * 91f64.to_radians()) * up;
+        let far = fit_axis(&views, (guess_point, across), &RefineParams::default()).unwrap();
+        assert!(far.dir.angle(&up).to_degrees() < 0.05, "started 91° off: direction {}° off", far.dir.angle(&up).to_degrees());
     }
 
     #[test]
