@@ -102,7 +102,7 @@ pub fn fit_axis_to_tracks(obs: &[TrackObs], table_deg: &[f64], camera: &TrackCam
         }
     }
     if tracks.len() < p.min_tracks {
-        return Err(RegisterError::TooFew { what: "the texture tracks".into(), got: tracks.len(), need: p.min_tracks, purpose: format!("fitting the axis to tracks (tracks over at least {:.0}° of turn)", p.min_span_deg) });
+        return Err(RegisterError::TooFew { what: format!("texture tracks over at least {:.0}° of turn", p.min_span_deg), got: tracks.len(), need: p.min_tracks, purpose: "fitting the axis to the tracks".into() });
     }
     // view_from_ref for a turn of `deg` about the line.
     let turn = |l: &Line, deg: f64| rotation_about_axis(&l.point, &l.dir, deg);

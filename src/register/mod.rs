@@ -40,7 +40,7 @@ pub enum RegisterError {
     Empty { what: String },
     #[error("{what} has a non-finite coordinate at point #{index}")]
     NotFinite { what: String, index: usize },
-    #[error("{what} has too few points ({got}) for {purpose}; at least {need} are needed")]
+    #[error("too few {what} ({got}) for {purpose}; at least {need} are needed")]
     TooFew { what: String, got: usize, need: usize, purpose: String },
     #[error("invalid parameter: {0}")]
     Param(String),

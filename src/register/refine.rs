@@ -175,7 +175,7 @@ impl<'a> RefineSet<'a> {
     /// Needs at least three views; fails on a view whose points cannot make a k-d tree.
     pub fn new(views: &'a [RefineView], p: &RefineParams) -> Result<RefineSet<'a>, RegisterError> {
         if views.len() < 3 {
-            return Err(RegisterError::TooFew { what: "the turntable refinement".into(), got: views.len(), need: 3, purpose: "fitting the axis to every view".into() });
+            return Err(RegisterError::TooFew { what: "views".into(), got: views.len(), need: 3, purpose: "the turntable refinement (fitting the axis to every view)".into() });
         }
         if !(p.pair_deg > 0.0 && p.rounds > 0 && p.source_points > 0 && p.reach_mm.0 > 0.0 && p.reach_mm.1 > 0.0 && p.huber_mm > 0.0) {
             return Err(RegisterError::Param(format!("turntable refinement: pair_deg {}, rounds {}, source_points {}, reach {:?}, huber {}: expected positive values", p.pair_deg, p.rounds, p.source_points, p.reach_mm, p.huber_mm)));
@@ -256,7 +256,7 @@ impl<'a> RefineSet<'a> {
             let base = (line.point, line.dir);
             let corr = self.correspondences(&|k| relative(base, k), reach);
             if corr.len() < 8 {
-                return Err(RegisterError::TooFew { what: "the turntable refinement's correspondences".into(), got: corr.len(), need: 8, purpose: format!("fitting the axis (the views do not overlap within {reach:.1} mm about the axis tried)") });
+                return Err(RegisterError::TooFew { what: "correspondences".into(), got: corr.len(), need: 8, purpose: format!("the turntable refinement's fit of the axis (the views do not overlap within {reach:.1} mm about the axis tried)") });
             }
             let residuals = |x: &Vector4<f64>| -> Vec<f64> {
                 let l = line.moved(x);

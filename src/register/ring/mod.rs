@@ -295,7 +295,7 @@ impl Registrar {
         let started = Instant::now();
         let what = format!("view {seq}");
         if cloud.len() < 10 {
-            return Err(RegisterError::TooFew { what, got: cloud.len(), need: 10, purpose: "registration".into() });
+            return Err(RegisterError::TooFew { what: format!("points in {what}"), got: cloud.len(), need: 10, purpose: "registration".into() });
         }
         let (target, own) = self.prepare(cloud, &what)?;
         let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
