@@ -57,7 +57,8 @@
 //! view at once at the end of the scan (`register::refine`, started from the axis estimated
 //! from the poses and from ICP's symmetry axis) and then to the object's texture tracked from
 //! view to view (`texture.rs`: `register::tracks`, `register::bundle`), whose axis replaces
-//! the points' fit when it is known to within `max_axis_sigma_deg`. Stereo views register to each other only to
+//! the points' fit when it is known to within `max_axis_sigma_deg`, or at least as well as the
+//! points' fit. Stereo views register to each other only to
 //! about 0.1°–0.4° per pair on the simulated rig (the clouds' own errors: Open3D lands in the
 //! same place), and the chain wanders by up to a degree mid-ring, while the refined axis is
 //! good to a few hundredths of a degree. So [`Registrar::finish`] replaces the poses with the
@@ -67,7 +68,8 @@
 //! whose steps all under-turn) the turntable's poses put the views onto each other better than
 //! the registered ones; and the axis is calibrated, or refined to within
 //! `max_axis_sigma_deg`, or refined with poses that put the views onto each other better than
-//! the registered ones; otherwise it keeps the registered poses and says why. (Steps, not
+//! the registered ones, or tracked by texture that follows the table's angles about it;
+//! otherwise it keeps the registered poses and says why. (Steps, not
 //! whole poses, are compared: a slip shows as one step that disagrees, while the chain's slow
 //! wander would fail a whole-pose test on good data.) Texture tracks that follow the table's
 //! angles about their axis in every view show that the object turned by those angles: the
