@@ -65,9 +65,9 @@
 //! predictions when no pairwise registration disagrees with the turntable's predicted step by
 //! more than `max_turntable_deviation_deg` beyond the typical step's disagreement — nothing
 //! slipped — and the typical step agrees to that bound too, or (a nearly symmetric object,
-//! whose steps all under-turn) the turntable's poses put the views onto each other better than
+//! whose steps all under-turn) the turntable's poses put the views onto each other as well as (within 1 %)
 //! the registered ones; and the axis is calibrated, or refined to within
-//! `max_axis_sigma_deg`, or refined with poses that put the views onto each other better than
+//! `max_axis_sigma_deg`, or refined with poses that put the views onto each other as well as (within 1 %)
 //! the registered ones, or tracked by texture that follows the table's angles about it;
 //! otherwise it keeps the registered poses and says why. (Steps, not
 //! whole poses, are compared: a slip shows as one step that disagrees, while the chain's slow
