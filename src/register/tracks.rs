@@ -84,13 +84,23 @@ pub struct TrackParams {
     /// A new track needs at least this smaller eigenvalue of the structure tensor (grey
     /// levels² per pixel, summed over the window).
     pub min_corner: f64,
+    /// While fewer tracks than this are active after a view's new ones (a faint texture:
+    /// few 5 × 5 windows reach `min_corner`), the cells still empty start one where the
+    /// structure tensor over the whole correlation window reaches [`TrackParams::faint_corner`].
+    pub sparse_tracks: usize,
+    /// The smaller eigenvalue, summed over the correlation window (`half_window`), that a
+    /// new track needs while tracks are sparse. A faint texture varies slowly: its 5 × 5
+    /// gradients sink into the sensor's noise while the 11 × 11 window the tracks are
+    /// correlated over still holds it; the correlation (`min_ncc`) then decides.
+    pub faint_corner: f64,
 }
 
 impl Default for TrackParams {
     /// 11 × 11 windows, ±4 px around the predicted place, one new track per 12 × 12 cell,
-    /// correlation ≥ 0.9.
+    /// correlation ≥ 0.9; corners of 300 over 5 × 5, or of 300 over the window while fewer
+    /// than 60 tracks are active.
     fn default() -> Self {
-        TrackParams { half_window: 5, search_px: 4, cell_px: 12, min_ncc: 0.9, min_corner: 300.0 }
+        TrackParams { half_window: 5, search_px: 4, cell_px: 12, min_ncc: 0.9, min_corner: 300.0, sparse_tracks: 60, faint_corner: 300.0 }
     }
 }
 
@@ -137,6 +147,10 @@ struct Active {
     /// The window's affine shape in the previous view: `[a, b, c, e]` of
     /// `(x + (1 + a)·u + b·v, y + c·u + (1 + e)·v)` for window offsets `(u, v)`.
     warp: [f64; 4],
+    /// Started at a faint corner (`faint_corner`, while tracks were sparse): in a noisy image
+    /// most such tracks end at their next view, which says nothing of the step, so they
+    /// neither call for nor take part in the wide search after a step that lost most tracks.
+    faint: bool,
 }
 
 /// Follows texture from view to view; see the module docs.
@@ -196,7 +210,9 @@ impl Tracker {
                 // Most tracks lost: the motion was off by more than the search (a step ICP
                 // could not see, before the axis seeds it). Find the image's shift from a
                 // sample of tracks searched far, and follow again from there.
-                if kept.len() * 2 < self.active.len() && self.active.len() >= 20 {
+                let strong = self.active.iter().filter(|a| !a.faint).count();
+                let strong_kept = kept.iter().filter(|(k, _)| !self.active[*k].faint).count();
+                if strong_kept * 2 < strong && strong >= 20 {
                     if let Some(shift) = self.coarse_shift(&current, &guesses) {
                         let again = self.follow_all(&current, &guesses, shift);
                         if again.len() > kept.len() {
@@ -211,7 +227,7 @@ impl Tracker {
             .map(|(k, (x, y, d, warp))| {
                 let a = &self.active[k];
                 self.obs.push(TrackObs { track: a.id, view, x: x as f32, y: y as f32, d: d as f32 });
-                Active { id: a.id, x, y, template: a.template.clone(), warp }
+                Active { id: a.id, x, y, template: a.template.clone(), warp, faint: a.faint }
             })
             .collect();
         self.active = kept;
@@ -245,8 +261,8 @@ impl Tracker {
     /// The median shift between where up to 40 tracks were guessed and where a search of
     /// ±`REACQUIRE_PX` finds them; None when fewer than 5 are found.
     fn coarse_shift(&self, cur: &Previous, guesses: &[Option<(f64, f64)>]) -> Option<(f64, f64)> {
-        let stride = (self.active.len() / 40).max(1);
-        let mut shifts: Vec<(f64, f64)> = (self.active.iter().zip(guesses).step_by(stride))
+        let stride = (self.active.iter().filter(|a| !a.faint).count() / 40).max(1);
+        let mut shifts: Vec<(f64, f64)> = (self.active.iter().zip(guesses).filter(|(a, _)| !a.faint).step_by(stride))
             .filter_map(|(a, g)| {
                 let g = (*g)?;
                 let (px, py, _) = self.search(cur, &a.template, g, REACQUIRE_PX)?;
@@ -295,7 +311,10 @@ impl Tracker {
         Some(((cx - r + i as i64) as f64 + dx, (cy - r + j as i64) as f64 + dy, s))
     }
 
-    /// Starts a track in each cell of the grid that holds none, at its strongest corner.
+    /// Starts a track in each cell of the grid that holds none, at its strongest corner: the
+    /// structure tensor over 5 × 5 reaching `min_corner`; then, while fewer than
+    /// `sparse_tracks` are active, up to that many in all at the strongest corners over the
+    /// correlation window that reach `faint_corner`, in the cells still empty.
     fn start_tracks(&mut self, cur: &Previous, view: u32) {
         let cell = self.params.cell_px.max(4);
         let (w, h) = (cur.width, cur.height);
@@ -306,33 +325,55 @@ impl Tracker {
             taken[r * cols + c] = true;
         }
         let margin = self.params.half_window + self.params.search_px as usize + 2;
-        for r in 0..rows {
-            for c in 0..cols {
-                if taken[r * cols + c] {
-                    continue;
-                }
-                let (x0, y0) = ((c * cell).max(margin), (r * cell).max(margin));
-                let (x1, y1) = (((c + 1) * cell).min(w.saturating_sub(margin)), ((r + 1) * cell).min(h.saturating_sub(margin)));
-                let mut best: Option<(f64, usize, usize)> = None;
-                for y in (y0..y1).step_by(2) {
-                    for x in (x0..x1).step_by(2) {
-                        // Only where the whole window has disparities: the object, not its rim.
-                        if !cur.disparity[y * w + x].is_finite() || !window_on_object(&cur.disparity, w, x, y, self.params.half_window) {
-                            continue;
-                        }
-                        let score = corner_score(&cur.grad, w, x, y, 2);
-                        if score >= self.params.min_corner && best.is_none_or(|b| score > b.0) {
-                            best = Some((score, x, y));
+        let half_window = self.params.half_window;
+        // Each empty cell's strongest corner over a window of half-side `hw` reaching `least`.
+        let corners = |taken: &[bool], hw: usize, least: f64| -> Vec<(f64, usize, usize, usize)> {
+            let mut found = Vec::new();
+            for r in 0..rows {
+                for c in 0..cols {
+                    if taken[r * cols + c] {
+                        continue;
+                    }
+                    let (x0, y0) = ((c * cell).max(margin), (r * cell).max(margin));
+                    let (x1, y1) = (((c + 1) * cell).min(w.saturating_sub(margin)), ((r + 1) * cell).min(h.saturating_sub(margin)));
+                    let mut best: Option<(f64, usize, usize, usize)> = None;
+                    for y in (y0..y1).step_by(2) {
+                        for x in (x0..x1).step_by(2) {
+                            // Only where the whole window has disparities: the object, not its rim.
+                            if !cur.disparity[y * w + x].is_finite() || !window_on_object(&cur.disparity, w, x, y, half_window) {
+                                continue;
+                            }
+                            let score = corner_score(&cur.grad, w, x, y, hw);
+                            if score >= least && best.is_none_or(|b| score > b.0) {
+                                best = Some((score, r * cols + c, x, y));
+                            }
                         }
                     }
+                    found.extend(best);
                 }
-                let Some((_, x, y)) = best else { continue };
-                if let Some(template) = window(&cur.gray, w, x, y, self.params.half_window) {
-                    let id = self.next_id;
-                    self.next_id += 1;
-                    self.obs.push(TrackObs { track: id, view, x: x as f32, y: y as f32, d: cur.disparity[y * w + x] });
-                    self.active.push(Active { id, x: x as f64, y: y as f64, template: std::sync::Arc::new(template), warp: [0.0; 4] });
-                }
+            }
+            found
+        };
+        let start = |this: &mut Self, taken: &mut [bool], (_, k, x, y): (f64, usize, usize, usize), faint: bool| {
+            if let Some(template) = window(&cur.gray, w, x, y, half_window) {
+                let id = this.next_id;
+                this.next_id += 1;
+                this.obs.push(TrackObs { track: id, view, x: x as f32, y: y as f32, d: cur.disparity[y * w + x] });
+                this.active.push(Active { id, x: x as f64, y: y as f64, template: std::sync::Arc::new(template), warp: [0.0; 4], faint });
+                taken[k] = true;
+            }
+        };
+        for corner in corners(&taken, 2, self.params.min_corner) {
+            start(self, &mut taken, corner, false);
+        }
+        // Sparse: up to `sparse_tracks` in all, from the faint corners strongest first (in a
+        // noisy image most of these die at the next view; so few are tried a view).
+        let wanted = self.params.sparse_tracks.saturating_sub(self.active.len());
+        if wanted > 0 {
+            let mut faint = corners(&taken, self.params.half_window, self.params.faint_corner);
+            faint.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+            for corner in faint.into_iter().take(wanted) {
+                start(self, &mut taken, corner, true);
             }
         }
     }
@@ -561,6 +602,11 @@ pub(super) mod tests {
     /// A textured plane at 500 mm, its texture moved by `shift` pixels: random blobs about
     /// 4 px across (value noise, smoothly interpolated), so that no pattern repeats.
     fn textured(width: usize, height: usize, shift: f64) -> (Vec<u8>, Vec<f32>) {
+        textured_with(width, height, shift, 160.0)
+    }
+
+    /// [`textured`] with the texture's grey levels spanning `contrast` (160 there).
+    fn textured_with(width: usize, height: usize, shift: f64, contrast: f64) -> (Vec<u8>, Vec<f32>) {
         let (gw, gh) = (width / 4 + 8, height / 4 + 4);
         let mut seed = 12345u64;
         let grid: Vec<f64> = (0..gw * gh)
@@ -578,7 +624,7 @@ pub(super) mod tests {
                 let (fx, fy) = (smooth(u - i as f64), smooth(v - j as f64));
                 let g = |a: usize, b: usize| grid[b * gw + a];
                 let n = (g(i, j) * (1.0 - fx) + g(i + 1, j) * fx) * (1.0 - fy) + (g(i, j + 1) * (1.0 - fx) + g(i + 1, j + 1) * fx) * fy;
-                rgb[(y * width + x) * 3..][..3].fill((48.0 + 160.0 * n) as u8);
+                rgb[(y * width + x) * 3..][..3].fill((48.0 + contrast * n).round() as u8);
             }
         }
         (rgb, vec![96.0; width * height])
@@ -613,5 +659,32 @@ pub(super) mod tests {
         tracker.add(TrackImage { rgb: &c, disparity: &dc, width: w, height: h }, 9.0, None);
         assert!(tracker.observations().iter().filter(|o| o.view == 3).all(|o| !first.contains_key(&o.track)));
         assert_eq!(tracker.table_deg(), &[0.0, 3.0, 6.0, 9.0]);
+    }
+
+    /// A faint texture, whose 5 × 5 corners all stay under `min_corner`: tracks start at the
+    /// correlation window's corners while fewer than `sparse_tracks` are active — the
+    /// strongest first, no more than that — and follow the texture as well as strong ones.
+    #[test]
+    fn a_faint_texture_starts_tracks_at_the_window_s_corners_while_they_are_sparse() {
+        let (w, h) = (320, 240);
+        let (a, da) = textured_with(w, h, 0.0, 18.0);
+        let started = |params: TrackParams| {
+            let mut tracker = Tracker::new(camera(), params);
+            tracker.add(TrackImage { rgb: &a, disparity: &da, width: w, height: h }, 0.0, None);
+            tracker
+        };
+        assert_eq!(started(TrackParams { sparse_tracks: 0, ..TrackParams::default() }).observations().len(), 0, "a strong corner in the faint texture");
+        assert_eq!(started(TrackParams { faint_corner: 1e9, ..TrackParams::default() }).observations().len(), 0);
+        assert_eq!(started(TrackParams { sparse_tracks: 25, ..TrackParams::default() }).observations().len(), 25);
+        let mut tracker = started(TrackParams::default());
+        assert_eq!(tracker.observations().len(), TrackParams::default().sparse_tracks);
+        let (b, db) = textured_with(w, h, 2.4, 18.0);
+        let step = Isometry3::translation(2.0 * 500.0 / 800.0, 0.0, 0.0);
+        tracker.add(TrackImage { rgb: &b, disparity: &db, width: w, height: h }, 3.0, Some(&step));
+        let first: std::collections::HashMap<u32, TrackObs> = tracker.observations().iter().filter(|o| o.view == 0).map(|o| (o.track, *o)).collect();
+        let moved: Vec<f64> = tracker.observations().iter().filter(|o| o.view == 1 && first.contains_key(&o.track)).map(|o| (o.x - first[&o.track].x) as f64).collect();
+        assert!(moved.len() * 10 >= first.len() * 8, "{} of {} faint tracks followed", moved.len(), first.len());
+        let worst = moved.iter().map(|m| (m - 2.4).abs()).fold(0.0, f64::max);
+        assert!(worst < 0.15, "shift found to within {worst} px");
     }
 }
