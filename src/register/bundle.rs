@@ -311,6 +311,9 @@ fn motion_start(obs: &[TrackObs], tracks: &[Track], table_deg: &[f64], camera: &
             Some((place(at(a)?)?, place(at(b)?)?))
         })
         .collect();
+    if pairs.len() < MIN_SHARED_TRACKS {
+        return None;
+    }
     // b's points from a's: p_b = R·p_a + t.
     let kabsch = |pairs: &[(Vector3<f64>, Vector3<f64>)]| -> Option<(Matrix3<f64>, Vector3<f64>)> {
         let n = pairs.len() as f64;

@@ -85,8 +85,9 @@ pub struct TrackParams {
     /// levels² per pixel, summed over the window).
     pub min_corner: f64,
     /// While fewer tracks than this are active after a view's new ones (a faint texture:
-    /// few 5 × 5 windows reach `min_corner`), the cells still empty start one where the
-    /// structure tensor over the whole correlation window reaches [`TrackParams::faint_corner`].
+    /// few 5 × 5 windows reach `min_corner`), the cells still empty start tracks where the
+    /// structure tensor over the whole correlation window reaches
+    /// [`TrackParams::faint_corner`], the strongest first, up to this many active in all.
     pub sparse_tracks: usize,
     /// The smaller eigenvalue, summed over the correlation window (`half_window`), that a
     /// new track needs while tracks are sparse. A faint texture varies slowly: its 5 × 5
