@@ -68,8 +68,7 @@
 //! whose steps all under-turn) the turntable's poses put the views onto each other as well as (within 1 %)
 //! the registered ones; and the axis is calibrated, or refined to within
 //! `max_axis_sigma_deg`, or refined with poses that put the views onto each other as well as (within 1 %)
-//! the registered ones, or tracked by texture that follows the table's angles about it;
-//! otherwise it keeps the registered poses and says why. (Steps, not
+//! the registered ones; otherwise it keeps the registered poses and says why. (Steps, not
 //! whole poses, are compared: a slip shows as one step that disagrees, while the chain's slow
 //! wander would fail a whole-pose test on good data.) Texture tracks that follow the table's
 //! angles about their axis in every view show that the object turned by those angles: the

@@ -46,8 +46,7 @@ pub struct RegistrationParams {
     pub refine_points: usize,
     /// A refined axis whose direction is known to this many degrees (one standard deviation)
     /// or better gives turntable poses; a less certain one only when its poses put the views
-    /// onto each other as well as the registered ones, within 1 %, or its texture tracks
-    /// follow the table's angles (see the module docs).
+    /// onto each other as well as the registered ones, within 1 % (see the module docs).
     pub max_axis_sigma_deg: f64,
     /// Per-view targets (the chain, the long steps, the block step) are range grids paired
     /// by projection ([`super::grid`]): a few distance computations per query and no tree to
