@@ -172,7 +172,7 @@ const TRACKS_VIEW_FOLLOWS_TABLE_PX: f64 = 0.3;
 /// the turntable's poses (`RefineSet::score`) to be kept over them where the score decides.
 /// Within it the two tie, and the table's angles — a measurement, where ICP on a nearly
 /// symmetric object only repeats its seed — stand: the faint egg's registered poses, about
-/// 6° under-turned, scored 1.4977 against 1.5011 mm (0.2 %) and 1.5047 against 1.5054 mm.
+/// 6° under-turned, scored 1.497 against 1.501 mm (0.3 %) and 1.5047 against 1.5054 mm.
 const SCORE_TIE: f64 = 0.01;
 
 /// Whether the turntable's poses put the views onto each other as well as the registered
