@@ -14,8 +14,9 @@
 //! interleaved sets): neighbouring tracks share texture and view, so single observations are
 //! not independent, while sets spread over the whole object nearly are.
 
-use nalgebra::{Isometry3, Matrix2, Matrix3, Matrix3x4, Matrix4, Rotation3, SymmetricEigen, Vector3, Vector4};
+use nalgebra::{Isometry3, Matrix2, Matrix3, Matrix3x4, Matrix4, SymmetricEigen, Translation3, UnitQuaternion, Vector3, Vector4};
 
+use super::axis::estimate_axis;
 use super::refine::{AxisFit, Line, TrackFigures};
 use super::tracks::{TrackCamera, TrackObs};
 use super::{rotation_about_axis, RegisterError};
@@ -284,8 +285,9 @@ const MIN_START_TURN_DEG: f64 = 5.0;
 /// the two views whose shared tracks and turn between them give the most rotation to see
 /// (tracks × |sin turn|, at least [`MIN_SHARED_TRACKS`] tracks over [`MIN_START_TURN_DEG`]),
 /// the rigid motion between their tracks' points (Kabsch; once more without the points
-/// further than three times the median from it), its rotation axis signed by the table's
-/// turn, and the axis's point nearest the points. None when no two views qualify.
+/// further than three times the median from it), and its axis as [`estimate_axis`] takes
+/// one from poses: signed by the table's turn, its point nearest the points. None when no two
+/// views qualify.
 fn motion_start(obs: &[TrackObs], tracks: &[Track], table_deg: &[f64], camera: &TrackCamera) -> Option<(Vector3<f64>, Vector3<f64>)> {
     let key = |a: u32, b: u32| (a.min(b), a.max(b));
     let mut shared: std::collections::HashMap<(u32, u32), usize> = std::collections::HashMap::new();
@@ -333,19 +335,14 @@ fn motion_start(obs: &[TrackObs], tracks: &[Track], table_deg: &[f64], camera: &
     if pairs.len() >= MIN_SHARED_TRACKS {
         (r, t) = kabsch(&pairs)?;
     }
-    let axis = Rotation3::from_matrix_unchecked(r).scaled_axis();
-    if !(axis.norm() > 1e-6) {
-        return None;
-    }
-    // R turns by +|angle| about `axis`: the table's turn from a to b is about `dir`.
-    let dir = if turn((a, b)) > 0.0 { axis.normalize() } else { -axis.normalize() };
-    // The point: (I − R)·c = t across the axis, and nearest the points' centroid along it.
+    // The axis of that motion as `register::axis` finds one from the two views' poses in a's
+    // frame (a's own, the identity, adds nothing): `a_from_b` turns by −(θ_b − θ_a) about
+    // the axis, whose sign the table's turn sets; its point is the one nearest the points'
+    // centroid. (Any rotation at all gives an axis: the pair's turn was checked above.)
+    let a_from_b = Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_matrix(&r)).inverse();
     let m = pairs.iter().map(|p| p.0).sum::<Vector3<f64>>() / pairs.len() as f64;
-    let ia = Matrix3::identity() - r;
-    let w = (ia.transpose() * ia).norm().max(1e-12);
-    let lhs = ia.transpose() * ia + dir * dir.transpose() * w;
-    let c = lhs.lu().solve(&(ia.transpose() * t + dir * dir.dot(&m) * w))?;
-    (c.iter().chain(dir.iter()).all(|v| v.is_finite())).then_some((c, dir))
+    let axis = estimate_axis(&[(Isometry3::identity(), Some(0.0)), (a_from_b, Some(turn((a, b))))], &m, 1e-6f64.to_degrees())?;
+    (axis.point.iter().chain(axis.dir.iter()).all(|v| v.is_finite())).then_some((axis.point, axis.dir))
 }
 
 #[cfg(test)]
