@@ -406,3 +406,63 @@ fn sim_and_replay_reject_bad_input_in_one_line() {
     check_bad_input(&["sim", "render", "--frames", "0", "-o", out.to_str().unwrap()], "--frames must be at least 1");
     check_bad_input(&["replay", dir.join("nothing").to_str().unwrap(), "-o", out.to_str().unwrap()], "is not a recording: it has no frames.jsonl");
 }
+
+/// `sim render`'s lab options: the rig and the cameras' place change the object's
+/// disparities, which the command prints; a scan whose object comes closer than the range
+/// covers drops the matches piled at the range's end, counts them per frame and says so.
+#[test]
+fn another_lab_s_object_beyond_the_range_is_dropped_and_named() {
+    let dir = support::temp_dir("cli-lab");
+    let rec = dir.join("rec");
+    let rec_s = rec.to_str().unwrap();
+    // 320 × 240 at f = 350 px: 60 mm at 320 mm from the object's middle puts it at about
+    // 66 px, beyond the 0 … 63 searched below.
+    let o = spinscan(&["sim", "render", "--object", "egg", "--triangles", "20000", "--frames", "3", "--ideal", "--size", "320x240", "--object-distance-mm", "320", "-o", rec_s]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let span = json_line(&o)["object_disparity_px"].clone();
+    let (lo, hi) = (span[0].as_f64().unwrap(), span[1].as_f64().unwrap());
+    // Within the default 0 … 127: no note about the range.
+    assert!(!stderr(&o).contains("--num-disparities"), "{}", stderr(&o));
+    // The span printed is the vertices', the hidden ones too: the visible surface's nearest
+    // point is its top, and nothing visible lies farther than its bottom.
+    let mut truth = (f32::INFINITY, f32::NEG_INFINITY);
+    for seq in 0..3 {
+        let gt = spinscan::io::read_disparity_png(&rec.join(format!("gt/disparity/{seq:06}.png")), 1.0).unwrap();
+        for d in gt.values().iter().filter(|d| d.is_finite()) {
+            truth = (truth.0.min(*d), truth.1.max(*d));
+        }
+    }
+    assert!(truth.0 as f64 > lo - 0.5 && (truth.1 as f64 - hi).abs() < 1.0, "printed {lo:.1} … {hi:.1}, ground truth {truth:?}");
+    assert!(hi > 70.0, "{lo} … {hi}");
+
+    let report = |out: &Path| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap() };
+    let short = dir.join("short");
+    let o = spinscan(&["replay", rec_s, "--num-disparities", "64", "--no-register", "-o", short.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(stderr(&o).matches("end of the disparity range").count(), 1, "one warning: {}", stderr(&o));
+    for f in report(&short)["frames"].as_array().unwrap() {
+        assert!(f["range_edge_px"].as_u64().unwrap() > 100, "{f}");
+        let map = spinscan::io::read_disparity_png(&short.join(format!("disparity/{:06}.png", f["seq"].as_u64().unwrap())), 1.0).unwrap();
+        assert!(map.values().iter().all(|d| !(*d > 62.5)), "a match left at the range's end");
+    }
+    let wide = dir.join("wide");
+    let o = spinscan(&["replay", rec_s, "--num-disparities", "96", "--no-register", "-o", wide.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("end of the disparity range"), "{}", stderr(&o));
+    for f in report(&wide)["frames"].as_array().unwrap() {
+        assert_eq!(f["range_edge_px"], 0, "{f}");
+    }
+
+    for (args, want) in [
+        (&["--size", "320by240"][..], "WIDTHxHEIGHT"),
+        (&["--focal-px", "0"][..], "--focal-px must be a positive"),
+        (&["--baseline-mm", "0"][..], "--baseline-mm must be a positive"),
+        (&["--object-distance-mm", "40"][..], "--object-distance-mm must be more than the object's half-diagonal"),
+        (&["--camera-tilt-deg", "95"][..], "--camera-tilt-deg must be within"),
+    ] {
+        let out = dir.join("bad");
+        let o = spinscan(&[&["sim", "render", "--object", "egg", "--frames", "1", "-o", out.to_str().unwrap()][..], args].concat());
+        assert!(!o.status.success() && stderr(&o).contains(want), "{args:?}: {}", stderr(&o));
+        assert!(!out.join("frames.jsonl").exists(), "{args:?}: a recording was started");
+    }
+}

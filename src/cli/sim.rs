@@ -8,7 +8,7 @@ use serde_json::json;
 
 use super::replay::summary_json;
 use super::{input, output, progress, AssistModeArgs, Failure, MatchArgs, RegistrationArgs};
-use spinscan::hw::sim::{RenderOptions, SimObject};
+use spinscan::hw::sim::{Lab, RenderOptions, SimObject};
 use spinscan::io;
 use spinscan::pipeline::replay::{self, ReplayOptions};
 use spinscan::pipeline::PipelineOptions;
@@ -75,6 +75,24 @@ pub struct SimRenderArgs {
     /// Probability that a pair is dropped (a gap in seq), 0 … <1.
     #[arg(long, default_value_t = 0.0)]
     pub drop_probability: f64,
+    /// Image size, WIDTH×HEIGHT pixels (`x` or `×`).
+    #[arg(long, default_value = "640x480", value_parser = parse_size, conflicts_with = "target")]
+    pub size: (usize, usize),
+    /// The cameras' focal length, pixels. Default: 700 at a width of 640, in proportion at
+    /// other widths (the same view at another resolution).
+    #[arg(long, conflicts_with = "target")]
+    pub focal_px: Option<f64>,
+    /// Distance between the two cameras, mm.
+    #[arg(long, default_value_t = 60.0, conflicts_with = "target")]
+    pub baseline_mm: f64,
+    /// Distance from the left camera to the object's middle on the turntable's axis, mm.
+    /// The object's disparities are about focal × baseline / distance at its middle: the
+    /// printed `object_disparity_px` gives their span, to set `--num-disparities` by.
+    #[arg(long, default_value_t = 450.0, conflicts_with = "target")]
+    pub object_distance_mm: f64,
+    /// How far the cameras look down at the object, degrees below the horizontal.
+    #[arg(long, default_value_t = 12.0, allow_hyphen_values = true, conflicts_with = "target")]
+    pub camera_tilt_deg: f64,
     /// Output folder (must not hold a recording already).
     #[arg(short = 'o', long = "out")]
     pub out: PathBuf,
@@ -142,8 +160,16 @@ pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
         texture_contrast: a.texture_contrast,
         noise_sigma: a.noise,
         drop_probability: a.drop_probability,
-        image_size: (640, 480),
+        image_size: a.size,
+        lab: Lab { focal_px: a.focal_px, baseline_mm: a.baseline_mm, object_distance_mm: a.object_distance_mm, camera_tilt_deg: a.camera_tilt_deg },
     };
+    let disparities = spinscan::hw::sim::object_disparities(&opts).map_err(input)?;
+    if disparities.1 >= 128.0 || disparities.0 < 0.0 {
+        eprintln!(
+            "sim render: note: the object's disparities span {:.1} … {:.1} px; `replay`, `demo` and `bench table1` search 0 … 127 by default: set --min-disparity and --num-disparities to cover them",
+            disparities.0, disparities.1
+        );
+    }
     let t0 = Instant::now();
     let rec = spinscan::hw::sim::render_recording(&opts, &a.out, &mut |done, total| progress::show(format!("sim render: {done}/{total} pairs")));
     progress::finish();
@@ -157,7 +183,7 @@ pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
     println!(
         "{}",
         json!({"out": a.out, "frames": rec.frames.len(), "ideal": a.ideal, "width": rec.image_size.0, "height": rec.image_size.1,
-               "seconds": seconds, "gt_disparity": a.ideal})
+               "seconds": seconds, "gt_disparity": a.ideal, "object_disparity_px": [disparities.0, disparities.1]})
     );
     Ok(())
 }
@@ -225,4 +251,16 @@ pub fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
     eprintln!("demo: recording in {}, results in {} (views/*.ply open in MeshLab or Open3D)", rec_dir.display(), results_dir.display());
     println!("{}", summary_json(&summary, &results_dir));
     Ok(())
+}
+
+/// An image size that is not WIDTHxHEIGHT in whole pixels.
+#[derive(Debug, thiserror::Error)]
+#[error("expected WIDTHxHEIGHT in whole pixels (e.g. 640x480), got {0:?}")]
+pub struct SizeSyntax(String);
+
+/// `640x480` (or `640×480`) → (640, 480).
+fn parse_size(s: &str) -> Result<(usize, usize), SizeSyntax> {
+    let bad = || SizeSyntax(s.to_string());
+    let (w, h) = s.split_once(['x', '×', 'X']).ok_or_else(bad)?;
+    Ok((w.trim().parse().map_err(|_| bad())?, h.trim().parse().map_err(|_| bad())?))
 }

@@ -252,9 +252,57 @@ pub struct RenderOptions {
     pub noise_sigma: f64,
     /// Probability that a pair is lost (a gap in `seq`).
     pub drop_probability: f64,
-    /// Image size; the focal length scales with the width (700 px at 640), so the view is
-    /// the default lab's at another resolution.
+    /// Image size; without [`Lab::focal_px`] the focal length scales with the width (700 px
+    /// at 640), so the view is the default lab's at another resolution.
     pub image_size: (usize, usize),
+    /// Where the cameras stand and how they see (the default: the lab of every recording so
+    /// far).
+    pub lab: Lab,
+}
+
+/// The rig's optics and the cameras' place around the table: what a different lab, or a
+/// different renderer, would change. The object's disparities are about
+/// `focal_px · baseline_mm / object_distance_mm` at its middle.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Lab {
+    /// Focal length, pixels; `None`: 700 px at a width of 640, in proportion at others.
+    pub focal_px: Option<f64>,
+    /// Distance between the two cameras' centres, mm.
+    pub baseline_mm: f64,
+    /// Distance from the left camera to the object's middle on the axis, mm.
+    pub object_distance_mm: f64,
+    /// How far the cameras look down, degrees below the horizontal.
+    pub camera_tilt_deg: f64,
+}
+
+impl Default for Lab {
+    fn default() -> Self {
+        Lab { focal_px: None, baseline_mm: 60.0, object_distance_mm: 450.0, camera_tilt_deg: 12.0 }
+    }
+}
+
+impl Lab {
+    /// The focal length at image width `width`.
+    pub fn focal_at(&self, width: usize) -> f64 {
+        self.focal_px.unwrap_or(700.0 * width as f64 / 640.0)
+    }
+
+    fn check(&self) -> Result<(), SimError> {
+        let bad = |v: f64| !v.is_finite() || v <= 0.0;
+        if self.focal_px.is_some_and(bad) {
+            return Err(SimError::Option { what: "--focal-px", expected: "a positive number of pixels", got: format!("{}", self.focal_px.unwrap_or_default()) });
+        }
+        if bad(self.baseline_mm) {
+            return Err(SimError::Option { what: "--baseline-mm", expected: "a positive distance in mm", got: self.baseline_mm.to_string() });
+        }
+        if bad(self.object_distance_mm) {
+            return Err(SimError::Option { what: "--object-distance-mm", expected: "a positive distance in mm", got: self.object_distance_mm.to_string() });
+        }
+        if !(self.camera_tilt_deg.is_finite() && (-80.0..=80.0).contains(&self.camera_tilt_deg)) {
+            return Err(SimError::Option { what: "--camera-tilt-deg", expected: "within −80 … 80 degrees", got: self.camera_tilt_deg.to_string() });
+        }
+        Ok(())
+    }
 }
 
 impl Default for RenderOptions {
@@ -270,6 +318,7 @@ impl Default for RenderOptions {
             noise_sigma: 1.5,
             drop_probability: 0.0,
             image_size: (640, 480),
+            lab: Lab::default(),
         }
     }
 }
@@ -293,8 +342,8 @@ pub enum SimError {
     Turntable(#[from] TurntableError),
 }
 
-/// Renders a recording with ground truth into `out`. `progress(done, total)` after each pair.
-pub fn render_recording(opts: &RenderOptions, out: &std::path::Path, progress: &mut dyn FnMut(usize, usize)) -> Result<crate::recording::Recording, SimError> {
+/// The scene `opts` asks for, with the object's mesh, after checking every option.
+fn scene_of(opts: &RenderOptions) -> Result<(hw_sim::SceneConfig, hw_sim::Mesh), SimError> {
     if opts.frames == 0 {
         return Err(SimError::Option { what: "--frames", expected: "at least 1", got: "0".into() });
     }
@@ -313,11 +362,46 @@ pub fn render_recording(opts: &RenderOptions, out: &std::path::Path, progress: &
     if w < 32 || h < 32 {
         return Err(SimError::Option { what: "image size", expected: "at least 32×32", got: format!("{w}×{h}") });
     }
-    let focal = 700.0 * w as f64 / 640.0;
-    scene.rig = if opts.ideal { hw_sim::Rig::ideal(w, h, focal, 60.0) } else { hw_sim::Rig::realistic(w, h, focal, 60.0) };
+    opts.lab.check()?;
+    let (focal, baseline) = (opts.lab.focal_at(w), opts.lab.baseline_mm);
+    scene.rig = if opts.ideal { hw_sim::Rig::ideal(w, h, focal, baseline) } else { hw_sim::Rig::realistic(w, h, focal, baseline) };
+    scene.object_distance_mm = opts.lab.object_distance_mm;
+    scene.camera_tilt_deg = opts.lab.camera_tilt_deg;
+    let (lo, hi) = mesh.bounds();
+    let radius = 0.5 * (0..3).map(|i| hi[i] - lo[i]).map(|e| e * e).sum::<f64>().sqrt();
+    if opts.lab.object_distance_mm <= radius + 10.0 {
+        return Err(SimError::Option { what: "--object-distance-mm", expected: "more than the object's half-diagonal plus 10 mm (the camera would sit inside it)", got: format!("{} (half-diagonal {radius:.1} mm)", opts.lab.object_distance_mm) });
+    }
     scene.seed = opts.seed;
     scene.texture_contrast = opts.texture_contrast;
     scene.noise_sigma = opts.noise_sigma;
+    Ok((scene, mesh))
+}
+
+/// The smallest and largest disparity, pixels, of the object's vertices over the frames
+/// `opts` renders (`focal · baseline / Z` in the left camera: about the rectified disparity
+/// on a realistic rig too), so that a user of another lab geometry can pick the range to
+/// search (`--min-disparity`, `--num-disparities`).
+pub fn object_disparities(opts: &RenderOptions) -> Result<(f64, f64), SimError> {
+    let (scene, mesh) = scene_of(opts)?;
+    let fb = opts.lab.focal_at(opts.image_size.0) * opts.lab.baseline_mm;
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for k in 0..opts.frames {
+        let pose = scene.cam_from_obj(opts.start_deg + k as f64 * opts.deg_per_frame);
+        for v in &mesh.vertices {
+            let z = pose.apply(v.map(f64::from))[2];
+            if z > 0.0 {
+                lo = lo.min(fb / z);
+                hi = hi.max(fb / z);
+            }
+        }
+    }
+    Ok((lo, hi))
+}
+
+/// Renders a recording with ground truth into `out`. `progress(done, total)` after each pair.
+pub fn render_recording(opts: &RenderOptions, out: &std::path::Path, progress: &mut dyn FnMut(usize, usize)) -> Result<crate::recording::Recording, SimError> {
+    let (scene, mesh) = scene_of(opts)?;
     let (axis_point, axis_dir) = scene.axis_in_left_camera();
     let renderer = hw_sim::Renderer::new(scene)?;
     let timing = hw_sim::Timing { drop_probability: opts.drop_probability, ..Default::default() };

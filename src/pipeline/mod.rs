@@ -217,7 +217,8 @@ impl Pipeline {
         let min_disparity = opts.min_disparity.unwrap_or(if rect.disparity_sign < 0 { -(n - 1) } else { 0 });
         let params = MatchParams { min_disparity, ..opts.matching }.validate()?;
         let maps = rect.maps(calib);
-        Ok(Pipeline { rect, maps, matcher: StereoMatcher::new(params), chroma: opts.chroma, size: (size.0 as usize, size.1 as usize) })
+        // A view's points at the range's end are not where the object is (`drop_range_edges`).
+        Ok(Pipeline { rect, maps, matcher: StereoMatcher::new(params).drop_range_edges(true), chroma: opts.chroma, size: (size.0 as usize, size.1 as usize) })
     }
 
     pub fn matcher(&self) -> &StereoMatcher {

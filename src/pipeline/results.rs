@@ -26,6 +26,11 @@ use crate::register::voxel::VoxelModel;
 use crate::segment::{edge_share, no_screen, object_on_edge, KeySource, KeyUsed, EDGE_WARN_SHARE};
 use crate::stereo::DisparityMap;
 
+/// Share of a view's searched pixels dropped at an end of the disparity range from which a
+/// scan warns (once) that the object does not fit the range. Where the object fits, none are:
+/// 0 on every simulated recording of the default lab.
+const RANGE_EDGE_WARN_SHARE: f64 = 0.005;
+
 /// Why the results folder could not be written (or scored).
 #[derive(Debug, thiserror::Error)]
 pub enum ResultsError {
@@ -205,6 +210,9 @@ impl ResultsWriter {
             "register_ms": null,
             "mean_search_px": view.stats.mean_search_px(),
             "valid_fraction": view.stats.valid_fraction(),
+            // Matches dropped at an end of the disparity range (`StereoMatcher::drop_range_edges`).
+            "range_edge_px": view.stats.range_edge,
+            "range_edge_share": view.stats.range_edge as f64 / view.stats.searched.max(1) as f64,
             // Whether this frame searched the full range (no assistance, the first frames,
             // or self-correction); `assist` says why.
             "fallback": view.assist.as_ref().is_none_or(|a| a.searched_full_range()),
@@ -261,6 +269,15 @@ impl ResultsWriter {
         if on_edge(&entry) && !self.frames.iter().any(on_edge) {
             let share = entry["segmentation"]["edge_object_share"].as_f64().unwrap_or(0.0) as f32;
             tracing::warn!("frame seq {}: {}; cover it in the screen's colour, or give a background plate (`--plate`, the daemon's `[matching] plate`)", entry["seq"], object_on_edge(share));
+        }
+        let at_range_end = |f: &Value| f["range_edge_share"].as_f64().is_some_and(|s| s >= RANGE_EDGE_WARN_SHARE);
+        if at_range_end(&entry) && !self.frames.iter().any(at_range_end) {
+            tracing::warn!(
+                "frame seq {}: {} of the object's pixels ({:.1} % of those searched) found their best match at an end of the disparity range and were dropped: the object comes closer (or lies farther) than the range covers; widen it (`--num-disparities`, `--min-disparity`; the daemon's `[matching] num_disparities`)",
+                entry["seq"],
+                entry["range_edge_px"],
+                100.0 * entry["range_edge_share"].as_f64().unwrap_or(0.0)
+            );
         }
         self.frames.push(entry);
         self.write_manifest("running", None)

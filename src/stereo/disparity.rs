@@ -148,6 +148,28 @@ impl DisparityMap {
         DisparityMap { width, height, data: vec![f32::NAN; width * height] }
     }
 
+    /// Drops the matches whose best disparity was an end of the range `first ..= last`
+    /// where the pixel's interval (`iv`, this map's size) reached that end: the last, and the
+    /// first unless it is 0 (nothing lies beyond infinity). The cost was still falling there,
+    /// so the true minimum may lie outside the range, where nothing was searched: an object
+    /// that comes closer than the range covers would otherwise become a wall of points at
+    /// the range's end. A winner's sub-pixel value lies within half a pixel of it, so a value
+    /// past the end's half pixel is a winner at the end. Returns how many were dropped.
+    pub fn drop_range_ends(&mut self, iv: &DisparityIntervals, first: i32, last: i32) -> usize {
+        let (below, above) = (first as f32 + 0.5, last as f32 - 0.5);
+        let (check_first, check_last) = (first != 0, last != 0);
+        let mut dropped = 0;
+        for ((v, &lo), &hi) in self.data.iter_mut().zip(&iv.lo).zip(&iv.hi) {
+            let at_last = check_last && hi as i32 >= last && *v > above;
+            let at_first = check_first && lo as i32 <= first && *v < below;
+            if at_last | at_first {
+                *v = f32::NAN;
+                dropped += 1;
+            }
+        }
+        dropped
+    }
+
     /// Builds a map from values where non-finite means "no disparity".
     pub fn from_values(width: usize, height: usize, data: Vec<f32>) -> Self {
         assert_eq!(data.len(), width * height, "disparity map size");
@@ -195,6 +217,10 @@ pub struct MatchStats {
     pub lr_passed: usize,
     /// Wall time of the speckle filter (a fixed cost per matched pixel), ns.
     pub speckle_ns: u64,
+    /// Matches dropped because their best disparity was an end of the range searched
+    /// (`StereoMatcher::drop_range_edges`): many of them mean the scene comes closer (or lies
+    /// farther) than the range covers.
+    pub range_edge: usize,
 }
 
 impl MatchStats {

@@ -626,3 +626,59 @@ fn a_pixels_texture_is_the_sum_of_its_windows_column_sums() {
         }
     }
 }
+
+/// A pair whose left half lies at disparity 7 and whose right half at `far`, in a smooth
+/// texture (a surface's: the cost falls towards the true disparity from afar), matched over
+/// `first ..= first + 15` with and without `drop_range_edges`. Returns the right half's
+/// matches at the range's end (the one `far` lies beyond), all its matches, the left half's
+/// good matches, and `range_edge`.
+fn range_edge_case(method: Method, first: i32, far: usize, drop: bool) -> (usize, usize, usize, usize) {
+    let (w, h) = (128, 48);
+    let (rough, _) = shifted_pair(w + 32, h, |_, _| 0);
+    let rough = &rough;
+    // Each pixel the mean of a 17 × 3 window of the random texture.
+    let smooth: Vec<u8> = (0..h * (w + 32))
+        .map(|i| {
+            let (x, y) = (i % (w + 32), i / (w + 32));
+            let sum: u32 = (y.saturating_sub(1)..(y + 2).min(h)).flat_map(|yy| (x.saturating_sub(8)..(x + 9).min(w + 32)).map(move |xx| rough[yy * (w + 32) + xx] as u32)).sum();
+            (sum / 51) as u8
+        })
+        .collect();
+    let l: Vec<u8> = (0..h).flat_map(|y| smooth[y * (w + 32)..][..w].iter().copied()).collect();
+    let r: Vec<u8> = (0..h * w).map(|i| (i % w, i / w)).map(|(x, y)| smooth[y * (w + 32) + x + if x < w / 2 { 7 } else { far }]).collect();
+    let p = MatchParams { min_disparity: first, num_disparities: 16, threads: 1, ..MatchParams::for_method(method) }.validate().unwrap();
+    let end = if far as i32 > first { p.max_disparity() } else { first } as f32;
+    let mut m = StereoMatcher::new(p).drop_range_edges(drop);
+    let iv = m.full_intervals(w, h, None);
+    let mut out = DisparityMap::new(w, h);
+    let stats = m.compute(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut out).unwrap();
+    let right_half = || (0..h).flat_map(|y| (w / 2 + 24..w - 8).map(move |x| (x, y)));
+    let at_end = right_half().filter(|&(x, y)| out.get(x, y).is_some_and(|d| (d - end).abs() < 0.5)).count();
+    let matched = right_half().filter(|&(x, y)| out.get(x, y).is_some()).count();
+    let good = (0..h).flat_map(|y| (24..w / 2 - 8).map(move |x| (x, y))).filter(|&(x, y)| out.get(x, y).is_some_and(|d| (d - 7.0).abs() < 0.5)).count();
+    (at_end, matched, good, stats.range_edge)
+}
+
+#[test]
+fn matches_at_the_range_s_end_are_dropped_where_asked() {
+    for method in [Method::Bm, Method::Sgm] {
+        // The right half one disparity beyond the range's end: at 16 with 0 … 15 searched,
+        // and at 3 with 4 … 19 (the first disparity is an end too where it is not 0).
+        for (first, far) in [(0, 16), (4, 3)] {
+            // Kept (what `disparity` gives, as OpenCV does), they pile up at the end:
+            // measured 219 and 192 (`bm`), 1519 and 1513 (`sgm`) of the 1536 pixels.
+            let (at_end, _, good_kept, edge) = range_edge_case(method, first, far, false);
+            assert!(at_end > 150, "{method:?} {first}: {at_end} matches at the range's end without dropping");
+            assert_eq!(edge, 0);
+            let (at_end_dropped, _, good, edge) = range_edge_case(method, first, far, true);
+            assert_eq!(at_end_dropped, 0, "{method:?} {first}");
+            assert!(edge >= at_end, "{method:?} {first}: {edge} dropped, {at_end} at the end in the half's middle alone");
+            // What lies inside the range keeps its matches.
+            assert!(good == good_kept && good > 1500, "{method:?} {first}: {good} against {good_kept}");
+        }
+        // Disparity 0 is not an end to drop at: nothing lies beyond infinity.
+        let (at_zero, matched, _, edge) = range_edge_case(method, 0, 0, true);
+        assert!(at_zero > 1500 && at_zero == matched, "{method:?}: {at_zero} of {matched} at 0");
+        assert_eq!(edge, 0, "{method:?}");
+    }
+}
