@@ -409,7 +409,8 @@ fn sim_and_replay_reject_bad_input_in_one_line() {
 
 /// `sim render`'s lab options: the rig and the cameras' place change the object's
 /// disparities, which the command prints; a scan whose object comes closer than the range
-/// covers drops the matches piled at the range's end, counts them per frame and says so.
+/// covers drops the matches piled at the range's end, counts them per frame and says so, and
+/// one whose object lies wholly outside it says that hardly anything matched.
 #[test]
 fn another_lab_s_object_beyond_the_range_is_dropped_and_named() {
     let dir = support::temp_dir("cli-lab");
@@ -445,10 +446,15 @@ fn another_lab_s_object_beyond_the_range_is_dropped_and_named() {
         let map = spinscan::io::read_disparity_png(&short.join(format!("disparity/{:06}.png", f["seq"].as_u64().unwrap())), 1.0).unwrap();
         assert!(map.values().iter().all(|d| !(*d > 62.5)), "a match left at the range's end");
     }
+    // The whole object beyond 0 … 31: hardly anything matches, and spinscan says why it may be.
+    let none = dir.join("none");
+    let o = spinscan(&["replay", rec_s, "--num-disparities", "32", "--no-register", "-o", none.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(stderr(&o).matches("pixels searched got a disparity: the object may lie outside the disparity range").count(), 1, "{}", stderr(&o));
     let wide = dir.join("wide");
     let o = spinscan(&["replay", rec_s, "--num-disparities", "96", "--no-register", "-o", wide.to_str().unwrap()]);
     assert!(o.status.success(), "{}", stderr(&o));
-    assert!(!stderr(&o).contains("end of the disparity range"), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("end of the disparity range") && !stderr(&o).contains("got a disparity"), "{}", stderr(&o));
     for f in report(&wide)["frames"].as_array().unwrap() {
         assert_eq!(f["range_edge_px"], 0, "{f}");
     }
