@@ -329,3 +329,42 @@ fn simulated_camera_faults_reach_the_camera_seam() {
     assert!((a.t_right_ns as i64 - a.t_left_ns as i64).abs() < 2_000_000);
     assert!(b.t_left_ns as i64 - b.t_right_ns as i64 > 35_000_000, "the late left image is stamped late");
 }
+
+/// A rig whose right camera sits left of the left one (negative disparities, as on the XIMEA
+/// fixture's rig) scans as well as its mirror image, the usual rig: the range on its side of
+/// zero, the views as dense and as close to the true surface, the poses as good.
+#[test]
+fn a_rig_with_negative_disparities_scans_as_well() {
+    let dir = support::temp_dir("rec-negative");
+    let scan = |baseline_mm: f64| -> serde_json::Value {
+        let rec = dir.join(format!("rec{baseline_mm}"));
+        let opts = RenderOptions {
+            object: SimObject::Builtin { name: "egg".into(), triangles: 20_000 },
+            frames: 4,
+            ideal: true,
+            image_size: (320, 240),
+            lab: spinscan::hw::sim::Lab { baseline_mm, ..Default::default() },
+            ..RenderOptions::default()
+        };
+        let (lo, hi) = spinscan::hw::sim::object_disparities(&opts).unwrap();
+        assert!(lo < hi && (lo.abs() > 30.0) && lo * hi > 0.0 && (lo < 0.0) == (baseline_mm < 0.0), "{lo} … {hi}");
+        let recording = spinscan::hw::sim::render_recording(&opts, &rec, &mut |_, _| {}).unwrap();
+        assert_eq!(rec.join("gt/disparity").exists(), baseline_mm > 0.0, "gt/disparity/ is for T = (−B, 0, 0) only");
+        let out = dir.join(format!("out{baseline_mm}"));
+        // The whole scan: registration and the predicted search too.
+        let opts = ReplayOptions::with_registration(replay_opts().pipeline);
+        replay::run_recording(recording, &out, &opts, &mut |_, _, _| {}).unwrap();
+        read_json(&out.join("report.json"))
+    };
+    let (usual, mirrored) = (scan(60.0), scan(-60.0));
+    assert_eq!((usual["disparity_sign"].clone(), mirrored["disparity_sign"].clone()), (1.into(), (-1).into()));
+    for (u, m) in usual["frames"].as_array().unwrap().iter().zip(mirrored["frames"].as_array().unwrap()) {
+        let valid = |f: &serde_json::Value| f["valid_fraction"].as_f64().unwrap();
+        let near = |f: &serde_json::Value| f["gt_view_distance_mm"]["median"].as_f64().unwrap();
+        assert!(valid(m) > 0.85 && (valid(m) - valid(u)).abs() < 0.05, "{m} against {u}");
+        assert!(near(m) < 1.25 * near(u), "view {}: {} mm from the true surface against {}", m["seq"], near(m), near(u));
+        assert_eq!(m["range_edge_px"], 0, "{m}");
+    }
+    let err = |r: &serde_json::Value| r["registration"]["gt_pose_err_deg"]["final"]["max"].as_f64().unwrap();
+    assert!(err(&mirrored) < 1.0 && err(&mirrored) < 2.0 * err(&usual).max(0.1), "{} against {}", err(&mirrored), err(&usual));
+}

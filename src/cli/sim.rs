@@ -82,8 +82,9 @@ pub struct SimRenderArgs {
     /// other widths (the same view at another resolution).
     #[arg(long, conflicts_with = "target")]
     pub focal_px: Option<f64>,
-    /// Distance between the two cameras, mm.
-    #[arg(long, default_value_t = 60.0, conflicts_with = "target")]
+    /// Distance between the two cameras, mm; negative puts the right camera left of the left
+    /// one (a rig whose disparities are negative; no gt/disparity/ then).
+    #[arg(long, default_value_t = 60.0, allow_hyphen_values = true, conflicts_with = "target")]
     pub baseline_mm: f64,
     /// Distance from the left camera to the object's middle on the turntable's axis, mm.
     /// The object's disparities are about focal × baseline / distance at its middle: the
@@ -164,10 +165,12 @@ pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
         lab: Lab { focal_px: a.focal_px, baseline_mm: a.baseline_mm, object_distance_mm: a.object_distance_mm, camera_tilt_deg: a.camera_tilt_deg },
     };
     let disparities = spinscan::hw::sim::object_disparities(&opts).map_err(input)?;
-    if disparities.1 >= 128.0 || disparities.0 < 0.0 {
+    // The default range of `replay`, `demo` and `bench table1`, on the rig's side of zero.
+    let range = if a.baseline_mm > 0.0 { (0.0, 127.0) } else { (-127.0, 0.0) };
+    if disparities.0 < range.0 || disparities.1 > range.1 {
         eprintln!(
-            "sim render: note: the object's disparities span {:.1} … {:.1} px; `replay`, `demo` and `bench table1` search 0 … 127 by default: set --min-disparity and --num-disparities to cover them",
-            disparities.0, disparities.1
+            "sim render: note: the object's disparities span {:.1} … {:.1} px; `replay`, `demo` and `bench table1` search {} … {} by default: set --min-disparity and --num-disparities to cover them",
+            disparities.0, disparities.1, range.0, range.1
         );
     }
     let t0 = Instant::now();
@@ -183,7 +186,7 @@ pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
     println!(
         "{}",
         json!({"out": a.out, "frames": rec.frames.len(), "ideal": a.ideal, "width": rec.image_size.0, "height": rec.image_size.1,
-               "seconds": seconds, "gt_disparity": a.ideal, "object_disparity_px": [disparities.0, disparities.1]})
+               "seconds": seconds, "gt_disparity": a.ideal && a.baseline_mm > 0.0, "object_disparity_px": [disparities.0, disparities.1]})
     );
     Ok(())
 }

@@ -267,7 +267,9 @@ pub struct RenderOptions {
 pub struct Lab {
     /// Focal length, pixels; `None`: 700 px at a width of 640, in proportion at others.
     pub focal_px: Option<f64>,
-    /// Distance between the two cameras' centres, mm.
+    /// Distance between the two cameras' centres, mm; negative puts the right camera left of
+    /// the left one, so that disparities are negative (as on the XIMEA fixture's rig; such a
+    /// rig writes no `gt/disparity/`, whose format is for `T = (−B, 0, 0)` only).
     pub baseline_mm: f64,
     /// Distance from the left camera to the object's middle on the axis, mm.
     pub object_distance_mm: f64,
@@ -292,8 +294,8 @@ impl Lab {
         if self.focal_px.is_some_and(bad) {
             return Err(SimError::Option { what: "--focal-px", expected: "a positive number of pixels", got: format!("{}", self.focal_px.unwrap_or_default()) });
         }
-        if bad(self.baseline_mm) {
-            return Err(SimError::Option { what: "--baseline-mm", expected: "a positive distance in mm", got: self.baseline_mm.to_string() });
+        if !self.baseline_mm.is_finite() || self.baseline_mm == 0.0 {
+            return Err(SimError::Option { what: "--baseline-mm", expected: "a non-zero distance in mm (negative: the right camera left of the left one)", got: self.baseline_mm.to_string() });
         }
         if bad(self.object_distance_mm) {
             return Err(SimError::Option { what: "--object-distance-mm", expected: "a positive distance in mm", got: self.object_distance_mm.to_string() });
