@@ -465,6 +465,7 @@ fn another_lab_s_object_beyond_the_range_is_dropped_and_named() {
         (&["--baseline-mm", "0"][..], "--baseline-mm must be a positive"),
         (&["--object-distance-mm", "40"][..], "--object-distance-mm must be more than the object's half-diagonal"),
         (&["--camera-tilt-deg", "95"][..], "--camera-tilt-deg must be within"),
+        (&["--object-offset-mm", "30"][..], "expected X,Z in mm"),
     ] {
         let out = dir.join("bad");
         let o = spinscan(&[&["sim", "render", "--object", "egg", "--frames", "1", "-o", out.to_str().unwrap()][..], args].concat());

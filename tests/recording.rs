@@ -368,3 +368,41 @@ fn a_rig_with_negative_disparities_scans_as_well() {
     let err = |r: &serde_json::Value| r["registration"]["gt_pose_err_deg"]["final"]["max"].as_f64().unwrap();
     assert!(err(&mirrored) < 1.0 && err(&mirrored) < 2.0 * err(&usual).max(0.1), "{} against {}", err(&mirrored), err(&usual));
 }
+
+/// `Lab::object_offset_mm` stands the object off the turntable's axis: its middle swings on a
+/// circle of the offset's radius around the true axis, and the span of its disparities grows
+/// by the swing.
+#[test]
+fn an_object_placed_off_the_axis_swings_around_it() {
+    let dir = support::temp_dir("rec-offset");
+    let base = RenderOptions {
+        object: SimObject::Builtin { name: "egg".into(), triangles: 5_000 },
+        frames: 4,
+        deg_per_frame: 90.0,
+        image_size: (160, 120),
+        ..RenderOptions::default()
+    };
+    let off = RenderOptions { lab: spinscan::hw::sim::Lab { object_offset_mm: [30.0, 0.0], ..Default::default() }, ..base.clone() };
+    let (span, span_off) = (spinscan::hw::sim::object_disparities(&base).unwrap(), spinscan::hw::sim::object_disparities(&off).unwrap());
+    assert!(span_off.1 - span_off.0 > span.1 - span.0 + 1.5, "{span:?} against {span_off:?}");
+    spinscan::hw::sim::render_recording(&off, &dir, &mut |_, _| {}).unwrap();
+    let text = std::fs::read_to_string(dir.join("gt/turntable.yaml")).unwrap();
+    let axis = spinscan::recording::TurntableAxis::parse(&dir.join("gt/turntable.yaml"), &text).unwrap();
+    let mesh = io::ply::read_ply(&dir.join("gt/mesh.ply")).unwrap();
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for p in &mesh.cloud.points {
+        for i in 0..3 {
+            lo[i] = lo[i].min(p[i] as f64);
+            hi[i] = hi[i].max(p[i] as f64);
+        }
+    }
+    let mid: [f64; 3] = std::array::from_fn(|i| (lo[i] + hi[i]) / 2.0);
+    for (seq, m) in spinscan::recording::read_gt_poses(&dir).unwrap().unwrap() {
+        let p: [f64; 3] = std::array::from_fn(|i| (0..3).map(|j| m[i][j] * mid[j]).sum::<f64>() + m[i][3]);
+        // Distance from the axis line.
+        let v: [f64; 3] = std::array::from_fn(|i| p[i] - axis.axis_point_mm[i]);
+        let along: f64 = (0..3).map(|i| v[i] * axis.axis_dir[i]).sum();
+        let r = ((0..3).map(|i| v[i] * v[i]).sum::<f64>() - along * along).sqrt();
+        assert!((r - 30.0).abs() < 1e-6, "frame {seq}: the object's middle {r} mm from the axis");
+    }
+}

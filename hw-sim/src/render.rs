@@ -28,6 +28,9 @@ pub struct SceneConfig {
     /// How far the cameras look down, degrees below the horizontal.
     pub camera_tilt_deg: f64,
     pub table_radius_mm: f64,
+    /// Where the object's bounding box stands on the table, off the axis: (x, z) in the
+    /// table's frame, mm (0, 0: centred, as a careful user places it).
+    pub object_offset_mm: [f64; 2],
     /// Contrast of the procedural surface texture, 0 (plain) … 1.
     pub texture_contrast: f64,
     /// Standard deviation of the sensor noise, grey levels.
@@ -51,6 +54,7 @@ impl SceneConfig {
             object_distance_mm: 450.0,
             camera_tilt_deg: 12.0,
             table_radius_mm: 115.0,
+            object_offset_mm: [0.0, 0.0],
             texture_contrast: 0.8,
             noise_sigma: 1.5,
             seed: 1,
@@ -77,11 +81,12 @@ impl SceneConfig {
         Pose { r, t: math::scale(math::mat_vec(&r, centre), -1.0) }
     }
 
-    /// Maps object points into the table frame: the bounding box centred on the axis,
-    /// standing on the table surface.
+    /// Maps object points into the table frame: the bounding box centred on the axis (or
+    /// `object_offset_mm` off it), standing on the table surface.
     pub fn table_from_obj(&self) -> Pose {
         let (lo, hi) = self.object.bounds();
-        Pose { r: math::IDENTITY, t: [-(lo[0] + hi[0]) / 2.0, -lo[1], -(lo[2] + hi[2]) / 2.0] }
+        let [dx, dz] = self.object_offset_mm;
+        Pose { r: math::IDENTITY, t: [dx - (lo[0] + hi[0]) / 2.0, -lo[1], dz - (lo[2] + hi[2]) / 2.0] }
     }
 
     /// The turntable axis in the LEFT camera frame: a point on it (the table centre, mm) and

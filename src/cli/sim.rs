@@ -94,6 +94,11 @@ pub struct SimRenderArgs {
     /// How far the cameras look down at the object, degrees below the horizontal.
     #[arg(long, default_value_t = 12.0, allow_hyphen_values = true, conflicts_with = "target")]
     pub camera_tilt_deg: f64,
+    /// Where the object stands off the turntable's axis, X,Z mm in the table's plane (X to the
+    /// cameras' right, Z towards them at 0°): it swings around the axis as the table turns,
+    /// as an object placed by hand does.
+    #[arg(long, default_value = "0,0", value_parser = parse_offset, allow_hyphen_values = true, conflicts_with = "target")]
+    pub object_offset_mm: [f64; 2],
     /// Output folder (must not hold a recording already).
     #[arg(short = 'o', long = "out")]
     pub out: PathBuf,
@@ -162,7 +167,7 @@ pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
         noise_sigma: a.noise,
         drop_probability: a.drop_probability,
         image_size: a.size,
-        lab: Lab { focal_px: a.focal_px, baseline_mm: a.baseline_mm, object_distance_mm: a.object_distance_mm, camera_tilt_deg: a.camera_tilt_deg },
+        lab: Lab { focal_px: a.focal_px, baseline_mm: a.baseline_mm, object_distance_mm: a.object_distance_mm, camera_tilt_deg: a.camera_tilt_deg, object_offset_mm: a.object_offset_mm },
     };
     let disparities = spinscan::hw::sim::object_disparities(&opts).map_err(input)?;
     // The default range of `replay`, `demo` and `bench table1`, on the rig's side of zero.
@@ -254,6 +259,18 @@ pub fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
     eprintln!("demo: recording in {}, results in {} (views/*.ply open in MeshLab or Open3D)", rec_dir.display(), results_dir.display());
     println!("{}", summary_json(&summary, &results_dir));
     Ok(())
+}
+
+/// An offset that is not X,Z in millimetres.
+#[derive(Debug, thiserror::Error)]
+#[error("expected X,Z in mm (e.g. 25,-10), got {0:?}")]
+pub struct OffsetSyntax(String);
+
+/// `25,-10` → [25, −10].
+fn parse_offset(s: &str) -> Result<[f64; 2], OffsetSyntax> {
+    let bad = || OffsetSyntax(s.to_string());
+    let (x, z) = s.split_once(',').ok_or_else(bad)?;
+    Ok([x.trim().parse().map_err(|_| bad())?, z.trim().parse().map_err(|_| bad())?])
 }
 
 /// An image size that is not WIDTHxHEIGHT in whole pixels.

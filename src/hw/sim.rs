@@ -275,11 +275,14 @@ pub struct Lab {
     pub object_distance_mm: f64,
     /// How far the cameras look down, degrees below the horizontal.
     pub camera_tilt_deg: f64,
+    /// Where the object stands off the turntable's axis, (x, z) in the table's plane, mm: it
+    /// then swings around the axis as the table turns, as an object placed by hand does.
+    pub object_offset_mm: [f64; 2],
 }
 
 impl Default for Lab {
     fn default() -> Self {
-        Lab { focal_px: None, baseline_mm: 60.0, object_distance_mm: 450.0, camera_tilt_deg: 12.0 }
+        Lab { focal_px: None, baseline_mm: 60.0, object_distance_mm: 450.0, camera_tilt_deg: 12.0, object_offset_mm: [0.0, 0.0] }
     }
 }
 
@@ -299,6 +302,9 @@ impl Lab {
         }
         if bad(self.object_distance_mm) {
             return Err(SimError::Option { what: "--object-distance-mm", expected: "a positive distance in mm", got: self.object_distance_mm.to_string() });
+        }
+        if !self.object_offset_mm.iter().all(|v| v.is_finite() && v.abs() <= 1000.0) {
+            return Err(SimError::Option { what: "--object-offset-mm", expected: "two distances within ±1000 mm", got: format!("{:?}", self.object_offset_mm) });
         }
         if !(self.camera_tilt_deg.is_finite() && (-80.0..=80.0).contains(&self.camera_tilt_deg)) {
             return Err(SimError::Option { what: "--camera-tilt-deg", expected: "within −80 … 80 degrees", got: self.camera_tilt_deg.to_string() });
@@ -369,10 +375,12 @@ fn scene_of(opts: &RenderOptions) -> Result<(hw_sim::SceneConfig, hw_sim::Mesh),
     scene.rig = if opts.ideal { hw_sim::Rig::ideal(w, h, focal, baseline) } else { hw_sim::Rig::realistic(w, h, focal, baseline) };
     scene.object_distance_mm = opts.lab.object_distance_mm;
     scene.camera_tilt_deg = opts.lab.camera_tilt_deg;
+    scene.object_offset_mm = opts.lab.object_offset_mm;
     let (lo, hi) = mesh.bounds();
     let radius = 0.5 * (0..3).map(|i| hi[i] - lo[i]).map(|e| e * e).sum::<f64>().sqrt();
-    if opts.lab.object_distance_mm <= radius + 10.0 {
-        return Err(SimError::Option { what: "--object-distance-mm", expected: "more than the object's half-diagonal plus 10 mm (the camera would sit inside it)", got: format!("{} (half-diagonal {radius:.1} mm)", opts.lab.object_distance_mm) });
+    let swing = opts.lab.object_offset_mm[0].hypot(opts.lab.object_offset_mm[1]);
+    if opts.lab.object_distance_mm <= radius + swing + 10.0 {
+        return Err(SimError::Option { what: "--object-distance-mm", expected: "more than the object's half-diagonal and its offset plus 10 mm (the camera would sit inside it)", got: format!("{} (half-diagonal {radius:.1} mm, offset {swing:.1} mm)", opts.lab.object_distance_mm) });
     }
     scene.seed = opts.seed;
     scene.texture_contrast = opts.texture_contrast;
