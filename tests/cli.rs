@@ -462,7 +462,7 @@ fn another_lab_s_object_beyond_the_range_is_dropped_and_named() {
     for (args, want) in [
         (&["--size", "320by240"][..], "WIDTHxHEIGHT"),
         (&["--focal-px", "0"][..], "--focal-px must be a positive"),
-        (&["--baseline-mm", "0"][..], "--baseline-mm must be a positive"),
+        (&["--baseline-mm", "0"][..], "--baseline-mm must be a non-zero distance"),
         (&["--object-distance-mm", "40"][..], "--object-distance-mm must be more than the object's half-diagonal"),
         (&["--camera-tilt-deg", "95"][..], "--camera-tilt-deg must be within"),
         (&["--object-offset-mm", "30"][..], "expected X,Z in mm"),
