@@ -272,3 +272,27 @@ fn a_board_is_found_in_a_cluttered_scene() {
     }).fold(0.0, f64::max);
     assert!(worst < 0.3, "worst corner {worst} px off");
 }
+
+/// A board standing on the table of another lab (`sim render --target chessboard-on-table
+/// --object NAME` with that lab's rig and distances) has the axis of that lab's recordings of
+/// the object, and rectifies with that rig's focal length and baseline.
+#[test]
+fn a_board_on_another_lab_s_table_has_that_lab_s_axis() {
+    let dir = support::temp_dir("calibrate-lab");
+    let lab = ["--focal-px", "900", "--baseline-mm", "40", "--object-distance-mm", "400", "--camera-tilt-deg", "20"];
+    let (board, object) = (dir.join("board"), dir.join("object"));
+    let run = |args: &[&str]| {
+        let o = spinscan(args);
+        assert!(o.status.success(), "{args:?}: {}", String::from_utf8_lossy(&o.stderr));
+    };
+    run(&[&["sim", "render", "--target", "chessboard-on-table", "--object", "egg", "--frames", "2", "-o", board.to_str().unwrap()][..], &lab].concat());
+    run(&[&["sim", "render", "--object", "egg", "--triangles", "2000", "--frames", "1", "-o", object.to_str().unwrap()][..], &lab].concat());
+    let read = |p: &std::path::Path| std::fs::read_to_string(p).unwrap();
+    assert_eq!(read(&board.join("gt/turntable.yaml")), read(&object.join("gt/turntable.yaml")));
+    let (b, o) = (spinscan::calib::StereoCalib::load(&board.join("gt/calib.yaml")).unwrap(), spinscan::calib::StereoCalib::load(&object.join("calib.yaml")).unwrap());
+    assert!((b.left.k[(0, 0)] / 900.0 - 1.0).abs() < 0.01 && (b.t_mm.norm() - 40.0).abs() < 1.5, "{:?} {:?}", b.left.k, b.t_mm);
+    assert_eq!((b.left.k, b.t_mm), (o.left.k, o.t_mm));
+    // A held board has no table: the lab's place around the table is refused with it.
+    let o = spinscan(&["sim", "render", "--target", "chessboard", "--frames", "2", "--object-distance-mm", "400", "-o", dir.join("held").to_str().unwrap()]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("go with --target chessboard-on-table"));
+}

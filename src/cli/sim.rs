@@ -76,23 +76,25 @@ pub struct SimRenderArgs {
     #[arg(long, default_value_t = 0.0)]
     pub drop_probability: f64,
     /// Image size, WIDTH×HEIGHT pixels (`x` or `×`).
-    #[arg(long, default_value = "640x480", value_parser = parse_size, conflicts_with = "target")]
+    #[arg(long, default_value = "640x480", value_parser = parse_size)]
     pub size: (usize, usize),
     /// The cameras' focal length, pixels. Default: 700 at a width of 640, in proportion at
     /// other widths (the same view at another resolution).
-    #[arg(long, conflicts_with = "target")]
+    #[arg(long)]
     pub focal_px: Option<f64>,
     /// Distance between the two cameras, mm; negative puts the right camera left of the left
     /// one (a rig whose disparities are negative; no gt/disparity/ then).
-    #[arg(long, default_value_t = 60.0, allow_hyphen_values = true, conflicts_with = "target")]
+    #[arg(long, default_value_t = 60.0, allow_hyphen_values = true)]
     pub baseline_mm: f64,
     /// Distance from the left camera to the object's middle on the turntable's axis, mm.
     /// The object's disparities are about focal × baseline / distance at its middle: the
-    /// printed `object_disparity_px` gives their span, to set `--num-disparities` by.
-    #[arg(long, default_value_t = 450.0, conflicts_with = "target")]
+    /// printed `object_disparity_px` gives their span, to set `--num-disparities` by. With
+    /// `--target chessboard-on-table`: the lab the board stands in.
+    #[arg(long, default_value_t = 450.0)]
     pub object_distance_mm: f64,
-    /// How far the cameras look down at the object, degrees below the horizontal.
-    #[arg(long, default_value_t = 12.0, allow_hyphen_values = true, conflicts_with = "target")]
+    /// How far the cameras look down at the object, degrees below the horizontal (with
+    /// `--target chessboard-on-table`: at the table the board stands on).
+    #[arg(long, default_value_t = 12.0, allow_hyphen_values = true)]
     pub camera_tilt_deg: f64,
     /// Where the object stands off the turntable's axis, X,Z mm in the table's plane (X to the
     /// cameras' right, Z towards them at 0°): it swings around the axis as the table turns,
@@ -200,6 +202,11 @@ fn render_target(a: &SimRenderArgs, target: TargetArg) -> Result<(), Failure> {
     if a.object.is_some() && target == TargetArg::Chessboard {
         return Err(input("--object with --target chessboard: a held board needs no object (--object goes with chessboard-on-table: the lab of that object's recordings)"));
     }
+    let lab = Lab { focal_px: a.focal_px, baseline_mm: a.baseline_mm, object_distance_mm: a.object_distance_mm, camera_tilt_deg: a.camera_tilt_deg, object_offset_mm: [0.0, 0.0] };
+    let default = Lab::default();
+    if target == TargetArg::Chessboard && (lab.object_distance_mm, lab.camera_tilt_deg) != (default.object_distance_mm, default.camera_tilt_deg) {
+        return Err(input("--object-distance-mm and --camera-tilt-deg place the cameras around the turntable: they go with --target chessboard-on-table (a held board's distance is --distance-mm)"));
+    }
     use spinscan::hw::sim_target::{render_target_recording, TargetKind, TargetOptions};
     let opts = TargetOptions {
         kind: match target {
@@ -214,6 +221,8 @@ fn render_target(a: &SimRenderArgs, target: TargetArg) -> Result<(), Failure> {
         distance_mm: a.distance_mm,
         sweep_deg: a.sweep_deg,
         object: a.object.clone(),
+        image_size: a.size,
+        lab,
         ..TargetOptions::default()
     };
     let t0 = Instant::now();

@@ -292,7 +292,7 @@ impl Lab {
         self.focal_px.unwrap_or(700.0 * width as f64 / 640.0)
     }
 
-    fn check(&self) -> Result<(), SimError> {
+    pub(super) fn check(&self) -> Result<(), SimError> {
         let bad = |v: f64| !v.is_finite() || v <= 0.0;
         if self.focal_px.is_some_and(bad) {
             return Err(SimError::Option { what: "--focal-px", expected: "a positive number of pixels", got: format!("{}", self.focal_px.unwrap_or_default()) });
@@ -437,8 +437,8 @@ pub fn render_recording(opts: &RenderOptions, out: &std::path::Path, progress: &
 
 /// The lab's table seen from the rig, and the true axis in the left camera frame: the lab
 /// of `object`'s recordings (its cameras aimed at that object's middle), or, without one,
-/// aimed at the board's middle.
-pub(super) fn table_geometry(rig: &hw_sim::Rig, b: &hw_sim::Chessboard, object: Option<&str>) -> Result<(hw_sim::Pose, TurntableAxis), SimError> {
+/// aimed at the board's middle; from `lab`'s distance and tilt.
+pub(super) fn table_geometry(rig: &hw_sim::Rig, b: &hw_sim::Chessboard, object: Option<&str>, lab: &Lab) -> Result<(hw_sim::Pose, TurntableAxis), SimError> {
     let object = match object {
         Some(name) => hw_sim::Mesh::builtin(name, 2_000)?,
         None => {
@@ -450,6 +450,8 @@ pub(super) fn table_geometry(rig: &hw_sim::Rig, b: &hw_sim::Chessboard, object: 
     };
     let mut scene = hw_sim::SceneConfig::realistic(object);
     scene.rig = *rig;
+    scene.object_distance_mm = lab.object_distance_mm;
+    scene.camera_tilt_deg = lab.camera_tilt_deg;
     let (point, dir) = scene.axis_in_left_camera();
     Ok((scene.cam_from_table(), TurntableAxis { axis_point_mm: point, axis_dir: dir, source: "ground truth".into() }))
 }

@@ -43,6 +43,9 @@ pub struct TargetOptions {
     /// `ChessboardOnTable`: the lab of this built-in object's recordings (`sim render
     /// --object NAME`, cameras aimed at its middle), so the axis calibrated is theirs.
     pub object: Option<String>,
+    /// The rig's focal length and baseline; with `ChessboardOnTable`, also the cameras'
+    /// distance and tilt around the table (the object's offset plays no part).
+    pub lab: super::sim::Lab,
 }
 
 impl Default for TargetOptions {
@@ -58,6 +61,7 @@ impl Default for TargetOptions {
             distance_mm: 600.0,
             sweep_deg: 50.0,
             object: None,
+            lab: super::sim::Lab::default(),
         }
     }
 }
@@ -75,9 +79,10 @@ pub fn render_target_recording(opts: &TargetOptions, out: &Path, progress: &mut 
     if b.cols < 3 || b.rows < 3 || !(b.square_mm > 0.0 && b.square_mm.is_finite()) {
         return Err(SimError::Option { what: "the board", expected: "at least 3×3 inner corners and a positive square size", got: format!("{}×{}, {} mm", b.cols, b.rows, b.square_mm) });
     }
-    let focal = 700.0 * w as f64 / 640.0;
-    let rig = if opts.ideal { hw_sim::Rig::ideal(w, h, focal, 60.0) } else { hw_sim::Rig::realistic(w, h, focal, 60.0) };
-    let nominal = calib_of(&hw_sim::Rig::ideal(w, h, focal, 60.0));
+    opts.lab.check()?;
+    let (focal, baseline) = (opts.lab.focal_at(w), opts.lab.baseline_mm);
+    let rig = if opts.ideal { hw_sim::Rig::ideal(w, h, focal, baseline) } else { hw_sim::Rig::realistic(w, h, focal, baseline) };
+    let nominal = calib_of(&hw_sim::Rig::ideal(w, h, focal, baseline));
     let mut writer = RecordingWriter::create(out, &nominal)?;
     let gt = out.join("gt");
     let io = |path: &Path, e: std::io::Error| SimError::Recording(crate::recording::RecordingError::Io { path: path.to_path_buf(), source: e });
@@ -99,7 +104,7 @@ pub fn render_target_recording(opts: &TargetOptions, out: &Path, progress: &mut 
             (p, vec![None; n])
         }
         TargetKind::ChessboardOnTable => {
-            let (cam_from_table, axis) = table_geometry(&rig, &b, opts.object.as_deref())?;
+            let (cam_from_table, axis) = table_geometry(&rig, &b, opts.object.as_deref(), &opts.lab)?;
             writer.write_turntable(&axis, true)?;
             let table_from_board = board_on_table(&b);
             let angles: Vec<f64> = (0..opts.frames).map(|k| -opts.sweep_deg + 2.0 * opts.sweep_deg * k as f64 / (opts.frames - 1) as f64).collect();
