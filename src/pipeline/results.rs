@@ -27,8 +27,9 @@ use crate::segment::{edge_share, no_screen, object_on_edge, KeySource, KeyUsed, 
 use crate::stereo::DisparityMap;
 
 /// Share of a view's searched pixels dropped at an end of the disparity range from which a
-/// scan warns (once) that the object does not fit the range. Where the object fits, none are:
-/// 0 on every simulated recording of the default lab.
+/// scan warns (once) that the object does not fit the range. Where the object fits, next to
+/// none are: 0 on the default lab's simulated recordings, 5 pixels over a faint egg's 20
+/// views; 8–17 % a view on a torus whose near side lies 9 px beyond the range.
 const RANGE_EDGE_WARN_SHARE: f64 = 0.005;
 
 /// Share of a segmented view's searched pixels matched below which a scan warns (once) that
