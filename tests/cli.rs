@@ -473,3 +473,23 @@ fn another_lab_s_object_beyond_the_range_is_dropped_and_named() {
         assert!(!out.join("frames.jsonl").exists(), "{args:?}: a recording was started");
     }
 }
+
+/// `points` drops the matches piled at the range's end too, says how many, and warns when
+/// they are many: the simulated sphere searched over 0 … 15, short of it, then over 0 … 47.
+#[test]
+fn points_name_the_matches_dropped_at_the_range_s_end() {
+    let dir = support::temp_dir("cli-points-range");
+    let (l, r) = sim_pair(&dir);
+    let calib = dir.join("calib.yaml");
+    let run = |n: &str| {
+        let out = dir.join(format!("p{n}.ply"));
+        let o = spinscan(&["points", "--calib", calib.to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--num-disparities", n, "-o", out.to_str().unwrap()]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        (json_line(&o)["range_edge_px"].as_u64().unwrap(), stderr(&o).contains("at an end of the disparity range were dropped"))
+    };
+    let (short, warned) = run("16");
+    assert!(short > 100 && warned, "{short} dropped, warned: {warned}");
+    // The whole pair is matched, screen included: a few of its pixels still end there.
+    let (wide, warned) = run("48");
+    assert!(wide < short / 20 && !warned, "{wide} dropped, warned: {warned}");
+}

@@ -30,7 +30,7 @@ use crate::stereo::DisparityMap;
 /// scan warns (once) that the object does not fit the range. Where the object fits, next to
 /// none are: 0 on the default lab's simulated recordings, 5 pixels over a faint egg's 20
 /// views; 8–17 % a view on a torus whose near side lies 9 px beyond the range.
-const RANGE_EDGE_WARN_SHARE: f64 = 0.005;
+pub const RANGE_EDGE_WARN_SHARE: f64 = 0.005;
 
 /// Share of a segmented view's searched pixels matched below which a scan warns (once) that
 /// the object lies outside the range or shows too little texture. Measured on simulated
