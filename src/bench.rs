@@ -120,6 +120,10 @@ pub struct Row {
     pub union_px: Vec<usize>,
     pub filled_px: Vec<usize>,
     pub uncovered_px: Vec<usize>,
+    /// Per frame: matches dropped at an end of the disparity range, and their share of the
+    /// searched pixels (`MatchStats::range_edge`).
+    pub range_edge_px: Vec<usize>,
+    pub range_edge_share: Vec<f64>,
     /// The disparity map of the figure's frame.
     pub fig: Option<DisparityMap>,
 }
@@ -162,6 +166,8 @@ impl Row {
             union_px: vec![],
             filled_px: vec![],
             uncovered_px: vec![],
+            range_edge_px: vec![],
+            range_edge_share: vec![],
             fig: None,
         }
     }
@@ -189,6 +195,8 @@ impl Row {
         self.search_px.push(evaluated as f64 / searched.max(1) as f64);
         self.valid_fraction.push(m.stats.valid_fraction());
         self.lr_consistency.push(m.stats.lr_consistency());
+        self.range_edge_px.push(m.stats.range_edge);
+        self.range_edge_share.push(m.stats.range_edge as f64 / m.stats.searched.max(1) as f64);
         if let Some(why) = o.fallback.clone().or_else(|| o.full_range.clone()) {
             self.full_range.push((m.seq, why));
         }
@@ -231,6 +239,7 @@ impl Row {
             "union_px": self.union_px,
             "filled_px": self.filled_px,
             "uncovered_px": self.uncovered_px,
+            "range_edge_px": self.range_edge_px,
             "frame_bad2": self.bad2,
             "frame_err_mm": self.err_mm,
             "full_range_frames": self.full_range.iter().map(|(s, why)| json!({"seq": s, "why": why})).collect::<Vec<_>>(),
@@ -576,6 +585,25 @@ impl Table1 {
         }
         if let Some(&(first, share)) = self.object_on_edge.first() {
             let _ = writeln!(s, "\nsegmentation: {} of {} frames (the first seq {first}): {}", self.object_on_edge.len(), self.frames.len(), crate::segment::object_on_edge(share));
+        }
+        // The first row that dropped many matches at the range's end (the same frames
+        // overflow it in every row).
+        let warn = crate::pipeline::results::RANGE_EDGE_WARN_SHARE;
+        for r in &self.rows {
+            let hit: Vec<usize> = (0..r.range_edge_share.len()).filter(|&i| r.range_edge_share[i] >= warn).collect();
+            if let Some(&first) = hit.first() {
+                let _ = writeln!(
+                    s,
+                    "\nrange: {} of {} frames of the row '{}' dropped matches at an end of the disparity range (the first seq {}: {} pixels, {:.1} % of those searched): the object comes closer (or lies farther) than the range covers; widen it (--num-disparities, --min-disparity)",
+                    hit.len(),
+                    r.range_edge_share.len(),
+                    row_label(r).trim(),
+                    self.frames[first],
+                    r.range_edge_px[first],
+                    100.0 * r.range_edge_share[first]
+                );
+                break;
+            }
         }
         s
     }

@@ -79,6 +79,21 @@ fn table1_prints_the_table_and_writes_its_json_and_figure() {
     let fig = image::open(dir.join("fig.png")).unwrap();
     assert_eq!((fig.width(), fig.height()), (4 * 160 + 3 * 4, 2 * 120 + 4));
     assert_eq!(t["fig_tiles"].as_array().unwrap().len(), 5);
+
+    // The torus fits 0 … 63: nothing is dropped at the range's end, and nothing is said of it.
+    assert!(rows.iter().all(|r| r["range_edge_px"].as_array().unwrap().iter().all(|v| v == 0)), "{rows:?}");
+    assert!(!stdout.contains("\nrange:"), "{stdout}");
+    // Over 0 … 47 its near side (about 54 px) lies beyond: every row drops matches there, and
+    // the table says so once.
+    let json = dir.join("t1-short.json");
+    let o = spinscan(&["bench", "table1", rec.to_str().unwrap(), "--json", json.to_str().unwrap(), "--fig", dir.join("fig-short.png").to_str().unwrap(), "--num-disparities", "48", "--repeat", "1", "--weights", "0.8"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let t: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    for r in t["rows"].as_array().unwrap() {
+        assert!(r["range_edge_px"].as_array().unwrap().iter().all(|v| v.as_u64().unwrap() > 50), "{r}");
+    }
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(stdout.matches("\nrange: 7 of 7 frames of the row 'without' dropped matches at an end of the disparity range").count(), 1, "{stdout}");
 }
 
 #[test]
