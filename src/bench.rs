@@ -196,7 +196,7 @@ impl Row {
         self.valid_fraction.push(m.stats.valid_fraction());
         self.lr_consistency.push(m.stats.lr_consistency());
         self.range_edge_px.push(m.stats.range_edge);
-        self.range_edge_share.push(m.stats.range_edge as f64 / m.stats.searched.max(1) as f64);
+        self.range_edge_share.push(m.stats.range_edge_share());
         if let Some(why) = o.fallback.clone().or_else(|| o.full_range.clone()) {
             self.full_range.push((m.seq, why));
         }

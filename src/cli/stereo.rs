@@ -237,7 +237,7 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
         json!({"points": view.cloud.len(), "match_ms": view.match_ms, "valid_fraction": view.stats.valid_fraction(),
                "range_edge_px": view.stats.range_edge, "disparity_sign": pipe.rect.disparity_sign, "out": a.out})
     );
-    if view.stats.range_edge as f64 >= spinscan::pipeline::results::RANGE_EDGE_WARN_SHARE * view.stats.searched.max(1) as f64 {
+    if view.stats.range_edge_share() >= spinscan::pipeline::results::RANGE_EDGE_WARN_SHARE {
         eprintln!(
             "points: {} matches at an end of the disparity range were dropped (the scene comes closer, or lies farther, than the range covers): widen it with --num-disparities or --min-disparity",
             view.stats.range_edge

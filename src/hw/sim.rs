@@ -292,6 +292,17 @@ impl Lab {
         self.focal_px.unwrap_or(700.0 * width as f64 / 640.0)
     }
 
+    /// The rig of this lab at image size `(w, h)`: the ideal rectified one, or a realistic
+    /// one (distortion, misalignment).
+    pub(super) fn rig(&self, ideal: bool, (w, h): (usize, usize)) -> hw_sim::Rig {
+        let (focal, baseline) = (self.focal_at(w), self.baseline_mm);
+        if ideal {
+            hw_sim::Rig::ideal(w, h, focal, baseline)
+        } else {
+            hw_sim::Rig::realistic(w, h, focal, baseline)
+        }
+    }
+
     pub(super) fn check(&self) -> Result<(), SimError> {
         let bad = |v: f64| !v.is_finite() || v <= 0.0;
         if self.focal_px.is_some_and(bad) {
@@ -371,8 +382,7 @@ fn scene_of(opts: &RenderOptions) -> Result<(hw_sim::SceneConfig, hw_sim::Mesh),
         return Err(SimError::Option { what: "image size", expected: "at least 32×32", got: format!("{w}×{h}") });
     }
     opts.lab.check()?;
-    let (focal, baseline) = (opts.lab.focal_at(w), opts.lab.baseline_mm);
-    scene.rig = if opts.ideal { hw_sim::Rig::ideal(w, h, focal, baseline) } else { hw_sim::Rig::realistic(w, h, focal, baseline) };
+    scene.rig = opts.lab.rig(opts.ideal, (w, h));
     scene.object_distance_mm = opts.lab.object_distance_mm;
     scene.camera_tilt_deg = opts.lab.camera_tilt_deg;
     scene.object_offset_mm = opts.lab.object_offset_mm;

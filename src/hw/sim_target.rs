@@ -80,9 +80,8 @@ pub fn render_target_recording(opts: &TargetOptions, out: &Path, progress: &mut 
         return Err(SimError::Option { what: "the board", expected: "at least 3×3 inner corners and a positive square size", got: format!("{}×{}, {} mm", b.cols, b.rows, b.square_mm) });
     }
     opts.lab.check()?;
-    let (focal, baseline) = (opts.lab.focal_at(w), opts.lab.baseline_mm);
-    let rig = if opts.ideal { hw_sim::Rig::ideal(w, h, focal, baseline) } else { hw_sim::Rig::realistic(w, h, focal, baseline) };
-    let nominal = calib_of(&hw_sim::Rig::ideal(w, h, focal, baseline));
+    let rig = opts.lab.rig(opts.ideal, (w, h));
+    let nominal = calib_of(&opts.lab.rig(true, (w, h)));
     let mut writer = RecordingWriter::create(out, &nominal)?;
     let gt = out.join("gt");
     let io = |path: &Path, e: std::io::Error| SimError::Recording(crate::recording::RecordingError::Io { path: path.to_path_buf(), source: e });

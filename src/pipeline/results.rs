@@ -220,7 +220,7 @@ impl ResultsWriter {
             "searched_px": view.stats.searched,
             // Matches dropped at an end of the disparity range (`StereoMatcher::drop_range_edges`).
             "range_edge_px": view.stats.range_edge,
-            "range_edge_share": view.stats.range_edge as f64 / view.stats.searched.max(1) as f64,
+            "range_edge_share": view.stats.range_edge_share(),
             // Whether this frame searched the full range (no assistance, the first frames,
             // or self-correction); `assist` says why.
             "fallback": view.assist.as_ref().is_none_or(|a| a.searched_full_range()),

@@ -233,6 +233,12 @@ impl MatchStats {
         }
     }
 
+    /// `range_edge / searched`: the share of the searched pixels whose match was dropped at an
+    /// end of the range (0 when nothing was searched).
+    pub fn range_edge_share(&self) -> f64 {
+        self.range_edge as f64 / self.searched.max(1) as f64
+    }
+
     /// Percent of the matches that passed the left–right check (100 when it is off).
     pub fn lr_consistency(&self) -> f64 {
         if self.lr_candidates == 0 {
