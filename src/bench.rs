@@ -18,6 +18,7 @@ use serde_json::{json, Value};
 
 use crate::assist::{AssistMode, AssistParams, Assistant, Granularity};
 use crate::io;
+use crate::pipeline::truth::{GtDisparities, GtSource};
 use crate::pipeline::{Assist, Pipeline, PipelineError, PipelineOptions, Prepared};
 use crate::recording::{Recording, TurntableAxis};
 use crate::register::posestore::{PoseSnapshot, PoseStore};
@@ -269,10 +270,14 @@ pub struct Table1 {
     /// Frames (seq) whose mask keeps at least `segment::EDGE_WARN_SHARE` of the image's edge
     /// as object, with that share.
     pub object_on_edge: Vec<(u64, f32)>,
+    /// Per frame, where its ground-truth disparity (bad2's) came from, if it has one.
+    pub gt_disparity: Vec<Option<GtSource>>,
 }
 
 struct Truth {
     disparity: Vec<Option<DisparityMap>>,
+    /// Per frame, where `disparity` came from.
+    disparity_source: Vec<Option<GtSource>>,
     /// obj_from_cam per frame, and the mesh in the object's frame.
     poses: Option<Vec<Option<Isometry3<f64>>>>,
     surface: Option<Surface>,
@@ -316,7 +321,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         frames.push((f.seq, f.table_deg, p));
         progress("prepare", i + 1, n);
     }
-    let truth = read_truth(&rec, &frames, pipes[0].rect.disparity_sign)?;
+    let truth = read_truth(&rec, &frames, &pipes[0].rect)?;
 
     let mut assisted: Vec<AssistMode> = opts.weights.iter().map(|&w| AssistMode::Paper { w }).collect();
     if opts.predicted {
@@ -443,6 +448,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         floor_ms_by_method: matchers.iter().map(|m| m.method).zip(floor_ms).collect(),
         screen_not_found,
         object_on_edge,
+        gt_disparity: truth.disparity_source,
     })
 }
 
@@ -470,32 +476,23 @@ pub fn bad2_percent(disp: &DisparityMap, gt: &DisparityMap) -> f64 {
     100.0 * bad as f64 / n.max(1) as f64
 }
 
-fn read_truth(rec: &Recording, frames: &[(u64, Option<f64>, Prepared)], sign: i32) -> Result<Truth, BenchError> {
-    let mut disparity = Vec::new();
+fn read_truth(rec: &Recording, frames: &[(u64, Option<f64>, Prepared)], rect: &crate::stereo::Rectification) -> Result<Truth, BenchError> {
+    let gt = GtDisparities::open(&rec.dir).map_err(|e| BenchError::Recording(e.to_string()))?;
+    let (mut disparity, mut disparity_source) = (Vec::new(), Vec::new());
     for (seq, _, _) in frames {
-        disparity.push(match rec.gt_disparity_path(*seq) {
-            Some(p) => Some(io::read_disparity_png(&p, sign as f32).map_err(|e| BenchError::Recording(format!("ground truth {}: {e}", p.display())))?),
-            None => None,
-        });
+        let (map, source) = gt.get(*seq, rect).map_err(|e| BenchError::Recording(format!("frame seq {seq}: {e}")))?.unzip();
+        disparity.push(map);
+        disparity_source.push(source);
     }
-    let gt = crate::recording::read_gt_poses(&rec.dir).map_err(|e| BenchError::Recording(format!("ground truth: {e}")))?;
-    let mesh_path = rec.dir.join("gt/mesh.ply");
-    let (poses, surface) = match gt {
-        Some(list) if mesh_path.is_file() => {
-            let mut poses = vec![None; frames.len()];
-            for (seq, rows) in list {
-                if let Some(i) = frames.iter().position(|f| f.0 == seq) {
-                    let cam_from_obj = crate::register::from_rows(&rows, 1e-4).map_err(|e| BenchError::Recording(format!("gt/poses.jsonl: seq {seq}: {e}")))?;
-                    poses[i] = Some(cam_from_obj.inverse());
-                }
-            }
-            let mesh = io::ply::read_ply(&mesh_path).map_err(|e| BenchError::Recording(format!("ground truth: {e}")))?;
-            let surface = Surface::new(&mesh, &Isometry3::identity()).map_err(|e| BenchError::Recording(format!("ground truth {}: {e}", mesh_path.display())))?;
+    let (poses, surface) = match gt.surface() {
+        Some((mesh, cam_from_obj)) => {
+            let poses = frames.iter().map(|f| cam_from_obj.get(&f.0).map(|p| p.inverse())).collect();
+            let surface = Surface::new(mesh, &Isometry3::identity()).map_err(|e| BenchError::Recording(format!("ground truth {}: {e}", rec.dir.join("gt/mesh.ply").display())))?;
             (Some(poses), Some(surface))
         }
-        _ => (None, None),
+        None => (None, None),
     };
-    Ok(Truth { disparity, poses, surface })
+    Ok(Truth { disparity, disparity_source, poses, surface })
 }
 
 impl Table1 {
@@ -515,6 +512,7 @@ impl Table1 {
             "floor_ms_by_method": self.floor_ms_by_method.iter().map(|(m, f)| json!({"method": m.name(), "floor_ms": f, "median_floor_ms": median(f)})).collect::<Vec<_>>(),
             "screen_not_found_seqs": self.screen_not_found,
             "object_on_edge_seqs": self.object_on_edge.iter().map(|e| e.0).collect::<Vec<_>>(),
+            "gt_disparity": self.gt_disparity_source(),
             "fig_tiles": std::iter::once("left".to_string()).chain(self.rows.iter().map(row_label)).collect::<Vec<_>>(),
             "rows": self.rows.iter().map(|r| {
                 let mut j = r.to_json();
@@ -522,6 +520,15 @@ impl Table1 {
                 j
             }).collect::<Vec<_>>(),
         })
+    }
+
+    /// Where bad2's ground truth came from: `recorded` (`gt/disparity/`), `rendered` (from
+    /// `gt/mesh.ply` at `gt/poses.jsonl`'s poses), `mixed` where frames differ, `None`
+    /// where no frame has any.
+    pub fn gt_disparity_source(&self) -> Option<&'static str> {
+        let mut sources = self.gt_disparity.iter().flatten();
+        let first = *sources.next()?;
+        Some(if sources.all(|&s| s == first) { first.name() } else { "mixed" })
     }
 
     /// The no-assistance row's median of a matcher: what its rows' ratios are taken against.
@@ -579,6 +586,15 @@ impl Table1 {
                 opt(median(&r.ns_per_pair), 3),
                 r.full_range.len(),
             );
+        }
+        match self.gt_disparity_source() {
+            Some("rendered") => {
+                let _ = writeln!(s, "\nbad2: against disparities rendered from gt/mesh.ply at gt/poses.jsonl's poses (the recording has no gt/disparity/)");
+            }
+            Some("mixed") => {
+                let _ = writeln!(s, "\nbad2: against gt/disparity/ where the recording has it, else disparities rendered from gt/mesh.ply at gt/poses.jsonl's poses");
+            }
+            _ => {}
         }
         if let Some(first) = self.screen_not_found.first() {
             let _ = writeln!(s, "\nsegmentation: {} of {} frames (the first seq {first}): {}", self.screen_not_found.len(), self.frames.len(), crate::segment::no_screen());

@@ -56,6 +56,7 @@ fn table1_prints_the_table_and_writes_its_json_and_figure() {
         assert!(times.iter().all(|v| v.as_f64().unwrap() > 0.0));
         assert!(r["median_ms"].as_f64().unwrap() > 0.0);
         let bad2 = r["bad2"].as_f64().expect("an ideal recording has ground-truth disparity");
+        assert_eq!(t["gt_disparity"], "recorded");
         assert!((0.0..100.0).contains(&bad2));
         let lr = r["lr_consistency"].as_f64().unwrap();
         assert!((50.0..=100.0).contains(&lr), "{lr}");
@@ -127,15 +128,31 @@ fn table1_runs_every_row_for_each_listed_method() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("only `bench table1` takes a list"));
 }
 
+/// A realistic rig's recording has no gt/disparity/: bad2 is scored against disparities
+/// rendered from gt/mesh.ply at gt/poses.jsonl's poses, and the table says so. Without
+/// the mesh there is nothing to score, and bad2 is null.
 #[test]
-fn table1_without_ground_truth_disparity_reports_bad2_as_null() {
+fn table1_on_a_realistic_rig_scores_bad2_against_the_rendered_truth() {
     let dir = support::temp_dir("assist-table1-real");
     let rec = small_turn(&dir, 4, false);
-    let (_, t) = table1(&rec, &dir, &["--weights", "0.8", "--no-predicted"]);
-    for r in t["rows"].as_array().unwrap() {
-        assert!(r["bad2"].is_null(), "{r}");
+    let (o, t) = table1(&rec, &dir, &["--weights", "0.8", "--no-predicted"]);
+    assert_eq!(t["gt_disparity"], "rendered");
+    assert!(String::from_utf8_lossy(&o.stdout).contains("bad2: against disparities rendered from gt/mesh.ply"));
+    let rows = t["rows"].as_array().unwrap();
+    for r in rows {
+        let bad2 = r["bad2"].as_f64().expect("rendered ground truth gives bad2");
+        assert!(bad2 < 20.0, "{r}");
         assert!(r["lr_consistency"].as_f64().is_some());
         assert!(r["median_err_mm"].as_f64().is_some(), "gt/poses.jsonl and gt/mesh.ply give the point-to-surface error");
+    }
+    let bad2 = |i: usize| rows[i]["bad2"].as_f64().unwrap();
+    assert!(bad2(1) <= bad2(0) + 0.5, "w = 0.8: bad2 {} against {} without assistance", bad2(1), bad2(0));
+
+    std::fs::remove_file(rec.join("gt/mesh.ply")).unwrap();
+    let (o, t) = table1(&rec, &dir, &["--weights", "0.8", "--no-predicted"]);
+    assert!(t["gt_disparity"].is_null() && !String::from_utf8_lossy(&o.stdout).contains("bad2: against"));
+    for r in t["rows"].as_array().unwrap() {
+        assert!(r["bad2"].is_null() && r["median_err_mm"].is_null(), "{r}");
     }
 }
 

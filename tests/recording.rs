@@ -364,6 +364,10 @@ fn a_rig_with_negative_disparities_scans_as_well() {
         assert!(valid(m) > 0.85 && (valid(m) - valid(u)).abs() < 0.05, "{m} against {u}");
         assert!(near(m) < 1.25 * near(u), "view {}: {} mm from the true surface against {}", m["seq"], near(m), near(u));
         assert_eq!(m["range_edge_px"], 0, "{m}");
+        // The mirrored rig's truth is rendered from the mesh, signed as its disparities are.
+        assert_eq!((m["gt_disparity"].as_str(), u["gt_disparity"].as_str()), (Some("rendered"), Some("recorded")));
+        let err = |f: &serde_json::Value| f["gt_mean_abs_err_px"].as_f64().unwrap();
+        assert!(m["gt_coverage"].as_f64().unwrap() > 0.85 && err(m) < 1.5 * err(u).max(0.1), "{m} against {u}");
     }
     let err = |r: &serde_json::Value| r["registration"]["gt_pose_err_deg"]["final"]["max"].as_f64().unwrap();
     assert!(err(&mirrored) < 1.0 && err(&mirrored) < 2.0 * err(&usual).max(0.1), "{} against {}", err(&mirrored), err(&usual));
@@ -404,5 +408,55 @@ fn an_object_placed_off_the_axis_swings_around_it() {
         let along: f64 = (0..3).map(|i| v[i] * axis.axis_dir[i]).sum();
         let r = ((0..3).map(|i| v[i] * v[i]).sum::<f64>() - along * along).sqrt();
         assert!((r - 30.0).abs() < 1e-6, "frame {seq}: the object's middle {r} mm from the axis");
+    }
+}
+
+/// Where a recording has no `gt/disparity/` (every rig but the ideal one), its views are
+/// scored against disparities rendered from `gt/mesh.ply` at the frame's `gt/poses.jsonl`
+/// pose: on the ideal rig that rendering is the simulator's own truth, and on a realistic
+/// rig (distorted lenses, cameras turned towards each other) the matched disparities fit it
+/// as closely as on the ideal one.
+#[test]
+fn ground_truth_rendered_from_the_mesh_is_the_recorded_one() {
+    use spinscan::pipeline::truth::{GtDisparities, GtSource};
+    let dir = support::temp_dir("rec-gt-render");
+    let ideal = dir.join("ideal");
+    let rec = small_recording(&ideal, 2, 0.0);
+    let pipe = spinscan::pipeline::Pipeline::new(&rec.calib, rec.image_size, Default::default()).unwrap();
+    let mesh = io::ply::read_ply(&ideal.join("gt/mesh.ply")).unwrap();
+    let poses = spinscan::recording::read_gt_poses(&ideal).unwrap().unwrap();
+    let truth = GtDisparities::open(&ideal).unwrap();
+    for (seq, rows) in poses {
+        let (recorded, source) = truth.get(seq, &pipe.rect).unwrap().unwrap();
+        assert_eq!(source, GtSource::Recorded);
+        let pose = spinscan::register::from_rows(&rows, 1e-4).unwrap();
+        let rendered = spinscan::stereo::truth::render_disparity(&mesh.cloud.points, &mesh.triangles, &pose, &pipe.rect);
+        let (mut both, mut either, mut close) = (0, 0, 0);
+        for (r, g) in rendered.values().iter().zip(recorded.values()) {
+            either += (r.is_finite() || g.is_finite()) as usize;
+            if r.is_finite() && g.is_finite() {
+                both += 1;
+                close += ((r - g).abs() < 0.01) as usize;
+            }
+        }
+        assert!(both > 5_000 && both as f64 > 0.995 * either as f64, "seq {seq}: {both} pixels in both of {either}");
+        assert!(close as f64 > 0.999 * both as f64, "seq {seq}: {close} of {both} within 0.01 px");
+    }
+
+    // A realistic rig: the simulator writes no gt/disparity/; replay renders it.
+    let real = dir.join("real");
+    let opts = RenderOptions { object: SimObject::Builtin { name: "egg".into(), triangles: 20_000 }, frames: 2, ideal: false, image_size: (320, 240), ..RenderOptions::default() };
+    let recording = spinscan::hw::sim::render_recording(&opts, &real, &mut |_, _| {}).unwrap();
+    assert!(!real.join("gt/disparity").exists());
+    let out = dir.join("out");
+    replay::run_recording(recording, &out, &replay_opts(), &mut |_, _, _| {}).unwrap();
+    let ideal_out = dir.join("ideal-out");
+    replay(&ideal, &ideal_out).unwrap();
+    let (report, ideal_report) = (read_json(&out.join("report.json")), read_json(&ideal_out.join("report.json")));
+    for (f, i) in report["frames"].as_array().unwrap().iter().zip(ideal_report["frames"].as_array().unwrap()) {
+        assert_eq!((f["gt_disparity"].as_str(), i["gt_disparity"].as_str()), (Some("rendered"), Some("recorded")), "{f}");
+        let (cov, err) = (f["gt_coverage"].as_f64().unwrap(), f["gt_mean_abs_err_px"].as_f64().unwrap());
+        let ideal_err = i["gt_mean_abs_err_px"].as_f64().unwrap();
+        assert!(cov > 0.85 && err < 1.5 * ideal_err.max(0.1), "seq {}: coverage {cov}, mean error {err} px against {ideal_err} on the ideal rig", f["seq"]);
     }
 }

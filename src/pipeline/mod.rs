@@ -15,6 +15,7 @@ pub mod live;
 pub mod mesh;
 pub mod replay;
 pub mod results;
+pub mod truth;
 
 use std::sync::Arc;
 use std::time::Instant;

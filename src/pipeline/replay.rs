@@ -12,16 +12,16 @@
 //! poses as `turntable_estimated.yaml`. Where the recording has `gt/poses.jsonl` (and
 //! `gt/mesh.ply`), the poses (and the model) are scored against them in `report.json`.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 
 use serde_json::{json, Value};
 
 use super::results::{finish_registration, register_view, score_against_gt, GtScore, ModelOptions, RegistrationInputs, ResultsError, ResultsWriter};
+use super::truth::{GtDisparities, TruthError};
 use super::{Assist, FrameError, Pipeline, PipelineError, PipelineOptions, RectifiedPlate};
 use crate::assist::{AssistParams, Assistant};
 use crate::hw::{CaptureError, StereoFrame, StereoSource};
-use crate::io;
 use crate::recording::TurntableAxis;
 use crate::register::posestore::PoseStore;
 use crate::register::ring::{Registrar, RegistrationParams};
@@ -35,8 +35,11 @@ pub enum ReplayError {
     Pipeline { seq: u64, source: PipelineError },
     #[error("frame seq {seq}: {source}")]
     Frame { seq: u64, source: FrameError },
-    #[error("frame seq {seq}: {what}")]
-    GroundTruth { seq: u64, what: String },
+    #[error("frame seq {seq}: {source}")]
+    GroundTruth { seq: u64, source: TruthError },
+    /// The recording's ground truth cannot be opened.
+    #[error(transparent)]
+    Truth(#[from] TruthError),
     #[error(transparent)]
     Results(#[from] ResultsError),
     /// A file beside the frames (calibrated axis, ground truth) is unusable.
@@ -114,17 +117,17 @@ pub fn run_recording(recording: crate::recording::Recording, out: &Path, opts: &
         };
         inputs.gt_mesh = Some(dir.join("gt/mesh.ply")).filter(|p| p.is_file());
     }
-    let gt_for = move |seq: u64| crate::recording::gt_disparity_path(&dir, seq);
-    run(&mut crate::hw::replay::ReplaySource::new(recording), out, opts, &gt_for, &inputs, progress)
+    let gt = GtDisparities::open(&dir)?;
+    run(&mut crate::hw::replay::ReplaySource::new(recording), out, opts, gt.any().then_some(&gt), &inputs, progress)
 }
 
-/// Processes every frame of `source` into `out`. `gt_for(seq)` gives a ground-truth
-/// disparity file where one exists. `progress(done, seq)` is called after each frame.
+/// Processes every frame of `source` into `out`, scoring each frame's disparities against
+/// `gt` where it has that frame's. `progress(done, seq)` is called after each frame.
 pub fn run(
     source: &mut dyn StereoSource,
     out: &Path,
     opts: &ReplayOptions,
-    gt_for: &dyn Fn(u64) -> Option<PathBuf>,
+    gt: Option<&GtDisparities>,
     inputs: &RegistrationInputs,
     progress: &mut dyn FnMut(usize, u64, f64),
 ) -> Result<ReplaySummary, ReplayError> {
@@ -147,7 +150,7 @@ pub fn run(
     };
     results.set_matching(super::results::matching_entry(pipe.matcher().params(), assistant.as_ref().map(|a| a.params())));
     let plate = opts.plate.as_deref().map(|p| pipe.rectify_plate(p));
-    let run = Run { pipe: &mut pipe, plate: plate.as_ref(), results: &mut results, opts, gt_for, registrar: registrar.as_mut(), assistant: assistant.as_mut(), store: &store, progress };
+    let run = Run { pipe: &mut pipe, plate: plate.as_ref(), results: &mut results, opts, gt, registrar: registrar.as_mut(), assistant: assistant.as_mut(), store: &store, progress };
     let outcome = run.all(source, first).and_then(|mut summary| {
         if let Some(reg) = registrar.as_mut() {
             summary.registration = Some(finish_registration(reg, &mut results, &opts.model, inputs)?);
@@ -166,7 +169,7 @@ struct Run<'a> {
     plate: Option<&'a RectifiedPlate>,
     results: &'a mut ResultsWriter,
     opts: &'a ReplayOptions,
-    gt_for: &'a dyn Fn(u64) -> Option<PathBuf>,
+    gt: Option<&'a GtDisparities>,
     registrar: Option<&'a mut Registrar>,
     assistant: Option<&'a mut Assistant>,
     store: &'a PoseStore,
@@ -177,23 +180,22 @@ impl Run<'_> {
     fn all(mut self, source: &mut dyn StereoSource, first: StereoFrame) -> Result<ReplaySummary, ReplayError> {
         let (mut match_ms, mut gt_sum, mut gt_frames) = (0.0, (0usize, 0.0, 0.0, 0.0), 0usize);
         let mut next = Some(first);
-        let size = (self.pipe.rect.size.0 as usize, self.pipe.rect.size.1 as usize);
         while let Some(frame) = next.take() {
             let seq = frame.seq;
             let poses = self.store.snapshot();
             let assist = self.assistant.as_deref_mut().map(|assistant| Assist { assistant, poses: &poses });
             let view = self.pipe.process_frame(&frame, self.opts.segment, self.plate, assist).map_err(|source| ReplayError::Frame { seq, source })?;
             let mut entry = self.results.write_view(&frame, &view, self.opts.assist.as_ref())?;
-            if let Some(gt_path) = (self.gt_for)(seq) {
-                let bad = |what: String| ReplayError::GroundTruth { seq, what };
-                let gt = io::read_disparity_png(&gt_path, self.pipe.rect.disparity_sign as f32).map_err(|e| bad(format!("ground truth: {e}")))?;
-                if (gt.width, gt.height) != size {
-                    return Err(bad(format!("ground truth {} is {}×{}, expected {}×{}", gt_path.display(), gt.width, gt.height, size.0, size.1)));
-                }
+            let truth = match self.gt {
+                Some(g) => g.get(seq, &self.pipe.rect).map_err(|source| ReplayError::GroundTruth { seq, source })?,
+                None => None,
+            };
+            if let Some((gt, source)) = truth {
                 let s = score_against_gt(&view.disparity, &gt);
                 entry["gt_coverage"] = json!(s.coverage);
                 entry["gt_bad2_of_matched"] = json!(s.bad2_of_matched);
                 entry["gt_mean_abs_err_px"] = json!(s.mean_abs_err_px);
+                entry["gt_disparity"] = json!(source.name());
                 gt_sum = (gt_sum.0 + s.gt_pixels, gt_sum.1 + s.coverage, gt_sum.2 + s.bad2_of_matched, gt_sum.3 + s.mean_abs_err_px);
                 gt_frames += 1;
             }

@@ -11,6 +11,7 @@ pub mod remap;
 mod sgm;
 pub mod speckle;
 pub mod triangulate;
+pub mod truth;
 
 pub use disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
 pub use matcher::{MatchError, StereoMatcher, BAND_TILE};
