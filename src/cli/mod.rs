@@ -122,8 +122,8 @@ pub struct MatchArgs {
     /// SGM: how close (pixels, 0.1…2) the refinement's correlation value must come to SGM's own
     /// to keep a scan's match (on a whole image, SGM's value stays where they disagree). 0.5
     /// keeps 6–10 % fewer pixels in a scan's views, closer to the surface, and gives closer
-    /// fused meshes; the default keeps the denser maps (docs/matcher.md, "How close the two
-    /// values must agree").
+    /// fused meshes; the default (1.25) keeps the denser maps (docs/matcher.md, "How close
+    /// the two values must agree", "The agreement limit on realistic rigs").
     #[arg(long, value_name = "PX", default_value_t = MatchParams::default().sgm_refine_agree)]
     pub sgm_refine_agree: f32,
     /// First disparity searched (may be negative). Default: 0, or −(N−1) on a calibrated rig

@@ -40,8 +40,8 @@ pub(super) const OWN_WEIGHT_FROM_PX: f32 = 0.25;
 /// SGM's largest share of the blend: an even mean.
 pub(super) const OWN_WEIGHT_MAX: f32 = 0.5;
 
-/// How far apart, pixels, the two values lie where the blend becomes an even mean (the
-/// default `sgm_refine_agree`, the furthest apart they are blended unless asked for more).
+/// How far apart, pixels, the two values lie where the blend becomes an even mean (and stays
+/// one up to `sgm_refine_agree`, 1.25 px by default, the furthest apart they are blended).
 pub(super) const OWN_WEIGHT_MAX_PX: f32 = 1.0;
 
 /// SGM's share of the blend of its value `d` with the correlation's `c`: [`OWN_WEIGHT`] where
@@ -94,7 +94,7 @@ impl StereoMatcher {
     /// SGM's sub-pixel disparities taken from the correlation cost: each matched pixel is
     /// correlated again (the `bm` cost, the `sgm_refine_block` window, no uniqueness,
     /// texture, left–right or speckle test) over its SGM disparity ± 2, and where the
-    /// correlation's sub-pixel disparity lies within `sgm_refine_agree` (1 px) of SGM's, the
+    /// correlation's sub-pixel disparity lies within `sgm_refine_agree` (1.25 px) of SGM's, the
     /// two are blended ([`own_weight`]).
     /// Where they disagree in a `masked` match (a scan's view: the object segmented, the
     /// background unsearched, as `searched` tells), the match is dropped — a view's missing
