@@ -53,7 +53,8 @@ pub struct GtDisparities {
 
 impl GtDisparities {
     /// Reads `dir`'s `gt/mesh.ply` and `gt/poses.jsonl` where both exist (a recording with
-    /// neither scores nothing; a malformed one is an error naming the file).
+    /// neither scores nothing, a mesh of points alone is warned about and not rendered; a
+    /// malformed file is an error naming it).
     pub fn open(dir: &Path) -> Result<GtDisparities, TruthError> {
         let poses_path = dir.join("gt/poses.jsonl");
         let mesh_path = dir.join("gt/mesh.ply");
@@ -65,13 +66,14 @@ impl GtDisparities {
                     poses.insert(seq, cam_from_obj);
                 }
                 let mesh = io::ply::read_ply(&mesh_path).map_err(|e| TruthError::File { path: mesh_path.clone(), what: e.to_string() })?;
-                if let Some(i) = mesh.triangles.iter().flatten().find(|&&i| i as usize >= mesh.cloud.points.len()) {
-                    return Err(TruthError::File { path: mesh_path, what: format!("a face refers to vertex {i}, but the mesh has {} vertices", mesh.cloud.points.len()) });
-                }
                 if mesh.triangles.is_empty() {
-                    return Err(TruthError::File { path: mesh_path, what: "holds no faces; a surface (triangles) is needed to score disparities".into() });
+                    // Points alone give no surface to render; the views can still be
+                    // scored where `gt/disparity/` exists.
+                    tracing::warn!("{}: no faces, so no ground-truth disparity is rendered from it (a surface of triangles is needed)", mesh_path.display());
+                    None
+                } else {
+                    Some((mesh, poses))
                 }
-                Some((mesh, poses))
             }
             _ => None,
         };
@@ -103,5 +105,51 @@ impl GtDisparities {
         let Some(cam_from_obj) = poses.get(&seq) else { return Ok(None) };
         let gt = crate::stereo::truth::render_disparity(&mesh.cloud.points, &mesh.triangles, cam_from_obj, rect);
         Ok(Some((gt, GtSource::Rendered)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cloud::PointCloud;
+
+    fn recording_with(name: &str, triangles: Vec<[u32; 3]>, poses: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("spinscan-truth-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(dir.join("gt")).unwrap();
+        let cloud = PointCloud { points: vec![[-50.0, -50.0, 0.0], [50.0, -50.0, 0.0], [0.0, 50.0, 0.0]], colors: vec![[200; 3]; 3], normals: None };
+        io::ply::write_mesh_ply(&dir.join("gt/mesh.ply"), &Mesh { cloud, triangles }).unwrap();
+        std::fs::write(dir.join("gt/poses.jsonl"), poses).unwrap();
+        dir
+    }
+
+    const AHEAD: &str = "{\"seq\": 3, \"cam_from_obj\": [[1,0,0,0],[0,1,0,0],[0,0,1,500],[0,0,0,1]]}\n";
+
+    #[test]
+    fn a_frame_is_rendered_from_the_mesh_at_its_pose_and_only_there() {
+        let dir = recording_with("ok", vec![[0, 1, 2]], AHEAD);
+        let k = nalgebra::Matrix3::new(600.0, 0.0, 320.0, 0.0, 600.0, 240.0, 0.0, 0.0, 1.0);
+        let cam = crate::calib::Camera { k, distortion: crate::calib::Distortion::none() };
+        let calib = crate::calib::StereoCalib { left: cam.clone(), right: cam, r: nalgebra::Matrix3::identity(), t_mm: nalgebra::Vector3::new(-60.0, 0.0, 0.0), image_size: None };
+        let rect = Rectification::compute(&calib, (640, 480), 0.0).unwrap();
+        let gt = GtDisparities::open(&dir).unwrap();
+        assert!(gt.any());
+        let (map, source) = gt.get(3, &rect).unwrap().unwrap();
+        assert_eq!(source, GtSource::Rendered);
+        assert!((map.get(320, 240).unwrap() - 72.0).abs() < 1e-3 && map.valid_count() > 5_000);
+        assert!(gt.get(4, &rect).unwrap().is_none(), "no pose, no truth");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn points_alone_render_nothing_and_a_bad_pose_is_named() {
+        let dir = recording_with("points", vec![], AHEAD);
+        let gt = GtDisparities::open(&dir).unwrap();
+        assert!(!gt.any() && gt.surface().is_none());
+        std::fs::remove_dir_all(&dir).unwrap();
+
+        let dir = recording_with("bad", vec![[0, 1, 2]], "{\"seq\": 3, \"cam_from_obj\": [[2,0,0,0],[0,1,0,0],[0,0,1,500],[0,0,0,1]]}\n");
+        let err = GtDisparities::open(&dir).err().expect("a scaled matrix is no pose").to_string();
+        assert!(err.contains("poses.jsonl") && err.contains("seq 3"), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }
