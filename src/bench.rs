@@ -389,10 +389,18 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
                 st.assistant.recycle(plan);
             }
         }
+        // Every row's kept call first, back to back as the extra runs above, and only then
+        // each row's view, its scores and its registration: a row timed right after another
+        // row's registration (and its scoring's threads) found its caches cold, and the row
+        // without assistance, which registers nothing, had no such row before it
+        // (docs/assisted-matching.md, "The rows' calls back to back").
+        let mut kept = Vec::with_capacity(states.len());
         for (k, st) in states.iter_mut().enumerate() {
+            kept.push(pipes[st.pipe].match_frame(*seq, frame, Some(Assist { assistant: &mut st.assistant, poses: &poses[k] })).map_err(|source| BenchError::Pipeline { seq: *seq, source })?);
+        }
+        for ((k, st), m) in states.iter_mut().enumerate().zip(kept) {
             let label = row_label(&st.row);
             let pipe = &mut pipes[st.pipe];
-            let m = pipe.match_frame(*seq, frame, Some(Assist { assistant: &mut st.assistant, poses: &poses[k] })).map_err(|source| BenchError::Pipeline { seq: *seq, source })?;
             let o = &m.outcome;
             let total = o.interval_ms + o.match_ms;
             let first_try = total - o.accept_ms - o.rejected.map_or(0.0, |_| o.match_ms - o.first_match_ms);
