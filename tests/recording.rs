@@ -449,9 +449,10 @@ fn ground_truth_rendered_from_the_mesh_is_the_recorded_one() {
     let recording = spinscan::hw::sim::render_recording(&opts, &real, &mut |_, _| {}).unwrap();
     assert!(!real.join("gt/disparity").exists());
     let out = dir.join("out");
-    replay::run_recording(recording, &out, &replay_opts(), &mut |_, _, _| {}).unwrap();
+    let summary = replay::run_recording(recording, &out, &replay_opts(), &mut |_, _, _| {}).unwrap();
     let ideal_out = dir.join("ideal-out");
-    replay(&ideal, &ideal_out).unwrap();
+    let ideal_summary = replay(&ideal, &ideal_out).unwrap();
+    assert_eq!((summary.gt_disparity, ideal_summary.gt_disparity), (Some("rendered"), Some("recorded")));
     let (report, ideal_report) = (read_json(&out.join("report.json")), read_json(&ideal_out.join("report.json")));
     for (f, i) in report["frames"].as_array().unwrap().iter().zip(ideal_report["frames"].as_array().unwrap()) {
         assert_eq!((f["gt_disparity"].as_str(), i["gt_disparity"].as_str()), (Some("rendered"), Some("recorded")), "{f}");

@@ -91,6 +91,7 @@ pub fn summary_json(s: &replay::ReplaySummary, out: &Path) -> serde_json::Value 
         j["gt_coverage"] = json!(gt.coverage);
         j["gt_bad2_of_matched"] = json!(gt.bad2_of_matched);
         j["gt_mean_abs_err_px"] = json!(gt.mean_abs_err_px);
+        j["gt_disparity"] = json!(s.gt_disparity);
     }
     if let Some(r) = &s.registration {
         j["registration"] = r.clone();

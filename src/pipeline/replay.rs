@@ -91,13 +91,15 @@ pub struct ReplaySummary {
     pub frames: usize,
     pub mean_match_ms: f64,
     pub gt: Option<GtScore>,
+    /// Where `gt`'s truth came from: `recorded`, `rendered` or `mixed` (`GtSource::name`).
+    pub gt_disparity: Option<&'static str>,
     pub disparity_sign: i32,
     /// The `registration` section of `report.json`, when registration ran.
     pub registration: Option<Value>,
 }
 
-/// Replays a recording into `out`, scoring each frame against its `gt/disparity` file where
-/// the recording has one.
+/// Replays a recording into `out`, scoring each frame against its ground-truth disparity
+/// where the recording has one (`gt/disparity/`, or rendered from `gt/mesh.ply`).
 pub fn run_recording(recording: crate::recording::Recording, out: &Path, opts: &ReplayOptions, progress: &mut dyn FnMut(usize, u64, f64)) -> Result<ReplaySummary, ReplayError> {
     let dir = recording.dir.clone();
     let calibrated_axis = match &opts.turntable_axis {
@@ -136,7 +138,7 @@ pub fn run(
     let Some(first) = first else {
         let w = ResultsWriter::create(out, &source.describe(), 1)?;
         w.finish(None)?;
-        return Ok(ReplaySummary { frames: 0, mean_match_ms: 0.0, gt: None, disparity_sign: 1, registration: None });
+        return Ok(ReplaySummary { frames: 0, mean_match_ms: 0.0, gt: None, gt_disparity: None, disparity_sign: 1, registration: None });
     };
     let (w, h, _) = first.left.to_rgb().map_err(|source| ReplayError::Frame { seq: first.seq, source: FrameError::Decode { side: "left", source } })?;
     let mut pipe = Pipeline::new(&calib, (w as u32, h as u32), opts.pipeline.clone()).map_err(|source| ReplayError::Pipeline { seq: first.seq, source })?;
@@ -179,6 +181,7 @@ struct Run<'a> {
 impl Run<'_> {
     fn all(mut self, source: &mut dyn StereoSource, first: StereoFrame) -> Result<ReplaySummary, ReplayError> {
         let (mut match_ms, mut gt_sum, mut gt_frames) = (0.0, (0usize, 0.0, 0.0, 0.0), 0usize);
+        let mut gt_disparity: Option<&'static str> = None;
         let mut next = Some(first);
         while let Some(frame) = next.take() {
             let seq = frame.seq;
@@ -196,6 +199,10 @@ impl Run<'_> {
                 entry["gt_bad2_of_matched"] = json!(s.bad2_of_matched);
                 entry["gt_mean_abs_err_px"] = json!(s.mean_abs_err_px);
                 entry["gt_disparity"] = json!(source.name());
+                gt_disparity = Some(match gt_disparity {
+                    Some(seen) if seen != source.name() => "mixed",
+                    _ => source.name(),
+                });
                 gt_sum = (gt_sum.0 + s.gt_pixels, gt_sum.1 + s.coverage, gt_sum.2 + s.bad2_of_matched, gt_sum.3 + s.mean_abs_err_px);
                 gt_frames += 1;
             }
@@ -219,6 +226,6 @@ impl Run<'_> {
             let k = gt_frames as f64;
             GtScore { gt_pixels: gt_sum.0, coverage: gt_sum.1 / k, bad2_of_matched: gt_sum.2 / k, mean_abs_err_px: gt_sum.3 / k }
         });
-        Ok(ReplaySummary { frames: n, mean_match_ms: match_ms / n.max(1) as f64, gt, disparity_sign: self.results.disparity_sign(), registration: None })
+        Ok(ReplaySummary { frames: n, mean_match_ms: match_ms / n.max(1) as f64, gt, gt_disparity, disparity_sign: self.results.disparity_sign(), registration: None })
     }
 }
