@@ -213,6 +213,7 @@ fn demo_records_and_replays_a_scan_on_the_simulated_lab() {
     assert_eq!(j["frames"], 3);
     assert!(j["gt_coverage"].as_f64().unwrap() > 0.8, "{j}");
     assert!(j["gt_bad2_of_matched"].as_f64().unwrap() < 0.05, "{j}");
+    assert_eq!(j["gt_disparity"], "recorded", "the demo's ideal rig has gt/disparity/: {j}");
     for f in ["recording/calib.yaml", "recording/frames.jsonl", "recording/gt/poses.jsonl", "recording/gt/mesh.ply", "recording/gt/disparity/000002.png",
               "results/manifest.json", "results/report.json", "results/views/000002.ply", "results/disparity/000002.png",
               "results/poses.jsonl", "results/model.ply", "results/mesh.ply"] {
