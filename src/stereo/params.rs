@@ -41,7 +41,7 @@ pub struct MatchParams {
     /// match and a whole image keeps SGM's value. Lower keeps fewer, closer matches: at 0.5 a
     /// scan's views lose 6–10 % of their pixels (a faint texture's 28 %) and the fused meshes
     /// come out closer to the surface (docs/matcher.md, "How close the two values must
-    /// agree"). The default, 1.25, keeps half of SGM's bad2 under half of `bm`'s on the
+    /// agree"). The default, 1.25, keeps a scan's SGM bad2 under half of `bm`'s on the
     /// realistic rigs' tori, where 1 px missed it ("The agreement limit on realistic rigs").
     pub sgm_refine_agree: f32,
     /// Smallest disparity searched (OpenCV `minDisparity`); may be negative.
