@@ -534,9 +534,7 @@ impl Table1 {
     /// `gt/mesh.ply` at `gt/poses.jsonl`'s poses), `mixed` where frames differ, `None`
     /// where no frame has any.
     pub fn gt_disparity_source(&self) -> Option<&'static str> {
-        let mut sources = self.gt_disparity.iter().flatten();
-        let first = *sources.next()?;
-        Some(if sources.all(|&s| s == first) { first.name() } else { "mixed" })
+        crate::pipeline::truth::sources_name(self.gt_disparity.iter().flatten().copied())
     }
 
     /// The no-assistance row's median of a matcher: what its rows' ratios are taken against.

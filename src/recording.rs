@@ -300,6 +300,22 @@ pub fn gt_disparity_path(dir: &Path, seq: u64) -> Option<PathBuf> {
 /// `gt/poses.jsonl` of a simulated recording: `(seq, cam_from_obj)` per frame, or `None`
 /// when the recording has none.
 pub fn read_gt_poses(dir: &Path) -> Result<Option<Vec<(u64, [[f64; 4]; 4])>>, RecordingError> {
+    Ok(gt_pose_lines(dir)?.map(|lines| lines.into_iter().map(|(_, seq, rows)| (seq, rows)).collect()))
+}
+
+/// [`read_gt_poses`] with each `cam_from_obj` checked as a rigid transform (to 10⁻⁴), as
+/// scoring uses them; one that is not is an error naming its line.
+pub fn read_gt_cam_from_obj(dir: &Path) -> Result<Option<Vec<(u64, nalgebra::Isometry3<f64>)>>, RecordingError> {
+    let Some(lines) = gt_pose_lines(dir)? else { return Ok(None) };
+    let path = dir.join("gt/poses.jsonl");
+    let rigid = |(line, seq, rows): (usize, u64, [[f64; 4]; 4])| {
+        crate::register::from_rows(&rows, 1e-4).map(|t| (seq, t)).map_err(|e| RecordingError::Invalid { path: path.clone(), line, what: format!("seq {seq}: cam_from_obj: {e}") })
+    };
+    lines.into_iter().map(rigid).collect::<Result<_, _>>().map(Some)
+}
+
+/// `gt/poses.jsonl`'s lines as `(line number, seq, cam_from_obj)`, blank lines skipped.
+fn gt_pose_lines(dir: &Path) -> Result<Option<Vec<(usize, u64, [[f64; 4]; 4])>>, RecordingError> {
     let path = dir.join("gt/poses.jsonl");
     let text = match std::fs::read_to_string(&path) {
         Ok(t) => t,
@@ -317,7 +333,7 @@ pub fn read_gt_poses(dir: &Path) -> Result<Option<Vec<(u64, [[f64; 4]; 4])>>, Re
             cam_from_obj: [[f64; 4]; 4],
         }
         let p: GtPose = serde_json::from_str(line).map_err(|e| RecordingError::Invalid { path: path.clone(), line: i + 1, what: format!("expected {{\"seq\": N, \"cam_from_obj\": [[4x4]]}}: {e}") })?;
-        out.push((p.seq, p.cam_from_obj));
+        out.push((i + 1, p.seq, p.cam_from_obj));
     }
     Ok(Some(out))
 }

@@ -108,15 +108,7 @@ pub fn run_recording(recording: crate::recording::Recording, out: &Path, opts: &
     };
     let mut inputs = RegistrationInputs { calibrated_axis, ..Default::default() };
     if opts.registration.is_some() {
-        let gt = crate::recording::read_gt_poses(&dir).map_err(|e| ReplayError::SideFile(format!("ground truth: {e}")))?;
-        inputs.gt_poses = match gt {
-            Some(list) => Some(
-                list.into_iter()
-                    .map(|(seq, rows)| crate::register::from_rows(&rows, 1e-4).map(|t| (seq, t)).map_err(|e| ReplayError::SideFile(format!("{}: seq {seq}: cam_from_obj: {e}", dir.join("gt/poses.jsonl").display()))))
-                    .collect::<Result<_, _>>()?,
-            ),
-            None => None,
-        };
+        inputs.gt_poses = crate::recording::read_gt_cam_from_obj(&dir).map_err(|e| ReplayError::SideFile(format!("ground truth: {e}")))?;
         inputs.gt_mesh = Some(dir.join("gt/mesh.ply")).filter(|p| p.is_file());
     }
     let gt = GtDisparities::open(&dir)?;
@@ -180,8 +172,9 @@ struct Run<'a> {
 
 impl Run<'_> {
     fn all(mut self, source: &mut dyn StereoSource, first: StereoFrame) -> Result<ReplaySummary, ReplayError> {
-        let (mut match_ms, mut gt_sum, mut gt_frames) = (0.0, (0usize, 0.0, 0.0, 0.0), 0usize);
-        let mut gt_disparity: Option<&'static str> = None;
+        let (mut match_ms, mut gt_sum) = (0.0, (0usize, 0.0, 0.0, 0.0));
+        // Per scored frame, where its truth came from.
+        let mut gt_sources = Vec::new();
         let mut next = Some(first);
         while let Some(frame) = next.take() {
             let seq = frame.seq;
@@ -199,12 +192,8 @@ impl Run<'_> {
                 entry["gt_bad2_of_matched"] = json!(s.bad2_of_matched);
                 entry["gt_mean_abs_err_px"] = json!(s.mean_abs_err_px);
                 entry["gt_disparity"] = json!(source.name());
-                gt_disparity = Some(match gt_disparity {
-                    Some(seen) if seen != source.name() => "mixed",
-                    _ => source.name(),
-                });
+                gt_sources.push(source);
                 gt_sum = (gt_sum.0 + s.gt_pixels, gt_sum.1 + s.coverage, gt_sum.2 + s.bad2_of_matched, gt_sum.3 + s.mean_abs_err_px);
-                gt_frames += 1;
             }
             if let Some(reg) = self.registrar.as_deref_mut() {
                 if let (Some((fitness, rmse)), Some(a)) = (register_view(reg, &frame, &view, &mut entry), self.assistant.as_deref_mut()) {
@@ -222,10 +211,10 @@ impl Run<'_> {
             next = source.next_frame()?;
         }
         let n = self.results.frame_count();
-        let gt = (gt_frames > 0).then(|| {
-            let k = gt_frames as f64;
+        let gt = (!gt_sources.is_empty()).then(|| {
+            let k = gt_sources.len() as f64;
             GtScore { gt_pixels: gt_sum.0, coverage: gt_sum.1 / k, bad2_of_matched: gt_sum.2 / k, mean_abs_err_px: gt_sum.3 / k }
         });
-        Ok(ReplaySummary { frames: n, mean_match_ms: match_ms / n.max(1) as f64, gt, gt_disparity, disparity_sign: self.results.disparity_sign(), registration: None })
+        Ok(ReplaySummary { frames: n, mean_match_ms: match_ms / n.max(1) as f64, gt, gt_disparity: super::truth::sources_name(gt_sources), disparity_sign: self.results.disparity_sign(), registration: None })
     }
 }

@@ -33,6 +33,14 @@ impl GtSource {
     }
 }
 
+/// Where a run's truths came from, by name: the source every frame shares, or `mixed`;
+/// `None` for no frame.
+pub fn sources_name(sources: impl IntoIterator<Item = GtSource>) -> Option<&'static str> {
+    let mut sources = sources.into_iter();
+    let first = sources.next()?;
+    Some(if sources.all(|s| s == first) { first.name() } else { "mixed" })
+}
+
 /// A ground-truth file that cannot be used.
 #[derive(Debug, thiserror::Error)]
 pub enum TruthError {
@@ -56,15 +64,15 @@ impl GtDisparities {
     /// neither scores nothing, a mesh of points alone is warned about and not rendered; a
     /// malformed file is an error naming it).
     pub fn open(dir: &Path) -> Result<GtDisparities, TruthError> {
-        let poses_path = dir.join("gt/poses.jsonl");
         let mesh_path = dir.join("gt/mesh.ply");
-        let surface = match crate::recording::read_gt_poses(dir)? {
-            Some(list) if mesh_path.is_file() => {
-                let mut poses = HashMap::new();
-                for (seq, rows) in list {
-                    let cam_from_obj = crate::register::from_rows(&rows, 1e-4).map_err(|e| TruthError::File { path: poses_path.clone(), what: format!("seq {seq}: cam_from_obj: {e}") })?;
-                    poses.insert(seq, cam_from_obj);
-                }
+        if !mesh_path.is_file() {
+            // Nothing to render; a malformed poses file is still named.
+            crate::recording::read_gt_poses(dir)?;
+            return Ok(GtDisparities { dir: dir.to_path_buf(), surface: None });
+        }
+        let surface = match crate::recording::read_gt_cam_from_obj(dir)? {
+            Some(list) => {
+                let poses: HashMap<u64, Isometry3<f64>> = list.into_iter().collect();
                 let mesh = io::ply::read_ply(&mesh_path).map_err(|e| TruthError::File { path: mesh_path.clone(), what: e.to_string() })?;
                 if mesh.triangles.is_empty() {
                     // Points alone give no surface to render; the views can still be
@@ -75,7 +83,7 @@ impl GtDisparities {
                     Some((mesh, poses))
                 }
             }
-            _ => None,
+            None => None,
         };
         Ok(GtDisparities { dir: dir.to_path_buf(), surface })
     }
