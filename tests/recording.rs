@@ -461,3 +461,25 @@ fn ground_truth_rendered_from_the_mesh_is_the_recorded_one() {
         assert!(cov > 0.85 && err < 1.5 * ideal_err.max(0.1), "seq {}: coverage {cov}, mean error {err} px against {ideal_err} on the ideal rig", f["seq"]);
     }
 }
+
+/// A `gt/mesh.ply` of points alone (another tool's sample of the surface): the replay
+/// completes, the poses are still scored against `gt/poses.jsonl`, and nothing is measured
+/// against a surface the file does not have (the replay used to fail at its end, after the
+/// model, on reading the mesh a second time).
+#[test]
+fn a_true_mesh_of_points_alone_scores_the_poses_and_nothing_else() {
+    let dir = support::temp_dir("rec-gt-points");
+    let rec = dir.join("rec");
+    small_recording(&rec, 4, 0.0);
+    std::fs::remove_dir_all(rec.join("gt/disparity")).unwrap();
+    let mesh = io::ply::read_ply(&rec.join("gt/mesh.ply")).unwrap();
+    io::ply::write_mesh_ply(&rec.join("gt/mesh.ply"), &spinscan::cloud::Mesh { cloud: mesh.cloud, triangles: Vec::new() }).unwrap();
+    let opts = ReplayOptions::with_registration(replay_opts().pipeline);
+    let s = replay::run_recording(Recording::open(&rec).unwrap(), &dir.join("out"), &opts, &mut |_, _, _| {}).expect("a mesh of points alone is no reason to fail");
+    assert!(s.gt.is_none() && s.gt_disparity.is_none(), "no disparity truth without faces or files");
+    let reg = &read_json(&dir.join("out/report.json"))["registration"];
+    assert_eq!(reg["gt_pose_err_deg"]["final"]["views"], 4, "{reg}");
+    for key in ["gt_view_distance_mm", "gt_model_distance_mm"] {
+        assert!(reg.get(key).is_none(), "{key} without a true surface: {reg}");
+    }
+}

@@ -107,11 +107,11 @@ pub fn run_recording(recording: crate::recording::Recording, out: &Path, opts: &
         None => TurntableAxis::read_calibrated(&dir).map_err(|e| ReplayError::SideFile(format!("calibrated turntable axis: {e}")))?,
     };
     let mut inputs = RegistrationInputs { calibrated_axis, ..Default::default() };
+    let gt = GtDisparities::open(&dir)?;
     if opts.registration.is_some() {
         inputs.gt_poses = crate::recording::read_gt_cam_from_obj(&dir).map_err(|e| ReplayError::SideFile(format!("ground truth: {e}")))?;
-        inputs.gt_mesh = Some(dir.join("gt/mesh.ply")).filter(|p| p.is_file());
+        inputs.gt_mesh = gt.mesh();
     }
-    let gt = GtDisparities::open(&dir)?;
     run(&mut crate::hw::replay::ReplaySource::new(recording), out, opts, gt.any().then_some(&gt), &inputs, progress)
 }
 

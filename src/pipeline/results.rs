@@ -77,8 +77,9 @@ pub struct RegistrationInputs {
     pub calibrated_axis: Option<TurntableAxis>,
     /// `gt/poses.jsonl`: cam_from_obj per seq.
     pub gt_poses: Option<Vec<(u64, Isometry3<f64>)>>,
-    /// `gt/mesh.ply`, the object in its own frame.
-    pub gt_mesh: Option<PathBuf>,
+    /// `gt/mesh.ply`, the object's surface in its own frame (read once, shared with the
+    /// disparities' truth: [`crate::pipeline::truth::GtDisparities::mesh`]).
+    pub gt_mesh: Option<std::sync::Arc<crate::cloud::Mesh>>,
 }
 
 /// Ground-truth comparison of one disparity map (recordings of ideal rigs carry it).
@@ -554,8 +555,8 @@ fn loop_json(c: &LoopClosure) -> Value {
 }
 
 /// The ground truth of a recording placed in the first view's frame: the true poses, and
-/// the true surface (when `gt/mesh.ply` is there; a mesh that cannot be read is an error
-/// when the scores are written, after the model).
+/// the true surface (when `gt/mesh.ply` is there; a mesh whose triangles do not make a
+/// surface is an error when the scores are written, after the model).
 struct Truth<'a> {
     gt: &'a [(u64, Isometry3<f64>)],
     /// `cam_from_obj` of the first view.
@@ -565,12 +566,9 @@ struct Truth<'a> {
 
 impl<'a> Truth<'a> {
     /// None when the first view has no true pose.
-    fn new(gt: &'a [(u64, Isometry3<f64>)], poses: &[ViewPose], mesh: Option<&Path>) -> Option<Truth<'a>> {
+    fn new(gt: &'a [(u64, Isometry3<f64>)], poses: &[ViewPose], mesh: Option<&crate::cloud::Mesh>) -> Option<Truth<'a>> {
         let first = poses.first().and_then(|p| true_pose(gt, p.seq))?;
-        let surface = mesh.map(|path| {
-            let mesh = io::ply::read_ply(path).map_err(|e| ResultsError::SideFile(format!("ground truth: {e}")))?;
-            Surface::new(&mesh, &first).map_err(|e| ResultsError::SideFile(format!("ground truth {}: {e}", path.display())))
-        });
+        let surface = mesh.map(|mesh| Surface::new(mesh, &first).map_err(|e| ResultsError::SideFile(format!("ground truth gt/mesh.ply: {e}"))));
         Some(Truth { gt, first, surface })
     }
 

@@ -7,6 +7,7 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use nalgebra::Isometry3;
 
@@ -56,13 +57,14 @@ pub enum TruthError {
 pub struct GtDisparities {
     dir: PathBuf,
     /// `gt/mesh.ply` and `cam_from_obj` per seq, when the recording has both.
-    surface: Option<(Mesh, HashMap<u64, Isometry3<f64>>)>,
+    surface: Option<(Arc<Mesh>, HashMap<u64, Isometry3<f64>>)>,
 }
 
 impl GtDisparities {
     /// Reads `dir`'s `gt/mesh.ply` and `gt/poses.jsonl` where both exist (a recording with
-    /// neither scores nothing, a mesh of points alone is warned about and not rendered; a
-    /// malformed file is an error naming it).
+    /// neither scores nothing, a mesh of points alone is warned about and not used; a
+    /// malformed file is an error naming it). The mesh read here is the one a replay
+    /// measures its views and model against ([`GtDisparities::mesh`]).
     pub fn open(dir: &Path) -> Result<GtDisparities, TruthError> {
         let mesh_path = dir.join("gt/mesh.ply");
         if !mesh_path.is_file() {
@@ -77,10 +79,13 @@ impl GtDisparities {
                 if mesh.triangles.is_empty() {
                     // Points alone give no surface to render; the views can still be
                     // scored where `gt/disparity/` exists.
-                    tracing::warn!("{}: no faces, so no ground-truth disparity is rendered from it (a surface of triangles is needed)", mesh_path.display());
+                    tracing::warn!(
+                        "{}: no faces, so nothing is measured against it: no ground-truth disparity is rendered from it, nor are views or model scored against the true surface (a surface of triangles is needed)",
+                        mesh_path.display()
+                    );
                     None
                 } else {
-                    Some((mesh, poses))
+                    Some((Arc::new(mesh), poses))
                 }
             }
             None => None,
@@ -95,7 +100,12 @@ impl GtDisparities {
 
     /// `gt/mesh.ply` and `cam_from_obj` per seq, when the recording has both.
     pub fn surface(&self) -> Option<(&Mesh, &HashMap<u64, Isometry3<f64>>)> {
-        self.surface.as_ref().map(|(m, p)| (m, p))
+        self.surface.as_ref().map(|(m, p)| (m.as_ref(), p))
+    }
+
+    /// `gt/mesh.ply` as read by [`GtDisparities::open`], shared (None: no usable surface).
+    pub fn mesh(&self) -> Option<Arc<Mesh>> {
+        self.surface.as_ref().map(|(m, _)| Arc::clone(m))
     }
 
     /// Frame `seq`'s ground truth in `rect`'s rectified left image (signed as the matcher's

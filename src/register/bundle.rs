@@ -14,9 +14,10 @@
 //! interleaved sets): neighbouring tracks share texture and view, so single observations are
 //! not independent, while sets spread over the whole object nearly are.
 
-use nalgebra::{Isometry3, Matrix2, Matrix3, Matrix3x4, Matrix4, SymmetricEigen, Translation3, UnitQuaternion, Vector3, Vector4};
+use nalgebra::{Isometry3, Matrix2, Matrix3, Matrix3x4, Matrix4, Point3, SymmetricEigen, Vector3, Vector4};
 
 use super::axis::estimate_axis;
+use super::rigid_fit;
 use super::refine::{AxisFit, Line, TrackFigures};
 use super::tracks::{TrackCamera, TrackObs};
 use super::{rotation_about_axis, RegisterError};
@@ -284,7 +285,7 @@ const MIN_START_TURN_DEG: f64 = 5.0;
 /// An axis from the tracks alone, for a start that does not depend on the object's shape:
 /// the two views whose shared tracks and turn between them give the most rotation to see
 /// (tracks × |sin turn|, at least [`MIN_SHARED_TRACKS`] tracks over [`MIN_START_TURN_DEG`]),
-/// the rigid motion between their tracks' points (Kabsch; once more without the points
+/// the rigid motion between their tracks' points ([`rigid_fit`]; once more without the points
 /// further than three times the median from it), and its axis as [`estimate_axis`] takes
 /// one from poses: signed by the table's turn, its point nearest the points. None when no two
 /// views qualify.
@@ -304,42 +305,33 @@ fn motion_start(obs: &[TrackObs], tracks: &[Track], table_deg: &[f64], camera: &
         .filter(|&(pair, n)| n >= MIN_SHARED_TRACKS && turn(pair).abs() >= MIN_START_TURN_DEG)
         .map(|(pair, n)| (pair, n as f64 * turn(pair).to_radians().sin().abs()))
         .max_by(|x, y| x.1.total_cmp(&y.1).then(y.0.cmp(&x.0)))?;
-    // Each shared track's point in view a and in view b.
+    // Each shared track's point in view a and in view b, weighed alike.
     let place = |i: usize| camera.unproject(obs[i].x as f64, obs[i].y as f64, obs[i].d as f64);
-    let mut pairs: Vec<(Vector3<f64>, Vector3<f64>)> = tracks
+    let mut pairs: Vec<(Vector3<f64>, Vector3<f64>, f64)> = tracks
         .iter()
         .filter_map(|t| {
             let at = |v: u32| t.obs.iter().copied().find(|&i| obs[i].view == v);
-            Some((place(at(a)?)?, place(at(b)?)?))
+            Some((place(at(a)?)?, place(at(b)?)?, 1.0))
         })
         .collect();
     if pairs.len() < MIN_SHARED_TRACKS {
         return None;
     }
-    // b's points from a's: p_b = R·p_a + t.
-    let kabsch = |pairs: &[(Vector3<f64>, Vector3<f64>)]| -> Option<(Matrix3<f64>, Vector3<f64>)> {
-        let n = pairs.len() as f64;
-        let (ca, cb) = (pairs.iter().map(|p| p.0).sum::<Vector3<f64>>() / n, pairs.iter().map(|p| p.1).sum::<Vector3<f64>>() / n);
-        let h: Matrix3<f64> = pairs.iter().map(|(pa, pb)| (pa - ca) * (pb - cb).transpose()).sum();
-        let svd = h.svd(true, true);
-        let (u, v) = (svd.u?, svd.v_t?.transpose());
-        let d = Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, (v * u.transpose()).determinant().signum()));
-        let r = v * d * u.transpose();
-        Some((r, cb - r * ca))
-    };
-    let (mut r, mut t) = kabsch(&pairs)?;
-    let mut off: Vec<f64> = pairs.iter().map(|(pa, pb)| (r * pa + t - pb).norm()).collect();
+    // b's points from a's: p_b = b_from_a · p_a.
+    let mut b_from_a = rigid_fit(&pairs)?;
+    let miss = |t: &Isometry3<f64>, (pa, pb, _): &(Vector3<f64>, Vector3<f64>, f64)| (t * Point3::from(*pa) - Point3::from(*pb)).norm();
+    let mut off: Vec<f64> = pairs.iter().map(|p| miss(&b_from_a, p)).collect();
     off.sort_by(f64::total_cmp);
     let limit = 3.0 * off[off.len() / 2];
-    pairs.retain(|(pa, pb)| (r * pa + t - pb).norm() <= limit);
+    pairs.retain(|p| miss(&b_from_a, p) <= limit);
     if pairs.len() >= MIN_SHARED_TRACKS {
-        (r, t) = kabsch(&pairs)?;
+        b_from_a = rigid_fit(&pairs)?;
     }
     // The axis of that motion as `register::axis` finds one from the two views' poses in a's
     // frame (a's own, the identity, adds nothing): `a_from_b` turns by −(θ_b − θ_a) about
     // the axis, whose sign the table's turn sets; its point is the one nearest the points'
     // centroid. (Any rotation at all gives an axis: the pair's turn was checked above.)
-    let a_from_b = Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_matrix(&r)).inverse();
+    let a_from_b = b_from_a.inverse();
     let m = pairs.iter().map(|p| p.0).sum::<Vector3<f64>>() / pairs.len() as f64;
     let axis = estimate_axis(&[(Isometry3::identity(), Some(0.0)), (a_from_b, Some(turn((a, b))))], &m, 1e-6f64.to_degrees())?;
     (axis.point.iter().chain(axis.dir.iter()).all(|v| v.is_finite())).then_some((axis.point, axis.dir))

@@ -25,12 +25,12 @@
 //! point-to-point the same directions are measured from the target's normals at the end, and
 //! the motion along them is taken back out of the result.
 
-use nalgebra::{Isometry3, Matrix3, Matrix6, Point3, SymmetricEigen, Translation3, UnitQuaternion, Vector3, Vector6};
+use nalgebra::{Isometry3, Matrix6, Point3, SymmetricEigen, Translation3, UnitQuaternion, Vector3, Vector6};
 use rayon::prelude::*;
 
 use super::normals::NormalParams;
 pub use super::target::Target;
-use super::RegisterError;
+use super::{rigid_fit, RegisterError};
 
 /// Which error ICP minimises.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -363,26 +363,7 @@ fn point_to_point_step(src: &[[f32; 3]], target: &Target, t: &Isometry3<f64>, pa
             (a, b, params.kernel.weight((p.d2 as f64).sqrt()))
         })
         .collect();
-    let wsum: f64 = moved.iter().map(|m| m.2).sum();
-    if wsum <= 0.0 {
-        return None;
-    }
-    let ca = moved.iter().map(|m| m.0 * m.2).sum::<Vector3<f64>>() / wsum;
-    let cb = moved.iter().map(|m| m.1 * m.2).sum::<Vector3<f64>>() / wsum;
-    let mut cov = Matrix3::zeros();
-    for (a, b, w) in &moved {
-        cov += (b - cb) * (a - ca).transpose() * *w;
-    }
-    let svd = cov.svd(true, true);
-    let (u, vt) = (svd.u?, svd.v_t?);
-    let mut d = Matrix3::identity();
-    if (u * vt).determinant() < 0.0 {
-        d[(2, 2)] = -1.0;
-    }
-    let r = u * d * vt;
-    let rot = UnitQuaternion::from_matrix(&r);
-    let trans = cb - rot * ca;
-    Some(Isometry3::from_parts(Translation3::from(trans), rot))
+    rigid_fit(&moved)
 }
 
 /// The point-to-plane normal equations `H x = b` in the twist `x = (ω·s, v)` about the

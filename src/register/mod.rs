@@ -111,6 +111,31 @@ pub fn rotation_about_axis(point: &Vector3<f64>, dir: &Vector3<f64>, deg: f64) -
     Isometry3::from_parts(Translation3::from(t), rot)
 }
 
+/// The rigid motion `t` that best maps each `a` onto its `b` (`b ≈ t·a`) in the weighted
+/// least-squares sense (Kabsch / Umeyama without scale: the SVD of the weighted
+/// cross-covariance, a reflection turned into the nearest rotation). None when the weights sum
+/// to zero or the SVD fails.
+pub fn rigid_fit(pairs: &[(Vector3<f64>, Vector3<f64>, f64)]) -> Option<Isometry3<f64>> {
+    let wsum: f64 = pairs.iter().map(|m| m.2).sum();
+    if !(wsum > 0.0) {
+        return None;
+    }
+    let ca = pairs.iter().map(|m| m.0 * m.2).sum::<Vector3<f64>>() / wsum;
+    let cb = pairs.iter().map(|m| m.1 * m.2).sum::<Vector3<f64>>() / wsum;
+    let mut cov = Matrix3::zeros();
+    for (a, b, w) in pairs {
+        cov += (b - cb) * (a - ca).transpose() * *w;
+    }
+    let svd = cov.svd(true, true);
+    let (u, vt) = (svd.u?, svd.v_t?);
+    let mut d = Matrix3::identity();
+    if (u * vt).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    let rot = UnitQuaternion::from_matrix(&(u * d * vt));
+    Some(Isometry3::from_parts(Translation3::from(cb - rot * ca), rot))
+}
+
 /// Checks that a point set is non-empty and finite.
 pub fn check_points(points: &[[f32; 3]], what: &str) -> Result<(), RegisterError> {
     if points.is_empty() {
@@ -189,6 +214,31 @@ mod tests {
         assert!((p.coords - (c + Vector3::new(0.0, -1.0, 0.2) * 7.0)).norm() < 1e-9);
         assert!((angle_deg(&t) - 40.0).abs() < 1e-9);
         assert!((angle_deg(&scale_transform(&t, 0.25)) - 10.0).abs() < 1e-9);
+    }
+
+    /// The motion comes back exactly from clean pairs; a pair of weight zero, however far
+    /// off, changes nothing; a planar set (one singular value zero) gives it too; no weight
+    /// gives None.
+    #[test]
+    fn rigid_fit_recovers_the_motion_and_ignores_what_weighs_nothing() {
+        let truth = rotation_about_axis(&Vector3::new(5.0, 2.0, 300.0), &Vector3::new(0.1, -1.0, 0.3).normalize(), 33.0);
+        let moved = |a: Vector3<f64>| (truth * nalgebra::Point3::from(a)).coords;
+        let mut pairs: Vec<_> = (0..40).map(|k| {
+            let k = k as f64;
+            let a = Vector3::new((k * 1.7).sin() * 30.0, (k * 0.9).cos() * 20.0, 400.0 + (k * 2.3).sin() * 15.0);
+            (a, moved(a), 1.0 + (k % 3.0))
+        }).collect();
+        pairs.push((Vector3::new(0.0, 0.0, 0.0), Vector3::new(500.0, -500.0, 9.0), 0.0));
+        let planar: Vec<_> = (0..30).map(|k| {
+            let a = Vector3::new((k % 6) as f64 * 10.0, (k / 6) as f64 * 10.0, 350.0);
+            (a, moved(a), 1.0)
+        }).collect();
+        for set in [&pairs, &planar] {
+            let err = rigid_fit(set).unwrap().inverse() * truth;
+            assert!(err.rotation.angle() < 1e-9 && err.translation.vector.norm() < 1e-7, "{err:?}");
+        }
+        let weightless: Vec<_> = pairs.iter().map(|&(a, b, _)| (a, b, 0.0)).collect();
+        assert!(rigid_fit(&weightless).is_none() && rigid_fit(&[]).is_none());
     }
 
     #[test]
