@@ -171,7 +171,8 @@ pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
         image_size: a.size,
         lab: Lab { focal_px: a.focal_px, baseline_mm: a.baseline_mm, object_distance_mm: a.object_distance_mm, camera_tilt_deg: a.camera_tilt_deg, object_offset_mm: a.object_offset_mm },
     };
-    let disparities = spinscan::hw::sim::object_disparities(&opts).map_err(input)?;
+    let prepared = spinscan::hw::sim::PreparedRender::new(&opts).map_err(input)?;
+    let disparities = prepared.object_disparities();
     // The default range of `replay`, `demo` and `bench table1`, on the rig's side of zero.
     let range = if a.baseline_mm > 0.0 { (0.0, 127.0) } else { (-127.0, 0.0) };
     if disparities.0 < range.0 || disparities.1 > range.1 {
@@ -181,7 +182,7 @@ pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
         );
     }
     let t0 = Instant::now();
-    let rec = spinscan::hw::sim::render_recording(&opts, &a.out, &mut |done, total| progress::show(format!("sim render: {done}/{total} pairs")));
+    let rec = prepared.render(&a.out, &mut |done, total| progress::show(format!("sim render: {done}/{total} pairs")));
     progress::finish();
     let rec = rec.map_err(|e| match e {
         spinscan::hw::sim::SimError::Recording(

@@ -361,88 +361,113 @@ pub enum SimError {
     Turntable(#[from] TurntableError),
 }
 
-/// The scene `opts` asks for, with the object's mesh, after checking every option.
-fn scene_of(opts: &RenderOptions) -> Result<(hw_sim::SceneConfig, hw_sim::Mesh), SimError> {
-    if opts.frames == 0 {
-        return Err(SimError::Option { what: "--frames", expected: "at least 1", got: "0".into() });
-    }
-    if !(0.0..1.0).contains(&opts.drop_probability) {
-        return Err(SimError::Option { what: "drop probability", expected: "within 0 … <1", got: opts.drop_probability.to_string() });
-    }
-    if !(0.0..=1.0).contains(&opts.texture_contrast) {
-        return Err(SimError::Option { what: "--texture-contrast", expected: "within 0 … 1", got: opts.texture_contrast.to_string() });
-    }
-    let mesh = match &opts.object {
-        SimObject::Builtin { name, triangles } => hw_sim::Mesh::builtin(name, *triangles)?,
-        SimObject::Mesh(m, scale) => hw_sim::Mesh { vertices: m.cloud.points.clone(), triangles: m.triangles.clone() }.scaled(*scale),
-    };
-    let mut scene = if opts.ideal { hw_sim::SceneConfig::ideal(mesh.clone()) } else { hw_sim::SceneConfig::realistic(mesh.clone()) };
-    let (w, h) = opts.image_size;
-    if w < 32 || h < 32 {
-        return Err(SimError::Option { what: "image size", expected: "at least 32×32", got: format!("{w}×{h}") });
-    }
-    opts.lab.check()?;
-    scene.rig = opts.lab.rig(opts.ideal, (w, h));
-    scene.object_distance_mm = opts.lab.object_distance_mm;
-    scene.camera_tilt_deg = opts.lab.camera_tilt_deg;
-    scene.object_offset_mm = opts.lab.object_offset_mm;
-    let (lo, hi) = mesh.bounds();
-    let radius = 0.5 * (0..3).map(|i| hi[i] - lo[i]).map(|e| e * e).sum::<f64>().sqrt();
-    let swing = opts.lab.object_offset_mm[0].hypot(opts.lab.object_offset_mm[1]);
-    if opts.lab.object_distance_mm <= radius + swing + 10.0 {
-        return Err(SimError::Option { what: "--object-distance-mm", expected: "more than the object's half-diagonal and its offset plus 10 mm (the camera would sit inside it)", got: format!("{} (half-diagonal {radius:.1} mm, offset {swing:.1} mm)", opts.lab.object_distance_mm) });
-    }
-    scene.seed = opts.seed;
-    scene.texture_contrast = opts.texture_contrast;
-    scene.noise_sigma = opts.noise_sigma;
-    Ok((scene, mesh))
+/// A simulated recording ready to render: `opts` checked and the scene built, with the
+/// object's mesh, once — for its disparity span ([`PreparedRender::object_disparities`]) and
+/// then its frames ([`PreparedRender::render`]).
+pub struct PreparedRender<'a> {
+    opts: &'a RenderOptions,
+    scene: hw_sim::SceneConfig,
 }
 
-/// The smallest and largest disparity, pixels, of the object's vertices over the frames
-/// `opts` renders (`focal · baseline / Z` in the left camera: about the rectified disparity
-/// on a realistic rig too), so that a user of another lab geometry can pick the range to
-/// search (`--min-disparity`, `--num-disparities`).
-pub fn object_disparities(opts: &RenderOptions) -> Result<(f64, f64), SimError> {
-    let (scene, mesh) = scene_of(opts)?;
-    let fb = opts.lab.focal_at(opts.image_size.0) * opts.lab.baseline_mm;
-    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-    for k in 0..opts.frames {
-        let pose = scene.cam_from_obj(opts.start_deg + k as f64 * opts.deg_per_frame);
-        for v in &mesh.vertices {
-            let z = pose.apply(v.map(f64::from))[2];
-            if z > 0.0 {
-                lo = lo.min(fb / z);
-                hi = hi.max(fb / z);
+impl<'a> PreparedRender<'a> {
+    /// The scene `opts` asks for, after checking every option.
+    pub fn new(opts: &'a RenderOptions) -> Result<PreparedRender<'a>, SimError> {
+        if opts.frames == 0 {
+            return Err(SimError::Option { what: "--frames", expected: "at least 1", got: "0".into() });
+        }
+        if !(0.0..1.0).contains(&opts.drop_probability) {
+            return Err(SimError::Option { what: "drop probability", expected: "within 0 … <1", got: opts.drop_probability.to_string() });
+        }
+        if !(0.0..=1.0).contains(&opts.texture_contrast) {
+            return Err(SimError::Option { what: "--texture-contrast", expected: "within 0 … 1", got: opts.texture_contrast.to_string() });
+        }
+        let (w, h) = opts.image_size;
+        if w < 32 || h < 32 {
+            return Err(SimError::Option { what: "image size", expected: "at least 32×32", got: format!("{w}×{h}") });
+        }
+        opts.lab.check()?;
+        let mesh = match &opts.object {
+            SimObject::Builtin { name, triangles } => hw_sim::Mesh::builtin(name, *triangles)?,
+            SimObject::Mesh(m, scale) => hw_sim::Mesh { vertices: m.cloud.points.clone(), triangles: m.triangles.clone() }.scaled(*scale),
+        };
+        let (lo, hi) = mesh.bounds();
+        let radius = 0.5 * (0..3).map(|i| hi[i] - lo[i]).map(|e| e * e).sum::<f64>().sqrt();
+        let swing = opts.lab.object_offset_mm[0].hypot(opts.lab.object_offset_mm[1]);
+        if opts.lab.object_distance_mm <= radius + swing + 10.0 {
+            return Err(SimError::Option { what: "--object-distance-mm", expected: "more than the object's half-diagonal and its offset plus 10 mm (the camera would sit inside it)", got: format!("{} (half-diagonal {radius:.1} mm, offset {swing:.1} mm)", opts.lab.object_distance_mm) });
+        }
+        let mut scene = if opts.ideal { hw_sim::SceneConfig::ideal(mesh) } else { hw_sim::SceneConfig::realistic(mesh) };
+        scene.rig = opts.lab.rig(opts.ideal, (w, h));
+        scene.object_distance_mm = opts.lab.object_distance_mm;
+        scene.camera_tilt_deg = opts.lab.camera_tilt_deg;
+        scene.object_offset_mm = opts.lab.object_offset_mm;
+        scene.seed = opts.seed;
+        scene.texture_contrast = opts.texture_contrast;
+        scene.noise_sigma = opts.noise_sigma;
+        Ok(PreparedRender { opts, scene })
+    }
+
+    /// The smallest and largest disparity, pixels, of the object's vertices over the frames
+    /// to render (`focal · baseline / Z` in the left camera: about the rectified disparity
+    /// on a realistic rig too), so that a user of another lab geometry can pick the range to
+    /// search (`--min-disparity`, `--num-disparities`).
+    pub fn object_disparities(&self) -> (f64, f64) {
+        let opts = self.opts;
+        let fb = opts.lab.focal_at(opts.image_size.0) * opts.lab.baseline_mm;
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for k in 0..opts.frames {
+            let pose = self.scene.cam_from_obj(opts.start_deg + k as f64 * opts.deg_per_frame);
+            for v in &self.scene.object.vertices {
+                let z = pose.apply(v.map(f64::from))[2];
+                if z > 0.0 {
+                    lo = lo.min(fb / z);
+                    hi = hi.max(fb / z);
+                }
             }
         }
+        (lo, hi)
     }
-    Ok((lo, hi))
+
+    /// Renders the recording with ground truth into `out`. `progress(done, total)` after
+    /// each pair.
+    pub fn render(self, out: &std::path::Path, progress: &mut dyn FnMut(usize, usize)) -> Result<crate::recording::Recording, SimError> {
+        let PreparedRender { opts, scene } = self;
+        let (axis_point, axis_dir) = scene.axis_in_left_camera();
+        let mesh = &scene.object;
+        let gt_mesh = crate::cloud::Mesh {
+            cloud: crate::cloud::PointCloud { points: mesh.vertices.clone(), colors: vec![[200, 180, 150]; mesh.vertices.len()], normals: None },
+            triangles: mesh.triangles.clone(),
+        };
+        let renderer = hw_sim::Renderer::new(scene)?;
+        let timing = hw_sim::Timing { drop_probability: opts.drop_probability, ..Default::default() };
+        let camera = hw_sim::SimStereoCamera::new(renderer, timing, hw_sim::TableAngle::new(opts.start_deg)).with_motion(opts.start_deg, opts.deg_per_frame);
+        let mut cams = SimCameras::new(camera);
+        let mut writer = crate::recording::RecordingWriter::create(out, cams.calibration())?;
+        writer.write_gt_mesh(&gt_mesh)?;
+        writer.write_turntable(&crate::recording::TurntableAxis { axis_point_mm: axis_point, axis_dir, source: "ground truth".into() }, true)?;
+        for done in 1..=opts.frames {
+            let frame = cams.next_frame()?.expect("simulated cameras never run out");
+            writer.append(&frame)?;
+            let truth = cams.last_truth().expect("a frame was delivered");
+            writer.append_gt_pose(frame.seq, &truth.cam_from_obj.matrix())?;
+            if let Some(gt) = &truth.gt_disparity {
+                let map = crate::stereo::DisparityMap::from_values(truth.width, truth.height, gt.clone());
+                writer.write_gt_disparity(frame.seq, &map)?;
+            }
+            progress(done, opts.frames);
+        }
+        Ok(crate::recording::Recording::open(out)?)
+    }
 }
 
-/// Renders a recording with ground truth into `out`. `progress(done, total)` after each pair.
+/// [`PreparedRender::object_disparities`] of the recording `opts` describes.
+pub fn object_disparities(opts: &RenderOptions) -> Result<(f64, f64), SimError> {
+    Ok(PreparedRender::new(opts)?.object_disparities())
+}
+
+/// Renders a recording with ground truth into `out` ([`PreparedRender::render`]).
 pub fn render_recording(opts: &RenderOptions, out: &std::path::Path, progress: &mut dyn FnMut(usize, usize)) -> Result<crate::recording::Recording, SimError> {
-    let (scene, mesh) = scene_of(opts)?;
-    let (axis_point, axis_dir) = scene.axis_in_left_camera();
-    let renderer = hw_sim::Renderer::new(scene)?;
-    let timing = hw_sim::Timing { drop_probability: opts.drop_probability, ..Default::default() };
-    let camera = hw_sim::SimStereoCamera::new(renderer, timing, hw_sim::TableAngle::new(opts.start_deg)).with_motion(opts.start_deg, opts.deg_per_frame);
-    let mut cams = SimCameras::new(camera);
-    let mut writer = crate::recording::RecordingWriter::create(out, cams.calibration())?;
-    let cloud = crate::cloud::PointCloud { points: mesh.vertices.clone(), colors: vec![[200, 180, 150]; mesh.vertices.len()], normals: None };
-    writer.write_gt_mesh(&crate::cloud::Mesh { cloud, triangles: mesh.triangles.clone() })?;
-    writer.write_turntable(&crate::recording::TurntableAxis { axis_point_mm: axis_point, axis_dir, source: "ground truth".into() }, true)?;
-    for done in 1..=opts.frames {
-        let frame = cams.next_frame()?.expect("simulated cameras never run out");
-        writer.append(&frame)?;
-        let truth = cams.last_truth().expect("a frame was delivered");
-        writer.append_gt_pose(frame.seq, &truth.cam_from_obj.matrix())?;
-        if let Some(gt) = &truth.gt_disparity {
-            let map = crate::stereo::DisparityMap::from_values(truth.width, truth.height, gt.clone());
-            writer.write_gt_disparity(frame.seq, &map)?;
-        }
-        progress(done, opts.frames);
-    }
-    Ok(crate::recording::Recording::open(out)?)
+    PreparedRender::new(opts)?.render(out, progress)
 }
 
 /// The lab's table seen from the rig, and the true axis in the left camera frame: the lab
