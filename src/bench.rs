@@ -48,7 +48,7 @@ pub struct Table1Options {
     /// Knobs of the assisted modes (the mode itself is set per row).
     pub assist: AssistParams,
     /// The assisted rows run once per granularity listed (`--assist-granularity
-    /// pixel,tile`); empty = `assist.granularity` alone.
+    /// pixel,tile,plane`); empty = `assist.granularity` alone.
     pub granularities: Vec<Granularity>,
     pub registration: RegistrationParams,
     /// Frame (index) shown in the figure.

@@ -104,7 +104,7 @@ pub enum AssistModeError {
     Weight(f64),
     #[error("assist mode `{0}`: expected none, paper or predicted")]
     Mode(String),
-    #[error("assist granularity `{0}`: expected auto, pixel or tile")]
+    #[error("assist granularity `{0}`: expected auto, pixel, tile or plane")]
     Granularity(String),
 }
 
@@ -113,7 +113,7 @@ pub enum AssistModeError {
 pub struct AssistParams {
     pub mode: AssistMode,
     /// One interval per pixel, or per plan tile of 16 × 8 pixels (the hull of its pixels';
-    /// tiles.rs), or whichever measured faster for the mode (`Auto`).
+    /// tiles.rs), flat or sloped, or whichever measured best for the mode (`Auto`).
     pub granularity: Granularity,
     /// Smallest half-width of an interval, pixels (the sub-pixel fit needs a neighbour on
     /// each side of the best disparity).
@@ -389,7 +389,7 @@ impl Assistant {
         // (Spheres and predictions that land outside it land outside the foreground.)
         // (Tiles fill no holes per pixel: one pixel of room, for the 2 × 2 splats that
         // straddle the foreground's edge.)
-        let fill_room = if self.params.granularity == Granularity::Tile { 1 } else { FILL + 1 };
+        let fill_room = if self.params.granularity.tiled() { 1 } else { FILL + 1 };
         let Some(region) = Region::of(mask, w, h).map(|r| r.union(&prev.region).grow(fill_room, w, h)) else {
             plan.intervals = DisparityIntervals::empty(w, h);
             plan.build_ms = t0.elapsed().as_secs_f64() * 1e3;
@@ -398,7 +398,7 @@ impl Assistant {
         self.region = region;
         self.lo.resize(w * h, f32::INFINITY);
         self.hi.resize(w * h, f32::NEG_INFINITY);
-        if self.params.granularity == Granularity::Tile {
+        if self.params.granularity.tiled() {
             self.tiles.reset(w, h);
         }
         if self.params.mode == AssistMode::Predicted && self.params.granularity == Granularity::Pixel {
@@ -435,8 +435,12 @@ impl Assistant {
     /// The splats of the mode, then the intervals from them.
     #[inline(always)]
     fn build(&mut self, gap: u64, mask: Option<&[u8]>, plan: &mut Plan) {
+        if self.params.granularity == Granularity::Plane {
+            let prev = self.prev.as_ref().expect("planned with a previous frame");
+            self.tiles.fit_planes(&prev.disparity, &prev.region);
+        }
         match self.params.mode {
-            AssistMode::Paper { w: weight } if self.params.granularity != Granularity::Tile => {
+            AssistMode::Paper { w: weight } if !self.params.granularity.tiled() => {
                 // Straight into the plan's map: no per-pixel pass after the splat.
                 let (mut iv, mut holes) = (self.spare_intervals(), Vec::new());
                 self.splat_paper(weight, gap, plan.lag, mask, plan, Some(paper::PixelOut { iv: &mut iv, holes: &mut holes }));
@@ -449,7 +453,7 @@ impl Assistant {
             AssistMode::None => unreachable!("handled by plan"),
         }
         plan.intervals = match self.params.granularity {
-            Granularity::Tile => self.tile_intervals(mask, plan),
+            Granularity::Tile | Granularity::Plane => self.tile_intervals(mask, plan),
             // (`Auto` was resolved by `new`.)
             Granularity::Pixel | Granularity::Auto => self.intervals(mask, plan),
         };

@@ -3,7 +3,7 @@
 //! straight into the tiles). The paper's rule is in paper.rs.
 
 use super::region::MaskRows;
-use super::tiles::{self, Granularity, TileBounds};
+use super::tiles::{self, TileBounds};
 use super::{Assistant, Plan};
 
 /// One plan's projection of previous points into this frame, in f32: the predicted motion
@@ -98,11 +98,12 @@ impl Assistant {
         // vectorises (NaN where there is no point or it moves behind the camera), then the
         // splats.
         let (mut xs, mut ys, mut los, mut his) = (vec![0i32; n], vec![-1i32; n], vec![0f32; n], vec![0f32; n]);
+        let (mut pxs, mut pys) = (vec![0f32; n], vec![0f32; n]);
         // At tile granularity, each point's tile and the tiles its splat crosses into, found
         // in the vector loop with the projection: the scatter then only widens the hulls.
         let (mut tile_of, mut crosses) = (vec![0u32; n], vec![0u32; n]);
         let cols = self.tiles.cols() as u32;
-        let tiled = self.params.granularity == Granularity::Tile;
+        let tiled = self.params.granularity.tiled();
         #[cfg(target_arch = "x86_64")]
         let avx2 = tiled && std::is_x86_feature_detected!("avx2");
         let tiles = &mut self.tiles;
@@ -125,6 +126,7 @@ impl Assistant {
                 // SAFETY: px and py lie in [0, w) and [0, h), far inside i32.
                 let (x0, y0) = unsafe { (px.to_int_unchecked::<i32>(), py.to_int_unchecked::<i32>()) };
                 (xs[k], ys[k]) = (x0, if inside { y0 } else { -1 });
+                (pxs[k], pys[k]) = (px, py);
                 (tile_of[k], crosses[k]) = tiles::splat_tile(x0 as u32, y0 as u32, cols);
                 los[k] = a;
                 his[k] = b;
@@ -136,7 +138,7 @@ impl Assistant {
                 let (a, b) = (los[k], his[k]);
                 if tiled {
                     // Straight into the tiles: no per-pixel map (tiles.rs).
-                    tiles.add_splat(tile_of[k] as usize, crosses[k], a, b);
+                    tiles.add_splat(tile_of[k] as usize, crosses[k], pxs[k], pys[k], a, b);
                     continue;
                 }
                 let i = ys[k] as usize * w + xs[k] as usize;
@@ -241,19 +243,27 @@ unsafe fn tiles_row_avx2(p: &Projection, base: [f32; 3], u_col: &[f32], d_row: &
         let no_third = mask(_mm256_and_si256(in_next, right)) == 0;
         if two_tiles && no_third && (m_down == 0 || m_down == m_in) {
             let to_next = _mm256_or_si256(in_next, _mm256_and_si256(in_first, right));
+            // The lanes' bounds about tile t's plane at their predicted pixels.
+            let about = |tiles: &TileBounds, t: usize, lanes: __m256| {
+                let [gx, gy, k] = tiles.plane(t);
+                let o = add(add(mul(s(gx), px), mul(s(gy), py)), s(k));
+                hull_ps(_mm256_blendv_ps(inf, sub(a, o), lanes), _mm256_blendv_ps(ninf, sub(b, o), lanes))
+            };
             for (t, lanes) in [(t_first, in_first), (t_first + 1, to_next)] {
                 if mask(lanes) == 0 {
                     continue;
                 }
                 let lanes = _mm256_castsi256_ps(lanes);
-                let (lo, hi) = hull_ps(_mm256_blendv_ps(inf, a, lanes), _mm256_blendv_ps(ninf, b, lanes));
+                let (lo, hi) = about(tiles, t as usize, lanes);
                 tiles.add(t as usize, lo, hi);
                 if m_down != 0 {
-                    tiles.add(t as usize + cols as usize, lo, hi);
+                    let below = t as usize + cols as usize;
+                    let (lo, hi) = about(tiles, below, lanes);
+                    tiles.add(below, lo, hi);
                 }
             }
         } else {
-            let (mut ts, mut rs, mut ds, mut la, mut lb) = ([0u32; 8], [0u32; 8], [0u32; 8], [0f32; 8], [0f32; 8]);
+            let (mut ts, mut rs, mut ds, mut la, mut lb, mut lx, mut ly) = ([0u32; 8], [0u32; 8], [0u32; 8], [0f32; 8], [0f32; 8], [0f32; 8], [0f32; 8]);
             // SAFETY: arrays of eight lanes.
             unsafe {
                 _mm256_storeu_si256(ts.as_mut_ptr().cast(), tile);
@@ -261,10 +271,12 @@ unsafe fn tiles_row_avx2(p: &Projection, base: [f32; 3], u_col: &[f32], d_row: &
                 _mm256_storeu_si256(ds.as_mut_ptr().cast(), down);
                 _mm256_storeu_ps(la.as_mut_ptr(), a);
                 _mm256_storeu_ps(lb.as_mut_ptr(), b);
+                _mm256_storeu_ps(lx.as_mut_ptr(), px);
+                _mm256_storeu_ps(ly.as_mut_ptr(), py);
             }
             for j in (0..8).filter(|j| m_in & (1 << j) != 0) {
                 let crosses = (rs[j] != 0) as u32 * tiles::RIGHT | (ds[j] != 0) as u32 * tiles::DOWN;
-                tiles.add_splat(ts[j] as usize, crosses, la[j], lb[j]);
+                tiles.add_splat(ts[j] as usize, crosses, lx[j], ly[j], la[j], lb[j]);
             }
         }
         k += 8;
@@ -283,7 +295,7 @@ fn splat_point(p: &Projection, base: [f32; 3], u: f32, d: f32, cols: u32, tiles:
     if inside {
         // Non-negative once inside: the conversion is the floor.
         let (t, crosses) = tiles::splat_tile(px as u32, py as u32, cols);
-        tiles.add_splat(t as usize, crosses, a, b);
+        tiles.add_splat(t as usize, crosses, px, py, a, b);
     }
 }
 
@@ -313,7 +325,8 @@ fn hull_ps(lo: std::arch::x86_64::__m256, hi: std::arch::x86_64::__m256) -> (f32
 mod tests {
     use super::*;
 
-    /// The AVX2 row splat against the point-by-point one, bit for bit: random small motions
+    /// The AVX2 row splat against the point-by-point one, bit for bit, on flat and sloped tiles:
+    /// random small motions
     /// (with roll, so that eight neighbours can land in different tile rows), smooth rows
     /// (eight points of one or two tiles) and scattered ones, runs without disparities, points
     /// landing outside the region.
@@ -356,6 +369,14 @@ mod tests {
             let (mut want, mut got) = (TileBounds::default(), TileBounds::default());
             want.reset(w, h);
             got.reset(w, h);
+            // Sloped tiles in every other case (each tile its own plane), flat ones between.
+            if case % 2 == 1 {
+                for t in 0..cols as usize * h.div_ceil(tiles::TH) {
+                    let plane = [(unit() - 0.5) * 2.0, (unit() - 0.5) * 2.0, (unit() - 0.5) * 300.0];
+                    want.set_plane(t, plane);
+                    got.set_plane(t, plane);
+                }
+            }
             for y in region.2..region.3 {
                 let v = (y as f32 - cy) * (1.0 / fy);
                 let b = rot.column(1) * v + rot.column(2);

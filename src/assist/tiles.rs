@@ -18,7 +18,7 @@
 
 use super::region::{interval, MaskRows, Region};
 use super::{AssistMode, AssistModeError, Plan};
-use crate::stereo::{DisparityIntervals, BAND_TILE};
+use crate::stereo::{DisparityIntervals, DisparityMap, BAND_TILE};
 
 /// A plan tile's width and height: a quarter of the matcher's tile ([`BAND_TILE`], 32 × 16),
 /// so that each matcher tile is 2 × 2 plan tiles. The matcher sums costs over its tile's
@@ -37,8 +37,9 @@ const MARGIN: f32 = 2.0;
 /// How finely the assisted search range is set.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Granularity {
-    /// What measured fastest for the mode: tiles for `predicted` (no per-pixel map to
-    /// build), pixels for `paper` (its union of spheres is taken per pixel either way).
+    /// What measured best for the mode: sloped tiles (`Plane`) for `predicted` (no per-pixel
+    /// map to build, and as few disparities per pixel as its own intervals), pixels for
+    /// `paper` (its union of spheres is taken per pixel either way).
     #[default]
     Auto,
     /// Every pixel its own interval (the rule as written).
@@ -46,6 +47,11 @@ pub enum Granularity {
     /// One interval per plan tile (16 × 8 pixels, a quarter of the matcher's): the hull of its
     /// pixels' intervals.
     Tile,
+    /// One sloped interval per plan tile: a plane through the tile (its slant across the tile
+    /// fitted to the previous frame's disparities there) plus the hull of its pixels'
+    /// intervals about that plane, so that a slanted surface's tile searches about as few
+    /// disparities per pixel as its pixels' own intervals.
+    Plane,
 }
 
 impl Granularity {
@@ -54,6 +60,7 @@ impl Granularity {
             Granularity::Auto => "auto",
             Granularity::Pixel => "pixel",
             Granularity::Tile => "tile",
+            Granularity::Plane => "plane",
         }
     }
 
@@ -62,30 +69,46 @@ impl Granularity {
             "auto" => Ok(Granularity::Auto),
             "pixel" => Ok(Granularity::Pixel),
             "tile" => Ok(Granularity::Tile),
+            "plane" => Ok(Granularity::Plane),
             other => Err(AssistModeError::Granularity(other.to_string())),
         }
     }
 
-    /// `Pixel` or `Tile`: what `Auto` means for `mode`.
+    /// Whether the intervals are set per plan tile (`Tile`, `Plane`).
+    pub fn tiled(self) -> bool {
+        matches!(self, Granularity::Tile | Granularity::Plane)
+    }
+
+    /// `Pixel`, `Tile` or `Plane`: what `Auto` means for `mode`.
     pub fn resolve(self, mode: AssistMode) -> Granularity {
         match (self, mode) {
-            (Granularity::Auto, AssistMode::Predicted) => Granularity::Tile,
+            (Granularity::Auto, AssistMode::Predicted) => Granularity::Plane,
             (Granularity::Auto, _) => Granularity::Pixel,
             (g, _) => g,
         }
     }
 }
 
-/// Per tile of the image: the hull `lo..=hi` of the bounds splatted into it, and how many
-/// of its pixels are foreground.
+/// Per tile of the image: its plane `gx·x + gy·y + k` (zero but at [`Granularity::Plane`]),
+/// the hull `lo..=hi` of the bounds splatted into it less the plane where each landed, and how
+/// many of its pixels are foreground. A pixel `(x, y)` of the tile searches
+/// `lo + plane(x, y) ..= hi + plane(x, y)`.
 #[derive(Clone, Default, PartialEq, Debug)]
 pub(super) struct TileBounds {
     cols: usize,
     rows: usize,
     lo: Vec<f32>,
     hi: Vec<f32>,
+    /// `[gx, gy, k]` per tile.
+    plane: Vec<[f32; 3]>,
     fg: Vec<u32>,
 }
+
+/// The steepest slant a tile's plane takes, disparities per pixel: beyond it a fit spans a
+/// depth edge rather than a surface, and a flat hull serves better.
+const MAX_SLOPE: f32 = 4.0;
+/// The fewest previous disparities a tile's plane is fitted to.
+const MIN_FIT_PX: u32 = 12;
 
 impl TileBounds {
     /// Empties every tile of a `w × h` image.
@@ -96,8 +119,97 @@ impl TileBounds {
             v.clear();
             v.resize(n, fill);
         }
+        self.plane.clear();
+        self.plane.resize(n, [0.0; 3]);
         self.fg.clear();
         self.fg.resize(n, 0);
+    }
+
+    /// Each tile's plane, fitted by least squares to the previous frame's disparities in it
+    /// (`prev`, inside `region`): the surface's slant across the tile changes little from one
+    /// frame to the next. A tile with fewer than [`MIN_FIT_PX`] of them, whose pixels lie on
+    /// one line, or whose slant passes [`MAX_SLOPE`] keeps a flat plane.
+    #[inline(always)]
+    pub(super) fn fit_planes(&mut self, prev: &DisparityMap, region: &Region) {
+        let w = prev.width;
+        let values = prev.values();
+        // Per tile: n, Σx, Σy, Σd, Σxx, Σxy, Σyy, Σxd, Σyd, about the tile's corner. Per
+        // tile row, each column's n, Σy, Σd, Σyy, Σyd over its rows first (element-wise along
+        // the row, branch-free, so that it vectorises), then the tiles' sums of their columns.
+        let mut sums = vec![[0f32; 9]; self.cols * self.rows];
+        let n = region.x1 - region.x0;
+        let mut cols = vec![[0f32; 5]; n];
+        for (ty, ys) in tile_rows(region) {
+            cols.fill([0.0; 5]);
+            for y in ys {
+                let fy = (y - ty * TH) as f32;
+                for (c, &d) in cols.iter_mut().zip(&values[y * w + region.x0..y * w + region.x1]) {
+                    let (v, d) = if d.is_nan() { (0.0, 0.0) } else { (1.0, d) };
+                    c[0] += v;
+                    c[1] += v * fy;
+                    c[2] += d;
+                    c[3] += v * fy * fy;
+                    c[4] += d * fy;
+                }
+            }
+            for (xs, tx) in segments(region) {
+                let acc = &mut sums[ty * self.cols + tx];
+                for (x, &[n, sy, sd, syy, syd]) in xs.clone().zip(&cols[xs.start - region.x0..xs.end - region.x0]) {
+                    let fx = (x - tx * TW) as f32;
+                    for (a, v) in acc.iter_mut().zip([n, fx * n, sy, sd, fx * fx * n, fx * sy, syy, fx * sd, syd]) {
+                        *a += v;
+                    }
+                }
+            }
+        }
+        for (t, [n, sx, sy, sd, sxx, sxy, syy, sxd, syd]) in sums.into_iter().enumerate() {
+            if n < MIN_FIT_PX as f32 {
+                continue;
+            }
+            // Centred moments, then the 2 × 2 normal equations of the slopes.
+            let (mx, my, md) = (sx / n, sy / n, sd / n);
+            let (cxx, cxy, cyy, cxd, cyd) = (sxx - sx * mx, sxy - sx * my, syy - sy * my, sxd - sx * md, syd - sy * md);
+            let det = cxx * cyy - cxy * cxy;
+            if !(det > 1e-3 * n * n) {
+                continue;
+            }
+            let (gx, gy) = ((cxd * cyy - cyd * cxy) / det, (cyd * cxx - cxd * cxy) / det);
+            if !(gx.abs() <= MAX_SLOPE && gy.abs() <= MAX_SLOPE) {
+                continue;
+            }
+            // About the image's origin: plane(x, y) = gx·x + gy·y + k, zero at the fit's
+            // centroid (the hull about it carries the level).
+            let (x0, y0) = (((t % self.cols) * TW) as f32 + mx, ((t / self.cols) * TH) as f32 + my);
+            self.plane[t] = [gx, gy, -(gx * x0 + gy * y0)];
+        }
+    }
+
+    /// Tile `t`'s plane at `(x, y)`.
+    #[inline(always)]
+    pub(super) fn plane_at(&self, t: usize, x: f32, y: f32) -> f32 {
+        let [gx, gy, k] = self.plane[t];
+        gx * x + gy * y + k
+    }
+
+    /// Sets tile `t`'s plane (tests of the splat against it).
+    #[cfg(test)]
+    pub(super) fn set_plane(&mut self, t: usize, plane: [f32; 3]) {
+        self.plane[t] = plane;
+    }
+
+    /// Tile `t`'s plane: `[gx, gy, k]`.
+    #[inline(always)]
+    pub(super) fn plane(&self, t: usize) -> [f32; 3] {
+        self.plane[t]
+    }
+
+    /// The least and the most tile `t`'s plane takes over its pixels.
+    fn plane_span(&self, t: usize) -> (f32, f32) {
+        let [gx, gy, _] = self.plane[t];
+        let (x0, y0) = (((t % self.cols) * TW) as f32, ((t / self.cols) * TH) as f32);
+        let mid = self.plane_at(t, x0 + (TW - 1) as f32 / 2.0, y0 + (TH - 1) as f32 / 2.0);
+        let reach = gx.abs() * (TW - 1) as f32 / 2.0 + gy.abs() * (TH - 1) as f32 / 2.0;
+        (mid - reach, mid + reach)
     }
 
     pub(super) fn cols(&self) -> usize {
@@ -110,27 +222,34 @@ impl TileBounds {
         ty.flat_map(|y| tx.clone().map(move |x| (x, y))).map(|(x, y)| self.fg[y * self.cols + x] as usize).sum()
     }
 
-    /// Widens tile `t`'s hull to hold `a..=b`.
+    /// Widens tile `t`'s hull to hold `a..=b`, already taken about its plane.
     #[inline(always)]
     pub(super) fn add(&mut self, t: usize, a: f32, b: f32) {
         self.lo[t] = self.lo[t].min(a);
         self.hi[t] = self.hi[t].max(b);
     }
 
-    /// The tiles of the 2 × 2 pixels from `(x, y)`, given as [`splat_tile`] gives them (the
-    /// tile of `(x, y)` and the next tile column and row the pixels cross into): widened to
-    /// hold `a..=b`.
+    /// Widens tile `t`'s hull to hold `a..=b` at `(x, y)`: about the plane there.
     #[inline(always)]
-    pub(super) fn add_splat(&mut self, t: usize, crosses: u32, a: f32, b: f32) {
+    pub(super) fn add_at(&mut self, t: usize, x: f32, y: f32, a: f32, b: f32) {
+        let o = self.plane_at(t, x, y);
+        self.add(t, a - o, b - o);
+    }
+
+    /// The tiles of the 2 × 2 pixels from `(⌊x⌋, ⌊y⌋)`, given as [`splat_tile`] gives them (the
+    /// tile of `(x, y)` and the next tile column and row the pixels cross into): widened to
+    /// hold `a..=b` at `(x, y)`.
+    #[inline(always)]
+    pub(super) fn add_splat(&mut self, t: usize, crosses: u32, x: f32, y: f32, a: f32, b: f32) {
         let (right, down) = (crosses & RIGHT != 0, crosses & DOWN != 0);
-        self.add(t, a, b);
+        self.add_at(t, x, y, a, b);
         if right {
-            self.add(t + 1, a, b);
+            self.add_at(t + 1, x, y, a, b);
         }
         if down {
-            self.add(t + self.cols, a, b);
+            self.add_at(t + self.cols, x, y, a, b);
             if right {
-                self.add(t + self.cols + 1, a, b);
+                self.add_at(t + self.cols + 1, x, y, a, b);
             }
         }
     }
@@ -143,12 +262,16 @@ impl TileBounds {
             let trow = y / TH * self.cols;
             for (xs, t) in segments(region) {
                 let (m, k) = (&m_row[xs.start - region.x0..xs.end - region.x0], y * w + xs.start..y * w + xs.end);
-                // Branch-free, so that it vectorises.
+                // About the tile's plane (flat but at `Plane` granularity); branch-free, so
+                // that it vectorises.
+                let [gx, gy, c] = self.plane[trow + t];
+                let row_o = gy * y as f32 + c;
                 let (mut a, mut b, mut count) = (f32::INFINITY, f32::NEG_INFINITY, 0u32);
-                for ((&m, &l), &u) in m.iter().zip(&lo[k.clone()]).zip(&hi[k]) {
+                for (((&m, &l), &u), x) in m.iter().zip(&lo[k.clone()]).zip(&hi[k]).zip(xs) {
                     let here = m != 0;
-                    a = a.min(if here { l } else { f32::INFINITY });
-                    b = b.max(if here { u } else { f32::NEG_INFINITY });
+                    let o = gx * x as f32 + row_o;
+                    a = a.min(if here { l - o } else { f32::INFINITY });
+                    b = b.max(if here { u - o } else { f32::NEG_INFINITY });
                     count += here as u32;
                 }
                 self.add(trow + t, a, b);
@@ -175,12 +298,20 @@ impl TileBounds {
         }
     }
 
-    /// The intervals: every foreground pixel of `region` its tile's hull (see the module
-    /// docs), written into `iv`; counts filled and full-range pixels into the plan.
+    /// The intervals: every foreground pixel of `region` its tile's hull about the tile's
+    /// plane (see the module docs), written into `iv`; counts filled and full-range pixels
+    /// into the plan.
+    #[inline(always)]
     pub(super) fn intervals(&self, iv: &mut DisparityIntervals, masks: &MaskRows, region: &Region, range: (i32, i32), plan: &mut Plan) {
         let n = self.cols * self.rows;
-        // Per tile: its clipped hull, or its neighbours' widened, or the full range.
-        let mut bands = vec![(1i16, 0i16); n];
+        // A tile's hull over its pixels (its plane's least and most added), when it has one.
+        let extent = |t: usize| {
+            let (p0, p1) = self.plane_span(t);
+            interval(range, self.lo[t] + p0, self.hi[t] + p1).map(|_| (self.lo[t] + p0, self.hi[t] + p1))
+        };
+        // Per tile: its own hull about its plane (`[lo, hi, gx, gy, k]`), or its neighbours'
+        // widened and flat, or the full range; pixels of a band clipped to the range.
+        let mut bands = vec![[1.0f32, 0.0, 0.0, 0.0, 0.0]; n];
         let (ty0, ty1) = (region.y0 / TH, region.y1.div_ceil(TH));
         let (tx0, tx1) = (region.x0 / TW, region.x1.div_ceil(TW));
         for ty in ty0..ty1 {
@@ -189,19 +320,21 @@ impl TileBounds {
                 if self.fg[t] == 0 {
                     continue;
                 }
-                let (a, b) = match interval(range, self.lo[t], self.hi[t]) {
-                    Some(own) => own,
+                bands[t] = match extent(t) {
+                    Some(_) => {
+                        let [gx, gy, k] = self.plane[t];
+                        [self.lo[t], self.hi[t], gx, gy, k]
+                    }
                     None => {
                         let (mut a, mut b) = (f32::INFINITY, f32::NEG_INFINITY);
                         for ny in ty.saturating_sub(1)..(ty + 2).min(self.rows) {
                             for nx in tx.saturating_sub(1)..(tx + 2).min(self.cols) {
-                                let u = ny * self.cols + nx;
-                                if interval(range, self.lo[u], self.hi[u]).is_some() {
-                                    (a, b) = (a.min(self.lo[u]), b.max(self.hi[u]));
+                                if let Some((l, u)) = extent(ny * self.cols + nx) {
+                                    (a, b) = (a.min(l), b.max(u));
                                 }
                             }
                         }
-                        match (a <= b).then(|| interval(range, a - MARGIN, b + MARGIN)).flatten() {
+                        let (a, b) = match (a <= b).then(|| interval(range, a - MARGIN, b + MARGIN)).flatten() {
                             Some(filled) => {
                                 plan.filled_px += self.fg[t] as usize;
                                 filled
@@ -210,28 +343,38 @@ impl TileBounds {
                                 plan.uncovered_px += self.fg[t] as usize;
                                 range
                             }
-                        }
+                        };
+                        [a as f32, b as f32, 0.0, 0.0, 0.0]
                     }
                 };
-                bands[t] = (a as i16, b as i16);
             }
         }
-        // Per tile row: its tiles' bands spread over the region's columns once, then each of
-        // its pixel rows written in one pass (branch-free and element-wise, so that it
-        // vectorises).
+        // Per tile row: its tiles' bands spread over the region's columns once (each
+        // column's bounds at row 0, and the rows' slant), then each of its pixel rows written
+        // in one pass (branch-free and element-wise, so that it vectorises).
         let n = region.x1 - region.x0;
-        let (mut row_a, mut row_b) = (vec![1i16; n], vec![0i16; n]);
+        let (mut row_a, mut row_b, mut row_gy) = (vec![1f32; n], vec![0f32; n], vec![0f32; n]);
+        let (r0, r1) = (range.0 as f32, range.1 as f32);
         for (ty, ys) in tile_rows(region) {
             for (xs, t) in segments(region) {
-                let (a, b) = bands[ty * self.cols + t];
-                row_a[xs.start - region.x0..xs.end - region.x0].fill(a);
-                row_b[xs.start - region.x0..xs.end - region.x0].fill(b);
+                let [a, b, gx, gy, k] = bands[ty * self.cols + t];
+                for (x, ((ra, rb), rg)) in xs.clone().zip(row_a[xs.start - region.x0..xs.end - region.x0].iter_mut().zip(&mut row_b[xs.start - region.x0..xs.end - region.x0]).zip(&mut row_gy[xs.start - region.x0..xs.end - region.x0])) {
+                    let o = gx * x as f32 + k;
+                    (*ra, *rb, *rg) = (a + o, b + o, gy);
+                }
             }
             for y in ys {
                 let (out_lo, out_hi) = iv.row_mut(y);
+                let fy = y as f32;
                 let pixels = masks.row(y).iter().zip(&mut out_lo[region.xs()]).zip(&mut out_hi[region.xs()]);
-                for (((&m, l), u), (&a, &b)) in pixels.zip(row_a.iter().zip(&row_b)) {
-                    (*l, *u) = if m != 0 { (a, b) } else { (1, 0) };
+                for (((&m, l), u), ((&a, &b), &gy)) in pixels.zip(row_a.iter().zip(&row_b).zip(&row_gy)) {
+                    // Rounded outwards inside the range (a band is never empty there; flat
+                    // bands are in whole disparities already).
+                    let (a, b) = ((a + gy * fy).clamp(r0, r1), (b + gy * fy).clamp(r0, r1));
+                    // SAFETY: clamped into the range, far inside i16.
+                    let (ta, tb) = unsafe { (a.to_int_unchecked::<i32>(), b.to_int_unchecked::<i32>()) };
+                    let (fa, cb) = (ta - (a < ta as f32) as i32, tb + (b > tb as f32) as i32);
+                    (*l, *u) = if m != 0 { (fa as i16, cb as i16) } else { (1, 0) };
                 }
             }
         }
@@ -308,13 +451,68 @@ mod tests {
         assert_eq!(plan.filled_px, fg_tile(2, 0) + fg_tile(0, 1) + fg_tile(1, 1) + fg_tile(2, 1));
     }
 
+    /// Planes come back from the previous disparities where they can; a tile with too few of
+    /// them, with all on one row, or slanting past [`MAX_SLOPE`] stays flat; a pixel of a
+    /// sloped tile searches the splat's bounds carried along the plane.
+    #[test]
+    fn planes_follow_the_previous_disparities_and_stay_flat_where_they_cannot() {
+        let (w, h) = (3 * TW, 2 * TH);
+        let region = Region { x0: 0, x1: w, y0: 0, y1: h };
+        let surface = |x: usize, y: usize| 40.3 + 0.5 * x as f32 - 0.25 * y as f32;
+        let mut prev = DisparityMap::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let (tx, ty) = (x / TW, y / TH);
+                let d = match (tx, ty) {
+                    // Tile (0, 0): every pixel on the plane; tile (0, 1): every other one.
+                    (0, 0) => Some(surface(x, y)),
+                    (0, 1) => ((x + y) % 2 == 0).then(|| surface(x, y)),
+                    // Tile (1, 0): too few; tile (2, 0): one row; tile (1, 1): too steep.
+                    (1, 0) => (x % TW < 3 && y % TH < 3).then_some(50.0),
+                    (2, 0) => (y == 3).then(|| 60.0 + x as f32),
+                    (1, 1) => Some(10.0 + 5.0 * (x % TW) as f32),
+                    _ => None,
+                };
+                prev.set(x, y, d);
+            }
+        }
+        let mut t = TileBounds::default();
+        t.reset(w, h);
+        t.fit_planes(&prev, &region);
+        let cols = t.cols();
+        for tile in [0, cols] {
+            let [gx, gy, _] = t.plane(tile);
+            assert!((gx - 0.5).abs() < 1e-4 && (gy + 0.25).abs() < 1e-4, "tile {tile}: {gx}, {gy}");
+        }
+        for tile in [1, 2, cols + 1, cols + 2] {
+            assert_eq!(t.plane(tile), [0.0; 3], "tile {tile} stays flat");
+        }
+        // One splat in tile (0, 0) at (3.5, 2.5), its bounds ± 1 around the surface there: every
+        // foreground pixel of the tile searches the surface ± 1 at that pixel, rounded outwards.
+        let mask: Vec<u8> = (0..w * h).map(|i| (i % w < TW && i / w < TH) as u8).collect();
+        let masks = MaskRows::new(Some(&mask), w, &region);
+        t.count(&masks, &region);
+        let at = 40.3 + 0.5 * 3.5 - 0.25 * 2.5;
+        t.add_at(0, 3.5, 2.5, at - 1.0, at + 1.0);
+        let mut iv = DisparityIntervals::empty(w, h);
+        let mut plan = Plan { intervals: DisparityIntervals::empty(0, 0), full_range: None, single_px: 0, union_px: 0, filled_px: 0, uncovered_px: 0, lag: 0, build_ms: 0.0 };
+        t.intervals(&mut iv, &masks, &region, (0, 127), &mut plan);
+        for y in 0..TH {
+            for x in 0..TW {
+                let d = surface(x, y);
+                assert_eq!(iv.get(x, y), Some(((d - 1.0).floor() as i32, (d + 1.0).ceil() as i32)), "pixel ({x}, {y})");
+            }
+        }
+        assert_eq!(iv.get(TW, 0), None, "background");
+    }
+
     #[test]
     fn splats_on_tile_corners_reach_every_tile_they_touch() {
         let mut t = TileBounds::default();
         t.reset(3 * TW, 3 * TH);
         let (tile, crosses) = splat_tile(TW as u32 - 1, TH as u32 - 1, t.cols() as u32);
         assert_eq!((tile, crosses), (0, RIGHT | DOWN));
-        t.add_splat(tile as usize, crosses, 10.0, 12.0);
+        t.add_splat(tile as usize, crosses, (TW - 1) as f32 + 0.5, (TH - 1) as f32 + 0.5, 10.0, 12.0);
         for u in [0, 1, 3, 4] {
             assert_eq!((t.lo[u], t.hi[u]), (10.0, 12.0), "tile {u}");
         }

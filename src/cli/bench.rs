@@ -54,8 +54,9 @@ pub struct Table1Args {
     #[arg(long)]
     pub no_predicted: bool,
     /// How finely the assisted rows set their search ranges: `pixel` (each pixel its own
-    /// interval), `tile` (one per 16 × 8 tile) or `auto` (tiles for predicted, pixels for
-    /// paper); a list (e.g. `pixel,tile`) runs the assisted rows once per entry, side by side.
+    /// interval), `tile` (one per 16 × 8 tile), `plane` (one per tile, sloped along the
+    /// previous frame's disparities there) or `auto` (planes for predicted, pixels for paper);
+    /// a list (e.g. `pixel,tile,plane`) runs the assisted rows once per entry, side by side.
     #[arg(long, default_value = "auto", value_delimiter = ',')]
     pub assist_granularity: Vec<String>,
     #[command(flatten)]

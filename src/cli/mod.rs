@@ -317,8 +317,9 @@ pub struct AssistModeArgs {
     #[arg(long, default_value_t = 0.8)]
     pub assist_w: f64,
     /// How finely the search range is set: `pixel` (each pixel its own interval), `tile`
-    /// (one interval per 16 × 8 tile, the hull of its pixels'), or `auto` (tiles
-    /// for predicted, pixels for paper: what measured faster for each).
+    /// (one interval per 16 × 8 tile, the hull of its pixels'), `plane` (a tile's interval
+    /// sloped along a plane fitted to the previous frame's disparities there), or `auto`
+    /// (planes for predicted, pixels for paper: what measured best for each).
     #[arg(long, default_value = "auto")]
     pub assist_granularity: String,
     #[command(flatten)]

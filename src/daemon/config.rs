@@ -297,8 +297,9 @@ pub struct MatchingSection {
     pub assist: String,
     /// The paper's weighting factor w (mode "paper").
     pub assist_w: f64,
-    /// "auto" (tiles for "predicted", pixels for "paper"), "pixel" (each pixel its own
-    /// search interval) or "tile" (one per 16 × 8 tile).
+    /// "auto" (planes for "predicted", pixels for "paper"), "pixel" (each pixel its own
+    /// search interval), "tile" (one per 16 × 8 tile) or "plane" (one per tile, sloped
+    /// along the previous frame's disparities there).
     pub assist_granularity: String,
     /// Segment the blue screen.
     pub segment: bool,
@@ -636,7 +637,7 @@ mod tests {
         let e = Config::parse(p, "[matching]\nassist = \"sometimes\"\n").unwrap_err().to_string();
         assert!(e.contains("matching.assist"), "{e}");
         let e = Config::parse(p, "[matching]\nassist_granularity = \"block\"\n").unwrap_err().to_string();
-        assert!(e.contains("matching.assist_granularity") && e.contains("expected auto, pixel or tile"), "{e}");
+        assert!(e.contains("matching.assist_granularity") && e.contains("expected auto, pixel, tile or plane"), "{e}");
         for text in ["blue", "0,0,256", "1,2"] {
             let e = Config::parse(p, &format!("[matching]\nkey_color = \"{text}\"\n")).unwrap_err().to_string();
             assert!(e.contains("matching.key_color") && e.contains("expected `auto` or R,G,B"), "{text}: {e}");
