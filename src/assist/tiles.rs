@@ -138,23 +138,39 @@ impl TileBounds {
         // the row, branch-free, so that it vectorises), then the tiles' sums of their columns.
         let mut sums = vec![[0f32; 9]; self.cols * self.rows];
         let n = region.x1 - region.x0;
-        let mut cols = vec![[0f32; 5]; n];
+        // (One array per sum, so that the loop over the row vectorises.)
+        let (mut cn, mut cy, mut cd, mut cyy, mut cyd) = (vec![0f32; n], vec![0f32; n], vec![0f32; n], vec![0f32; n], vec![0f32; n]);
         for (ty, ys) in tile_rows(region) {
-            cols.fill([0.0; 5]);
+            for c in [&mut cn, &mut cy, &mut cd, &mut cyy, &mut cyd] {
+                c.fill(0.0);
+            }
             for y in ys {
                 let fy = (y - ty * TH) as f32;
-                for (c, &d) in cols.iter_mut().zip(&values[y * w + region.x0..y * w + region.x1]) {
+                let row = &values[y * w + region.x0..y * w + region.x1];
+                let (row, cn, cy, cd, cyy, cyd) = (&row[..n], &mut cn[..n], &mut cy[..n], &mut cd[..n], &mut cyy[..n], &mut cyd[..n]);
+                for k in 0..n {
+                    let d = row[k];
                     let (v, d) = if d.is_nan() { (0.0, 0.0) } else { (1.0, d) };
-                    c[0] += v;
-                    c[1] += v * fy;
-                    c[2] += d;
-                    c[3] += v * fy * fy;
-                    c[4] += d * fy;
+                    cn[k] += v;
+                    cy[k] += v * fy;
+                    cd[k] += d;
+                    cyy[k] += v * (fy * fy);
+                    cyd[k] += d * fy;
                 }
             }
             for (xs, tx) in segments(region) {
                 let acc = &mut sums[ty * self.cols + tx];
-                for (x, &[n, sy, sd, syy, syd]) in xs.clone().zip(&cols[xs.start - region.x0..xs.end - region.x0]) {
+                let ks = xs.start - region.x0..xs.end - region.x0;
+                if ks.len() == TW {
+                    // A whole tile's columns: sums and moments in vector lanes.
+                    let col = |c: &[f32]| -> [f32; TW] { c[ks.clone()].try_into().expect("a tile's columns") };
+                    let (n, sy, sd) = (col(&cn), col(&cy), col(&cd));
+                    *acc = [sum_tile(n), dot_tile(n, COL_X), sum_tile(sy), sum_tile(sd), dot_tile(n, COL_XX), dot_tile(sy, COL_X), sum_tile(col(&cyy)), dot_tile(sd, COL_X), sum_tile(col(&cyd))];
+                    continue;
+                }
+                for x in xs {
+                    let k = x - region.x0;
+                    let (n, sy, sd, syy, syd) = (cn[k], cy[k], cd[k], cyy[k], cyd[k]);
                     let fx = (x - tx * TW) as f32;
                     for (a, v) in acc.iter_mut().zip([n, fx * n, sy, sd, fx * fx * n, fx * sy, syy, fx * sd, syd]) {
                         *a += v;
@@ -379,6 +395,45 @@ impl TileBounds {
             }
         }
     }
+}
+
+/// A tile's columns, from its left edge, and their squares.
+const COL_X: [f32; TW] = {
+    let mut x = [0.0; TW];
+    let mut i = 0;
+    while i < TW {
+        x[i] = i as f32;
+        i += 1;
+    }
+    x
+};
+const COL_XX: [f32; TW] = {
+    let mut x = [0.0; TW];
+    let mut i = 0;
+    while i < TW {
+        x[i] = (i * i) as f32;
+        i += 1;
+    }
+    x
+};
+
+/// The sum of a tile's columns, pairwise (element-wise halves, so that it vectorises).
+#[inline(always)]
+fn sum_tile(mut a: [f32; TW]) -> f32 {
+    let mut n = TW;
+    while n > 1 {
+        n /= 2;
+        for i in 0..n {
+            a[i] += a[i + n];
+        }
+    }
+    a[0]
+}
+
+/// `Σ a·b` over a tile's columns.
+#[inline(always)]
+fn dot_tile(a: [f32; TW], b: [f32; TW]) -> f32 {
+    sum_tile(std::array::from_fn(|i| a[i] * b[i]))
 }
 
 /// The region's tile rows: each one's index and its pixel rows inside the region.
