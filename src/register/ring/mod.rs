@@ -64,7 +64,9 @@
 //! good to a few hundredths of a degree. So [`Registrar::finish`] replaces the poses with the
 //! predictions when no pairwise registration disagrees with the turntable's predicted step by
 //! more than `max_turntable_deviation_deg` beyond the typical step's disagreement — nothing
-//! slipped — and the typical step agrees to that bound too, or (a nearly symmetric object,
+//! slipped — or one does but the turntable's poses put the views onto each other as well as
+//! (within 1 %) the registered ones — ICP lost that step, the object did not move — and the
+//! typical step agrees to that bound too, or (a nearly symmetric object,
 //! whose steps all under-turn) the turntable's poses put the views onto each other as well as (within 1 %)
 //! the registered ones; and the axis is calibrated, or refined to within
 //! `max_axis_sigma_deg`, or refined with poses that put the views onto each other as well as (within 1 %)
