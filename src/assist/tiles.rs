@@ -15,6 +15,14 @@
 //! (so a pixel no interval reached searches what its tile's other pixels search). A tile with
 //! foreground but no interval at all takes the hull of its eight neighbours' hulls widened by
 //! 2 px; only where those are empty too, the full range.
+//!
+//! Plane granularity (`--assist-granularity plane`, the predicted mode's default) sets the
+//! same hulls about a plane per tile, fitted to the previous frame's disparities in it
+//! ([`TileBounds::fit_planes`]): each bound is taken less the plane where it lands, and each
+//! pixel searches the hull plus the plane at that pixel. A flat hull adds the surface's slant
+//! across the tile to every pixel (2 disparities on average on a 640 × 480 turntable frame,
+//! 0.3–0.5 about a plane); `bm`'s uniqueness test and left–right check then reject more
+//! (docs/assisted-matching.md, "Seventeenth pass"). Flat tiles are planes of zero slope.
 
 use super::region::{interval, MaskRows, Region};
 use super::{AssistMode, AssistModeError, Plan};
