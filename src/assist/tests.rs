@@ -313,7 +313,7 @@ fn the_working_region_follows_the_object_and_does_not_creep() {
     // it stays as large as that (it once grew by the fill distance at every frame).
     let scene = Scene::new();
     // (Tiles keep one pixel of room, for splats straddling the foreground's edge.)
-    for (mode, granularity, room) in [(AssistMode::Paper { w: 0.8 }, Granularity::Pixel, FILL + 1), (AssistMode::Predicted, Granularity::Pixel, FILL + 1), (AssistMode::Predicted, Granularity::Tile, 1)] {
+    for (mode, granularity, room) in [(AssistMode::Paper { w: 0.8 }, Granularity::Pixel, FILL + 1), (AssistMode::Predicted, Granularity::Pixel, FILL + 1), (AssistMode::Predicted, Granularity::Tile, 1), (AssistMode::Predicted, Granularity::Plane, 1)] {
         let mut a = assistant_at(&scene, mode, granularity, 3);
         for k in 3..20u64 {
             let d = scene.disparity(k as f64);
@@ -369,7 +369,7 @@ fn a_recycled_interval_buffer_gives_the_plan_a_new_one_gives() {
     // around the image and a frame comes out empty, every plan must equal the plan built in a
     // fresh buffer.
     let scene = Scene::new();
-    let modes = [(AssistMode::Paper { w: 0.8 }, Granularity::Pixel), (AssistMode::Predicted, Granularity::Pixel), (AssistMode::Predicted, Granularity::Tile), (AssistMode::Paper { w: 0.8 }, Granularity::Tile)];
+    let modes = [(AssistMode::Paper { w: 0.8 }, Granularity::Pixel), (AssistMode::Predicted, Granularity::Pixel), (AssistMode::Predicted, Granularity::Tile), (AssistMode::Paper { w: 0.8 }, Granularity::Tile), (AssistMode::Predicted, Granularity::Plane), (AssistMode::Paper { w: 0.8 }, Granularity::Plane)];
     for (mode, granularity) in modes {
         let (mut recycling, mut fresh) = (assistant_at(&scene, mode, granularity, 3), assistant_at(&scene, mode, granularity, 3));
         let base = scene.disparity(3.0);
@@ -538,16 +538,17 @@ fn tile_intervals_are_the_hull_of_the_pixel_rule_over_each_tile() {
     }
 }
 
-/// At tile granularity the plan's counts still add up to the foreground: every foreground
-/// pixel is counted once, as predicted (or single, or union), filled or full range.
+/// At tile granularity, flat or sloped, the plan's counts still add up to the foreground:
+/// every foreground pixel is counted once, as predicted (or single, or union), filled or
+/// full range.
 #[test]
 fn tile_plans_count_every_foreground_pixel_once() {
     let scene = Scene::new();
     let truth = scene.disparity(4.0);
     let mask = Scene::mask(&truth);
     let fg = mask.iter().filter(|&&m| m != 0).count();
-    for mode in [AssistMode::Predicted, AssistMode::Paper { w: 0.8 }] {
-        let mut a = assistant_at(&scene, mode, Granularity::Tile, 4);
+    for (mode, granularity) in [AssistMode::Predicted, AssistMode::Paper { w: 0.8 }].into_iter().flat_map(|m| [(m, Granularity::Tile), (m, Granularity::Plane)]) {
+        let mut a = assistant_at(&scene, mode, granularity, 4);
         let plan = a.plan(4, Some(&mask), &scene.poses(0..4));
         assert!(plan.assisted());
         assert_eq!(plan.single_px + plan.union_px + plan.filled_px + plan.uncovered_px, fg, "{mode:?}: {} + {} + {} + {}", plan.single_px, plan.union_px, plan.filled_px, plan.uncovered_px);
