@@ -80,7 +80,7 @@ impl Registrar {
         match start.and_then(|s| self.fit_axis_to_texture(s)) {
             Some(Ok(tracked)) if tracks_replace_points(tracked.sigma_dir_deg, points_deg, self.params.max_axis_sigma_deg) => self.texture.points_fit = best.replace(tracked),
             Some(Ok(tracked)) => {
-                let rival = points_deg.map_or(String::new(), |p| format!(", and than the views' points' fit's ±{p:.3}°"));
+                let rival = points_deg.map_or(String::new(), |p| format!(", and than the views' points' fit's ±{p:.3}° with its {POINTS_BIAS_DEG}° bias, ±{:.3}°", p.hypot(POINTS_BIAS_DEG)));
                 let why = format!("the axis fitted to the texture tracks is known only to ±{:.3}° (more than {:.3}°{rival}): the axis fitted to the views' points is used", tracked.sigma_dir_deg, self.params.max_axis_sigma_deg);
                 tracing::info!("{why}");
                 self.texture.note = Some(why);
