@@ -28,6 +28,12 @@ ap.add_argument("--specular", type=float, default=0.18)
 ap.add_argument("--size", default="640x480")
 ap.add_argument("--ss", type=int, default=2)
 ap.add_argument("--texture-gain", type=float, default=0.9, help="how hard the texture saturates into its two paints")
+ap.add_argument("--jpeg", type=int, default=0, help="write JPEG images of this quality (an MJPEG camera) instead of PNG")
+ap.add_argument("--swap", action="store_true", help="the right camera sits left of the left one: negative disparities (no gt/disparity)")
+ap.add_argument("--no-angles", action="store_true", help="table_deg null in frames.jsonl (a turntable that reports nothing)")
+ap.add_argument("--start-deg", type=float, default=0.0, help="the table's angle at the first frame")
+ap.add_argument("--turntable-yaml", action="store_true", help="write turntable.yaml with the true axis (a calibrated turntable)")
+ap.add_argument("--drop", default="", help="comma-separated frame indices left out of the recording (dropped pairs: gaps in seq)")
 args = ap.parse_args()
 W, H = map(int, args.size.split("x"))
 rng = np.random.default_rng(args.seed)
@@ -126,13 +132,14 @@ def look(pos, tgt):
     return T                          # cam_from_table
 camL_from_table = look(cam_pos, target)
 B = 55.0
+SIDE = 1.0 if args.swap else -1.0      # the right camera centre sits at x = -SIDE * B
 if args.ideal:
-    camR_from_camL = np.eye(4); camR_from_camL[:3, 3] = [-B, 0, 0]
+    camR_from_camL = np.eye(4); camR_from_camL[:3, 3] = [SIDE * B, 0, 0]
     M1 = np.array([[700.0, 0, 322.5], [0, 700.0, 238.0], [0, 0, 1]]); M2 = M1.copy()
     D1 = np.zeros(5); D2 = np.zeros(5)
 else:
     Rr = rot([0.1, 1, 0.05], -1.1)     # a little toe-in and roll
-    C = np.array([B, 0.9, -1.5])       # right camera centre in the left camera frame
+    C = np.array([-SIDE * B, 0.9, -1.5])  # right camera centre in the left camera frame
     camR_from_camL = np.eye(4); camR_from_camL[:3, :3] = Rr; camR_from_camL[:3, 3] = -Rr @ C
     M1 = np.array([[712.0, 0, 331.0], [0, 709.5, 229.0], [0, 0, 1]])
     M2 = np.array([[705.0, 0, 309.0], [0, 706.0, 247.5], [0, 0, 1]])
@@ -262,25 +269,34 @@ fs = cv2.FileStorage(os.path.join(out, "calib.yaml"), cv2.FILE_STORAGE_WRITE)
 for k, v in (("M1", M1), ("D1", D1.reshape(1, 5)), ("M2", M2), ("D2", D2.reshape(1, 5)), ("R", camR_from_camL[:3, :3]), ("T", camR_from_camL[:3, 3].reshape(3, 1))):
     fs.write(k, v)
 fs.release()
+if args.turntable_yaml:   # the table's y axis (up) through its origin, in the left camera frame
+    p = camL_from_table[:3, 3]; u = camL_from_table[:3, :3] @ np.array([0.0, 1.0, 0.0])
+    with open(os.path.join(out, "turntable.yaml"), "w") as f:
+        f.write("axis_point_mm: [%.6f, %.6f, %.6f]\naxis_dir: [%.9f, %.9f, %.9f]\nsource: \"calibrated\"\n" % (*p, *u))
 V, F = mesh(); ply(os.path.join(out, "gt/mesh.ply"), V, F)
 frames, poses = [], []
-if args.ideal:
+GT_DISP = args.ideal and not args.swap   # the spec's gt/disparity: ideal rig, T = (-B, 0, 0)
+if GT_DISP:
     os.makedirs(os.path.join(out, "gt/disparity"), exist_ok=True)
     crays = centre_rays(M1, D1)
+drop = {int(x) for x in args.drop.split(",") if x}
+ext = "jpg" if args.jpeg else "png"
 for k in range(args.frames):
-    deg = k * args.deg
+    if k in drop: continue
+    deg = args.start_deg + k * args.deg
     turn = np.eye(4); turn[:3, :3] = rot([0, 1, 0], deg)
     table_obj = turn @ table_from_obj
     obj_from_table = np.linalg.inv(table_obj)
     L = shade(camL_from_table, RAYS["left"], obj_from_table, 1.0, 0.0, 1000 + k)
     Rr = shade(camR_from_table, RAYS["right"], obj_from_table, 1.07, -5.0, 2000 + k)
-    cv2.imwrite(os.path.join(out, "left/%06d.png" % k), L[:, :, ::-1])
-    cv2.imwrite(os.path.join(out, "right/%06d.png" % k), Rr[:, :, ::-1])
+    wp = [cv2.IMWRITE_JPEG_QUALITY, args.jpeg] if args.jpeg else []
+    cv2.imwrite(os.path.join(out, "left/%06d.%s" % (k, ext)), L[:, :, ::-1], wp)
+    cv2.imwrite(os.path.join(out, "right/%06d.%s" % (k, ext)), Rr[:, :, ::-1], wp)
     t0 = 1_000_000_000 + k * 66_666_667
-    frames.append({"seq": k, "left": "left/%06d.png" % k, "right": "right/%06d.png" % k, "t_left_ns": t0 + 120_000, "t_right_ns": t0 + 310_000, "table_deg": deg, "renderer": "foreign"})
+    frames.append({"seq": k, "left": "left/%06d.%s" % (k, ext), "right": "right/%06d.%s" % (k, ext), "t_left_ns": t0 + 120_000, "t_right_ns": t0 + 310_000, "table_deg": None if args.no_angles else deg, "renderer": "foreign"})
     cam_from_obj = camL_from_table @ table_obj
     poses.append({"seq": k, "cam_from_obj": cam_from_obj.tolist()})
-    if args.ideal:
+    if GT_DISP:
         tfc = np.linalg.inv(camL_from_table)
         o_t = np.broadcast_to(tfc[:3, 3], crays.shape).copy(); d_t = crays @ tfc[:3, :3].T
         o_o = o_t @ obj_from_table[:3, :3].T + obj_from_table[:3, 3]; d_o = d_t @ obj_from_table[:3, :3].T

@@ -34,7 +34,7 @@ impl Registrar {
         let mut first = Target::cells(target, self.params.icp.cell_size(), self.params.icp.normals, "opening views of the ring")?;
         // Once per scan, from a chain that may have wandered a few degrees: the full
         // iteration budget of a pairwise registration, not the per-view one.
-        let mut params = self.params.icp.clone();
+        let mut params = super::without_angles(&self.params.icp, self.poses.iter().any(|p| p.table_deg.is_none())).into_owned();
         params.max_iterations = params.max_iterations.max(LOOP_ITERATIONS);
         let r = icp(&source, &mut first, &chain[n - 1], &params)?;
         if let Some(w) = r.degeneracy_warning() {

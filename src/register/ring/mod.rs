@@ -82,7 +82,7 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Vector3};
 
 use super::axis::{estimate_axis, explained_degeneracy, AxisEstimate};
-use super::icp::{icp, IcpResult, Target};
+use super::icp::{icp, IcpParams, IcpResult, Target};
 use super::posestore::{PoseStore, ViewPose};
 use super::refine::{AxisFit, RefineView};
 use super::voxel::VoxelModel;
@@ -157,6 +157,21 @@ pub struct TurntableFit {
     pub scores: Option<(f64, f64)>,
     /// Why the predictions were not applied (None when they were).
     pub kept_because: Option<String>,
+}
+
+/// ICP's settings for a step seeded without the table's angles (`blind`: a view of it has
+/// none — a turntable that reports nothing). Its seed then knows nothing of the turn: the
+/// identity for a pair, the chain for a block. Holding a weakly constrained rotation at that
+/// seed — an egg's about the table's axis, which the probe finds
+/// (`IcpParams::degeneracy_probe_ratio`) — keeps "no turn" at every step (docs/registration.md,
+/// "Without the table's angles"), so only truly free motions (below `degeneracy_ratio`) keep
+/// the seed there.
+fn without_angles(params: &IcpParams, blind: bool) -> std::borrow::Cow<'_, IcpParams> {
+    if blind {
+        std::borrow::Cow::Owned(IcpParams { degeneracy_probe_ratio: 0.0, ..params.clone() })
+    } else {
+        std::borrow::Cow::Borrowed(params)
+    }
 }
 
 /// The outcome of loop closure.
@@ -320,8 +335,9 @@ impl Registrar {
             (Some((point, up)), Some(now), Some(before)) => (rotation_about_axis(&point, &up, -(now - before)), "turntable"),
             _ => (Isometry3::identity(), "identity"),
         };
+        let blind = table_deg.is_none() || prev.table_deg.is_none();
         let mut prev_target = prev.target;
-        let mut result = match icp(&own, &mut prev_target, &seed, &self.params.icp) {
+        let mut result = match icp(&own, &mut prev_target, &seed, &without_angles(&self.params.icp, blind)) {
             Ok(r) => r,
             Err(e) => {
                 // Keep the previous view, so the next one registers to it.
@@ -519,7 +535,7 @@ impl Registrar {
         if let Some((h, _)) = pick.filter(|_| k % self.params.axis_long_step_every.max(1) == 0) {
             let (j, deg) = (self.history[h].0, self.history[h].1);
             let init = self.poses[j].first_from_view.inverse() * self.poses[k].first_from_view;
-            let r = icp(pts, &mut self.history[h].2, &init, &self.params.icp)?;
+            let r = icp(pts, &mut self.history[h].2, &init, &without_angles(&self.params.icp, table_deg.is_none() || deg.is_none()))?;
             // A step that cannot see the turn about an upright line (a surface of revolution on
             // the table) kept its seed's turn, and with it the seed's axis: it says nothing new.
             // Other free motions (a ring spinning about its own axis) leave the tilt it measures.
@@ -587,13 +603,14 @@ impl Registrar {
         let last = block.last().map_or(0, |(k, _)| *k);
         let into = if self.params.projective { self.poses[last].first_from_view.inverse() } else { Isometry3::identity() };
         let union: Vec<[f32; 3]> = block.iter().flat_map(|(k, pts)| pts.iter().map(|p| super::apply(&(into * self.poses[*k].first_from_view), p)).collect::<Vec<_>>()).collect();
+        let params = without_angles(&self.params.icp, block.iter().any(|(k, _)| self.poses[*k].table_deg.is_none()));
         let mut r = if self.params.projective {
             let seen: Vec<[f32; 3]> = model_cloud.points.iter().map(|p| super::apply(&into, p)).filter(|p| p[2] > 0.0).collect();
             let mut target = Target::grid(RangeGrid::build(seen, "model")?, self.params.icp.normals);
-            icp(&union, &mut target, &Isometry3::identity(), &self.params.icp)?
+            icp(&union, &mut target, &Isometry3::identity(), &params)?
         } else {
             let mut target = Target::cells(model_cloud.points, self.params.icp.cell_size(), self.params.icp.normals, "model")?;
-            icp(&union, &mut target, &Isometry3::identity(), &self.params.icp)?
+            icp(&union, &mut target, &Isometry3::identity(), &params)?
         };
         r.transform = into.inverse() * r.transform * into;
         Ok(r)
