@@ -11,9 +11,16 @@ rig gt/disparity/ from the ray depths at pixel centres.
 
     ../.venv-peers/bin/python hw-sim/foreign/render.py OUT [--ideal] [--frames 20]
         [--deg 2] [--seed 3] [--texture-gain 0.9] [--specular 0.18] [--size 640x480]
+        [--jpeg Q] [--swap] [--no-angles] [--start-deg D] [--drop 7,8] [--turntable-yaml]
+
+The last options write what other tools may: JPEG images (an MJPEG camera), a rig whose
+right camera sits left of the left one (negative disparities, so no gt/disparity), no
+table angles (`table_deg` null), a first angle other than 0 (with a negative --deg: a
+clockwise turn), dropped pairs (gaps in seq), and a calibrated axis (turntable.yaml).
 
 Needs numpy and opencv-python (`bash ../shared/bench/setup.sh` makes ../.venv-peers with
-both). About 3 s a pair. What it showed: docs/assisted-matching.md, "Seventeenth pass".
+both). About 3 s a pair. What it showed: docs/assisted-matching.md, "Seventeenth pass", and
+docs/registration.md, Known limits ("without the table's angles").
 """
 import argparse, json, os, math
 import numpy as np, cv2

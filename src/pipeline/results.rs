@@ -512,7 +512,16 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
             "axis_fit_tracks": f.refined.as_ref().and_then(|r| r.tracks).map(|t| t.tracks), "axis_fit_rms_px": f.refined.as_ref().and_then(|r| r.tracks).map(|t| t.rms_px),
             "turntable_score_mm": f.scores.map(|s| s.0), "registered_score_mm": f.scores.map(|s| s.1),
         })),
-        "pose_source": if reg.turntable_fit().is_some_and(|f| f.applied) { "turntable" } else { "registration" },
+        // A scan without the table's angles: the turn fitted to the texture tracks.
+        "tracked_turn": match reg.tracked_turn() {
+            Some(t) => json!({
+                "applied": t.applied, "kept_because": t.kept_because, "chained_deg": t.chained_deg, "fitted_deg": t.fitted_deg, "max_change_deg": t.max_change_deg,
+                "tracks": t.figures.tracks, "observations": t.figures.observations, "fit_rms_px": t.figures.rms_px, "worst_view_px": t.figures.worst_view_px,
+            }),
+            None if poses.iter().all(|p| p.table_deg.is_none()) => json!({"applied": false, "kept_because": reg.texture_note()}),
+            None => Value::Null,
+        },
+        "pose_source": if reg.turntable_fit().is_some_and(|f| f.applied) { "turntable" } else if reg.tracked_turn().is_some_and(|t| t.applied) { "tracks" } else { "registration" },
     });
     // The axis fitted to every view when there is one, else the one estimated from the poses.
     let axis = match (reg.refined_axis(), reg.estimated_axis()) {

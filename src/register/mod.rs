@@ -11,6 +11,7 @@
 //! `b`; `first_from_view` maps a view's points (its LEFT raw camera frame) into the first
 //! view's. Units are the caller's (spinscan's own clouds are millimetres).
 
+pub mod angles;
 pub mod axis;
 pub mod bundle;
 pub mod cells;

@@ -76,6 +76,14 @@
 //! angles about their axis in every view show that the object turned by those angles: the
 //! turntable's poses are then used whatever ICP's steps say (a ball, which ICP cannot see
 //! turn); an object that moved on the table shows in the tracks of the views after it.
+//!
+//! ## Without the table's angles (`texture.rs`, `register::angles`)
+//! A recording may have none (`table_deg` null). Then ICP's steps start from the identity
+//! and solve even the motions the surfaces fix only weakly ([`without_angles`]); every view
+//! is tracked; and at the end the tracks give each view's angle and the axis, fitted
+//! together from the chain's turn. When the tracks follow that turn as closely as they must
+//! follow a table's angles (above), the poses become those turns — and a whole turn, which
+//! the under-turning chain never reached, can close its loop.
 
 use std::time::Instant;
 
@@ -91,6 +99,7 @@ use super::grid::RangeGrid;
 use super::{rotation_about_axis, subsample_indices, RegisterError};
 use crate::cloud::PointCloud;
 pub use params::RegistrationParams;
+pub use texture::TrackedTurn;
 
 mod closing;
 mod params;
@@ -163,8 +172,8 @@ pub struct TurntableFit {
 /// none — a turntable that reports nothing). Its seed then knows nothing of the turn: the
 /// identity for a pair, the chain for a block. Holding a weakly constrained rotation at that
 /// seed — an egg's about the table's axis, which the probe finds
-/// (`IcpParams::degeneracy_probe_ratio`) — keeps "no turn" at every step (docs/registration.md,
-/// "Without the table's angles"), so only truly free motions (below `degeneracy_ratio`) keep
+/// (`IcpParams::degeneracy_probe_ratio`) — keeps "no turn" at every step (docs/registration.md, Known limits,
+/// "without the table's angles"), so only truly free motions (below `degeneracy_ratio`) keep
 /// the seed there.
 fn without_angles(params: &IcpParams, blind: bool) -> std::borrow::Cow<'_, IcpParams> {
     if blind {
@@ -620,6 +629,9 @@ impl Registrar {
     /// on), compares the poses with the turntable, publishes the final poses, and returns the
     /// closure. A loop that cannot be closed leaves the chained poses and a warning.
     pub fn finish(&mut self) -> Result<Option<LoopClosure>, RegisterError> {
+        // Without the table's angles, the turn the texture tracks show replaces the chain's
+        // first (a chain that under-turned never reaches the loop's end).
+        self.fit_turn_to_texture();
         let closure = match self.close_loop() {
             Ok(c) => c,
             Err(e) => {

@@ -86,7 +86,7 @@ fn egg_view(deg: f64, axis: (Vector3<f64>, Vector3<f64>)) -> PointCloud {
 
 /// A turntable that reports no angles (`table_deg` null): every step starts from the identity,
 /// which knows nothing of the turn, so a rotation the surface fixes only weakly must still be
-/// solved — held at the seed, an egg would not turn at all (docs/registration.md, "Without the
+/// solved — held at the seed, an egg would not turn at all (docs/registration.md, Known limits, "without the
 /// table's angles").
 #[test]
 fn an_egg_turns_without_the_tables_angles() {

@@ -1,14 +1,17 @@
 //! The texture side of [`Registrar`]: the object's texture tracked from view to view while
 //! the views come (`register::tracks`), and the axis fitted to those tracks at the end of the
-//! scan (`register::bundle`), started from the axis fitted to the views' points.
+//! scan (`register::bundle`), started from the axis fitted to the views' points. In a scan
+//! without the table's angles, the angles too (`register::angles`).
 
 use std::time::Instant;
 
 use nalgebra::Vector3;
 
 use super::Registrar;
+use crate::register::angles::fit_angles_to_tracks;
 use crate::register::bundle::fit_axis_to_tracks;
-use crate::register::refine::AxisFit;
+use crate::register::refine::{AxisFit, TrackFigures};
+use crate::register::rotation_about_axis;
 use crate::register::tracks::{TrackImage, Tracker};
 use crate::register::RegisterError;
 
@@ -22,13 +25,35 @@ pub(super) struct Texture {
     pub(super) points_fit: Option<AxisFit>,
     /// Why there is no axis from the tracks, or why it was not used.
     pub(super) note: Option<String>,
+    /// In a scan without the table's angles: the turn fitted to the tracks.
+    pub(super) turn: Option<TrackedTurn>,
 }
+
+/// The turn of a scan without the table's angles, fitted to the texture tracks at its end
+/// ([`Registrar::tracked_turn`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrackedTurn {
+    /// The tracks' fit (with the angles fitted).
+    pub figures: TrackFigures,
+    /// The whole turn, first to last view, degrees: as ICP's chain had it, and as fitted.
+    pub chained_deg: f64,
+    pub fitted_deg: f64,
+    /// The largest change of a view's angle from the chain's, degrees.
+    pub max_change_deg: f64,
+    /// The poses became turns about the tracks' axis by the fitted angles.
+    pub applied: bool,
+    /// Why they did not (None when they did).
+    pub kept_because: Option<String>,
+}
+
 
 impl Registrar {
     /// Follows the object's texture into the view just registered by
     /// [`Registrar::add_view`] (`seq`: its rectified left image and disparity map), by the
-    /// step registration found. Does nothing without a camera (`track_camera`), tracking
-    /// settings or the view's table angle, or with a calibrated axis, which needs no tracks.
+    /// step registration found. Does nothing without a camera (`track_camera`) or tracking
+    /// settings, for a view without a table angle in a scan with them, or with a calibrated
+    /// axis, which needs no tracks. In a scan without the table's angles every view is
+    /// tracked: the tracks give the angles at the end ([`Registrar::tracked_turn`]).
     /// Returns the time taken, ms.
     pub fn track_view(&mut self, seq: u64, image: TrackImage<'_>) -> f64 {
         let started = Instant::now();
@@ -38,7 +63,10 @@ impl Registrar {
         }
         let n = self.poses.len();
         let Some(last) = self.poses.last().filter(|p| p.seq == seq) else { return 0.0 };
-        let Some(table_deg) = last.table_deg else { return 0.0 };
+        // (Without angles the tracker keeps the chain's turn so far; the fit at the end
+        // replaces it.)
+        let blind = self.poses[0].table_deg.is_none();
+        let Some(table_deg) = last.table_deg.or(blind.then_some(self.turned_deg)) else { return 0.0 };
         // The step from the view tracked last: None (the tracks end) when a view between was
         // not tracked (no table angle).
         let new_from_prev = (n >= 2 && self.texture.last_seq == Some(self.poses[n - 2].seq)).then(|| last.first_from_view.inverse() * self.poses[n - 2].first_from_view);
@@ -74,5 +102,100 @@ impl Registrar {
             Err(e) => tracing::info!("texture tracks: no axis ({e})"),
         }
         Some(fit)
+    }
+
+    /// The turn fitted to the texture tracks in a scan without the table's angles.
+    pub fn tracked_turn(&self) -> Option<&TrackedTurn> {
+        self.texture.turn.as_ref()
+    }
+
+    /// For a scan without the table's angles (none of its views has one): fits every view's
+    /// angle about the turntable's axis, and the axis, to the texture tracks, from the
+    /// chain's turn about the axis estimated from its poses.
+    /// When the tracks follow the fitted turn as closely as they must follow a table's
+    /// angles for the turntable's poses to be used (`TRACKS_FOLLOW_TABLE_PX`,
+    /// `TRACKS_VIEW_FOLLOWS_TABLE_PX`), the poses become those turns: texture moves with the
+    /// object, while ICP's chain under-turns a smooth one (module `register::angles`).
+    pub(super) fn fit_turn_to_texture(&mut self) {
+        if self.poses.len() < 3 || self.poses.iter().any(|p| p.table_deg.is_some()) || self.params.calibrated_axis.is_some() {
+            return;
+        }
+        // Every view tracked, in turn: the tracker's views are then the poses.
+        let tracked = self.texture.tracker.as_ref().map_or(0, |t| t.table_deg().len());
+        if tracked != self.poses.len() {
+            self.no_tracked_turn(format!("{tracked} of {} views were tracked (tracking is off, or a view's image could not be used)", self.poses.len()));
+            return;
+        }
+        let Some(start) = self.axis.as_ref().map(|a| (a.point, a.dir)) else {
+            self.no_tracked_turn("no axis was estimated from the poses".into());
+            return;
+        };
+        let started = Instant::now();
+        // The chain's turn about the axis, view by view (unwrapped): first_from_view turns by
+        // −θ about the axis.
+        let mut chained = vec![0.0];
+        for k in 1..self.poses.len() {
+            let step = self.poses[k - 1].first_from_view.inverse() * self.poses[k].first_from_view;
+            chained.push(chained[k - 1] - step.rotation.scaled_axis().dot(&start.1).to_degrees());
+        }
+        let Some(tracker) = self.texture.tracker.as_ref() else { return };
+        let fitted = match fit_angles_to_tracks(tracker.observations(), &chained, tracker.camera(), start, &self.params.bundle) {
+            Ok(f) => f,
+            Err(e) => {
+                self.no_tracked_turn(e.to_string());
+                return;
+            }
+        };
+        let axis = fitted.axis;
+        let f = fitted.figures;
+        let follows = f.rms_px <= super::turntable::TRACKS_FOLLOW_TABLE_PX && f.worst_view_px <= super::turntable::TRACKS_VIEW_FOLLOWS_TABLE_PX;
+        let kept_because = (!follows).then(|| {
+            format!(
+                "the texture tracks do not follow one turn about one axis closely enough (RMS {:.2} px, worst view's median {:.2} px; at most {} and {} px): the object may have moved on the table",
+                f.rms_px,
+                f.worst_view_px,
+                super::turntable::TRACKS_FOLLOW_TABLE_PX,
+                super::turntable::TRACKS_VIEW_FOLLOWS_TABLE_PX
+            )
+        });
+        let last = self.poses.len() - 1;
+        let turn = TrackedTurn {
+            figures: f,
+            chained_deg: chained[last],
+            fitted_deg: fitted.deg[last],
+            max_change_deg: fitted.deg.iter().zip(&chained).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max),
+            applied: follows,
+            kept_because,
+        };
+        tracing::info!(
+            "texture tracks: the turn fitted to {} tracks in {:.1} s ({} rounds): {:.2}° first to last view, against {:.2}° chained (views up to {:.2}° apart); RMS {:.2} px{}",
+            f.tracks,
+            started.elapsed().as_secs_f64(),
+            fitted.rounds,
+            turn.fitted_deg,
+            turn.chained_deg,
+            turn.max_change_deg,
+            f.rms_px,
+            if follows { "" } else { "; not used" }
+        );
+        if let Some(why) = &turn.kept_because {
+            tracing::warn!("no angles from the texture tracks: {why}; the poses stay ICP's chain, which under-turns a smooth object");
+        }
+        if follows {
+            for (p, deg) in self.poses.iter_mut().zip(&fitted.deg) {
+                p.first_from_view = rotation_about_axis(&axis.0, &axis.1, -deg);
+            }
+            self.turned_deg = turn.fitted_deg.abs();
+            // The axis reported and written (turntable_estimated.yaml) is the tracks'. Its
+            // uncertainty is not estimated here (NaN: null in the report).
+            self.refined = Some(AxisFit { point: axis.0, dir: axis.1, sigma_dir_deg: f64::NAN, sigma_point_mm: f64::NAN, rms_mm: f64::NAN, pairs: 0, correspondences: 0, tracks: Some(f) });
+        }
+        self.texture.turn = Some(turn);
+    }
+
+    /// A scan without the table's angles whose turn the tracks could not give: says why.
+    fn no_tracked_turn(&mut self, why: String) {
+        tracing::warn!("no angles from the texture tracks: {why}; the poses stay ICP's chain, which under-turns a smooth object");
+        self.texture.note = Some(format!("no angles from the texture tracks: {why}"));
     }
 }

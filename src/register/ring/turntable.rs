@@ -163,10 +163,10 @@ impl Registrar {
 /// their fit shows that the object turned by the table's angles: the tracked places' own
 /// noise is ≈ 0.05–0.1 px on the simulated rigs; table angles on a wrong scale or an object
 /// that moved leave residuals of pixels.
-const TRACKS_FOLLOW_TABLE_PX: f64 = 0.5;
+pub(super) const TRACKS_FOLLOW_TABLE_PX: f64 = 0.5;
 /// The bound on the worst view's median residual: 0.06–0.07 px on the simulated rings, 0.5 px
 /// for an object that moved 2° on the table 40 mm from the axis (`register::bundle`'s test).
-const TRACKS_VIEW_FOLLOWS_TABLE_PX: f64 = 0.3;
+pub(super) const TRACKS_VIEW_FOLLOWS_TABLE_PX: f64 = 0.3;
 
 /// How much closer, as a share, the registered poses must put the views onto each other than
 /// the turntable's poses (`RefineSet::score`) to be kept over them where the score decides.
