@@ -12,11 +12,13 @@ rig gt/disparity/ from the ray depths at pixel centres.
     ../.venv-peers/bin/python hw-sim/foreign/render.py OUT [--ideal] [--frames 20]
         [--deg 2] [--seed 3] [--texture-gain 0.9] [--specular 0.18] [--size 640x480]
         [--jpeg Q] [--swap] [--no-angles] [--start-deg D] [--drop 7,8] [--turntable-yaml]
+        [--distance 410] [--off-axis 6] [--exposure 1]
 
 The last options write what other tools may: JPEG images (an MJPEG camera), a rig whose
 right camera sits left of the left one (negative disparities, so no gt/disparity), no
 table angles (`table_deg` null), a first angle other than 0 (with a negative --deg: a
-clockwise turn), dropped pairs (gaps in seq), and a calibrated axis (turntable.yaml).
+clockwise turn), dropped pairs (gaps in seq), and a calibrated axis (turntable.yaml); and
+a nearer camera, an object further off the axis, a dimmer lab.
 
 Needs numpy and opencv-python (`bash ../shared/bench/setup.sh` makes ../.venv-peers with
 both). About 3 s a pair. What it showed: docs/assisted-matching.md, "Seventeenth pass", and
@@ -40,6 +42,9 @@ ap.add_argument("--swap", action="store_true", help="the right camera sits left 
 ap.add_argument("--no-angles", action="store_true", help="table_deg null in frames.jsonl (a turntable that reports nothing)")
 ap.add_argument("--start-deg", type=float, default=0.0, help="the table's angle at the first frame")
 ap.add_argument("--turntable-yaml", action="store_true", help="write turntable.yaml with the true axis (a calibrated turntable)")
+ap.add_argument("--distance", type=float, default=410.0, help="the left camera's distance from the table's axis, mm (nearer: larger disparities)")
+ap.add_argument("--off-axis", type=float, default=6.0, help="how far the object's centre sits from the table's axis, mm")
+ap.add_argument("--exposure", type=float, default=1.0, help="scales both cameras' gain (0.4: a dim lab, its noise relatively stronger)")
 ap.add_argument("--drop", default="", help="comma-separated frame indices left out of the recording (dropped pairs: gaps in seq)")
 args = ap.parse_args()
 W, H = map(int, args.size.split("x"))
@@ -126,8 +131,8 @@ def ext_y(c, s, R):
     return math.sqrt(((R * s[None, :]) ** 2)[1].sum())
 bottom = min(c[1] - ext_y(c, s, R) for c, s, R in ELL)
 table_from_obj = np.eye(4); table_from_obj[:3, :3] = rot([0, 1, 0], 20)
-table_from_obj[:3, 3] = [6.0, -bottom + 0.5, -4.0]   # 6 mm off the axis, resting on the table
-DIST, TILT = 410.0, 22.0
+table_from_obj[:3, 3] = [args.off_axis, -bottom + 0.5, -4.0]   # off the axis, resting on the table
+DIST, TILT = args.distance, 22.0
 cam_pos = np.array([0.0, 0.0, -DIST]); cam_pos = rot([1, 0, 0], TILT) @ cam_pos  # raised
 target = np.array([0.0, 45.0, 0.0]); cam_pos = cam_pos + np.array([0.0, 45.0, 0.0])
 def look(pos, tgt):
@@ -294,8 +299,8 @@ for k in range(args.frames):
     turn = np.eye(4); turn[:3, :3] = rot([0, 1, 0], deg)
     table_obj = turn @ table_from_obj
     obj_from_table = np.linalg.inv(table_obj)
-    L = shade(camL_from_table, RAYS["left"], obj_from_table, 1.0, 0.0, 1000 + k)
-    Rr = shade(camR_from_table, RAYS["right"], obj_from_table, 1.07, -5.0, 2000 + k)
+    L = shade(camL_from_table, RAYS["left"], obj_from_table, 1.0 * args.exposure, 0.0, 1000 + k)
+    Rr = shade(camR_from_table, RAYS["right"], obj_from_table, 1.07 * args.exposure, -5.0, 2000 + k)
     wp = [cv2.IMWRITE_JPEG_QUALITY, args.jpeg] if args.jpeg else []
     cv2.imwrite(os.path.join(out, "left/%06d.%s" % (k, ext)), L[:, :, ::-1], wp)
     cv2.imwrite(os.path.join(out, "right/%06d.%s" % (k, ext)), Rr[:, :, ::-1], wp)
