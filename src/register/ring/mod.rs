@@ -584,7 +584,10 @@ impl Registrar {
                     }
                     if let Some(w) = r.degeneracy_warning() {
                         let line = format!("block ending at view {}: {w}", self.poses.last().unwrap().seq);
-                        if let Some(why) = self.degeneracy_expected(&r.degenerate, "chained") {
+                        // With the axis known and every view's table angle, the chain the
+                        // block starts from turned by the table's steps about that axis.
+                        let seeded = if self.seed_axis().is_some() && block.iter().all(|(k, _)| self.poses[*k].table_deg.is_some()) { "turntable" } else { "chained" };
+                        if let Some(why) = self.degeneracy_expected(&r.degenerate, seeded) {
                             notes.push(format!("{line} (expected: {why})"));
                         } else {
                             warnings.push(line);
