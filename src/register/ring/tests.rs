@@ -144,3 +144,29 @@ fn a_block_that_cannot_see_the_table_turn_notes_it() {
     assert!(!noted.is_empty(), "no block noted its free turn; warnings: {warned:?}");
     assert!(warned.is_empty(), "{warned:?}");
 }
+
+/// A view whose table angle is missing (a reading the turntable lost) in a scan that has
+/// them: when the turntable's poses replace the registered ones, it turns from its nearest
+/// neighbour with an angle by the registered motion between them, about the same axis —
+/// a turntable pose too, not the chain's, which wanders mid-scan (docs/registration.md,
+/// Known limits, "without the table's angles").
+#[test]
+fn a_view_without_its_angle_turns_about_the_same_axis() {
+    let axis = (Vector3::new(0.0, 0.0, 450.0), Vector3::new(0.0, -0.978, -0.208).normalize());
+    let mut params = RegistrationParams { block: 3, ..Default::default() };
+    params.icp.max_distance = 8.0;
+    let mut reg = Registrar::new(params, Arc::new(PoseStore::new()));
+    for k in 0..10u64 {
+        let deg = 3.0 * k as f64;
+        reg.add_view(k, (k != 5).then_some(deg), &view(deg, axis)).unwrap();
+    }
+    reg.finish().unwrap();
+    assert!(reg.turntable_fit().is_some_and(|f| f.applied), "{:?}", reg.turntable_fit());
+    let fitted = reg.refined_axis().expect("an axis fitted at the end");
+    let pose = reg.poses()[5].first_from_view;
+    // A turn about the fitted axis: its rotation about that direction, the axis's points fixed.
+    let (turn_axis, angle) = pose.rotation.axis_angle().expect("a turn");
+    assert!(turn_axis.cross(&fitted.dir).norm() < 1e-9, "turns about {turn_axis:?}, not {:?}", fitted.dir);
+    assert!((pose * nalgebra::Point3::from(fitted.point) - nalgebra::Point3::from(fitted.point)).norm() < 1e-6);
+    assert!((angle.to_degrees() - 15.0).abs() < 0.2, "{}° of 15°", angle.to_degrees());
+}
