@@ -146,7 +146,7 @@ pub fn fit_angles_to_tracks(obs: &[TrackObs], start_deg: &[f64], camera: &TrackC
                 for (k, &st) in line_steps.iter().enumerate() {
                     let mut e = Vector4::zeros();
                     e[k] = st;
-                    let (plus, minus) = (line_moved(&line, &e), line_moved(&line, &(-e)));
+                    let (plus, minus) = (line.moved_line(&e), line.moved_line(&(-e)));
                     if let (Some((rp, _, _)), Some((rm, _, _))) = (residual(&plus, i, x, deg[v]), residual(&minus, i, x, deg[v])) {
                         cols.push((k, (rp - rm) / (2.0 * st)));
                     }
@@ -189,7 +189,7 @@ pub fn fit_angles_to_tracks(obs: &[TrackObs], start_deg: &[f64], camera: &TrackC
                 damped[(k, k)] += damped[(k, k)].abs() * lambda + 1e-12;
             }
             let Some(dm) = damped.lu().solve(&(-&rhs)) else { break };
-            let new_line = line_moved(&line, &Vector4::new(dm[0], dm[1], dm[2], dm[3]));
+            let new_line = line.moved_line(&Vector4::new(dm[0], dm[1], dm[2], dm[3]));
             let mut new_deg = deg.clone();
             for (v, k) in slot.iter().enumerate() {
                 if let Some(k) = k {
@@ -241,15 +241,10 @@ pub fn fit_angles_to_tracks(obs: &[TrackObs], start_deg: &[f64], camera: &TrackC
     Ok(AngleFit { deg, axis: (point, line.dir), figures, rounds })
 }
 
-fn line_moved(line: &Line, x: &Vector4<f64>) -> Line {
-    let (point, dir) = line.moved(x);
-    Line::new(point, dir)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::register::tracks::tests::camera;
+    use crate::register::tracks::tests::{ball_tracks, camera};
 
     /// Points on a 40 mm ball about a tilted axis 450 mm away, seen over 30 views turning by
     /// uneven steps, with noise on the places: started from angles 8 % short (as ICP's chain
@@ -260,22 +255,7 @@ mod tests {
         let cam = camera();
         let axis = (Vector3::new(5.0, -10.0, 450.0), Vector3::new(0.02, -0.97, -0.2).normalize());
         let truth: Vec<f64> = (0..30).map(|k| 3.0 * k as f64 + (k as f64 * 0.7).sin()).collect();
-        let mut seed = 11u64;
-        let mut noise = || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 0.2
-        };
-        let mut obs = Vec::new();
-        for t in 0..400u32 {
-            let (a, b) = (t as f64 * 0.37, t as f64 * 1.13);
-            let base = axis.0 + Vector3::new(40.0 * a.cos() * b.sin(), 40.0 * a.sin() * b.sin(), -40.0 * b.cos().abs());
-            let first = (t as usize * 7) % 17;
-            for v in first..(first + 14).min(truth.len()) {
-                let m = rotation_about_axis(&axis.0, &axis.1, truth[v]);
-                let q = cam.project(&(m * Point3::from(base)).coords).unwrap();
-                obs.push(TrackObs { track: t, view: v as u32, x: (q.x + noise()) as f32, y: (q.y + noise()) as f32, d: (q.z + noise()) as f32 });
-            }
-        }
+        let obs = ball_tracks(axis, &truth, 17, 14, 11);
         let start: Vec<f64> = truth.iter().map(|d| 0.92 * d).collect();
         // The axis started 1° and 3 mm off.
         let tilt = nalgebra::UnitQuaternion::from_scaled_axis(Vector3::new(1.0f64.to_radians(), 0.0, 0.0));

@@ -53,12 +53,6 @@ impl Default for BundleParams {
     }
 }
 
-/// The line moved by the parameters `x` (see `register::refine`'s `Line`).
-fn moved_line(line: &Line, x: &Vector4<f64>) -> Line {
-    let (point, dir) = line.moved(x);
-    Line::new(point, dir)
-}
-
 /// One track: its observations (indices into the observations used) and its point, in its
 /// first view's frame.
 struct Track {
@@ -141,7 +135,7 @@ pub fn fit_axis_to_tracks(obs: &[TrackObs], table_deg: &[f64], camera: &TrackCam
                 for (k, &st) in steps.iter().enumerate() {
                     let mut e = Vector4::zeros();
                     e[k] = st;
-                    if let (Some((rp, _)), Some((rm, _))) = (residual(&moved_line(l, &e), t, i, point), residual(&moved_line(l, &(-e)), t, i, point)) {
+                    if let (Some((rp, _)), Some((rm, _))) = (residual(&l.moved_line(&e), t, i, point), residual(&l.moved_line(&(-e)), t, i, point)) {
                         ja.set_column(k, &((rp - rm) / (2.0 * st)));
                     }
                 }
@@ -185,7 +179,7 @@ pub fn fit_axis_to_tracks(obs: &[TrackObs], table_deg: &[f64], camera: &TrackCam
                     inverses.push(ui);
                 }
                 let Some(da) = s.lu().solve(&(-rhs)) else { break };
-                let new_line = moved_line(&line, &da);
+                let new_line = line.moved_line(&da);
                 let moved_points: Vec<Vector3<f64>> = points.iter().zip(&last.per_track).zip(&inverses).map(|((pt, (_, w, gx)), ui)| pt - ui * (gx + w * da)).collect();
                 if total_cost(&new_line, &moved_points) < last.cost {
                     line = new_line;
@@ -340,7 +334,7 @@ fn motion_start(obs: &[TrackObs], tracks: &[Track], table_deg: &[f64], camera: &
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::register::tracks::tests::camera;
+    use crate::register::tracks::tests::{ball_tracks, camera};
 
     /// Points on a 40 mm ball about a tilted axis 450 mm away, seen over 40 views 3° apart
     /// with noise on the places and a bias on the disparities.
@@ -349,29 +343,10 @@ mod tests {
         let cam = camera();
         let truth = (Vector3::new(5.0, -10.0, 450.0), Vector3::new(0.02, -0.97, -0.2).normalize());
         let angles: Vec<f64> = (0..50).map(|k| 3.0 * k as f64).collect();
-        let mut seed = 7u64;
-        let mut noise = || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 0.2
-        };
-        // `slip`: from view 30 on, the object sits 2° further round than the table says.
-        let mut ring = |slip: bool| {
-            let mut obs = Vec::new();
-            for t in 0..400u32 {
-                let (a, b) = (t as f64 * 0.37, t as f64 * 1.13);
-                let base = truth.0 + Vector3::new(40.0 * a.cos() * b.sin(), 40.0 * a.sin() * b.sin(), -40.0 * b.cos().abs());
-                let first = (t as usize * 7) % 27;
-                for v in first..(first + 24).min(angles.len()) {
-                    let extra = if slip && v >= 30 { 2.0 } else { 0.0 };
-                    let m = rotation_about_axis(&truth.0, &truth.1, angles[v] - angles[0] + extra);
-                    let q = cam.project(&(m * nalgebra::Point3::from(base)).coords).unwrap();
-                    obs.push(TrackObs { track: t, view: v as u32, x: (q.x + noise()) as f32, y: (q.y + noise()) as f32, d: (q.z + noise()) as f32 });
-                }
-            }
-            obs
-        };
-        let obs = ring(false);
-        let slipped = ring(true);
+        // `slipped`: from view 30 on, the object sits 2° further round than the table says.
+        let obs = ball_tracks(truth, &angles, 27, 24, 7);
+        let slipped_turn: Vec<f64> = angles.iter().enumerate().map(|(v, a)| if v >= 30 { a + 2.0 } else { *a }).collect();
+        let slipped = ball_tracks(truth, &slipped_turn, 27, 24, 8);
         // Started 1° and 3 mm off.
         let tilt = nalgebra::UnitQuaternion::from_scaled_axis(Vector3::new(1.0f64.to_radians(), 0.0, 0.0));
         let init = (truth.0 + Vector3::new(3.0, 0.0, 0.0), tilt * truth.1);

@@ -159,6 +159,12 @@ impl Line {
     pub(super) fn moved(&self, x: &Vector4<f64>) -> (Vector3<f64>, Vector3<f64>) {
         ((self.point + self.u * x[2] + self.v * x[3]), (self.dir + self.u * x[0] + self.v * x[1]).normalize())
     }
+
+    /// The line moved by `x` (see [`Line::moved`]).
+    pub(super) fn moved_line(&self, x: &Vector4<f64>) -> Line {
+        let (point, dir) = self.moved(x);
+        Line::new(point, dir)
+    }
 }
 
 /// The views prepared for the refinement: each one's k-d tree and normals, the pairs compared

@@ -25,6 +25,12 @@ fn view(deg: f64, axis: (Vector3<f64>, Vector3<f64>)) -> PointCloud {
     PointCloud { colors: vec![[128; 3]; points.len()], points, normals: None }
 }
 
+/// A registrar with `params` and ICP's pairs within 8 mm (the synthetic views' steps).
+fn registrar(mut params: RegistrationParams) -> Registrar {
+    params.icp.max_distance = 8.0;
+    Registrar::new(params, Arc::new(PoseStore::new()))
+}
+
 /// Guards the per-view targets: range grids (the default) and exact cell grids both follow a turn
 /// of 3° steps, seeded from the identity and then by the table about the estimated axis.
 #[test]
@@ -32,9 +38,7 @@ fn both_kinds_of_target_follow_the_turn() {
     // An upright axis 60 mm behind the patch, tilted towards the camera like the lab's.
     let axis = (Vector3::new(0.0, 0.0, 450.0), Vector3::new(0.0, -0.978, -0.208).normalize());
     for projective in [true, false] {
-        let mut params = RegistrationParams { projective, block: 3, ..Default::default() };
-        params.icp.max_distance = 8.0;
-        let mut reg = Registrar::new(params, Arc::new(PoseStore::new()));
+        let mut reg = registrar(RegistrationParams { projective, block: 3, ..Default::default() });
         for k in 0..8u64 {
             let deg = 3.0 * k as f64;
             let r = reg.add_view(k, Some(deg), &view(deg, axis)).unwrap();
@@ -91,9 +95,7 @@ fn egg_view(deg: f64, axis: (Vector3<f64>, Vector3<f64>)) -> PointCloud {
 #[test]
 fn an_egg_turns_without_the_tables_angles() {
     let axis = (Vector3::new(0.0, 0.0, 400.0), Vector3::new(0.0, -0.927, -0.375).normalize());
-    let mut params = RegistrationParams::default();
-    params.icp.max_distance = 8.0;
-    let mut reg = Registrar::new(params, Arc::new(PoseStore::new()));
+    let mut reg = registrar(RegistrationParams::default());
     for k in 0..6u64 {
         reg.add_view(k, None, &egg_view(3.0 * k as f64, axis)).unwrap();
     }
@@ -131,9 +133,7 @@ fn vase_view(deg: f64, axis: (Vector3<f64>, Vector3<f64>)) -> PointCloud {
 #[test]
 fn a_block_that_cannot_see_the_table_turn_notes_it() {
     let axis = (Vector3::new(0.0, 0.0, 400.0), Vector3::new(0.0, -0.927, -0.375).normalize());
-    let mut params = RegistrationParams { block: 3, ..Default::default() };
-    params.icp.max_distance = 8.0;
-    let mut reg = Registrar::new(params, Arc::new(PoseStore::new()));
+    let mut reg = registrar(RegistrationParams { block: 3, ..Default::default() });
     let (mut noted, mut warned) = (Vec::new(), Vec::new());
     for k in 0..12u64 {
         let deg = 3.0 * k as f64;
@@ -153,9 +153,7 @@ fn a_block_that_cannot_see_the_table_turn_notes_it() {
 #[test]
 fn a_view_without_its_angle_turns_about_the_same_axis() {
     let axis = (Vector3::new(0.0, 0.0, 450.0), Vector3::new(0.0, -0.978, -0.208).normalize());
-    let mut params = RegistrationParams { block: 3, ..Default::default() };
-    params.icp.max_distance = 8.0;
-    let mut reg = Registrar::new(params, Arc::new(PoseStore::new()));
+    let mut reg = registrar(RegistrationParams { block: 3, ..Default::default() });
     for k in 0..10u64 {
         let deg = 3.0 * k as f64;
         reg.add_view(k, (k != 5).then_some(deg), &view(deg, axis)).unwrap();
