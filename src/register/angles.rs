@@ -78,8 +78,8 @@ pub fn fit_angles_to_tracks(obs: &[TrackObs], start_deg: &[f64], camera: &TrackC
             tracks.push(ids);
         }
     }
-    if tracks.len() < p.min_tracks {
-        return Err(RegisterError::TooFew { what: format!("texture tracks over at least {:.0}° of turn", p.min_span_deg), got: tracks.len(), need: p.min_tracks, purpose: "fitting the table's angles to the tracks".into() });
+    if tracks.len() < p.min_tracks.max(1) {
+        return Err(RegisterError::TooFew { what: format!("texture tracks over at least {:.0}° of turn", p.min_span_deg), got: tracks.len(), need: p.min_tracks.max(1), purpose: "fitting the table's angles to the tracks".into() });
     }
     let mut per_view = vec![0usize; views];
     for ids in &tracks {
