@@ -244,7 +244,8 @@ pub fn fit_angles_to_tracks(obs: &[TrackObs], start_deg: &[f64], camera: &TrackC
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::register::tracks::tests::{ball_tracks, camera};
+    use crate::register::bundle::tests::ball_tracks;
+    use crate::register::tracks::tests::camera;
 
     /// Points on a 40 mm ball about a tilted axis 450 mm away, seen over 30 views turning by
     /// uneven steps, with noise on the places: started from angles 8 % short (as ICP's chain

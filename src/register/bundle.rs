@@ -332,9 +332,34 @@ fn motion_start(obs: &[TrackObs], tracks: &[Track], table_deg: &[f64], camera: &
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
-    use crate::register::tracks::tests::{ball_tracks, camera};
+    use crate::register::tracks::tests::camera;
+
+    /// 400 tracks of points on a 40 mm ball about `axis` = (point, direction), seen by
+    /// [`camera`] as the object turns by `turn_deg[v]` in view v: track t from view
+    /// `(7 t) mod first_every` over `length` views, its places and disparity with uniform noise
+    /// of ±0.1 px (`seed`). (`register::bundle`'s and `register::angles`' tests.)
+    pub(in crate::register) fn ball_tracks(axis: (Vector3<f64>, Vector3<f64>), turn_deg: &[f64], first_every: usize, length: usize, seed: u64) -> Vec<TrackObs> {
+        let cam = camera();
+        let mut seed = seed;
+        let mut noise = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 0.2
+        };
+        let mut obs = Vec::new();
+        for t in 0..400u32 {
+            let (a, b) = (t as f64 * 0.37, t as f64 * 1.13);
+            let base = axis.0 + Vector3::new(40.0 * a.cos() * b.sin(), 40.0 * a.sin() * b.sin(), -40.0 * b.cos().abs());
+            let first = (t as usize * 7) % first_every;
+            for (v, &deg) in turn_deg.iter().enumerate().skip(first).take(length) {
+                let m = crate::register::rotation_about_axis(&axis.0, &axis.1, deg);
+                let q = cam.project(&(m * nalgebra::Point3::from(base)).coords).unwrap();
+                obs.push(TrackObs { track: t, view: v as u32, x: (q.x + noise()) as f32, y: (q.y + noise()) as f32, d: (q.z + noise()) as f32 });
+            }
+        }
+        obs
+    }
 
     /// Points on a 40 mm ball about a tilted axis 450 mm away, seen over 40 views 3° apart
     /// with noise on the places and a bias on the disparities.
