@@ -20,7 +20,7 @@
 
 use nalgebra::{DMatrix, DVector, Matrix3, Point3, Vector3, Vector4};
 
-use super::bundle::BundleParams;
+use super::bundle::{usable_tracks, BundleParams};
 use super::refine::{Line, TrackFigures};
 use super::tracks::{TrackCamera, TrackObs};
 use super::{rotation_about_axis, RegisterError};
@@ -56,28 +56,15 @@ pub fn fit_angles_to_tracks(obs: &[TrackObs], start_deg: &[f64], camera: &TrackC
         return Err(RegisterError::Param(format!("angles from tracks: axis point {:?}, direction {:?}: expected finite values and a non-zero direction", axis.0, axis.1)));
     };
     let views = start_deg.len();
-    let mut by_track: std::collections::BTreeMap<u32, Vec<usize>> = std::collections::BTreeMap::new();
-    for (i, o) in obs.iter().enumerate() {
-        if (o.view as usize) < views && o.x.is_finite() && o.y.is_finite() && o.d.is_finite() {
-            by_track.entry(o.track).or_default().push(i);
-        }
-    }
-    let mut tracks: Vec<Vec<usize>> = Vec::new();
-    let mut points: Vec<Vector3<f64>> = Vec::new();
-    for (_, ids) in by_track {
-        let angles = ids.iter().map(|&i| start_deg[obs[i].view as usize]);
-        let span = angles.clone().fold(f64::NEG_INFINITY, f64::max) - angles.fold(f64::INFINITY, f64::min);
-        if ids.len() < 3 || !(span >= p.min_span_deg) {
-            continue;
-        }
-        let first = obs[ids[0]];
-        if let Some(seen) = camera.unproject(first.x as f64, first.y as f64, first.d as f64) {
-            // Into the frame of angle 0.
-            let back = rotation_about_axis(&axis.0, &dir, -start_deg[first.view as usize]);
-            points.push((back * Point3::from(seen)).coords);
-            tracks.push(ids);
-        }
-    }
+    // Each track's point in the frame of angle 0.
+    let (tracks, mut points): (Vec<Vec<usize>>, Vec<Vector3<f64>>) = usable_tracks(obs, start_deg, camera, p)
+        .into_iter()
+        .map(|(ids, seen)| {
+            let back = rotation_about_axis(&axis.0, &dir, -start_deg[obs[ids[0]].view as usize]);
+            let point = (back * Point3::from(seen)).coords;
+            (ids, point)
+        })
+        .unzip();
     if tracks.len() < p.min_tracks.max(1) {
         return Err(RegisterError::TooFew { what: format!("texture tracks over at least {:.0}° of turn", p.min_span_deg), got: tracks.len(), need: p.min_tracks.max(1), purpose: "fitting the table's angles to the tracks".into() });
     }

@@ -71,32 +71,39 @@ struct Normal {
     reduced: Vec<(Matrix4<f64>, Vector4<f64>)>,
 }
 
+/// The tracks a fit can use: their observations (indices into `obs`, in view order) with at
+/// least three, over at least `p.min_span_deg` of `angles` (one per view; observations of
+/// later views are left out), and the point of each track's first observation in that view's
+/// frame. (Also `register::angles`.)
+pub(super) fn usable_tracks(obs: &[TrackObs], angles: &[f64], camera: &TrackCamera, p: &BundleParams) -> Vec<(Vec<usize>, Vector3<f64>)> {
+    let mut by_track: std::collections::BTreeMap<u32, Vec<usize>> = std::collections::BTreeMap::new();
+    for (i, o) in obs.iter().enumerate() {
+        if (o.view as usize) < angles.len() && o.x.is_finite() && o.y.is_finite() && o.d.is_finite() {
+            by_track.entry(o.track).or_default().push(i);
+        }
+    }
+    by_track
+        .into_values()
+        .filter_map(|ids| {
+            let seen = ids.iter().map(|&i| angles[obs[i].view as usize]);
+            let span = seen.clone().fold(f64::NEG_INFINITY, f64::max) - seen.fold(f64::INFINITY, f64::min);
+            if ids.len() < 3 || !(span >= p.min_span_deg) {
+                return None;
+            }
+            let first = obs[ids[0]];
+            let point = camera.unproject(first.x as f64, first.y as f64, first.d as f64)?;
+            Some((ids, point))
+        })
+        .collect()
+}
+
 /// Fits the axis to the tracks from `init` = (point, direction). `table_deg[v]` is view v's
 /// table angle.
 pub fn fit_axis_to_tracks(obs: &[TrackObs], table_deg: &[f64], camera: &TrackCamera, init: (Vector3<f64>, Vector3<f64>), p: &BundleParams) -> Result<AxisFit, RegisterError> {
     if !(init.1.norm() > 0.0 && init.0.iter().chain(init.1.iter()).all(|v| v.is_finite())) {
         return Err(RegisterError::Param(format!("axis from tracks: initial axis point {:?}, direction {:?}: expected finite values and a non-zero direction", init.0, init.1)));
     }
-    let mut by_track: std::collections::BTreeMap<u32, Vec<usize>> = std::collections::BTreeMap::new();
-    for (i, o) in obs.iter().enumerate() {
-        if (o.view as usize) < table_deg.len() && o.x.is_finite() && o.y.is_finite() && o.d.is_finite() {
-            by_track.entry(o.track).or_default().push(i);
-        }
-    }
-    let mut tracks: Vec<Track> = Vec::new();
-    let mut points: Vec<Vector3<f64>> = Vec::new();
-    for (_, ids) in by_track {
-        let angles = ids.iter().map(|&i| table_deg[obs[i].view as usize]);
-        let span = angles.clone().fold(f64::NEG_INFINITY, f64::max) - angles.fold(f64::INFINITY, f64::min);
-        if ids.len() < 3 || !(span >= p.min_span_deg) {
-            continue;
-        }
-        let first = obs[ids[0]];
-        if let Some(point) = camera.unproject(first.x as f64, first.y as f64, first.d as f64) {
-            tracks.push(Track { reference: first.view as usize, obs: ids });
-            points.push(point);
-        }
-    }
+    let (tracks, points): (Vec<Track>, Vec<Vector3<f64>>) = usable_tracks(obs, table_deg, camera, p).into_iter().map(|(ids, point)| (Track { reference: obs[ids[0]].view as usize, obs: ids }, point)).unzip();
     if tracks.len() < p.min_tracks {
         return Err(RegisterError::TooFew { what: format!("texture tracks over at least {:.0}° of turn", p.min_span_deg), got: tracks.len(), need: p.min_tracks, purpose: "fitting the axis to the tracks".into() });
     }
