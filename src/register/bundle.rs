@@ -73,12 +73,12 @@ struct Normal {
 
 /// The tracks a fit can use: their observations (indices into `obs`, in view order) with at
 /// least three, over at least `p.min_span_deg` of `angles` (one per view; observations of
-/// later views are left out), and the point of each track's first observation in that view's
-/// frame. (Also `register::angles`.)
+/// later views, and of views whose angle is NaN — unknown —, are left out), and the point of
+/// each track's first observation in that view's frame. (Also `register::angles`.)
 pub(super) fn usable_tracks(obs: &[TrackObs], angles: &[f64], camera: &TrackCamera, p: &BundleParams) -> Vec<(Vec<usize>, Vector3<f64>)> {
     let mut by_track: std::collections::BTreeMap<u32, Vec<usize>> = std::collections::BTreeMap::new();
     for (i, o) in obs.iter().enumerate() {
-        if (o.view as usize) < angles.len() && o.x.is_finite() && o.y.is_finite() && o.d.is_finite() {
+        if angles.get(o.view as usize).is_some_and(|a| a.is_finite()) && o.x.is_finite() && o.y.is_finite() && o.d.is_finite() {
             by_track.entry(o.track).or_default().push(i);
         }
     }
@@ -253,7 +253,8 @@ pub fn fit_axis_to_tracks(obs: &[TrackObs], table_deg: &[f64], camera: &TrackCam
         }
     }
     let (mut worst_view_px, mut views_unconfirmed) = (0.0f64, 0usize);
-    for offs in per_view.iter_mut().skip(1) {
+    // (A view whose angle is unknown has nothing to confirm.)
+    for (offs, _) in per_view.iter_mut().zip(table_deg).skip(1).filter(|(_, a)| a.is_finite()) {
         if offs.len() < MIN_VIEW_OBSERVATIONS {
             views_unconfirmed += 1;
         } else {
@@ -389,6 +390,14 @@ pub(super) mod tests {
         assert!(fit.sigma_dir_deg < 0.05 && fit.sigma_dir_deg > 0.0, "σ {}", fit.sigma_dir_deg);
         let t = fit.tracks.unwrap();
         assert!(t.rms_px < 0.2 && t.worst_view_px < 0.15 && t.views_unconfirmed == 0, "{t:?}");
+        // A view whose angle is unknown (NaN): its observations are left out, and it has
+        // nothing to confirm.
+        let mut lost = angles.clone();
+        lost[10] = f64::NAN;
+        let without = fit_axis_to_tracks(&obs, &lost, &cam, init, &BundleParams::default()).unwrap();
+        assert!(without.dir.angle(&truth.1).to_degrees() < 0.02, "{without:?}");
+        let t = without.tracks.unwrap();
+        assert!(t.views_unconfirmed == 0 && t.observations < fit.tracks.unwrap().observations, "{t:?}");
         // An object that moved on the table: the views after it stand out.
         let moved = fit_axis_to_tracks(&slipped, &angles, &cam, init, &BundleParams::default()).unwrap().tracks.unwrap();
         assert!(moved.worst_view_px > 0.4, "{moved:?}");

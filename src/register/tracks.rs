@@ -189,11 +189,13 @@ impl Tracker {
 
     /// Tracks the active tracks into a new view and starts new ones. `new_from_prev` maps
     /// the previous view's points into this one's (None: no motion known, the tracks end and
-    /// new ones start). An image whose size or buffers do not agree ends every track and is
-    /// not used.
+    /// new ones start). `table_deg` NaN: the view's angle is unknown (a reading the turntable
+    /// lost); the tracks go on through it, and the fits leave its observations out. An image
+    /// whose size or buffers do not agree, or an infinite angle, ends every track and is not
+    /// used.
     pub fn add(&mut self, image: TrackImage<'_>, table_deg: f64, new_from_prev: Option<&Isometry3<f64>>) {
         let n = image.width * image.height;
-        if image.rgb.len() != 3 * n || image.disparity.len() != n || n == 0 || !table_deg.is_finite() {
+        if image.rgb.len() != 3 * n || image.disparity.len() != n || n == 0 || table_deg.is_infinite() {
             self.previous = None;
             self.active.clear();
             return;
@@ -640,9 +642,10 @@ pub(super) mod tests {
         let started = tracker.observations().len();
         assert!(started > 20, "{started} tracks started");
         // The texture moved 2.4 px right; the step predicts 2 px (a 0.4 px error to find).
+        // The view's angle is unknown (NaN: a reading the turntable lost): tracked through.
         let (b, db) = textured(w, h, 2.4);
         let step = Isometry3::translation(2.0 * 500.0 / 800.0, 0.0, 0.0);
-        tracker.add(TrackImage { rgb: &b, disparity: &db, width: w, height: h }, 3.0, Some(&step));
+        tracker.add(TrackImage { rgb: &b, disparity: &db, width: w, height: h }, f64::NAN, Some(&step));
         let first: std::collections::HashMap<u32, TrackObs> = tracker.observations().iter().filter(|o| o.view == 0).map(|o| (o.track, *o)).collect();
         let moved: Vec<f64> = tracker.observations().iter().filter(|o| o.view == 1 && first.contains_key(&o.track)).map(|o| (o.x - first[&o.track].x) as f64).collect();
         assert!(moved.len() * 10 >= started * 8, "{} of {started} tracks followed", moved.len());
@@ -659,7 +662,8 @@ pub(super) mod tests {
         // Without motion the tracks end; new ones start.
         tracker.add(TrackImage { rgb: &c, disparity: &dc, width: w, height: h }, 9.0, None);
         assert!(tracker.observations().iter().filter(|o| o.view == 3).all(|o| !first.contains_key(&o.track)));
-        assert_eq!(tracker.table_deg(), &[0.0, 3.0, 6.0, 9.0]);
+        let angles = tracker.table_deg();
+        assert!(angles.len() == 4 && angles[1].is_nan() && angles[0] == 0.0 && angles[2] == 6.0 && angles[3] == 9.0, "{angles:?}");
     }
 
     /// A faint texture, whose 5 × 5 corners all stay under `min_corner`: tracks start at the

@@ -51,9 +51,10 @@ impl Registrar {
     /// Follows the object's texture into the view just registered by
     /// [`Registrar::add_view`] (`seq`: its rectified left image and disparity map), by the
     /// step registration found. Does nothing without a camera (`track_camera`) or tracking
-    /// settings, for a view without a table angle in a scan with them, or with a calibrated
-    /// axis, which needs no tracks. In a scan without the table's angles every view is
-    /// tracked: the tracks give the angles at the end ([`Registrar::tracked_turn`]).
+    /// settings, or with a calibrated axis, which needs no tracks. A view without a table
+    /// angle in a scan with them is tracked through, its observations left out of the fits;
+    /// in a scan without the table's angles every view is tracked and the tracks give the
+    /// angles at the end ([`Registrar::tracked_turn`]).
     /// Returns the time taken, ms.
     pub fn track_view(&mut self, seq: u64, image: TrackImage<'_>) -> f64 {
         let started = Instant::now();
@@ -63,12 +64,13 @@ impl Registrar {
         }
         let n = self.poses.len();
         let Some(last) = self.poses.last().filter(|p| p.seq == seq) else { return 0.0 };
-        // (Without angles the tracker keeps the chain's turn so far; the fit at the end
-        // replaces it.)
+        // Without angles the tracker keeps the chain's turn so far (the fit at the end
+        // replaces it); in a scan with them, a view without one is tracked through, its
+        // angle unknown (NaN) to the fits.
         let blind = self.poses[0].table_deg.is_none();
-        let Some(table_deg) = last.table_deg.or(blind.then_some(self.turned_deg)) else { return 0.0 };
+        let table_deg = last.table_deg.unwrap_or(if blind { self.turned_deg } else { f64::NAN });
         // The step from the view tracked last: None (the tracks end) when a view between was
-        // not tracked (no table angle).
+        // not tracked.
         let new_from_prev = (n >= 2 && self.texture.last_seq == Some(self.poses[n - 2].seq)).then(|| last.first_from_view.inverse() * self.poses[n - 2].first_from_view);
         self.texture.last_seq = Some(seq);
         let tracker = self.texture.tracker.get_or_insert_with(|| Tracker::new(camera, params.clone()));
