@@ -485,9 +485,9 @@ fn a_true_mesh_of_points_alone_scores_the_poses_and_nothing_else() {
 }
 
 /// A turntable that reports no angles (`table_deg` null, as the spec allows): the views'
-/// turn comes from the texture tracked across them (docs/registration.md, Known limits, "without the
-/// table's angles"). Before, an egg's chain held ICP's weak turn at the identity seed (poses
-/// 20° off after 38° of turn), then under-turned it by 5–9 %.
+/// turn comes from the texture tracked across them (docs/registration.md, Known limits,
+/// "without the table's angles"). Before, an egg's chain held ICP's weak turn at the identity
+/// seed (poses 20° off after 38° of turn), then under-turned it by 5–9 %.
 #[test]
 fn a_turntable_without_angles_turns_by_its_texture() {
     let dir = support::temp_dir("rec-no-angles");

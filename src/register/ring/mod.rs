@@ -172,9 +172,9 @@ pub struct TurntableFit {
 /// none — a turntable that reports nothing). Its seed then knows nothing of the turn: the
 /// identity for a pair, the chain for a block. Holding a weakly constrained rotation at that
 /// seed — an egg's about the table's axis, which the probe finds
-/// (`IcpParams::degeneracy_probe_ratio`) — keeps "no turn" at every step (docs/registration.md, Known limits,
-/// "without the table's angles"), so only truly free motions (below `degeneracy_ratio`) keep
-/// the seed there.
+/// (`IcpParams::degeneracy_probe_ratio`) — keeps "no turn" at every step
+/// (docs/registration.md, Known limits, "without the table's angles"), so only truly free
+/// motions (below `degeneracy_ratio`) keep the seed there.
 fn without_angles(params: &IcpParams, blind: bool) -> std::borrow::Cow<'_, IcpParams> {
     if blind {
         std::borrow::Cow::Owned(IcpParams { degeneracy_probe_ratio: 0.0, ..params.clone() })

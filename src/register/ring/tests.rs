@@ -90,8 +90,8 @@ fn egg_view(deg: f64, axis: (Vector3<f64>, Vector3<f64>)) -> PointCloud {
 
 /// A turntable that reports no angles (`table_deg` null): every step starts from the identity,
 /// which knows nothing of the turn, so a rotation the surface fixes only weakly must still be
-/// solved — held at the seed, an egg would not turn at all (docs/registration.md, Known limits, "without the
-/// table's angles").
+/// solved — held at the seed, an egg would not turn at all (docs/registration.md, Known
+/// limits, "without the table's angles").
 #[test]
 fn an_egg_turns_without_the_tables_angles() {
     let axis = (Vector3::new(0.0, 0.0, 400.0), Vector3::new(0.0, -0.927, -0.375).normalize());
