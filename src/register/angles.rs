@@ -51,7 +51,10 @@ pub struct AngleFit {
 /// observations or over less than `p.min_span_deg` of the start angles are not used; fewer
 /// than `p.min_tracks` tracks, or a view after the first without [`MIN_VIEW_OBSERVATIONS`]
 /// observations, is an error (its angle would be a guess).
-pub fn fit_angles_to_tracks(obs: &[TrackObs], start_deg: &[f64], camera: &TrackCamera, axis: (Vector3<f64>, Vector3<f64>), p: &BundleParams) -> Result<AngleFit, RegisterError> {
+///
+/// `held[v]`: view v's angle is known and stays (missing entries: free); `hold_axis`: the
+/// axis is known and stays too (then only the free views' angles and the points move).
+pub fn fit_angles_to_tracks(obs: &[TrackObs], start_deg: &[f64], held: &[bool], camera: &TrackCamera, axis: (Vector3<f64>, Vector3<f64>), hold_axis: bool, p: &BundleParams) -> Result<AngleFit, RegisterError> {
     let dir = axis.1.try_normalize(1e-12).filter(|d| d.iter().chain(axis.0.iter()).all(|v| v.is_finite()));
     let Some(dir) = dir else {
         return Err(RegisterError::Param(format!("angles from tracks: axis point {:?}, direction {:?}: expected finite values and a non-zero direction", axis.0, axis.1)));
@@ -76,7 +79,8 @@ pub fn fit_angles_to_tracks(obs: &[TrackObs], start_deg: &[f64], camera: &TrackC
         }
     }
     let first_view = obs[tracks.iter().map(|ids| ids[0]).min_by_key(|&i| obs[i].view).unwrap_or(0)].view as usize;
-    if let Some(v) = (0..views).find(|&v| v != first_view && per_view[v] < MIN_VIEW_OBSERVATIONS) {
+    let free = |v: usize| v != first_view && !held.get(v).copied().unwrap_or(false);
+    if let Some(v) = (0..views).find(|&v| free(v) && per_view[v] < MIN_VIEW_OBSERVATIONS) {
         return Err(RegisterError::TooFew { what: format!("tracked places in view {v} of the tracks"), got: per_view[v], need: MIN_VIEW_OBSERVATIONS, purpose: "fitting its angle to the tracks".into() });
     }
 
@@ -100,21 +104,21 @@ pub fn fit_angles_to_tracks(obs: &[TrackObs], start_deg: &[f64], camera: &TrackC
         let one = |i: usize, x: &Vector3<f64>| residual(l, i, x, deg[obs[i].view as usize]).map_or(p.huber * p.huber, |(r, _, _)| r.iter().map(|&v| huber_cost(v)).sum());
         tracks.iter().zip(points).map(|(ids, x)| ids.iter().map(|&i| one(i, x)).sum::<f64>()).sum()
     };
-    // The unknowns besides the points: the line's four numbers (`Line::moved`), then the
-    // angles other than the first view's; `slot[v]` is view v's.
-    const LINE: usize = 4;
+    // The unknowns besides the points: the line's four numbers (`Line::moved`) unless it is
+    // held, then the free views' angles; `slot[v]` is view v's.
+    let line_cols = if hold_axis { 0 } else { 4 };
     let slot: Vec<Option<usize>> = {
-        let mut next = LINE;
-        (0..views).map(|v| (v != first_view && per_view[v] > 0).then(|| { next += 1; next - 1 })).collect()
+        let mut next = line_cols;
+        (0..views).map(|v| (free(v) && per_view[v] > 0).then(|| { next += 1; next - 1 })).collect()
     };
-    let n = LINE + slot.iter().flatten().count();
-    let line_steps = [1e-6, 1e-6, 1e-4, 1e-4];
+    let n = line_cols + slot.iter().flatten().count();
+    let line_steps = &[1e-6, 1e-6, 1e-4, 1e-4][..line_cols];
     let mut line = Line::new(axis.0, dir);
     let mut deg = start_deg.to_vec();
     let mut lambda = 1e-3;
     let mut rounds = 0;
     let mut current = cost(&line, &deg, &points);
-    while rounds < MAX_ROUNDS {
+    while rounds < MAX_ROUNDS && n > 0 {
         rounds += 1;
         // The normal equations, each track's point eliminated (its Schur complement).
         let (mut s, mut rhs) = (DMatrix::<f64>::zeros(n, n), DVector::<f64>::zeros(n));
@@ -130,7 +134,7 @@ pub fn fit_angles_to_tracks(obs: &[TrackObs], start_deg: &[f64], camera: &TrackC
                 u += jx.transpose() * w * jx;
                 gx += jx.transpose() * w * r;
                 // This observation's columns: the line's (numerical), and its view's angle.
-                let mut cols: Vec<(usize, Vector3<f64>)> = Vec::with_capacity(LINE + 1);
+                let mut cols: Vec<(usize, Vector3<f64>)> = Vec::with_capacity(line_cols + 1);
                 for (k, &st) in line_steps.iter().enumerate() {
                     let mut e = Vector4::zeros();
                     e[k] = st;
@@ -177,7 +181,7 @@ pub fn fit_angles_to_tracks(obs: &[TrackObs], start_deg: &[f64], camera: &TrackC
                 damped[(k, k)] += damped[(k, k)].abs() * lambda + 1e-12;
             }
             let Some(dm) = damped.lu().solve(&(-&rhs)) else { break };
-            let new_line = line.moved_line(&Vector4::new(dm[0], dm[1], dm[2], dm[3]));
+            let new_line = if hold_axis { line } else { line.moved_line(&Vector4::new(dm[0], dm[1], dm[2], dm[3])) };
             let mut new_deg = deg.clone();
             for (v, k) in slot.iter().enumerate() {
                 if let Some(k) = k {
@@ -192,7 +196,7 @@ pub fn fit_angles_to_tracks(obs: &[TrackObs], start_deg: &[f64], camera: &TrackC
                 .collect();
             let new_cost = cost(&new_line, &new_deg, &new_points);
             if new_cost < current {
-                let step = dm.rows(LINE, n - LINE).amax();
+                let step = dm.rows(line_cols, n - line_cols).amax();
                 (line, deg, points, current) = (new_line, new_deg, new_points, new_cost);
                 lambda = (lambda / 3.0).max(1e-9);
                 moved = Some(step);
@@ -238,7 +242,7 @@ mod tests {
     /// Points on a 40 mm ball about a tilted axis 450 mm away, seen over 30 views turning by
     /// uneven steps, with noise on the places: started from angles 8 % short (as ICP's chain
     /// under-turns a smooth object) about an axis 1° off, the fit comes back to the true turn
-    /// and axis.
+    /// and axis; with most angles and the axis known, the missing angles come back.
     #[test]
     fn the_angles_come_back_from_tracks_started_short() {
         let cam = camera();
@@ -249,7 +253,7 @@ mod tests {
         // The axis started 1° and 3 mm off.
         let tilt = nalgebra::UnitQuaternion::from_scaled_axis(Vector3::new(1.0f64.to_radians(), 0.0, 0.0));
         let off_axis = (axis.0 + Vector3::new(3.0, 0.0, 0.0), tilt * axis.1);
-        let fit = fit_angles_to_tracks(&obs, &start, &cam, off_axis, &BundleParams::default()).unwrap();
+        let fit = fit_angles_to_tracks(&obs, &start, &[], &cam, off_axis, false, &BundleParams::default()).unwrap();
         let err = fit.axis.1.angle(&axis.1).to_degrees();
         let miss = (fit.axis.0 - axis.0 - axis.1 * axis.1.dot(&(fit.axis.0 - axis.0))).norm();
         assert!(err < 0.05 && miss < 0.3, "axis {err:.4}° and {miss:.3} mm off");
@@ -262,9 +266,18 @@ mod tests {
         off.sort_by(f64::total_cmp);
         assert!(off[off.len() / 2] < 0.015, "median {:.4}°", off[off.len() / 2]);
         assert!(fit.figures.rms_px < 0.1 && fit.figures.worst_view_px < 0.1, "{:?}", fit.figures);
+        // Most angles known (held) and the axis too: the three missing ones, started 1° off,
+        // come back.
+        let held: Vec<bool> = (0..truth.len()).map(|v| ![10, 11, 20].contains(&v)).collect();
+        let near: Vec<f64> = truth.iter().zip(&held).map(|(d, h)| if *h { *d } else { d + 1.0 }).collect();
+        let missing = fit_angles_to_tracks(&obs, &near, &held, &cam, axis, true, &BundleParams::default()).unwrap();
+        for v in [10, 11, 20] {
+            assert!((missing.deg[v] - truth[v]).abs() < 0.05, "view {v}: {:.4}° against {:.4}°", missing.deg[v], truth[v]);
+        }
+        assert!(missing.deg.iter().zip(&near).zip(&held).all(|((a, b), h)| !h || a == b) && missing.axis.1 == axis.1, "held angles or axis moved");
         // A view the tracks hardly see: a clear error, not a guess.
         let sparse: Vec<TrackObs> = obs.iter().filter(|o| o.view != 12 || o.track < 3).copied().collect();
-        let err = fit_angles_to_tracks(&sparse, &start, &cam, off_axis, &BundleParams::default()).unwrap_err().to_string();
+        let err = fit_angles_to_tracks(&sparse, &start, &[], &cam, off_axis, false, &BundleParams::default()).unwrap_err().to_string();
         assert!(err.contains("view 12") && err.contains("at least 10"), "{err}");
     }
 }

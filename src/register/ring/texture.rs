@@ -141,7 +141,7 @@ impl Registrar {
             chained.push(chained[k - 1] - step.rotation.scaled_axis().dot(&start.1).to_degrees());
         }
         let Some(tracker) = self.texture.tracker.as_ref() else { return };
-        let fitted = match fit_angles_to_tracks(tracker.observations(), &chained, tracker.camera(), start, &self.params.bundle) {
+        let fitted = match fit_angles_to_tracks(tracker.observations(), &chained, &[], tracker.camera(), start, false, &self.params.bundle) {
             Ok(f) => f,
             Err(e) => {
                 self.no_tracked_turn(e.to_string());
@@ -193,6 +193,18 @@ impl Registrar {
             self.refined = Some(AxisFit { point: axis.0, dir: axis.1, sigma_dir_deg: f64::NAN, sigma_point_mm: f64::NAN, rms_mm: f64::NAN, pairs: 0, correspondences: 0, tracks: Some(f) });
         }
         self.texture.turn = Some(turn);
+    }
+
+    /// In a scan with the table's angles, the angles of the views whose reading is missing
+    /// (`held[k]` false), fitted to the tracks about the turntable's `axis`, the others held
+    /// at `start` (one per pose, the turn since the first view). None when the tracks do not
+    /// cover every view, cannot fix a missing one (too few observations in it) or do not
+    /// follow the turn as they must follow a table's angles.
+    pub(super) fn missing_angles_from_texture(&self, start: &[f64], held: &[bool], axis: (Vector3<f64>, Vector3<f64>)) -> Option<Vec<f64>> {
+        let tracker = self.texture.tracker.as_ref().filter(|t| t.table_deg().len() == self.poses.len())?;
+        let fit = fit_angles_to_tracks(tracker.observations(), start, held, tracker.camera(), axis, true, &self.params.bundle).map_err(|e| tracing::info!("texture tracks: no angles for the views without one ({e})")).ok()?;
+        let f = fit.figures;
+        (f.rms_px <= super::turntable::TRACKS_FOLLOW_TABLE_PX && f.worst_view_px <= super::turntable::TRACKS_VIEW_FOLLOWS_TABLE_PX).then_some(fit.deg)
     }
 
     /// A scan without the table's angles whose turn the tracks could not give: says why.

@@ -150,19 +150,26 @@ impl Registrar {
             // view with one by the registered motion between them, about the axis: left as
             // registered, it kept the chain's wander (3.3° off, mid-scan, on the independent
             // renderer's recording with three angles removed).
+            // Then the texture tracks, which went on through such a view, fit its angle.
             let registered: Vec<Isometry3<f64>> = self.poses.iter().map(|p| p.first_from_view).collect();
             let known: Vec<usize> = (0..predicted.len()).filter(|&k| predicted[k].is_some()).collect();
-            for k in 0..self.poses.len() {
-                let pose = match predicted[k] {
-                    Some(pred) => pred,
-                    None => {
-                        let Some(&j) = known.iter().min_by_key(|&&j| j.abs_diff(k)) else { continue };
+            let mut turn: Vec<Option<f64>> = self.poses.iter().map(|p| p.table_deg.map(|d| d - first_deg)).collect();
+            for k in 0..turn.len() {
+                if turn[k].is_none() {
+                    if let Some(&j) = known.iter().min_by_key(|&&j| j.abs_diff(k)) {
                         let rel = registered[j].inverse() * registered[k];
-                        let deg = self.poses[j].table_deg.map_or(0.0, |d| d - first_deg) - rel.rotation.scaled_axis().dot(&axis.1).to_degrees();
-                        rotation_about_axis(&axis.0, &axis.1, -deg)
+                        turn[k] = Some(self.poses[j].table_deg.map_or(0.0, |d| d - first_deg) - rel.rotation.scaled_axis().dot(&axis.1).to_degrees());
                     }
-                };
-                self.poses[k].first_from_view = pose;
+                }
+            }
+            let held: Vec<bool> = predicted.iter().map(Option::is_some).collect();
+            let start: Vec<f64> = turn.iter().map(|t| t.unwrap_or(f64::NAN)).collect();
+            let tracked = if held.iter().all(|h| *h) { None } else { self.missing_angles_from_texture(&start, &held, axis) };
+            for (k, t) in turn.iter().enumerate() {
+                let deg = tracked.as_ref().map_or(*t, |d| Some(d[k]));
+                if let Some(deg) = deg {
+                    self.poses[k].first_from_view = rotation_about_axis(&axis.0, &axis.1, -deg);
+                }
             }
         } else if self.params.turntable_poses {
             tracing::warn!("{}; keeping the registered poses", kept_because.as_deref().unwrap_or_default());
