@@ -83,7 +83,10 @@
 //! is tracked; and at the end the tracks give each view's angle and the axis, fitted
 //! together from the chain's turn. When the tracks follow that turn as closely as they must
 //! follow a table's angles (above), the poses become those turns — and a whole turn, which
-//! the under-turning chain never reached, can close its loop.
+//! the under-turning chain never reached, can close its loop. In a scan with angles, a view
+//! whose reading is missing is tracked through (its angle NaN to the axis's fits) and, when
+//! the turntable's poses apply, gets its angle from the tracks with the others held, or
+//! else its nearest neighbour's plus the registered motion between them.
 
 use std::time::Instant;
 
