@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use nalgebra::Vector3;
 
+use super::turntable::{tracks_follow_turn, tracks_stray};
 use super::Registrar;
 use crate::register::angles::fit_angles_to_tracks;
 use crate::register::bundle::fit_axis_to_tracks;
@@ -113,11 +114,10 @@ impl Registrar {
 
     /// For a scan without the table's angles (none of its views has one): fits every view's
     /// angle about the turntable's axis, and the axis, to the texture tracks, from the
-    /// chain's turn about the axis estimated from its poses.
-    /// When the tracks follow the fitted turn as closely as they must follow a table's
-    /// angles for the turntable's poses to be used (`TRACKS_FOLLOW_TABLE_PX`,
-    /// `TRACKS_VIEW_FOLLOWS_TABLE_PX`), the poses become those turns: texture moves with the
-    /// object, while ICP's chain under-turns a smooth one (module `register::angles`).
+    /// chain's turn about the axis estimated from its poses. When the tracks follow the
+    /// fitted turn as closely as they must follow a table's angles for the turntable's poses
+    /// to be used (`tracks_follow_turn`), the poses become those turns: texture moves with
+    /// the object, while ICP's chain under-turns a smooth one (module `register::angles`).
     pub(super) fn fit_turn_to_texture(&mut self) {
         if self.poses.len() < 3 || self.poses.iter().any(|p| p.table_deg.is_some()) || self.params.calibrated_axis.is_some() {
             return;
@@ -150,16 +150,8 @@ impl Registrar {
         };
         let axis = fitted.axis;
         let f = fitted.figures;
-        let follows = f.rms_px <= super::turntable::TRACKS_FOLLOW_TABLE_PX && f.worst_view_px <= super::turntable::TRACKS_VIEW_FOLLOWS_TABLE_PX;
-        let kept_because = (!follows).then(|| {
-            format!(
-                "the texture tracks do not follow one turn about one axis closely enough (RMS {:.2} px, worst view's median {:.2} px; at most {} and {} px): the object may have moved on the table",
-                f.rms_px,
-                f.worst_view_px,
-                super::turntable::TRACKS_FOLLOW_TABLE_PX,
-                super::turntable::TRACKS_VIEW_FOLLOWS_TABLE_PX
-            )
-        });
+        let follows = tracks_follow_turn(&f);
+        let kept_because = (!follows).then(|| tracks_stray(&f));
         let last = self.poses.len() - 1;
         let turn = TrackedTurn {
             figures: f,
@@ -203,8 +195,7 @@ impl Registrar {
     pub(super) fn missing_angles_from_texture(&self, start: &[f64], held: &[bool], axis: (Vector3<f64>, Vector3<f64>)) -> Option<Vec<f64>> {
         let tracker = self.texture.tracker.as_ref().filter(|t| t.table_deg().len() == self.poses.len())?;
         let fit = fit_angles_to_tracks(tracker.observations(), start, held, tracker.camera(), axis, true, &self.params.bundle).map_err(|e| tracing::info!("texture tracks: no angles for the views without one ({e})")).ok()?;
-        let f = fit.figures;
-        (f.rms_px <= super::turntable::TRACKS_FOLLOW_TABLE_PX && f.worst_view_px <= super::turntable::TRACKS_VIEW_FOLLOWS_TABLE_PX).then_some(fit.deg)
+        tracks_follow_turn(&fit.figures).then_some(fit.deg)
     }
 
     /// A scan without the table's angles whose turn the tracks could not give: says why.

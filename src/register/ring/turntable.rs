@@ -5,7 +5,7 @@
 use nalgebra::{Isometry3, Vector3};
 
 use super::{Registrar, TurntableFit, MAX_KEPT};
-use crate::register::refine::{AxisFit, RefineSet, RefineView};
+use crate::register::refine::{AxisFit, RefineSet, RefineView, TrackFigures};
 use crate::register::{rotation_about_axis, subsample_indices};
 
 impl Registrar {
@@ -141,34 +141,34 @@ impl Registrar {
             // Texture tracks that follow the table's angles about their axis to a fraction of
             // a pixel have seen the object turn by those angles, whatever ICP made of its
             // steps (a ball's, a smooth blob's).
-            let texture_follows_table = refined.as_ref().and_then(|f| f.tracks).is_some_and(|t| t.rms_px <= TRACKS_FOLLOW_TABLE_PX && t.worst_view_px <= TRACKS_VIEW_FOLLOWS_TABLE_PX && t.views_unconfirmed == 0);
+            let texture_follows_table = refined.as_ref().and_then(|f| f.tracks).is_some_and(|t| tracks_follow_turn(&t));
             steps_disagree(&devs, (worst_seq, max), self.params.max_turntable_deviation_deg, scores_of(source, self.refine_scores), texture_follows_table)
         };
         let applied = kept_because.is_none();
         if applied {
-            // A view without an angle (a reading the turntable missed) turns from its nearest
-            // view with one by the registered motion between them, about the axis: left as
-            // registered, it kept the chain's wander (3.3° off, mid-scan, on the independent
-            // renderer's recording with three angles removed).
-            // Then the texture tracks, which went on through such a view, fit its angle.
-            let registered: Vec<Isometry3<f64>> = self.poses.iter().map(|p| p.first_from_view).collect();
-            let known: Vec<usize> = (0..predicted.len()).filter(|&k| predicted[k].is_some()).collect();
             let mut turn: Vec<Option<f64>> = self.poses.iter().map(|p| p.table_deg.map(|d| d - first_deg)).collect();
-            for k in 0..turn.len() {
-                if turn[k].is_none() {
+            let held: Vec<bool> = turn.iter().map(Option::is_some).collect();
+            if !held.iter().all(|h| *h) {
+                // A view without an angle (a reading the turntable missed) turns from its
+                // nearest view with one by the registered motion between them, about the axis:
+                // left as registered, it kept the chain's wander (3.3° off, mid-scan, on the
+                // independent renderer's recording with three angles removed). Then the
+                // texture tracks, which went on through such a view, fit its angle.
+                let known: Vec<usize> = (0..held.len()).filter(|&k| held[k]).collect();
+                for k in (0..turn.len()).filter(|&k| !held[k]) {
                     if let Some(&j) = known.iter().min_by_key(|&&j| j.abs_diff(k)) {
-                        let rel = registered[j].inverse() * registered[k];
-                        turn[k] = Some(self.poses[j].table_deg.map_or(0.0, |d| d - first_deg) - rel.rotation.scaled_axis().dot(&axis.1).to_degrees());
+                        let rel = self.poses[j].first_from_view.inverse() * self.poses[k].first_from_view;
+                        turn[k] = turn[j].map(|t| t - rel.rotation.scaled_axis().dot(&axis.1).to_degrees());
                     }
                 }
+                let start: Vec<f64> = turn.iter().map(|t| t.unwrap_or(f64::NAN)).collect();
+                if let Some(fitted) = self.missing_angles_from_texture(&start, &held, axis) {
+                    turn = fitted.into_iter().map(Some).collect();
+                }
             }
-            let held: Vec<bool> = predicted.iter().map(Option::is_some).collect();
-            let start: Vec<f64> = turn.iter().map(|t| t.unwrap_or(f64::NAN)).collect();
-            let tracked = if held.iter().all(|h| *h) { None } else { self.missing_angles_from_texture(&start, &held, axis) };
-            for (k, t) in turn.iter().enumerate() {
-                let deg = tracked.as_ref().map_or(*t, |d| Some(d[k]));
-                if let Some(deg) = deg {
-                    self.poses[k].first_from_view = rotation_about_axis(&axis.0, &axis.1, -deg);
+            for (p, t) in self.poses.iter_mut().zip(&turn) {
+                if let Some(deg) = t {
+                    p.first_from_view = rotation_about_axis(&axis.0, &axis.1, -deg);
                 }
             }
         } else if self.params.turntable_poses {
@@ -183,10 +183,26 @@ impl Registrar {
 /// their fit shows that the object turned by the table's angles: the tracked places' own
 /// noise is ≈ 0.05–0.1 px on the simulated rigs; table angles on a wrong scale or an object
 /// that moved leave residuals of pixels.
-pub(super) const TRACKS_FOLLOW_TABLE_PX: f64 = 0.5;
+const TRACKS_FOLLOW_TABLE_PX: f64 = 0.5;
 /// The bound on the worst view's median residual: 0.06–0.07 px on the simulated rings, 0.5 px
 /// for an object that moved 2° on the table 40 mm from the axis (`register::bundle`'s test).
-pub(super) const TRACKS_VIEW_FOLLOWS_TABLE_PX: f64 = 0.3;
+const TRACKS_VIEW_FOLLOWS_TABLE_PX: f64 = 0.3;
+
+/// Whether texture tracks follow the turn they were fitted with (the table's angles, or
+/// angles fitted to them) closely enough to show that the object turned so: both bounds
+/// above, and every view after the first confirmed.
+pub(super) fn tracks_follow_turn(t: &TrackFigures) -> bool {
+    t.rms_px <= TRACKS_FOLLOW_TABLE_PX && t.worst_view_px <= TRACKS_VIEW_FOLLOWS_TABLE_PX && t.views_unconfirmed == 0
+}
+
+/// Why texture tracks fitted with angles of their own (every view confirmed) do not follow
+/// that turn ([`tracks_follow_turn`]).
+pub(super) fn tracks_stray(t: &TrackFigures) -> String {
+    format!(
+        "the texture tracks do not follow one turn about one axis closely enough (RMS {:.2} px, worst view's median {:.2} px; at most {TRACKS_FOLLOW_TABLE_PX} and {TRACKS_VIEW_FOLLOWS_TABLE_PX} px): the object may have moved on the table",
+        t.rms_px, t.worst_view_px
+    )
+}
 
 /// How much closer, as a share, the registered poses must put the views onto each other than
 /// the turntable's poses (`RefineSet::score`) to be kept over them where the score decides.
