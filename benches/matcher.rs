@@ -1,6 +1,8 @@
 //! `cargo bench --bench matcher [-- FILTER]`: times the matcher (full range and narrow
 //! intervals, per pixel and per tile; both methods, `bm` and `sgm`, each with its defaults)
-//! on the Middlebury pairs in `../shared/data` when present, and on a simulated pair always.
+//! on the Middlebury pairs in `../shared/data` when present, and on a simulated pair always;
+//! then the segmentation of the simulated pair (`-- segment`: its blue screen, and the same
+//! frame in grey, keyed as a plain backdrop).
 //! Prints min and median milliseconds per case over repeated runs (15, or `RUNS=N` in the
 //! environment: more for a profiler); `-- sgm` runs the semi-global cases alone.
 //!
@@ -104,9 +106,26 @@ fn run(m: &mut StereoMatcher, (lv, rv): (GrayView, GrayView), iv: &DisparityInte
     println!("{name:<34} {min:>9.2} {med:>9.2} {:>10.1}", stats.mean_search_px());
 }
 
+/// Times the segmentation of a simulated frame: the chroma key on its blue screen, and the
+/// plain backdrop's texture key on the same frame in grey (no coloured screen to find).
+fn segmentation(filter: Option<&str>) {
+    let scene = hw_sim::SceneConfig::ideal(hw_sim::Mesh::builtin("egg", 100_000).unwrap());
+    let pair = hw_sim::Renderer::new(scene).unwrap().render(30.0, 0);
+    let grey: Vec<u8> = spinscan::io::rgb_to_gray(&pair.left_rgb).iter().flat_map(|&v| [v; 3]).collect();
+    let key = spinscan::segment::ChromaKey::default();
+    for (name, rgb) in [("segment blue screen", &pair.left_rgb), ("segment grey backdrop", &grey)] {
+        if filter.is_some_and(|f| !name.contains(f)) {
+            continue;
+        }
+        let (min, med) = time(std::env::var("RUNS").ok().and_then(|s| s.parse().ok()).unwrap_or(15), || drop(key.segment(rgb, pair.width, pair.height, None).unwrap()));
+        println!("{name:<34} {min:>9.2} {med:>9.2}");
+    }
+}
+
 fn main() {
     let filter: Option<String> = std::env::args().skip(1).find(|a| !a.starts_with('-'));
     println!("{:<34} {:>9} {:>9} {:>10}", "case", "min ms", "median ms", "search px");
+    segmentation(filter.as_deref());
     for case in cases() {
         for (method, threads) in [(Method::Bm, 1), (Method::Bm, 2), (Method::Sgm, 1), (Method::Sgm, 2)] {
             let params = MatchParams { num_disparities: case.num_disparities, threads, ..MatchParams::for_method(method) }.validate().unwrap();

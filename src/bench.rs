@@ -267,6 +267,9 @@ pub struct Table1 {
     /// Frames (seq) whose border showed no coloured screen, keyed by the default colour
     /// (`segment::KeySource::NotFound`).
     pub screen_not_found: Vec<u64>,
+    /// Frames (seq) whose border showed no coloured screen but a plain backdrop, keyed by its
+    /// lack of texture (`segment::KeySource::Backdrop`), with the texture threshold.
+    pub backdrop_keyed: Vec<(u64, f32)>,
     /// Frames (seq) whose mask keeps at least `segment::EDGE_WARN_SHARE` of the image's edge
     /// as object, with that share.
     pub object_on_edge: Vec<(u64, f32)>,
@@ -307,12 +310,14 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
 
     // Prepare every frame once: every row matches the same images and masks.
     let mut frames: Vec<(u64, Option<f64>, Prepared)> = Vec::with_capacity(n);
-    let (mut screen_not_found, mut object_on_edge) = (Vec::new(), Vec::new());
+    let (mut screen_not_found, mut backdrop_keyed, mut object_on_edge) = (Vec::new(), Vec::new(), Vec::new());
     for i in 0..n {
         let f = rec.load_frame(i).map_err(|e| BenchError::Recording(e.to_string()))?;
         let p = pipes[0].prepare_frame(&f, true, plate.as_ref()).map_err(|e| BenchError::Recording(format!("frame seq {}: {e}", f.seq)))?;
-        if p.key.is_some_and(|k| k.source == KeySource::NotFound) {
-            screen_not_found.push(f.seq);
+        match p.key.map(|k| k.source) {
+            Some(KeySource::NotFound) => screen_not_found.push(f.seq),
+            Some(KeySource::Backdrop { threshold, .. }) => backdrop_keyed.push((f.seq, threshold)),
+            _ => {}
         }
         let edge = p.mask.as_deref().map_or(0.0, |m| segment::edge_share(m, size.0, size.1));
         if edge >= segment::EDGE_WARN_SHARE {
@@ -455,6 +460,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         floor_ms: floor_ms[0].clone(),
         floor_ms_by_method: matchers.iter().map(|m| m.method).zip(floor_ms).collect(),
         screen_not_found,
+        backdrop_keyed,
         object_on_edge,
         gt_disparity: truth.disparity_source,
     })
@@ -519,6 +525,7 @@ impl Table1 {
             "median_floor_ms": median(&self.floor_ms),
             "floor_ms_by_method": self.floor_ms_by_method.iter().map(|(m, f)| json!({"method": m.name(), "floor_ms": f, "median_floor_ms": median(f)})).collect::<Vec<_>>(),
             "screen_not_found_seqs": self.screen_not_found,
+            "backdrop_keyed_seqs": self.backdrop_keyed.iter().map(|b| b.0).collect::<Vec<_>>(),
             "object_on_edge_seqs": self.object_on_edge.iter().map(|e| e.0).collect::<Vec<_>>(),
             "gt_disparity": self.gt_disparity_source(),
             "fig_tiles": std::iter::once("left".to_string()).chain(self.rows.iter().map(row_label)).collect::<Vec<_>>(),
@@ -601,6 +608,9 @@ impl Table1 {
                 let _ = writeln!(s, "\nbad2: against gt/disparity/ where the recording has it, else disparities rendered from gt/mesh.ply at gt/poses.jsonl's poses");
             }
             _ => {}
+        }
+        if let Some(&(first, threshold)) = self.backdrop_keyed.first() {
+            let _ = writeln!(s, "\nsegmentation: {} of {} frames (the first seq {first}): {}", self.backdrop_keyed.len(), self.frames.len(), crate::segment::plain_backdrop(threshold));
         }
         if let Some(first) = self.screen_not_found.first() {
             let _ = writeln!(s, "\nsegmentation: {} of {} frames (the first seq {first}): {}", self.screen_not_found.len(), self.frames.len(), crate::segment::no_screen());

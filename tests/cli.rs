@@ -279,15 +279,17 @@ fn points_with_auto_mask(dir: &Path, l: &Path, r: &Path) -> std::process::Output
     spinscan(&["points", "--calib", dir.join("calib.yaml").to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--mask", "auto", "--max-disparity", "48", "-o", dir.join("p.ply").to_str().unwrap()])
 }
 
-/// `--mask auto` finds the simulated lab's screen without a word, and says so where grey
-/// images give it no colour to find.
+/// `--mask auto` finds the simulated lab's screen without a word. On the same pair in grey,
+/// with no colour to find, it keys the screen as a plain backdrop, says so, and keeps about
+/// the points the colour key keeps (the default colour's key, before, kept the screen too).
 #[test]
-fn points_on_grey_images_says_no_screen_was_found() {
+fn points_on_grey_images_keys_a_plain_backdrop() {
     let dir = support::temp_dir("cli-grey-screen");
     let (l, r) = sim_pair(&dir);
     let points = |l: &Path, r: &Path| points_with_auto_mask(&dir, l, r);
     let o = points(&l, &r);
     assert!(o.status.success() && !stderr(&o).contains("no coloured screen"), "{}", stderr(&o));
+    let colour = json_line(&o)["points"].as_u64().unwrap();
     let grey = |p: &Path| {
         let img = spinscan::io::load_image(p).unwrap();
         let out = dir.join(format!("grey-{}", p.file_name().unwrap().to_str().unwrap()));
@@ -295,7 +297,10 @@ fn points_on_grey_images_says_no_screen_was_found() {
         out
     };
     let o = points(&grey(&l), &grey(&r));
-    assert!(o.status.success() && stderr(&o).contains("no coloured screen in the border"), "{}", stderr(&o));
+    assert!(o.status.success() && stderr(&o).contains("keyed as a plain backdrop"), "{}", stderr(&o));
+    let got = json_line(&o)["points"].as_u64().unwrap();
+    println!("{got} points in grey, {colour} in colour");
+    assert!(got.abs_diff(colour) * 10 <= colour, "{got} points in grey, {colour} in colour");
 }
 
 /// A grey floor the key leaves, along the bottom of both images, reaches the image's edge:

@@ -197,9 +197,10 @@ fn replays_a_recording_written_by_another_tool() {
     let gt = s.gt.expect("ground truth scored");
     println!("foreign recording: coverage {:.3}, bad2 of matched {:.4}", gt.coverage, gt.bad2_of_matched);
     assert!(gt.coverage >= 0.8 && gt.bad2_of_matched <= 0.05, "{gt:?}");
-    // Grey images have no screen colour to find: each frame says it was keyed by the default.
+    // Grey images have no screen colour to find: each frame says its plain screen was keyed
+    // as a backdrop.
     for f in read_json(&dir.join("out/report.json"))["frames"].as_array().unwrap() {
-        assert_eq!(f["segmentation"]["key"], "default", "{f}");
+        assert_eq!(f["segmentation"]["key"], "backdrop", "{f}");
     }
 }
 
@@ -259,6 +260,38 @@ fn a_screen_of_another_colour_is_keyed_without_being_told() {
         for (g, w) in got.iter().zip(&want) {
             assert!(g.abs_diff(*w) * 50 <= *w, "{name}: {got:?} points against {want:?} on the blue screen");
         }
+    }
+}
+
+/// The same recording from grey cameras: no colour to key, so each frame's plain screen is
+/// keyed as a backdrop by its lack of texture, and the views keep about the points the blue
+/// key keeps. (Keyed by the default colour, before, every frame kept the whole screen.)
+#[test]
+fn grey_frames_key_the_screen_as_a_plain_backdrop() {
+    let dir = support::temp_dir("rec-grey");
+    small_recording(&dir.join("sim"), 2, 0.0);
+    replay(&dir.join("sim"), &dir.join("out-sim")).unwrap();
+    let grey = dir.join("grey");
+    std::fs::create_dir_all(&grey).unwrap();
+    for entry in ["calib.yaml", "frames.jsonl"] {
+        std::fs::copy(dir.join("sim").join(entry), grey.join(entry)).unwrap();
+    }
+    for f in &Recording::open(&dir.join("sim")).unwrap().frames {
+        for side in [&f.left, &f.right] {
+            let img = io::load_image(&dir.join("sim").join(side)).unwrap();
+            std::fs::create_dir_all(grey.join(side).parent().unwrap()).unwrap();
+            io::write_gray_png(&grey.join(side), img.width, img.height, &img.gray).unwrap();
+        }
+    }
+    replay(&grey, &dir.join("out-grey")).unwrap();
+    let frames = |out: &str| read_json(&dir.join(out).join("report.json"))["frames"].as_array().unwrap().clone();
+    let (want, got) = (frames("out-sim"), frames("out-grey"));
+    for (w, g) in want.iter().zip(&got) {
+        assert_eq!(g["segmentation"]["key"], "backdrop", "{g}");
+        assert_eq!(g["segmentation"]["edge_object_share"], 0.0, "{g}");
+        let (w, g) = (w["points"].as_u64().unwrap(), g["points"].as_u64().unwrap());
+        println!("{g} points in grey against {w} in colour");
+        assert!(g.abs_diff(w) * 20 <= w, "{g} points in grey against {w} in colour");
     }
 }
 

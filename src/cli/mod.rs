@@ -240,8 +240,9 @@ pub struct RectArgs {
 #[derive(Args, Clone)]
 pub struct KeyColourArgs {
     /// Background colour to key out: `auto` (found in each frame: the most common blue or green
-    /// of the left image's border, where the screen shows; 40,70,190 where the border shows no
-    /// coloured screen) or R,G,B (0…255 each).
+    /// of the left image's border, where the screen shows; where it shows no coloured screen,
+    /// a plain backdrop keyed by its lack of texture — grey cameras, a white, grey or black
+    /// backdrop; 40,70,190 where the border shows neither) or R,G,B (0…255 each).
     #[arg(long, default_value = "auto")]
     pub key_color: KeyColour,
     /// Largest chromaticity distance from the key colour still counted as background (0…1).

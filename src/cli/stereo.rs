@@ -216,8 +216,10 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
         }
     }
     .map_err(input)?;
-    if view.key.is_some_and(|k| k.source == spinscan::segment::KeySource::NotFound) {
-        eprintln!("points: warning: {}; give the screen's colour (--key-color R,G,B) or a background plate (--plate)", spinscan::segment::no_screen());
+    match view.key.map(|k| k.source) {
+        Some(spinscan::segment::KeySource::NotFound) => eprintln!("points: warning: {}; give the screen's colour (--key-color R,G,B) or a background plate (--plate)", spinscan::segment::no_screen()),
+        Some(spinscan::segment::KeySource::Backdrop { threshold, .. }) => eprintln!("points: note: {}", spinscan::segment::plain_backdrop(threshold)),
+        _ => {}
     }
     if let (Some(_), Some(mask)) = (view.key, &view.mask) {
         let edge = spinscan::segment::edge_share(mask, view.disparity.width, view.disparity.height);

@@ -23,7 +23,7 @@ use crate::register::ring::{LoopClosure, Registrar};
 use crate::register::surface::{quantile, Surface};
 use crate::register::tracks::TrackImage;
 use crate::register::voxel::VoxelModel;
-use crate::segment::{edge_share, no_screen, object_on_edge, KeySource, KeyUsed, EDGE_WARN_SHARE};
+use crate::segment::{edge_share, no_screen, object_on_edge, plain_backdrop, KeySource, KeyUsed, EDGE_WARN_SHARE};
 use crate::stereo::DisparityMap;
 
 /// Share of a view's searched pixels dropped at an end of the disparity range from which a
@@ -118,17 +118,20 @@ pub fn score_against_gt(disp: &DisparityMap, gt: &DisparityMap) -> GtScore {
     }
 }
 
-/// A frame's `segmentation` entry in `report.json`: which key colour it was keyed by
-/// (`given`, `found` in the frame's border, or the `default` where none was found), its
-/// chromaticity, the share of the border it keyed out where it was found, and the share of
-/// the image's edge the mask kept as object (`segment::edge_share`).
+/// A frame's `segmentation` entry in `report.json`: which key it was keyed by (the colour
+/// `given`, one `found` in the frame's border, a plain `backdrop` keyed by texture where no
+/// coloured screen was found, or the `default` colour where neither was), its chromaticity,
+/// the share of the border it keyed out where it was found, the texture threshold of a
+/// backdrop, and the share of the image's edge the mask kept as object
+/// (`segment::edge_share`).
 fn segmentation_entry(k: &KeyUsed, edge: f32) -> Value {
-    let (key, share) = match k.source {
-        KeySource::Given => ("given", None),
-        KeySource::Found { border_share } => ("found", Some(border_share)),
-        KeySource::NotFound => ("default", None),
+    let (key, share, threshold) = match k.source {
+        KeySource::Given => ("given", None, None),
+        KeySource::Found { border_share } => ("found", Some(border_share), None),
+        KeySource::Backdrop { border_share, threshold } => ("backdrop", Some(border_share), Some(threshold)),
+        KeySource::NotFound => ("default", None, None),
     };
-    json!({"key": key, "chromaticity": [k.chroma.0, k.chroma.1], "border_share": share, "edge_object_share": edge})
+    json!({"key": key, "chromaticity": [k.chroma.0, k.chroma.1], "border_share": share, "texture_threshold": threshold, "edge_object_share": edge})
 }
 
 /// `report.json`'s `matching`: the matcher and search the results were made with, so that a
@@ -271,16 +274,19 @@ impl ResultsWriter {
 
     /// Adds a frame's entry and rewrites the manifest (still `running`).
     pub fn push_frame(&mut self, entry: Value) -> Result<(), ResultsError> {
-        if entry["segmentation"]["key"] == json!("default") && !self.frames.iter().any(|f| f["segmentation"]["key"] == json!("default")) {
+        // Each condition is logged on the first frame that meets it.
+        let first = |test: &dyn Fn(&Value) -> bool| test(&entry) && !self.frames.iter().any(test);
+        let share = |key: &str| entry["segmentation"][key].as_f64().unwrap_or(0.0) as f32;
+        if first(&|f| f["segmentation"]["key"] == json!("default")) {
             tracing::warn!("frame seq {}: {}; give the screen's colour (`--key-color R,G,B`, the daemon's `[matching] key_color`) or a background plate (`--plate`), or turn segmentation off", entry["seq"], no_screen());
         }
-        let on_edge = |f: &Value| f["segmentation"]["edge_object_share"].as_f64().is_some_and(|s| s >= EDGE_WARN_SHARE as f64);
-        if on_edge(&entry) && !self.frames.iter().any(on_edge) {
-            let share = entry["segmentation"]["edge_object_share"].as_f64().unwrap_or(0.0) as f32;
-            tracing::warn!("frame seq {}: {}; cover it in the screen's colour, or give a background plate (`--plate`, the daemon's `[matching] plate`)", entry["seq"], object_on_edge(share));
+        if first(&|f| f["segmentation"]["key"] == json!("backdrop")) {
+            tracing::info!("frame seq {}: {}", entry["seq"], plain_backdrop(share("texture_threshold")));
         }
-        let at_range_end = |f: &Value| f["range_edge_share"].as_f64().is_some_and(|s| s >= RANGE_EDGE_WARN_SHARE);
-        if at_range_end(&entry) && !self.frames.iter().any(at_range_end) {
+        if first(&|f| f["segmentation"]["edge_object_share"].as_f64().is_some_and(|s| s >= EDGE_WARN_SHARE as f64)) {
+            tracing::warn!("frame seq {}: {}; cover it in the screen's colour, or give a background plate (`--plate`, the daemon's `[matching] plate`)", entry["seq"], object_on_edge(share("edge_object_share")));
+        }
+        if first(&|f| f["range_edge_share"].as_f64().is_some_and(|s| s >= RANGE_EDGE_WARN_SHARE)) {
             tracing::warn!(
                 "frame seq {}: {} of the object's pixels ({:.1} % of those searched) found their best match at an end of the disparity range and were dropped: the object comes closer (or lies farther) than the range covers; widen it (`--num-disparities`, `--min-disparity`; the daemon's `[matching] num_disparities`)",
                 entry["seq"],
@@ -288,8 +294,7 @@ impl ResultsWriter {
                 100.0 * entry["range_edge_share"].as_f64().unwrap_or(0.0)
             );
         }
-        let few_matched = |f: &Value| f.get("segmentation").is_some() && f["valid_fraction"].as_f64().is_some_and(|v| v < FEW_MATCHED_WARN_SHARE);
-        if few_matched(&entry) && !self.frames.iter().any(few_matched) {
+        if first(&|f| f.get("segmentation").is_some() && f["valid_fraction"].as_f64().is_some_and(|v| v < FEW_MATCHED_WARN_SHARE)) {
             tracing::warn!(
                 "frame seq {}: only {:.1} % of the object's {} pixels searched got a disparity: the object may lie outside the disparity range (widen it: `--num-disparities`, `--min-disparity`; the daemon's `[matching] num_disparities`), or show too little texture for stereo matching (a plain, dark or shiny surface)",
                 entry["seq"],

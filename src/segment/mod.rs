@@ -10,8 +10,12 @@
 //! The screen's colour is found in each frame by default ([`KeyColour::Auto`]): the most
 //! common chromaticity of the image's border, where a turntable scene shows the screen, so
 //! that a lab's own blue (or green) screen is keyed without being measured first. Where the
-//! border shows no coloured screen (grey frames, an object filling the view) the default key
-//! colour is used, and [`ChromaKey::key_of`] says so.
+//! border shows no coloured screen — grey cameras, a white, grey or black backdrop — a plain
+//! backdrop is keyed by its lack of texture instead ([`backdrop`]); where the border is not
+//! plain either (an object filling the view, a cluttered room) the default key colour is
+//! used. [`KeyUsed`] says which a frame got.
+
+pub mod backdrop;
 
 /// Which colour the screen is keyed by.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -60,10 +64,16 @@ impl std::str::FromStr for KeyColour {
 /// The simulated lab's screen colour, and the key where [`KeyColour::Auto`] finds no screen.
 pub const DEFAULT_KEY_RGB: [u8; 3] = [40, 70, 190];
 
-/// What a frame whose border showed no coloured screen is segmented by, in words (from
-/// [`AUTO_MIN_SHARE`] and [`DEFAULT_KEY_RGB`]).
+/// What a frame whose border showed neither a coloured screen nor a plain backdrop is
+/// segmented by, in words (from [`AUTO_MIN_SHARE`] and [`DEFAULT_KEY_RGB`]).
 pub fn no_screen() -> String {
-    format!("no coloured screen in the border of the left image (grey frames, or a screen covering less than {:.0} % of the border): keyed by the default colour {}", AUTO_MIN_SHARE * 100.0, KeyColour::Rgb(DEFAULT_KEY_RGB))
+    format!("no coloured screen or plain backdrop in the border of the left image (an object or a textured background over more than {:.0} % of the border): keyed by the default colour {}", (1.0 - AUTO_MIN_SHARE) * 100.0, KeyColour::Rgb(DEFAULT_KEY_RGB))
+}
+
+/// What a frame whose border showed no coloured screen but a plain backdrop is segmented by,
+/// in words, with its texture threshold (grey levels).
+pub fn plain_backdrop(threshold: f32) -> String {
+    format!("no coloured screen in the border of the left image: keyed as a plain backdrop, the untextured regions (standard deviation under {threshold:.1} grey levels over 5 × 5 pixels) that reach the image's edge or cover {:.1} % of it; where a coloured screen is in view, give its colour (`--key-color R,G,B`), or give a background plate (`--plate`) if the views lose plain parts of the object", backdrop::LARGE_SHARE * 100.0)
 }
 
 /// Share of a frame's border pixels that the colour [`KeyColour::Auto`] found must key out
@@ -114,7 +124,12 @@ pub enum KeySource {
     Given,
     /// Found in the frame's border, which it keys out to this share (0…1).
     Found { border_share: f32 },
-    /// [`KeyColour::Auto`] found no coloured screen in the border: [`DEFAULT_KEY_RGB`].
+    /// [`KeyColour::Auto`] found no coloured screen in the border, but a plain backdrop
+    /// over this share (0…1) of it, keyed by texture below `threshold` grey levels
+    /// ([`backdrop`]).
+    Backdrop { border_share: f32, threshold: f32 },
+    /// [`KeyColour::Auto`] found neither a coloured screen nor a plain backdrop in the
+    /// border: [`DEFAULT_KEY_RGB`].
     NotFound,
 }
 
@@ -224,25 +239,13 @@ fn chromaticity(p: &[u8]) -> Option<(f32, f32)> {
     (s > 0.0).then(|| (p[0] as f32 / s, p[1] as f32 / s))
 }
 
-/// The pixels of an RGB image's border — a ring `ring` pixels wide — on a grid of `step`:
-/// how many there are, and the chromaticities of the bright ones.
-fn border_chromaticities(rgb: &[u8], w: usize, h: usize, ring: usize, step: usize, dark_level: u16) -> (usize, Vec<(f32, f32)>) {
-    let (mut all, mut chroma) = (0, Vec::new());
-    for y in (0..h).step_by(step) {
-        let row = &rgb[y * w * 3..(y + 1) * w * 3];
-        let edge_row = y < ring || y + ring >= h;
-        for x in (0..w).step_by(step) {
-            if !(edge_row || x < ring || x + ring >= w) {
-                continue;
-            }
-            all += 1;
-            let px = &row[x * 3..x * 3 + 3];
-            if px[0] as u16 + px[1] as u16 + px[2] as u16 >= dark_level {
-                chroma.extend(chromaticity(px));
-            }
-        }
-    }
-    (all, chroma)
+/// The pixels of an RGB image's border ([`backdrop::border_grid`]): how many there are, and
+/// the chromaticities of the bright ones.
+fn border_chromaticities(rgb: &[u8], w: usize, h: usize, dark_level: u16) -> (usize, Vec<(f32, f32)>) {
+    let at = backdrop::border_grid(w, h);
+    let bright = |px: &&[u8]| px[0] as u16 + px[1] as u16 + px[2] as u16 >= dark_level;
+    let chroma = at.iter().map(|&i| &rgb[3 * i..3 * i + 3]).filter(bright).filter_map(chromaticity).collect();
+    (at.len(), chroma)
 }
 
 /// The screen's chromaticity in an RGB image, and the share of the border's pixels within
@@ -254,9 +257,8 @@ fn border_chromaticities(rgb: &[u8], w: usize, h: usize, ring: usize, step: usiz
 /// colour. None where no such colour keys out [`AUTO_MIN_SHARE`] of the border.
 fn find_screen(rgb: &[u8], w: usize, h: usize, dark_level: u16, tolerance: f32) -> Option<((f32, f32), f32)> {
     const BINS: usize = 32;
-    let ring = (w.min(h) / 16).max(1);
     // (About 7 000 pixels of a 640 × 480 frame's border: plenty for the histogram.)
-    let (all, chroma) = border_chromaticities(rgb, w, h, ring, (ring / 8).max(1), dark_level);
+    let (all, chroma) = border_chromaticities(rgb, w, h, dark_level);
     let bin = |(r, g): (f32, f32)| ((r * BINS as f32) as usize).min(BINS - 1) * BINS + ((g * BINS as f32) as usize).min(BINS - 1);
     let mut hist = vec![(0u32, 0.0f64, 0.0f64); BINS * BINS];
     for &c in &chroma {
@@ -287,8 +289,9 @@ fn find_screen(rgb: &[u8], w: usize, h: usize, dark_level: u16, tolerance: f32) 
 }
 
 impl ChromaKey {
-    /// The key an interleaved RGB image is segmented with: the colour given, or the one
-    /// [`KeyColour::Auto`] finds in the image's border (else [`DEFAULT_KEY_RGB`]).
+    /// The colour key an interleaved RGB image is segmented with: the colour given, or the
+    /// one [`KeyColour::Auto`] finds in the image's border (else [`KeySource::NotFound`],
+    /// where [`ChromaKey::segment_keyed`] looks for a plain backdrop).
     pub fn key_of(&self, rgb: &[u8], width: usize, height: usize) -> KeyUsed {
         match self.key {
             KeyColour::Rgb(c) => KeyUsed { chroma: chromaticity(&c).unwrap_or((0.0, 0.0)), source: KeySource::Given },
@@ -304,7 +307,8 @@ impl ChromaKey {
         self.segment_keyed(rgb, width, height, plate).map(|(mask, _)| mask)
     }
 
-    /// [`ChromaKey::segment`], with the key it used ([`ChromaKey::key_of`]).
+    /// [`ChromaKey::segment`], with the key it used: [`ChromaKey::key_of`]'s colour, or, where
+    /// [`KeyColour::Auto`] found no coloured screen, a plain backdrop ([`backdrop::key`]).
     pub fn segment_keyed(&self, rgb: &[u8], width: usize, height: usize, plate: Option<&[u8]>) -> Result<(Vec<u8>, KeyUsed), SegmentError> {
         if rgb.len() != width * height * 3 {
             return Err(SegmentError::Buffer(rgb.len(), width * height * 3));
@@ -318,17 +322,27 @@ impl ChromaKey {
                 return Err(SegmentError::PlateSize(n / height.max(1), height, width, height));
             }
         }
-        let used = self.key_of(rgb, width, height);
-        let key = Key { chroma: used.chroma, tol2: self.tolerance * self.tolerance, dark_level: self.dark_level };
-        let mut mask = vec![0u8; width * height];
-        let mut done = 0;
-        #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU has AVX2 (checked just above); `rgb` holds 3 bytes per mask pixel
-            // (checked at the top).
-            done = unsafe { key_avx2(&key, rgb, &mut mask) };
-        }
-        key_portable(&key, &rgb[3 * done..], &mut mask[done..]);
+        let mut used = self.key_of(rgb, width, height);
+        let backdrop = if used.source == KeySource::NotFound { backdrop::key(rgb, width, height) } else { None };
+        let mut mask = match backdrop {
+            Some((mask, b)) => {
+                used = KeyUsed { chroma: b.chroma, source: KeySource::Backdrop { border_share: b.border_share, threshold: b.threshold } };
+                mask
+            }
+            None => {
+                let key = Key { chroma: used.chroma, tol2: self.tolerance * self.tolerance, dark_level: self.dark_level };
+                let mut mask = vec![0u8; width * height];
+                let mut done = 0;
+                #[cfg(target_arch = "x86_64")]
+                if std::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU has AVX2 (checked just above); `rgb` holds 3 bytes per
+                    // mask pixel (checked at the top).
+                    done = unsafe { key_avx2(&key, rgb, &mut mask) };
+                }
+                key_portable(&key, &rgb[3 * done..], &mut mask[done..]);
+                mask
+            }
+        };
         if let Some(p) = plate {
             for ((m, px), pl) in mask.iter_mut().zip(rgb.chunks_exact(3)).zip(p.chunks_exact(3)) {
                 let plated = px.iter().zip(pl).all(|(&a, &b)| a.abs_diff(b) <= self.plate_tolerance);
@@ -492,7 +506,7 @@ mod tests {
 
     #[test]
     fn the_no_screen_message_names_the_share_and_the_colour() {
-        assert_eq!(no_screen(), "no coloured screen in the border of the left image (grey frames, or a screen covering less than 30 % of the border): keyed by the default colour 40,70,190");
+        assert_eq!(no_screen(), "no coloured screen or plain backdrop in the border of the left image (an object or a textured background over more than 70 % of the border): keyed by the default colour 40,70,190");
     }
 
     #[test]
@@ -539,7 +553,8 @@ mod tests {
                 img[(y * w + x) * 3..(y * w + x) * 3 + 3].copy_from_slice(&[120, 100, 90]);
             }
         }
-        let key = ChromaKey { open_radius: 0, close_radius: 0, ..Default::default() };
+        // The blue screen's key given (`auto` would key this plain black as a backdrop).
+        let key = ChromaKey { key: KeyColour::Rgb(DEFAULT_KEY_RGB), open_radius: 0, close_radius: 0, ..Default::default() };
         let without = key.segment(&img, w, h, None).unwrap();
         assert_eq!(without[0], 255, "too dark to key by colour");
         let with = key.segment(&img, w, h, Some(&plate)).unwrap();
