@@ -295,6 +295,41 @@ fn grey_frames_key_the_screen_as_a_plain_backdrop() {
     }
 }
 
+/// A range short of the object (the first 32 disparities; the egg lies beyond them): given
+/// leave to (`fit_range`, the CLI's default where no range is given), the first frame's probe
+/// widens it to hold the object, and the views come out as over a range that holds it, which
+/// the probe leaves as it is. Without leave, the matches at the range's end are dropped.
+#[test]
+fn a_range_short_of_the_object_is_widened_to_hold_it() {
+    let dir = support::temp_dir("rec-range");
+    small_recording(&dir.join("sim"), 2, 0.0);
+    let run = |n: u32, fit: bool, out: &str| {
+        let mut opts = replay_opts();
+        opts.pipeline.matching.num_disparities = n;
+        opts.fit_range = fit;
+        replay::run_recording(Recording::open(&dir.join("sim")).unwrap(), &dir.join(out), &opts, &mut |_, _, _| {}).unwrap();
+        read_json(&dir.join(out).join("report.json"))
+    };
+    let points = |r: &serde_json::Value| -> Vec<u64> { r["frames"].as_array().unwrap().iter().map(|f| f["points"].as_u64().unwrap()).collect() };
+    let held = run(80, true, "held");
+    let fit = &held["matching"]["range_fit"];
+    println!("held: {fit}");
+    assert_eq!((held["matching"]["min_disparity"].as_i64(), held["matching"]["num_disparities"].as_u64(), fit["widened"].as_bool()), (Some(0), Some(80), Some(false)), "{fit}");
+    let (lo, hi) = (fit["object_disparities"][0].as_f64().unwrap(), fit["object_disparities"][1].as_f64().unwrap());
+    assert!(lo > 33.0 && hi < 79.0, "{fit}");
+    let short = run(32, false, "short");
+    assert!(points(&short).iter().all(|&p| p * 10 < points(&held)[0]), "{:?} against {:?}", points(&short), points(&held));
+    let widened = run(32, true, "widened");
+    let m = &widened["matching"];
+    println!("widened: {m}");
+    assert_eq!(m["range_fit"]["widened"], true);
+    let (min, n) = (m["min_disparity"].as_i64().unwrap(), m["num_disparities"].as_i64().unwrap());
+    assert!(min <= lo as i64 - 15 && min + n - 1 >= hi as i64 + 16 && n % 16 == 0, "{m}");
+    for (g, w) in points(&widened).iter().zip(points(&held)) {
+        assert!(g.abs_diff(w) * 50 <= w, "{:?} points against {:?} over 0 … 79", points(&widened), points(&held));
+    }
+}
+
 fn expect_rejected(dir: &Path, wants: &[&str]) {
     let e = Recording::open(dir).err().map(|e| e.to_string()).unwrap_or_else(|| panic!("{} was accepted", dir.display()));
     for w in wants {

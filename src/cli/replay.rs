@@ -61,6 +61,7 @@ pub fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
         plate,
         assist: a.assist.params(!a.reg.no_register)?,
         turntable_axis,
+        fit_range: a.matching.range_unset(),
         ..a.reg.options(PipelineOptions {
             alpha: a.rect.alpha,
             min_disparity: a.matching.min_disparity,

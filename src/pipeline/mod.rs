@@ -13,6 +13,7 @@
 
 pub mod live;
 pub mod mesh;
+pub mod range;
 pub mod replay;
 pub mod results;
 pub mod truth;

@@ -75,6 +75,9 @@ pub struct ReplayOptions {
     /// A calibrated turntable axis to register with instead of the recording's own
     /// `turntable.yaml` (`spinscan calibrate turntable`'s, for a recording made before it).
     pub turntable_axis: Option<TurntableAxis>,
+    /// Probe the first frame and widen the disparity range where it does not hold the object
+    /// (`super::range`; the CLI's default where no range is given).
+    pub fit_range: bool,
 }
 
 impl ReplayOptions {
@@ -133,7 +136,10 @@ pub fn run(
         return Ok(ReplaySummary { frames: 0, mean_match_ms: 0.0, gt: None, gt_disparity: None, disparity_sign: 1, registration: None });
     };
     let (w, h, _) = first.left.to_rgb().map_err(|source| ReplayError::Frame { seq: first.seq, source: FrameError::Decode { side: "left", source } })?;
-    let mut pipe = Pipeline::new(&calib, (w as u32, h as u32), opts.pipeline.clone()).map_err(|source| ReplayError::Pipeline { seq: first.seq, source })?;
+    let size = (w as u32, h as u32);
+    let mut pipe = Pipeline::new(&calib, size, opts.pipeline.clone()).map_err(|source| ReplayError::Pipeline { seq: first.seq, source })?;
+    let plate = opts.plate.as_deref().map(|p| pipe.rectify_plate(p));
+    let fit = if opts.fit_range { fit_range(&mut pipe, &calib, size, &first, opts, plate.as_ref())? } else { None };
     let mut results = ResultsWriter::create(out, &source.describe(), pipe.rect.disparity_sign)?;
     let store = Arc::new(PoseStore::new());
     let mut registrar = opts.registration.clone().map(|p| super::registrar(p, inputs.calibrated_axis.as_ref(), Some(&pipe.rect), store.clone()));
@@ -142,8 +148,11 @@ pub fn run(
         (Some(a), Some(_)) => Some(pipe.assistant(a.clone())),
         _ => None,
     };
-    results.set_matching(super::results::matching_entry(pipe.matcher().params(), assistant.as_ref().map(|a| a.params())));
-    let plate = opts.plate.as_deref().map(|p| pipe.rectify_plate(p));
+    let mut matching = super::results::matching_entry(pipe.matcher().params(), assistant.as_ref().map(|a| a.params()));
+    if let Some(f) = &fit {
+        matching["range_fit"] = json!({"object_disparities": [f.object.0, f.object.1], "matched_px": f.matched, "widened": f.widened.is_some()});
+    }
+    results.set_matching(matching);
     let run = Run { pipe: &mut pipe, plate: plate.as_ref(), results: &mut results, opts, gt, registrar: registrar.as_mut(), assistant: assistant.as_mut(), store: &store, progress };
     let outcome = run.all(source, first).and_then(|mut summary| {
         if let Some(reg) = registrar.as_mut() {
@@ -154,6 +163,32 @@ pub fn run(
     let failure = outcome.as_ref().err().map(|e| e.to_string());
     results.finish(failure.as_deref())?;
     outcome
+}
+
+/// Probes the first frame (`super::range`) and, where `pipe`'s range does not hold the
+/// object, rebuilds `pipe` over one that does, saying so.
+fn fit_range(pipe: &mut Pipeline, calib: &crate::calib::StereoCalib, size: (u32, u32), first: &StereoFrame, opts: &ReplayOptions, plate: Option<&RectifiedPlate>) -> Result<Option<super::range::RangeFit>, ReplayError> {
+    let seq = first.seq;
+    let prepared = pipe.prepare_frame(first, opts.segment, plate).map_err(|source| ReplayError::Frame { seq, source })?;
+    let fit = super::range::probe(pipe, &prepared).map_err(|source| ReplayError::Pipeline { seq, source })?;
+    let Some(f) = &fit else {
+        tracing::info!("frame seq {seq}: too few of the object's pixels matched (under {}) over a wide range to fit the disparity range to it; searching the one set", super::range::MIN_MATCHED);
+        return Ok(fit);
+    };
+    if let Some((min, n)) = f.widened {
+        let p = pipe.matcher().params();
+        tracing::warn!(
+            "frame seq {seq}: the object's disparities span {:.1} … {:.1}, outside the range {} … {}: searching {min} … {} instead (`--num-disparities` and `--min-disparity` set it)",
+            f.object.0,
+            f.object.1,
+            p.min_disparity,
+            p.max_disparity(),
+            min + n as i32 - 1
+        );
+        let o = PipelineOptions { min_disparity: Some(min), matching: crate::stereo::MatchParams { num_disparities: n, ..opts.pipeline.matching.clone() }, ..opts.pipeline.clone() };
+        *pipe = Pipeline::new(calib, size, o).map_err(|source| ReplayError::Pipeline { seq, source })?;
+    }
+    Ok(fit)
 }
 
 /// One run's pipeline, results, registration and assistance.
