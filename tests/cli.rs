@@ -274,6 +274,20 @@ fn help_defaults_match_the_library_defaults() {
     assert!(text.contains(&format!("[default: {k}]")), "{text}");
 }
 
+/// Cameras stacked vertically (the baseline along y) cannot be matched along rows: `points`
+/// says so and names the way out, instead of matching rows that do not correspond.
+#[test]
+fn a_vertical_rig_is_refused_naming_why() {
+    let dir = support::temp_dir("cli-vertical");
+    let (l, r) = sim_pair(&dir);
+    let scene = spinscan::hw::sim::small_scene("sphere", 200, 150, 220.0);
+    let mut calib = spinscan::hw::sim::calib_of(&scene.rig);
+    calib.t_mm = nalgebra::Vector3::new(2.0, -calib.t_mm.norm(), 0.0);
+    std::fs::write(dir.join("calib.yaml"), calib.to_yaml()).unwrap();
+    let o = points_with_auto_mask(&dir, &l, &r);
+    assert!(!o.status.success() && stderr(&o).contains("stacked vertically") && stderr(&o).contains("side by side"), "{}", stderr(&o));
+}
+
 /// `spinscan points --mask auto` on a pair matched with `dir`'s calibration.
 fn points_with_auto_mask(dir: &Path, l: &Path, r: &Path) -> std::process::Output {
     spinscan(&["points", "--calib", dir.join("calib.yaml").to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--mask", "auto", "--max-disparity", "48", "-o", dir.join("p.ply").to_str().unwrap()])

@@ -69,6 +69,8 @@ pub enum PipelineError {
     Segment(#[from] SegmentError),
     #[error("image is {0}×{1} but the calibration is for {2}×{3}")]
     ImageSize(usize, usize, u32, u32),
+    #[error("the calibration's cameras are stacked vertically (the baseline T runs more along y than x): spinscan matches along rectified rows, so the cameras must sit side by side; for a rig mounted on its side, turn both cameras' images and their calibration by 90° first")]
+    VerticalRig,
 }
 
 /// Why one frame produced no view.
@@ -215,6 +217,9 @@ impl Pipeline {
             }
         }
         let rect = Rectification::compute(calib, size, opts.alpha)?;
+        if rect.is_vertical() {
+            return Err(PipelineError::VerticalRig);
+        }
         let n = opts.matching.num_disparities as i32;
         let min_disparity = opts.min_disparity.unwrap_or(if rect.disparity_sign < 0 { -(n - 1) } else { 0 });
         let params = MatchParams { min_disparity, ..opts.matching }.validate()?;

@@ -212,6 +212,13 @@ impl Rectification {
         Ok(Rectification { r1, r2, p1, p2, q, disparity_sign, size })
     }
 
+    /// The cameras are stacked vertically: the baseline runs along the rectified y axis (as
+    /// OpenCV rectifies a rig whose T is more vertical than horizontal), and corresponding
+    /// points share a column, not a row.
+    pub fn is_vertical(&self) -> bool {
+        self.p2[(1, 3)] != 0.0
+    }
+
     /// Maps a raw left pixel to its rectified position.
     pub fn rectify_left_point(&self, calib: &StereoCalib, uv: (f64, f64)) -> (f64, f64) {
         undistort_point(&calib.left, &self.r1, &self.p1.fixed_view::<3, 3>(0, 0).into(), uv, PRECISE_UNDISTORT_ITERATIONS)
