@@ -74,6 +74,9 @@ fn a_full_step_turn_through_the_socket() {
     }
     let report: Value = serde_json::from_str(&std::fs::read_to_string(scan.join("report.json")).unwrap()).unwrap();
     assert_eq!(report["registration"]["views"], 8);
+    // The first pair was probed for the object's disparities; the range set (0 … 31) holds them.
+    let m = &report["matching"];
+    assert_eq!((m["min_disparity"].as_i64(), m["num_disparities"].as_u64(), m["range_fit"]["widened"].as_bool()), (Some(0), Some(32), Some(false)), "{m}");
     // The preview came as asked (announced, written where the answer said), and the scan's
     // own mesh at its end.
     let preview = c.events.iter().find(|e| e["method"] == "scan.mesh").unwrap_or_else(|| panic!("no scan.mesh event: {:?}", c.events));
@@ -98,6 +101,33 @@ fn a_full_step_turn_through_the_socket() {
     assert_eq!(list["scans"][0]["name"], "torus-step");
     // The name is taken now.
     assert_eq!(c.error_code("scan.start", json!({"name": "torus-step"})).0, -32004);
+}
+
+/// A range short of the object (the first 16 disparities; the torus lies at about 20–25):
+/// the scan widens it from its first pair, says so, and its views hold the object; with
+/// `fit_range = false` it searches the 16 as written and its views come out all but empty.
+#[test]
+fn a_scan_widens_a_range_short_of_the_object() {
+    let points = |fit: bool| -> (Value, u64) {
+        let dir = support::temp_dir(&format!("daemon-range-{fit}"));
+        let config = support::daemon::small_config(&dir, "");
+        let text = std::fs::read_to_string(&config).unwrap().replace("num_disparities = 32", &format!("num_disparities = 16\nfit_range = {fit}"));
+        std::fs::write(&config, text).unwrap();
+        let d = Daemon::start_config(&dir, &config, &[]);
+        let (mut c, _) = Client::connect(&d.socket);
+        c.ok("events.subscribe", json!({}));
+        c.ok("scan.start", json!({"name": "near", "mode": "step", "step_deg": 90}));
+        assert_eq!(c.until_end("near")["status"], "complete");
+        let report: Value = serde_json::from_str(&std::fs::read_to_string(d.state.join("near/report.json")).unwrap()).unwrap();
+        (report["matching"].clone(), report["frames"].as_array().unwrap().iter().map(|f| f["points"].as_u64().unwrap()).sum())
+    };
+    let (m, widened) = points(true);
+    assert_eq!(m["range_fit"]["widened"], true, "{m}");
+    let (min, n, far) = (m["min_disparity"].as_i64().unwrap(), m["num_disparities"].as_i64().unwrap(), m["range_fit"]["object_disparities"][1].as_f64().unwrap());
+    assert!(min == 0 && (min + n - 1) as f64 >= far + 16.0 && far > 16.0, "{m}");
+    let (m, kept) = points(false);
+    assert!(m.get("range_fit").is_none() && m["num_disparities"] == 16, "{m}");
+    assert!(kept * 10 < widened, "{kept} points over 0 … 15 against {widened} widened");
 }
 
 #[test]

@@ -306,7 +306,7 @@ fn a_range_short_of_the_object_is_widened_to_hold_it() {
     let run = |n: u32, fit: bool, out: &str| {
         let mut opts = replay_opts();
         opts.pipeline.matching.num_disparities = n;
-        opts.fit_range = fit;
+        opts.pipeline.fit_range = fit;
         replay::run_recording(Recording::open(&dir.join("sim")).unwrap(), &dir.join(out), &opts, &mut |_, _, _| {}).unwrap();
         read_json(&dir.join(out).join("report.json"))
     };

@@ -61,12 +61,12 @@ pub fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
         plate,
         assist: a.assist.params(!a.reg.no_register)?,
         turntable_axis,
-        fit_range: a.matching.range_unset(),
         ..a.reg.options(PipelineOptions {
             alpha: a.rect.alpha,
             min_disparity: a.matching.min_disparity,
             matching: a.matching.params_with_default(128)?,
             chroma: a.key.chroma(),
+            fit_range: a.matching.range_unset(),
         })?
     };
     let total = a.frames.map_or(rec.frames.len(), |m| m.min(rec.frames.len()));

@@ -195,6 +195,7 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
         min_disparity: a.matching.min_disparity,
         matching: a.matching.params()?,
         chroma: a.key.chroma(),
+        ..Default::default()
     };
     let mut pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts).map_err(input)?;
     let plate = a.key.load_plate((l.width, l.height), "the images")?;

@@ -276,6 +276,8 @@ pub struct MatchingSection {
     /// The matcher: "bm" (correlation) or "sgm" (semi-global).
     pub method: crate::stereo::Method,
     pub num_disparities: u32,
+    /// Widen the range where a scan's first frame shows the object outside it (`pipeline::range`).
+    pub fit_range: bool,
     pub block: u32,
     /// SGM's penalties and paths (method "sgm").
     pub p1: u16,
@@ -372,7 +374,7 @@ impl Default for MatchingSection {
         // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
         // about 330 mm on.
         let m = crate::stereo::MatchParams::default();
-        MatchingSection { method: m.method, num_disparities: 128, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, sgm_refine_agree: m.sgm_refine_agree, coarse_to_fine: CoarseToFine::Auto, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string(), plate: PathBuf::new() }
+        MatchingSection { method: m.method, num_disparities: 128, fit_range: true, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, sgm_refine_agree: m.sgm_refine_agree, coarse_to_fine: CoarseToFine::Auto, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string(), plate: PathBuf::new() }
     }
 }
 
@@ -526,6 +528,7 @@ impl Config {
         let mut pipeline = crate::pipeline::PipelineOptions::default();
         let m = &config.matching;
         pipeline.matching = crate::stereo::MatchParams { num_disparities: m.num_disparities, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, sgm_refine_agree: m.sgm_refine_agree, coarse_to_fine: m.coarse_to_fine.resolve(m.method), ..crate::stereo::MatchParams::for_method(m.method) };
+        pipeline.fit_range = m.fit_range;
         // Parallelism comes from the pool: one thread per matcher.
         pipeline.matching.threads = 1;
         // (An unknown colour is refused by `validate`; unvalidated configs find the screen.)

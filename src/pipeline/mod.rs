@@ -48,11 +48,15 @@ pub struct PipelineOptions {
     pub matching: MatchParams,
     /// Foreground segmentation (used when a view asks for it).
     pub chroma: ChromaKey,
+    /// A scan's driver probes its first frame and widens the range where it does not hold
+    /// the object ([`range`]; `replay` and `demo` where no range is given, the daemon's
+    /// `[matching] fit_range`).
+    pub fit_range: bool,
 }
 
 impl Default for PipelineOptions {
     fn default() -> Self {
-        PipelineOptions { alpha: 0.0, min_disparity: None, matching: MatchParams::default(), chroma: ChromaKey::default() }
+        PipelineOptions { alpha: 0.0, min_disparity: None, matching: MatchParams::default(), chroma: ChromaKey::default(), fit_range: false }
     }
 }
 

@@ -9,7 +9,7 @@
 //! hold them, with room for the object to come nearer as it turns. Where they do, nothing
 //! changes: the range stays the one given or the default.
 
-use super::{Pipeline, PipelineError, Prepared};
+use super::{Pipeline, PipelineError, PipelineOptions, Prepared};
 use crate::stereo::{DisparityMap, GrayView, MatchError, MatchParams, Method, StereoMatcher};
 
 /// The most disparities probed (half the image's width, at most this).
@@ -76,6 +76,33 @@ pub fn probe(pipe: &Pipeline, frame: &Prepared) -> Result<Option<RangeFit>, Pipe
     let holds = lo >= first + 1.0 && hi <= last - 1.0;
     let object = if sign < 0 { (-hi, -lo) } else { (lo, hi) };
     Ok(Some(RangeFit { object, matched: magnitudes.len(), widened: (!holds).then(|| range_holding(lo, hi, sign)) }))
+}
+
+/// Says what the probe of frame `seq` found and, where `pipe`'s range does not hold the
+/// object, returns `opts` over one that does.
+pub fn refit(pipe: &Pipeline, fit: Option<&RangeFit>, seq: u64, opts: &PipelineOptions) -> Option<PipelineOptions> {
+    let Some(f) = fit else {
+        tracing::info!("frame seq {seq}: too few of the object's pixels matched (under {MIN_MATCHED}) over a wide range to fit the disparity range to it; searching the one set");
+        return None;
+    };
+    let (min, n) = f.widened?;
+    let p = pipe.matcher().params();
+    tracing::warn!(
+        "frame seq {seq}: the object's disparities span {:.1} … {:.1}, outside the range {} … {}: searching {min} … {} instead (`--num-disparities` and `--min-disparity` set it; the daemon's `[matching] num_disparities`, and `fit_range = false` to keep it)",
+        f.object.0,
+        f.object.1,
+        p.min_disparity,
+        p.max_disparity(),
+        min + n as i32 - 1
+    );
+    Some(PipelineOptions { min_disparity: Some(min), matching: MatchParams { num_disparities: n, ..opts.matching.clone() }, ..opts.clone() })
+}
+
+impl RangeFit {
+    /// `report.json`'s `matching.range_fit`.
+    pub fn entry(&self) -> serde_json::Value {
+        serde_json::json!({"object_disparities": [self.object.0, self.object.1], "matched_px": self.matched, "widened": self.widened.is_some()})
+    }
 }
 
 #[cfg(test)]

@@ -75,9 +75,6 @@ pub struct ReplayOptions {
     /// A calibrated turntable axis to register with instead of the recording's own
     /// `turntable.yaml` (`spinscan calibrate turntable`'s, for a recording made before it).
     pub turntable_axis: Option<TurntableAxis>,
-    /// Probe the first frame and widen the disparity range where it does not hold the object
-    /// (`super::range`; the CLI's default where no range is given).
-    pub fit_range: bool,
 }
 
 impl ReplayOptions {
@@ -139,7 +136,7 @@ pub fn run(
     let size = (w as u32, h as u32);
     let mut pipe = Pipeline::new(&calib, size, opts.pipeline.clone()).map_err(|source| ReplayError::Pipeline { seq: first.seq, source })?;
     let plate = opts.plate.as_deref().map(|p| pipe.rectify_plate(p));
-    let fit = if opts.fit_range { fit_range(&mut pipe, &calib, size, &first, opts, plate.as_ref())? } else { None };
+    let fit = if opts.pipeline.fit_range { fit_range(&mut pipe, &calib, size, &first, opts, plate.as_ref())? } else { None };
     let mut results = ResultsWriter::create(out, &source.describe(), pipe.rect.disparity_sign)?;
     let store = Arc::new(PoseStore::new());
     let mut registrar = opts.registration.clone().map(|p| super::registrar(p, inputs.calibrated_axis.as_ref(), Some(&pipe.rect), store.clone()));
@@ -150,7 +147,7 @@ pub fn run(
     };
     let mut matching = super::results::matching_entry(pipe.matcher().params(), assistant.as_ref().map(|a| a.params()));
     if let Some(f) = &fit {
-        matching["range_fit"] = json!({"object_disparities": [f.object.0, f.object.1], "matched_px": f.matched, "widened": f.widened.is_some()});
+        matching["range_fit"] = f.entry();
     }
     results.set_matching(matching);
     let run = Run { pipe: &mut pipe, plate: plate.as_ref(), results: &mut results, opts, gt, registrar: registrar.as_mut(), assistant: assistant.as_mut(), store: &store, progress };
@@ -166,26 +163,12 @@ pub fn run(
 }
 
 /// Probes the first frame (`super::range`) and, where `pipe`'s range does not hold the
-/// object, rebuilds `pipe` over one that does, saying so.
+/// object, rebuilds `pipe` over one that does.
 fn fit_range(pipe: &mut Pipeline, calib: &crate::calib::StereoCalib, size: (u32, u32), first: &StereoFrame, opts: &ReplayOptions, plate: Option<&RectifiedPlate>) -> Result<Option<super::range::RangeFit>, ReplayError> {
     let seq = first.seq;
     let prepared = pipe.prepare_frame(first, opts.segment, plate).map_err(|source| ReplayError::Frame { seq, source })?;
     let fit = super::range::probe(pipe, &prepared).map_err(|source| ReplayError::Pipeline { seq, source })?;
-    let Some(f) = &fit else {
-        tracing::info!("frame seq {seq}: too few of the object's pixels matched (under {}) over a wide range to fit the disparity range to it; searching the one set", super::range::MIN_MATCHED);
-        return Ok(fit);
-    };
-    if let Some((min, n)) = f.widened {
-        let p = pipe.matcher().params();
-        tracing::warn!(
-            "frame seq {seq}: the object's disparities span {:.1} … {:.1}, outside the range {} … {}: searching {min} … {} instead (`--num-disparities` and `--min-disparity` set it)",
-            f.object.0,
-            f.object.1,
-            p.min_disparity,
-            p.max_disparity(),
-            min + n as i32 - 1
-        );
-        let o = PipelineOptions { min_disparity: Some(min), matching: crate::stereo::MatchParams { num_disparities: n, ..opts.pipeline.matching.clone() }, ..opts.pipeline.clone() };
+    if let Some(o) = super::range::refit(pipe, fit.as_ref(), seq, &opts.pipeline) {
         *pipe = Pipeline::new(calib, size, o).map_err(|source| ReplayError::Pipeline { seq, source })?;
     }
     Ok(fit)

@@ -111,15 +111,19 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
     };
 
     let mut settings = settings.clone();
-    let (sign, matching) = match Pipeline::new(&calib, size, settings.pipeline.clone()) {
-        Ok(p) => {
+    let (sign, matching) = match fitted_pipeline(&calib, size, &first, &mut settings) {
+        Ok((p, fit)) => {
             // The registration thread tracks texture in the rectified left images.
             if let Some(r) = settings.registration.as_mut() {
                 r.track_camera = crate::pipeline::track_camera(&p.rect);
             }
-            (p.rect.disparity_sign, super::results::matching_entry(p.matcher().params(), settings.assist_in_use()))
+            let mut matching = super::results::matching_entry(p.matcher().params(), settings.assist_in_use());
+            if let Some(f) = fit {
+                matching["range_fit"] = f.entry();
+            }
+            (p.rect.disparity_sign, matching)
         }
-        Err(e) => return ScanEnd::failed(ScanError::Pipeline(e)),
+        Err(e) => return ScanEnd::failed(e),
     };
     let results = match ResultsWriter::create(&dir, &devices.source.describe(), sign) {
         Ok(mut r) => {
@@ -191,6 +195,25 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
             write_manifest_in_place(&dir.join("manifest.json"), &end);
             end
         }
+    }
+}
+
+/// A scan's first pipeline, its range fitted to the first frame's object where the settings
+/// ask (`pipeline::range`); `settings` then carry the range the matchers are built with.
+fn fitted_pipeline(calib: &crate::calib::StereoCalib, size: (u32, u32), first: &StereoFrame, settings: &mut PipelineSettings) -> Result<(Pipeline, Option<crate::pipeline::range::RangeFit>), ScanError> {
+    let pipe = Pipeline::new(calib, size, settings.pipeline.clone())?;
+    if !settings.pipeline.fit_range {
+        return Ok((pipe, None));
+    }
+    let plate = settings.plate.as_ref().map(|p| pipe.rectify_plate(&p.rgb));
+    let prepared = pipe.prepare_frame(first, settings.segment, plate.as_ref()).map_err(ScanError::FirstFrame)?;
+    let fit = crate::pipeline::range::probe(&pipe, &prepared)?;
+    match crate::pipeline::range::refit(&pipe, fit.as_ref(), first.seq, &settings.pipeline) {
+        Some(o) => {
+            settings.pipeline = o;
+            Ok((Pipeline::new(calib, size, settings.pipeline.clone())?, fit))
+        }
+        None => Ok((pipe, fit)),
     }
 }
 
