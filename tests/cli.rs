@@ -288,6 +288,25 @@ fn a_vertical_rig_is_refused_naming_why() {
     assert!(!o.status.success() && stderr(&o).contains("stacked vertically") && stderr(&o).contains("side by side"), "{}", stderr(&o));
 }
 
+/// A sphere leaves ICP free to turn it on nearly every view, and the table's step is kept
+/// along those motions: `replay` logs the first three such views and says the rest are in
+/// report.json, which keeps every one.
+#[test]
+fn a_sphere_s_degenerate_views_are_logged_three_times_and_kept_in_the_report() {
+    let dir = support::temp_dir("cli-degenerate");
+    let (rec, out) = (dir.join("rec"), dir.join("out"));
+    let o = spinscan(&["sim", "render", "--object", "sphere", "--triangles", "20000", "--frames", "12", "--size", "320x240", "-o", rec.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = spinscan(&["replay", rec.to_str().unwrap(), "--threads", "1", "-o", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let logged: Vec<String> = stderr(&o).lines().filter(|l| l.contains("registration is degenerate")).map(String::from).collect();
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let kept = report["frames"].as_array().unwrap().iter().filter(|f| f["warnings"].as_array().is_some_and(|w| w.iter().any(|w| w.as_str().unwrap().contains("registration is degenerate")))).count();
+    assert!(kept >= 5, "{kept} degenerate views in the report");
+    assert_eq!(logged.len(), 4, "{logged:#?}");
+    assert!(logged[3].contains("further views' degeneracy is in report.json only"), "{}", logged[3]);
+}
+
 /// `spinscan points --mask auto` on a pair matched with `dir`'s calibration.
 fn points_with_auto_mask(dir: &Path, l: &Path, r: &Path) -> std::process::Output {
     spinscan(&["points", "--calib", dir.join("calib.yaml").to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--mask", "auto", "--max-disparity", "48", "-o", dir.join("p.ply").to_str().unwrap()])

@@ -14,6 +14,7 @@
 pub mod live;
 pub mod mesh;
 pub mod range;
+pub mod registered;
 pub mod replay;
 pub mod results;
 pub mod truth;

@@ -17,7 +17,8 @@ use std::sync::Arc;
 
 use serde_json::{json, Value};
 
-use super::results::{finish_registration, register_view, score_against_gt, GtScore, ModelOptions, RegistrationInputs, ResultsError, ResultsWriter};
+use super::registered::{finish_registration, register_view, ModelOptions, RegistrationInputs};
+use super::results::{score_against_gt, GtScore, ResultsError, ResultsWriter};
 use super::truth::{GtDisparities, TruthError};
 use super::{Assist, FrameError, Pipeline, PipelineError, PipelineOptions, RectifiedPlate};
 use crate::assist::{AssistParams, Assistant};

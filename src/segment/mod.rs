@@ -288,6 +288,24 @@ fn find_screen(rgb: &[u8], w: usize, h: usize, dark_level: u16, tolerance: f32) 
     (share >= AUTO_MIN_SHARE && screen_like(centre)).then_some((centre, share))
 }
 
+impl KeyUsed {
+    /// A frame's `segmentation` entry in `report.json`: which key it was keyed by (the colour
+    /// `given`, one `found` in the frame's border, a plain `backdrop` keyed by texture where
+    /// no coloured screen was found, or the `default` colour where neither was), its
+    /// chromaticity, the share of the border it keyed out where it was found, the texture
+    /// threshold of a backdrop, and `edge`, the share of the image's edge the mask kept as
+    /// object ([`edge_share`]).
+    pub fn report_entry(&self, edge: f32) -> serde_json::Value {
+        let (key, share, threshold) = match self.source {
+            KeySource::Given => ("given", None, None),
+            KeySource::Found { border_share } => ("found", Some(border_share), None),
+            KeySource::Backdrop { border_share, threshold } => ("backdrop", Some(border_share), Some(threshold)),
+            KeySource::NotFound => ("default", None, None),
+        };
+        serde_json::json!({"key": key, "chromaticity": [self.chroma.0, self.chroma.1], "border_share": share, "texture_threshold": threshold, "edge_object_share": edge})
+    }
+}
+
 impl ChromaKey {
     /// The colour key an interleaved RGB image is segmented with: the colour given, or the
     /// one [`KeyColour::Auto`] finds in the image's border (else [`KeySource::NotFound`],

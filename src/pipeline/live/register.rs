@@ -13,7 +13,8 @@ use serde_json::json;
 
 use super::fusion::{announce_mesh, LiveFusion};
 use super::state::{lower_priority, ms_since, Note, PipelineSettings, ScanError, ScanMode, ScanShared, Stage};
-use crate::pipeline::results::{finish_registration, register_view, ModelOptions, ResultsWriter};
+use crate::pipeline::registered::{finish_registration, register_view, ModelOptions};
+use crate::pipeline::results::ResultsWriter;
 use crate::register::posestore::PoseStore;
 
 #[allow(clippy::too_many_arguments)]
