@@ -330,6 +330,35 @@ fn a_range_short_of_the_object_is_widened_to_hold_it() {
     }
 }
 
+/// Cameras overexposed (the same recording at 3 × the gain, clipped): each frame's entry
+/// counts the object's pixels at or near white, well past the share from which a scan warns;
+/// the recording as rendered has next to none.
+#[test]
+fn an_overexposed_recording_counts_its_clipped_object_pixels() {
+    let dir = support::temp_dir("rec-bright");
+    small_recording(&dir.join("sim"), 2, 0.0);
+    let bright = dir.join("bright");
+    std::fs::create_dir_all(&bright).unwrap();
+    for entry in ["calib.yaml", "frames.jsonl"] {
+        std::fs::copy(dir.join("sim").join(entry), bright.join(entry)).unwrap();
+    }
+    for f in &Recording::open(&dir.join("sim")).unwrap().frames {
+        for side in [&f.left, &f.right] {
+            let img = io::load_image(&dir.join("sim").join(side)).unwrap();
+            let rgb: Vec<u8> = img.rgb.iter().map(|&v| (v as u32 * 3).min(255) as u8).collect();
+            std::fs::create_dir_all(bright.join(side).parent().unwrap()).unwrap();
+            io::write_rgb_png(&bright.join(side), img.width, img.height, &rgb).unwrap();
+        }
+    }
+    let share = |rec: &Path, out: &str| -> Vec<f64> {
+        replay(rec, &dir.join(out)).unwrap();
+        read_json(&dir.join(out).join("report.json"))["frames"].as_array().unwrap().iter().map(|f| f["saturated_share"].as_f64().unwrap()).collect()
+    };
+    let (normal, clipped) = (share(&dir.join("sim"), "out-sim"), share(&bright, "out-bright"));
+    println!("object pixels near white: {normal:?} as rendered, {clipped:?} at 3 × the gain");
+    assert!(normal.iter().all(|&s| s < 0.01) && clipped.iter().all(|&s| s >= 2.0 * spinscan::pipeline::results::SATURATED_WARN_SHARE), "{normal:?}, {clipped:?}");
+}
+
 fn expect_rejected(dir: &Path, wants: &[&str]) {
     let e = Recording::open(dir).err().map(|e| e.to_string()).unwrap_or_else(|| panic!("{} was accepted", dir.display()));
     for w in wants {

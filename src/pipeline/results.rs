@@ -29,6 +29,29 @@ pub const RANGE_EDGE_WARN_SHARE: f64 = 0.005;
 /// is near plain or buried in noise, 0.004–0.018 with the whole object beyond the range.
 const FEW_MATCHED_WARN_SHARE: f64 = 0.25;
 
+/// Share of a view's object pixels at or near white (luma ≥ [`NEAR_WHITE`] in the rectified
+/// left image) from which a scan warns (once) that the cameras are overexposed: clipped
+/// paint has no texture to match. Measured at 640 × 480: 0–0.3 % on the simulated and the
+/// independent renderer's recordings, 1.5 % with a strong specular highlight, 80 % with both
+/// cameras' gain at 1.8 × (poses 0.53° off against 0.035°, a tenth of the surface missing).
+pub const SATURATED_WARN_SHARE: f64 = 0.1;
+
+/// The luma from which a pixel counts as clipped to white.
+const NEAR_WHITE: u16 = 250;
+
+/// The share (0…1) of `mask`'s object pixels (every pixel without one) of an RGB image whose
+/// luma is at least [`NEAR_WHITE`].
+pub fn saturated_share(rgb: &[u8], mask: Option<&[u8]>) -> f64 {
+    let (mut white, mut n) = (0usize, 0usize);
+    for (k, p) in rgb.chunks_exact(3).enumerate() {
+        if mask.is_none_or(|m| m.get(k).is_some_and(|&v| v != 0)) {
+            n += 1;
+            white += ((77 * p[0] as u16 + 150 * p[1] as u16 + 29 * p[2] as u16 + 128) >> 8 >= NEAR_WHITE) as usize;
+        }
+    }
+    white as f64 / n.max(1) as f64
+}
+
 /// Why the results folder could not be written (or scored).
 #[derive(Debug, thiserror::Error)]
 pub enum ResultsError {
@@ -181,6 +204,8 @@ impl ResultsWriter {
             // or self-correction); `assist` says why.
             "fallback": view.assist.as_ref().is_none_or(|a| a.searched_full_range()),
             "points": view.cloud.len(),
+            // The object's pixels clipped to white: overexposed cameras.
+            "saturated_share": saturated_share(&view.left_rgb, view.mask.as_deref()),
             "table_deg": frame.table_deg,
             "t_left_ns": frame.t_left_ns,
             "skew_ns": frame.t_right_ns as i64 - frame.t_left_ns as i64,
@@ -252,6 +277,13 @@ impl ResultsWriter {
         }
         if first(&|f| f["segmentation"]["edge_object_share"].as_f64().is_some_and(|s| s >= EDGE_WARN_SHARE as f64)) {
             tracing::warn!("frame seq {}: {}; cover it in the screen's colour, or give a background plate (`--plate`, the daemon's `[matching] plate`)", entry["seq"], object_on_edge(share("edge_object_share")));
+        }
+        if first(&|f| f["saturated_share"].as_f64().is_some_and(|s| s >= SATURATED_WARN_SHARE)) {
+            tracing::warn!(
+                "frame seq {}: {:.0} % of the object's pixels are at or near white (luma {NEAR_WHITE} or more in the left image): the cameras are overexposed and clipped paint has no texture to match; lower their exposure or gain (the daemon's [cameras] exposure_100us, gain)",
+                entry["seq"],
+                100.0 * entry["saturated_share"].as_f64().unwrap_or(0.0)
+            );
         }
         if first(&|f| f["range_edge_share"].as_f64().is_some_and(|s| s >= RANGE_EDGE_WARN_SHARE)) {
             tracing::warn!(
@@ -347,3 +379,20 @@ impl ResultsWriter {
         self.write_manifest(status, reason)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The share counts the object's pixels whose luma reaches near white — grey, white or
+    /// a near-white tint alike, not a saturated colour — and every pixel without a mask.
+    #[test]
+    fn the_saturated_share_counts_near_white_object_pixels() {
+        // White, near-white grey, a pale tint (luma 250), a saturated blue (luma 29), dark.
+        let rgb = [[255, 255, 255], [251, 251, 251], [255, 250, 235], [0, 0, 255], [40, 40, 40]].concat();
+        assert_eq!(saturated_share(&rgb, None), 3.0 / 5.0);
+        assert_eq!(saturated_share(&rgb, Some(&[255, 0, 0, 255, 255])), 1.0 / 3.0);
+        assert_eq!(saturated_share(&rgb, Some(&[0; 5])), 0.0);
+    }
+}
+
