@@ -204,33 +204,38 @@ fn replays_a_recording_written_by_another_tool() {
     }
 }
 
-/// The simulated recording with its blue screen (and table) repainted in another colour at
-/// the same brightness, as another lab's or renderer's screen.
-fn repaint_screen(src: &Path, dst: &Path, colour: [u8; 3]) {
-    let rec = Recording::open(src).unwrap();
-    let blue = spinscan::segment::ChromaKey { key: KeyColour::Rgb(DEFAULT_KEY_RGB), open_radius: 0, close_radius: 0, ..Default::default() };
+/// A copy of recording `src` in `dst` whose images `write(image, path)` writes anew.
+fn rewrite_images(src: &Path, dst: &Path, write: impl Fn(&io::LoadedImage, &Path)) {
     std::fs::create_dir_all(dst).unwrap();
     for entry in ["calib.yaml", "frames.jsonl"] {
         std::fs::copy(src.join(entry), dst.join(entry)).unwrap();
     }
-    for f in &rec.frames {
+    for f in &Recording::open(src).unwrap().frames {
         for side in [&f.left, &f.right] {
-            let img = io::load_image(&src.join(side)).unwrap();
-            let screen = blue.segment(&img.rgb, img.width, img.height, None).unwrap();
-            let mut rgb = img.rgb.clone();
-            for (px, &m) in rgb.chunks_exact_mut(3).zip(&screen) {
-                if m == 0 {
-                    let light = (px[0] as f32 + px[1] as f32 + px[2] as f32) / DEFAULT_KEY_RGB.iter().map(|&v| v as f32).sum::<f32>();
-                    for (v, &c) in px.iter_mut().zip(&colour) {
-                        *v = (c as f32 * light).min(255.0) as u8;
-                    }
-                }
-            }
             let path = dst.join(side);
             std::fs::create_dir_all(path.parent().unwrap()).unwrap();
-            io::write_rgb_png(&path, img.width, img.height, &rgb).unwrap();
+            write(&io::load_image(&src.join(side)).unwrap(), &path);
         }
     }
+}
+
+/// The simulated recording with its blue screen (and table) repainted in another colour at
+/// the same brightness, as another lab's or renderer's screen.
+fn repaint_screen(src: &Path, dst: &Path, colour: [u8; 3]) {
+    let blue = spinscan::segment::ChromaKey { key: KeyColour::Rgb(DEFAULT_KEY_RGB), open_radius: 0, close_radius: 0, ..Default::default() };
+    rewrite_images(src, dst, |img, path| {
+        let screen = blue.segment(&img.rgb, img.width, img.height, None).unwrap();
+        let mut rgb = img.rgb.clone();
+        for (px, &m) in rgb.chunks_exact_mut(3).zip(&screen) {
+            if m == 0 {
+                let light = (px[0] as f32 + px[1] as f32 + px[2] as f32) / DEFAULT_KEY_RGB.iter().map(|&v| v as f32).sum::<f32>();
+                for (v, &c) in px.iter_mut().zip(&colour) {
+                    *v = (c as f32 * light).min(255.0) as u8;
+                }
+            }
+        }
+        io::write_rgb_png(path, img.width, img.height, &rgb).unwrap();
+    });
 }
 
 /// A screen of another colour — chroma-key green, chroma-key blue — is found in each frame
@@ -272,17 +277,7 @@ fn grey_frames_key_the_screen_as_a_plain_backdrop() {
     small_recording(&dir.join("sim"), 2, 0.0);
     replay(&dir.join("sim"), &dir.join("out-sim")).unwrap();
     let grey = dir.join("grey");
-    std::fs::create_dir_all(&grey).unwrap();
-    for entry in ["calib.yaml", "frames.jsonl"] {
-        std::fs::copy(dir.join("sim").join(entry), grey.join(entry)).unwrap();
-    }
-    for f in &Recording::open(&dir.join("sim")).unwrap().frames {
-        for side in [&f.left, &f.right] {
-            let img = io::load_image(&dir.join("sim").join(side)).unwrap();
-            std::fs::create_dir_all(grey.join(side).parent().unwrap()).unwrap();
-            io::write_gray_png(&grey.join(side), img.width, img.height, &img.gray).unwrap();
-        }
-    }
+    rewrite_images(&dir.join("sim"), &grey, |img, path| io::write_gray_png(path, img.width, img.height, &img.gray).unwrap());
     replay(&grey, &dir.join("out-grey")).unwrap();
     let frames = |out: &str| read_json(&dir.join(out).join("report.json"))["frames"].as_array().unwrap().clone();
     let (want, got) = (frames("out-sim"), frames("out-grey"));
@@ -338,18 +333,10 @@ fn an_overexposed_recording_counts_its_clipped_object_pixels() {
     let dir = support::temp_dir("rec-bright");
     small_recording(&dir.join("sim"), 2, 0.0);
     let bright = dir.join("bright");
-    std::fs::create_dir_all(&bright).unwrap();
-    for entry in ["calib.yaml", "frames.jsonl"] {
-        std::fs::copy(dir.join("sim").join(entry), bright.join(entry)).unwrap();
-    }
-    for f in &Recording::open(&dir.join("sim")).unwrap().frames {
-        for side in [&f.left, &f.right] {
-            let img = io::load_image(&dir.join("sim").join(side)).unwrap();
-            let rgb: Vec<u8> = img.rgb.iter().map(|&v| (v as u32 * 3).min(255) as u8).collect();
-            std::fs::create_dir_all(bright.join(side).parent().unwrap()).unwrap();
-            io::write_rgb_png(&bright.join(side), img.width, img.height, &rgb).unwrap();
-        }
-    }
+    rewrite_images(&dir.join("sim"), &bright, |img, path| {
+        let rgb: Vec<u8> = img.rgb.iter().map(|&v| (v as u32 * 3).min(255) as u8).collect();
+        io::write_rgb_png(path, img.width, img.height, &rgb).unwrap();
+    });
     let share = |rec: &Path, out: &str| -> Vec<f64> {
         replay(rec, &dir.join(out)).unwrap();
         read_json(&dir.join(out).join("report.json"))["frames"].as_array().unwrap().iter().map(|f| f["saturated_share"].as_f64().unwrap()).collect()

@@ -37,7 +37,7 @@ const FEW_MATCHED_WARN_SHARE: f64 = 0.25;
 pub const SATURATED_WARN_SHARE: f64 = 0.1;
 
 /// The luma from which a pixel counts as clipped to white.
-const NEAR_WHITE: u16 = 250;
+const NEAR_WHITE: u8 = 250;
 
 /// The share (0…1) of `mask`'s object pixels (every pixel without one) of an RGB image whose
 /// luma is at least [`NEAR_WHITE`].
@@ -46,7 +46,7 @@ pub fn saturated_share(rgb: &[u8], mask: Option<&[u8]>) -> f64 {
     for (k, p) in rgb.chunks_exact(3).enumerate() {
         if mask.is_none_or(|m| m.get(k).is_some_and(|&v| v != 0)) {
             n += 1;
-            white += ((77 * p[0] as u16 + 150 * p[1] as u16 + 29 * p[2] as u16 + 128) >> 8 >= NEAR_WHITE) as usize;
+            white += (crate::stereo::luma(p[0], p[1], p[2]) >= NEAR_WHITE) as usize;
         }
     }
     white as f64 / n.max(1) as f64

@@ -65,9 +65,9 @@ pub(super) fn border_grid(w: usize, h: usize) -> Vec<usize> {
 /// over the 5 × 5 window around it, clipped to the image. Every pass runs along whole rows
 /// (the vertical ones add rows element-wise), so that it vectorises.
 fn texture(rgb: &[u8], w: usize, h: usize) -> Vec<f32> {
-    // Luma (BT.601 weights, 8-bit fixed point), then 1-2-1 along rows and down columns
-    // (the image's edge repeated): ×16, at most 4080.
-    let luma: Vec<u16> = rgb.chunks_exact(3).map(|p| (77 * p[0] as u16 + 150 * p[1] as u16 + 29 * p[2] as u16 + 128) >> 8).collect();
+    // The matcher's grey (BT.601 luma), then 1-2-1 along rows and down columns (the image's
+    // edge repeated): ×16, at most 4080.
+    let luma: Vec<u16> = rgb.chunks_exact(3).map(|p| crate::stereo::luma(p[0], p[1], p[2]) as u16).collect();
     let mut across = vec![0u16; w * h];
     for (src, dst) in luma.chunks_exact(w).zip(across.chunks_exact_mut(w)) {
         for x in [0, w - 1] {
