@@ -9,7 +9,9 @@
 //! hold them, with room for the object to come nearer as it turns. Where they do, nothing
 //! changes: the range stays the one given or the default.
 
-use super::{Pipeline, PipelineError, PipelineOptions, Prepared};
+use super::{FrameError, Pipeline, PipelineError, PipelineOptions, Prepared, RectifiedPlate};
+use crate::calib::StereoCalib;
+use crate::hw::StereoFrame;
 use crate::stereo::{DisparityMap, GrayView, MatchError, MatchParams, Method, StereoMatcher};
 
 /// The most disparities probed (half the image's width, at most this).
@@ -78,9 +80,22 @@ pub fn probe(pipe: &Pipeline, frame: &Prepared) -> Result<Option<RangeFit>, Pipe
     Ok(Some(RangeFit { object, matched: magnitudes.len(), widened: (!holds).then(|| range_holding(lo, hi, sign)) }))
 }
 
+/// A scan's pipeline fitted to its first frame: `first` probed with `pipe` (built from
+/// `opts`), and, where `pipe`'s range does not hold the object, the pipeline rebuilt over one
+/// that does. The pipeline to scan with, the options it was built from, and what the probe
+/// found.
+pub fn fit(pipe: Pipeline, calib: &StereoCalib, first: &StereoFrame, segment: bool, plate: Option<&RectifiedPlate>, opts: &PipelineOptions) -> Result<(Pipeline, PipelineOptions, Option<RangeFit>), FrameError> {
+    let prepared = pipe.prepare_frame(first, segment, plate)?;
+    let found = probe(&pipe, &prepared)?;
+    match refit(&pipe, found.as_ref(), first.seq, opts) {
+        Some(o) => Ok((Pipeline::new(calib, (pipe.size.0 as u32, pipe.size.1 as u32), o.clone())?, o, found)),
+        None => Ok((pipe, opts.clone(), found)),
+    }
+}
+
 /// Says what the probe of frame `seq` found and, where `pipe`'s range does not hold the
 /// object, returns `opts` over one that does.
-pub fn refit(pipe: &Pipeline, fit: Option<&RangeFit>, seq: u64, opts: &PipelineOptions) -> Option<PipelineOptions> {
+fn refit(pipe: &Pipeline, fit: Option<&RangeFit>, seq: u64, opts: &PipelineOptions) -> Option<PipelineOptions> {
     let Some(f) = fit else {
         tracing::info!("frame seq {seq}: too few of the object's pixels matched (under {MIN_MATCHED}) over a wide range to fit the disparity range to it; searching the one set");
         return None;

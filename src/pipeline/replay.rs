@@ -137,7 +137,10 @@ pub fn run(
     let size = (w as u32, h as u32);
     let mut pipe = Pipeline::new(&calib, size, opts.pipeline.clone()).map_err(|source| ReplayError::Pipeline { seq: first.seq, source })?;
     let plate = opts.plate.as_deref().map(|p| pipe.rectify_plate(p));
-    let fit = if opts.pipeline.fit_range { fit_range(&mut pipe, &calib, size, &first, opts, plate.as_ref())? } else { None };
+    let mut fit = None;
+    if opts.pipeline.fit_range {
+        (pipe, _, fit) = super::range::fit(pipe, &calib, &first, opts.segment, plate.as_ref(), &opts.pipeline).map_err(|source| ReplayError::Frame { seq: first.seq, source })?;
+    }
     let mut results = ResultsWriter::create(out, &source.describe(), pipe.rect.disparity_sign)?;
     let store = Arc::new(PoseStore::new());
     let mut registrar = opts.registration.clone().map(|p| super::registrar(p, inputs.calibrated_axis.as_ref(), Some(&pipe.rect), store.clone()));
@@ -161,18 +164,6 @@ pub fn run(
     let failure = outcome.as_ref().err().map(|e| e.to_string());
     results.finish(failure.as_deref())?;
     outcome
-}
-
-/// Probes the first frame (`super::range`) and, where `pipe`'s range does not hold the
-/// object, rebuilds `pipe` over one that does.
-fn fit_range(pipe: &mut Pipeline, calib: &crate::calib::StereoCalib, size: (u32, u32), first: &StereoFrame, opts: &ReplayOptions, plate: Option<&RectifiedPlate>) -> Result<Option<super::range::RangeFit>, ReplayError> {
-    let seq = first.seq;
-    let prepared = pipe.prepare_frame(first, opts.segment, plate).map_err(|source| ReplayError::Frame { seq, source })?;
-    let fit = super::range::probe(pipe, &prepared).map_err(|source| ReplayError::Pipeline { seq, source })?;
-    if let Some(o) = super::range::refit(pipe, fit.as_ref(), seq, &opts.pipeline) {
-        *pipe = Pipeline::new(calib, size, o).map_err(|source| ReplayError::Pipeline { seq, source })?;
-    }
-    Ok(fit)
 }
 
 /// One run's pipeline, results, registration and assistance.

@@ -206,15 +206,9 @@ fn fitted_pipeline(calib: &crate::calib::StereoCalib, size: (u32, u32), first: &
         return Ok((pipe, None));
     }
     let plate = settings.plate.as_ref().map(|p| pipe.rectify_plate(&p.rgb));
-    let prepared = pipe.prepare_frame(first, settings.segment, plate.as_ref()).map_err(ScanError::FirstFrame)?;
-    let fit = crate::pipeline::range::probe(&pipe, &prepared)?;
-    match crate::pipeline::range::refit(&pipe, fit.as_ref(), first.seq, &settings.pipeline) {
-        Some(o) => {
-            settings.pipeline = o;
-            Ok((Pipeline::new(calib, size, settings.pipeline.clone())?, fit))
-        }
-        None => Ok((pipe, fit)),
-    }
+    let (pipe, options, fit) = crate::pipeline::range::fit(pipe, calib, first, settings.segment, plate.as_ref(), &settings.pipeline).map_err(ScanError::FirstFrame)?;
+    settings.pipeline = options;
+    Ok((pipe, fit))
 }
 
 /// The error that caused the others: a stage that stopped because another failed ("the
