@@ -1,4 +1,5 @@
-//! The disparity range fitted to the object where none was given (`replay`, `demo`).
+//! The disparity range fitted to the object: `replay` and `demo` where no range is given, the
+//! daemon's scans with `[matching] fit_range`.
 //!
 //! The default range (0 … 127, or its mirror on a rig with negative disparities) holds the
 //! simulated lab's objects. Another lab's rig — cameras moved in, a wider baseline, a larger

@@ -20,8 +20,9 @@ pub mod backdrop;
 /// Which colour the screen is keyed by.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum KeyColour {
-    /// Found in each frame ([`ChromaKey::key_of`]); [`DEFAULT_KEY_RGB`] where the frame's
-    /// border shows no coloured screen.
+    /// Found in each frame ([`ChromaKey::key_of`]); where the frame's border shows no
+    /// coloured screen, a plain backdrop keyed by texture ([`backdrop`]), else
+    /// [`DEFAULT_KEY_RGB`].
     Auto,
     /// This colour, RGB.
     Rgb([u8; 3]),
@@ -61,7 +62,8 @@ impl std::str::FromStr for KeyColour {
     }
 }
 
-/// The simulated lab's screen colour, and the key where [`KeyColour::Auto`] finds no screen.
+/// The simulated lab's screen colour, and the key where [`KeyColour::Auto`] finds neither a
+/// coloured screen nor a plain backdrop.
 pub const DEFAULT_KEY_RGB: [u8; 3] = [40, 70, 190];
 
 /// What a frame whose border showed neither a coloured screen nor a plain backdrop is
