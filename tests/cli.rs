@@ -307,6 +307,38 @@ fn a_sphere_s_degenerate_views_are_logged_three_times_and_kept_in_the_report() {
     assert!(logged[3].contains("further views' degeneracy is in report.json only"), "{}", logged[3]);
 }
 
+/// `points` with no range given fits it to the pair's object: a sphere at disparities beyond
+/// the single pair's default (64) is matched over a range that holds it, the JSON says so,
+/// and the points outnumber those of the default range given outright many times over.
+#[test]
+fn points_fit_the_range_to_the_object_where_none_is_given() {
+    let dir = support::temp_dir("cli-points-range");
+    let scene = spinscan::hw::sim::small_scene("sphere", 200, 150, 600.0);
+    let pair = hw_sim::Renderer::new(scene.clone()).unwrap().render(0.0, 0);
+    let (l, r) = (dir.join("left.png"), dir.join("right.png"));
+    spinscan::io::write_rgb_png(&l, pair.width, pair.height, &pair.left_rgb).unwrap();
+    spinscan::io::write_rgb_png(&r, pair.width, pair.height, &pair.right_rgb).unwrap();
+    std::fs::write(dir.join("calib.yaml"), spinscan::hw::sim::calib_of(&scene.rig).to_yaml()).unwrap();
+    let (calib, out) = (dir.join("calib.yaml"), dir.join("p.ply"));
+    let points = |range: &[&str]| {
+        let mut args = vec!["points", "--calib", calib.to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--mask", "auto", "-o", out.to_str().unwrap()];
+        args.extend(range);
+        let o = spinscan(&args);
+        assert!(o.status.success(), "{}", stderr(&o));
+        json_line(&o)
+    };
+    let fitted = points(&[]);
+    println!("{fitted}");
+    let fit = &fitted["range_fit"];
+    assert_eq!(fit["widened"], true, "{fitted}");
+    let (lo, hi) = (fit["object_disparities"][0].as_f64().unwrap(), fit["object_disparities"][1].as_f64().unwrap());
+    let (min, n) = (fitted["min_disparity"].as_i64().unwrap(), fitted["num_disparities"].as_i64().unwrap());
+    assert!(hi > 64.0 && (min as f64) <= lo - 15.0 && ((min + n - 1) as f64) >= hi + 16.0, "{fitted}");
+    let given = points(&["--num-disparities", "64"]);
+    assert!(given["range_fit"].is_null() && given["num_disparities"] == 64, "{given}");
+    assert!(given["points"].as_u64().unwrap() * 5 < fitted["points"].as_u64().unwrap(), "{given} against {fitted}");
+}
+
 /// `spinscan points --mask auto` on a pair matched with `dir`'s calibration.
 fn points_with_auto_mask(dir: &Path, l: &Path, r: &Path) -> std::process::Output {
     spinscan(&["points", "--calib", dir.join("calib.yaml").to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--mask", "auto", "--max-disparity", "48", "-o", dir.join("p.ply").to_str().unwrap()])

@@ -132,9 +132,9 @@ pub struct MatchArgs {
     pub min_disparity: Option<i32>,
     /// Number of disparities N (a count): the search covers D … D+N−1. Default: 64 for single
     /// pairs; 128 for `demo`, `replay` and `bench table1` (the simulated lab's disparities
-    /// span 0…127), which `replay` and `demo`, given neither this nor `--min-disparity`, widen
-    /// where the first frame's object lies beyond it. `--max-disparity` is the older name of
-    /// this same count.
+    /// span 0…127), which `replay`, `demo` and `points`, given neither this nor
+    /// `--min-disparity`, widen where the (first) frame's object lies beyond it.
+    /// `--max-disparity` is the older name of this same count.
     #[arg(long = "num-disparities", visible_alias = "max-disparity", value_name = "N")]
     pub num_disparities: Option<u32>,
     /// Correlation window side (odd, 3…31; bm only).
@@ -189,8 +189,8 @@ impl MatchArgs {
         }
     }
 
-    /// Neither `--num-disparities` nor `--min-disparity` given: `replay` and `demo` then fit
-    /// the range to the object (`pipeline::range`).
+    /// Neither `--num-disparities` nor `--min-disparity` given: `replay`, `demo` and `points`
+    /// then fit the range to the object (`pipeline::range`).
     pub fn range_unset(&self) -> bool {
         self.num_disparities.is_none() && self.min_disparity.is_none()
     }

@@ -197,14 +197,14 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
         chroma: a.key.chroma(),
         ..Default::default()
     };
-    let mut pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts).map_err(input)?;
+    let mut pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts.clone()).map_err(input)?;
     let plate = a.key.load_plate((l.width, l.height), "the images")?;
     if plate.is_some() && a.mask.as_deref() != Some("auto") {
         return Err(input("--plate is used by the blue-screen segmentation: add --mask auto"));
     }
-    let view = match a.mask.as_deref() {
-        None => pipe.process_rgb(&l.rgb, &r.rgb, false),
-        Some("auto") => pipe.process_rgb_with_plate(&l.rgb, &r.rgb, true, plate.map(|p| pipe.rectify_plate(&p)).as_ref()),
+    let prepared = match a.mask.as_deref() {
+        None => pipe.prepare_rgb(&l.rgb, &r.rgb, false, None),
+        Some("auto") => pipe.prepare_rgb(&l.rgb, &r.rgb, true, plate.map(|p| pipe.rectify_plate(&p)).as_ref()),
         Some(file) => {
             let m = io::load_image(Path::new(file)).map_err(input)?;
             if (m.width, m.height) != (l.width, l.height) {
@@ -213,10 +213,16 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
             let raw: Vec<u8> = m.gray.iter().map(|&v| if v > 0 { 255 } else { 0 }).collect();
             let mask = pipe.rectify_left_mask(&raw);
             let (lr, rr) = pipe.rectify_rgb(&l.rgb, &r.rgb);
-            pipe.process_rectified(lr, &rr, Some(mask))
+            Ok(spinscan::pipeline::Prepared { left_gray: io::rgb_to_gray(&lr), right_gray: io::rgb_to_gray(&rr), left_rgb: lr, mask: Some(mask), key: None })
         }
     }
     .map_err(input)?;
+    // No range given: the pair's own (its object's, with a mask).
+    let mut fit = None;
+    if a.matching.range_unset() {
+        (pipe, _, fit) = spinscan::pipeline::range::fit_prepared(pipe, &calib, &prepared, 0, &opts).map_err(input)?;
+    }
+    let view = pipe.process_prepared(prepared).map_err(input)?;
     match view.key.map(|k| k.source) {
         Some(spinscan::segment::KeySource::NotFound) => eprintln!("points: warning: {}; give the screen's colour (--key-color R,G,B) or a background plate (--plate)", spinscan::segment::no_screen()),
         Some(spinscan::segment::KeySource::Backdrop { threshold, .. }) => eprintln!("points: note: {}", spinscan::segment::plain_backdrop(threshold)),
@@ -238,7 +244,9 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
     println!(
         "{}",
         json!({"points": view.cloud.len(), "match_ms": view.match_ms, "valid_fraction": view.stats.valid_fraction(),
-               "range_edge_px": view.stats.range_edge, "disparity_sign": pipe.rect.disparity_sign, "out": a.out})
+               "range_edge_px": view.stats.range_edge, "disparity_sign": pipe.rect.disparity_sign, "out": a.out,
+               "min_disparity": pipe.matcher().params().min_disparity, "num_disparities": pipe.matcher().params().num_disparities,
+               "range_fit": fit.map(|f| f.entry())})
     );
     if view.stats.range_edge_share() >= spinscan::pipeline::results::RANGE_EDGE_WARN_SHARE {
         eprintln!(

@@ -1,5 +1,5 @@
-//! The disparity range fitted to the object: `replay` and `demo` where no range is given, the
-//! daemon's scans with `[matching] fit_range`.
+//! The disparity range fitted to the object: `replay`, `demo` and `points` where no range is
+//! given, the daemon's scans with `[matching] fit_range`.
 //!
 //! The default range (0 … 127, or its mirror on a rig with negative disparities) holds the
 //! simulated lab's objects. Another lab's rig — cameras moved in, a wider baseline, a larger
@@ -87,8 +87,13 @@ pub fn probe(pipe: &Pipeline, frame: &Prepared) -> Result<Option<RangeFit>, Pipe
 /// found.
 pub fn fit(pipe: Pipeline, calib: &StereoCalib, first: &StereoFrame, segment: bool, plate: Option<&RectifiedPlate>, opts: &PipelineOptions) -> Result<(Pipeline, PipelineOptions, Option<RangeFit>), FrameError> {
     let prepared = pipe.prepare_frame(first, segment, plate)?;
-    let found = probe(&pipe, &prepared)?;
-    match refit(&pipe, found.as_ref(), first.seq, opts) {
+    Ok(fit_prepared(pipe, calib, &prepared, first.seq, opts)?)
+}
+
+/// [`fit`] on a frame already prepared by `pipe` (frame `seq`; a single pair's is 0).
+pub fn fit_prepared(pipe: Pipeline, calib: &StereoCalib, prepared: &Prepared, seq: u64, opts: &PipelineOptions) -> Result<(Pipeline, PipelineOptions, Option<RangeFit>), PipelineError> {
+    let found = probe(&pipe, prepared)?;
+    match refit(&pipe, found.as_ref(), seq, opts) {
         Some(o) => Ok((Pipeline::new(calib, (pipe.size.0 as u32, pipe.size.1 as u32), o.clone())?, o, found)),
         None => Ok((pipe, opts.clone(), found)),
     }
