@@ -213,7 +213,7 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
             let raw: Vec<u8> = m.gray.iter().map(|&v| if v > 0 { 255 } else { 0 }).collect();
             let mask = pipe.rectify_left_mask(&raw);
             let (lr, rr) = pipe.rectify_rgb(&l.rgb, &r.rgb);
-            Ok(spinscan::pipeline::Prepared { left_gray: io::rgb_to_gray(&lr), right_gray: io::rgb_to_gray(&rr), left_rgb: lr, mask: Some(mask), key: None })
+            Ok(spinscan::pipeline::Prepared::from_rectified(lr, &rr, Some(mask)))
         }
     }
     .map_err(input)?;

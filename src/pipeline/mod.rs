@@ -149,6 +149,13 @@ pub struct Prepared {
     pub key: Option<KeyUsed>,
 }
 
+impl Prepared {
+    /// An already rectified RGB pair, with an optional rectified mask (given, not keyed).
+    pub fn from_rectified(left_rgb: Vec<u8>, right_rgb: &[u8], mask: Option<Vec<u8>>) -> Prepared {
+        Prepared { left_gray: rgb_to_gray(&left_rgb), right_gray: rgb_to_gray(right_rgb), left_rgb, mask, key: None }
+    }
+}
+
 /// One frame matched with registration assistance.
 #[derive(Debug, Clone)]
 pub struct AssistedMatch {
@@ -351,19 +358,8 @@ impl Pipeline {
 
     /// Processes a raw RGB pair. `segment`: match only the chroma-keyed foreground.
     pub fn process_rgb(&mut self, left: &[u8], right: &[u8], segment: bool) -> Result<View, PipelineError> {
-        self.process_rgb_with_plate(left, right, segment, None)
-    }
-
-    /// As [`Pipeline::process_rgb`], with an optional background plate
-    /// ([`Pipeline::rectify_plate`]) that the segmentation also keys against.
-    pub fn process_rgb_with_plate(&mut self, left: &[u8], right: &[u8], segment: bool, plate: Option<&RectifiedPlate>) -> Result<View, PipelineError> {
-        let frame = self.prepare_rgb(left, right, segment, plate)?;
+        let frame = self.prepare_rgb(left, right, segment, None)?;
         self.process_prepared(frame)
-    }
-
-    /// Matches and triangulates an already rectified RGB pair, with an optional rectified mask.
-    pub fn process_rectified(&mut self, left_rgb: Vec<u8>, right_rgb: &[u8], mask: Option<Vec<u8>>) -> Result<View, PipelineError> {
-        self.process_prepared(Prepared { left_gray: rgb_to_gray(&left_rgb), right_gray: rgb_to_gray(right_rgb), left_rgb, mask, key: None })
     }
 
     /// Matches a prepared pair over the full range and triangulates it.
