@@ -16,7 +16,12 @@ fn stderr(o: &Output) -> String {
 
 /// A small simulated pair written as PNG files, with its calibration.
 fn sim_pair(dir: &Path) -> (PathBuf, PathBuf) {
-    let scene = spinscan::hw::sim::small_scene("sphere", 200, 150, 220.0);
+    sim_pair_at(dir, 220.0)
+}
+
+/// [`sim_pair`] through lenses of focal length `focal_px` (longer: larger disparities).
+fn sim_pair_at(dir: &Path, focal_px: f64) -> (PathBuf, PathBuf) {
+    let scene = spinscan::hw::sim::small_scene("sphere", 200, 150, focal_px);
     let pair = hw_sim::Renderer::new(scene.clone()).unwrap().render(0.0, 0);
     let (l, r) = (dir.join("left.png"), dir.join("right.png"));
     spinscan::io::write_rgb_png(&l, pair.width, pair.height, &pair.left_rgb).unwrap();
@@ -280,8 +285,7 @@ fn help_defaults_match_the_library_defaults() {
 fn a_vertical_rig_is_refused_naming_why() {
     let dir = support::temp_dir("cli-vertical");
     let (l, r) = sim_pair(&dir);
-    let scene = spinscan::hw::sim::small_scene("sphere", 200, 150, 220.0);
-    let mut calib = spinscan::hw::sim::calib_of(&scene.rig);
+    let mut calib = spinscan::calib::StereoCalib::load(&dir.join("calib.yaml")).unwrap();
     calib.t_mm = nalgebra::Vector3::new(2.0, -calib.t_mm.norm(), 0.0);
     std::fs::write(dir.join("calib.yaml"), calib.to_yaml()).unwrap();
     let o = points_with_auto_mask(&dir, &l, &r);
@@ -313,12 +317,7 @@ fn a_sphere_s_degenerate_views_are_logged_three_times_and_kept_in_the_report() {
 #[test]
 fn points_fit_the_range_to_the_object_where_none_is_given() {
     let dir = support::temp_dir("cli-points-range");
-    let scene = spinscan::hw::sim::small_scene("sphere", 200, 150, 600.0);
-    let pair = hw_sim::Renderer::new(scene.clone()).unwrap().render(0.0, 0);
-    let (l, r) = (dir.join("left.png"), dir.join("right.png"));
-    spinscan::io::write_rgb_png(&l, pair.width, pair.height, &pair.left_rgb).unwrap();
-    spinscan::io::write_rgb_png(&r, pair.width, pair.height, &pair.right_rgb).unwrap();
-    std::fs::write(dir.join("calib.yaml"), spinscan::hw::sim::calib_of(&scene.rig).to_yaml()).unwrap();
+    let (l, r) = sim_pair_at(&dir, 600.0);
     let (calib, out) = (dir.join("calib.yaml"), dir.join("p.ply"));
     let points = |range: &[&str]| {
         let mut args = vec!["points", "--calib", calib.to_str().unwrap(), "--left", l.to_str().unwrap(), "--right", r.to_str().unwrap(), "--mask", "auto", "-o", out.to_str().unwrap()];
