@@ -10,7 +10,8 @@
 //! removes the thin textured lines such regions' edges leave (a table's rim, a shadow's
 //! outline), pieces far smaller than the largest are dropped, and the mask is eroded by the
 //! window's half-width, by which the texture measure spreads the object's texture past its
-//! silhouette.
+//! silhouette. The same takes a grey floor or turntable out of a colour key's mask where
+//! that mask reaches the image's edge ([`key_within`]).
 
 use super::{morph, AUTO_MIN_SHARE};
 
@@ -208,11 +209,12 @@ fn components(set: &[bool], w: usize, h: usize, eight: bool) -> (Vec<(usize, usi
     (runs, labels, count)
 }
 
-/// Keys a plain backdrop out of an interleaved RGB image (module docs): the mask (255 =
-/// object) and how it was keyed; None where the border is not plain: its median texture over
-/// [`MAX_NOISE`], or under [`AUTO_MIN_SHARE`] of it smooth (a textured background, an object
-/// over the border).
-pub fn key(rgb: &[u8], w: usize, h: usize) -> Option<(Vec<u8>, Backdrop)> {
+/// The plain backdrop of an interleaved RGB image (module docs): per pixel, whether it lies
+/// in a smooth region that reaches the image's edge or covers [`LARGE_SHARE`] of it, and how
+/// it was found; None where the border is not plain: its median texture over [`MAX_NOISE`],
+/// or under [`AUTO_MIN_SHARE`] of it smooth (a textured background, an object over the
+/// border).
+fn plain(rgb: &[u8], w: usize, h: usize) -> Option<(Vec<bool>, Backdrop)> {
     if w == 0 || h == 0 || rgb.len() != 3 * w * h {
         return None;
     }
@@ -245,14 +247,21 @@ pub fn key(rgb: &[u8], w: usize, h: usize) -> Option<(Vec<u8>, Backdrop)> {
         on_edge[l] |= y == 0 || y + 1 == h || x0 == 0 || x1 == w;
     }
     let large = (LARGE_SHARE * (w * h) as f32).ceil() as usize;
-    let mut mask = vec![255u8; w * h];
+    let mut background = vec![false; w * h];
     for (&(y, x0, x1), &l) in runs.iter().zip(&labels) {
         if on_edge[l] || area[l] >= large {
-            mask[y * w + x0..y * w + x1].fill(0);
+            background[y * w + x0..y * w + x1].fill(true);
         }
     }
-    morph(&mut mask, w, h, OPEN_RADIUS, false);
-    morph(&mut mask, w, h, OPEN_RADIUS, true);
+    Some((background, Backdrop { chroma, border_share, threshold }))
+}
+
+/// What is left of a mask (255 = object) once plain regions are keyed out: an opening
+/// removes the thin textured lines their edges leave, pieces under [`PIECE_SHARE`] of the
+/// largest are dropped, and an erosion takes back the texture window's spread.
+fn clean(mask: &mut [u8], w: usize, h: usize) {
+    morph(mask, w, h, OPEN_RADIUS, false);
+    morph(mask, w, h, OPEN_RADIUS, true);
     // Pieces far smaller than the largest: what the opening left of edges and outlines.
     let object: Vec<bool> = mask.iter().map(|&m| m != 0).collect();
     let (runs, labels, count) = components(&object, w, h, true);
@@ -266,8 +275,30 @@ pub fn key(rgb: &[u8], w: usize, h: usize) -> Option<(Vec<u8>, Backdrop)> {
             mask[y * w + x0..y * w + x1].fill(0);
         }
     }
-    morph(&mut mask, w, h, WINDOW, false);
-    Some((mask, Backdrop { chroma, border_share, threshold }))
+    morph(mask, w, h, WINDOW, false);
+}
+
+/// Keys a plain backdrop out of an interleaved RGB image (module docs): the mask (255 =
+/// object) and how it was keyed; None where the border is not plain ([`plain`]).
+pub fn key(rgb: &[u8], w: usize, h: usize) -> Option<(Vec<u8>, Backdrop)> {
+    let (background, b) = plain(rgb, w, h)?;
+    let mut mask: Vec<u8> = background.iter().map(|&g| if g { 0 } else { 255 }).collect();
+    clean(&mut mask, w, h);
+    Some((mask, b))
+}
+
+/// Keys the plain regions out of a colour key's `mask` too — a grey floor or turntable that
+/// the colour leaves, reaching the image's edge — and cleans it as [`key`] does; None (and
+/// `mask` as it was) where the border is not plain.
+pub fn key_within(rgb: &[u8], w: usize, h: usize, mask: &mut [u8]) -> Option<Backdrop> {
+    let (background, b) = plain(rgb, w, h)?;
+    for (m, &g) in mask.iter_mut().zip(&background) {
+        if g {
+            *m = 0;
+        }
+    }
+    clean(mask, w, h);
+    Some(b)
 }
 
 #[cfg(test)]

@@ -13,7 +13,8 @@
 //! border shows no coloured screen — grey cameras, a white, grey or black backdrop — a plain
 //! backdrop is keyed by its lack of texture instead ([`backdrop`]); where the border is not
 //! plain either (an object filling the view, a cluttered room) the default key colour is
-//! used. [`KeyUsed`] says which a frame got.
+//! used. Where a colour's mask reaches the image's edge (a grey floor or turntable the colour
+//! leaves), its plain regions are keyed out by texture too. [`KeyUsed`] says which a frame got.
 
 pub mod backdrop;
 
@@ -117,6 +118,10 @@ pub struct KeyUsed {
     /// Its chromaticity `(R, G) / (R + G + B)`.
     pub chroma: (f32, f32),
     pub source: KeySource,
+    /// Where the colour's mask reached the image's edge ([`EDGE_WARN_SHARE`]: a grey floor or
+    /// turntable the colour leaves), the plain regions were keyed out too
+    /// ([`backdrop::key_within`]), by texture under this threshold (grey levels).
+    pub plain_edge: Option<f32>,
 }
 
 /// Where a frame's key colour came from.
@@ -295,16 +300,17 @@ impl KeyUsed {
     /// `given`, one `found` in the frame's border, a plain `backdrop` keyed by texture where
     /// no coloured screen was found, or the `default` colour where neither was), its
     /// chromaticity, the share of the border it keyed out where it was found, the texture
-    /// threshold of a backdrop, and `edge`, the share of the image's edge the mask kept as
+    /// threshold of a backdrop or of the plain regions keyed beyond a colour
+    /// (`plain_edge_keyed`), and `edge`, the share of the image's edge the mask kept as
     /// object ([`edge_share`]).
     pub fn report_entry(&self, edge: f32) -> serde_json::Value {
         let (key, share, threshold) = match self.source {
-            KeySource::Given => ("given", None, None),
-            KeySource::Found { border_share } => ("found", Some(border_share), None),
+            KeySource::Given => ("given", None, self.plain_edge),
+            KeySource::Found { border_share } => ("found", Some(border_share), self.plain_edge),
             KeySource::Backdrop { border_share, threshold } => ("backdrop", Some(border_share), Some(threshold)),
             KeySource::NotFound => ("default", None, None),
         };
-        serde_json::json!({"key": key, "chromaticity": [self.chroma.0, self.chroma.1], "border_share": share, "texture_threshold": threshold, "edge_object_share": edge})
+        serde_json::json!({"key": key, "chromaticity": [self.chroma.0, self.chroma.1], "border_share": share, "texture_threshold": threshold, "plain_edge_keyed": self.plain_edge.is_some(), "edge_object_share": edge})
     }
 }
 
@@ -314,10 +320,10 @@ impl ChromaKey {
     /// where [`ChromaKey::segment_keyed`] looks for a plain backdrop).
     pub fn key_of(&self, rgb: &[u8], width: usize, height: usize) -> KeyUsed {
         match self.key {
-            KeyColour::Rgb(c) => KeyUsed { chroma: chromaticity(&c).unwrap_or((0.0, 0.0)), source: KeySource::Given },
+            KeyColour::Rgb(c) => KeyUsed { chroma: chromaticity(&c).unwrap_or((0.0, 0.0)), source: KeySource::Given, plain_edge: None },
             KeyColour::Auto => match find_screen(rgb, width, height, self.dark_level, self.tolerance) {
-                Some((chroma, border_share)) => KeyUsed { chroma, source: KeySource::Found { border_share } },
-                None => KeyUsed { chroma: chromaticity(&DEFAULT_KEY_RGB).expect("a colour, not black"), source: KeySource::NotFound },
+                Some((chroma, border_share)) => KeyUsed { chroma, source: KeySource::Found { border_share }, plain_edge: None },
+                None => KeyUsed { chroma: chromaticity(&DEFAULT_KEY_RGB).expect("a colour, not black"), source: KeySource::NotFound, plain_edge: None },
             },
         }
     }
@@ -346,7 +352,7 @@ impl ChromaKey {
         let backdrop = if used.source == KeySource::NotFound { backdrop::key(rgb, width, height) } else { None };
         let mut mask = match backdrop {
             Some((mask, b)) => {
-                used = KeyUsed { chroma: b.chroma, source: KeySource::Backdrop { border_share: b.border_share, threshold: b.threshold } };
+                used = KeyUsed { chroma: b.chroma, source: KeySource::Backdrop { border_share: b.border_share, threshold: b.threshold }, plain_edge: None };
                 mask
             }
             None => {
@@ -376,6 +382,11 @@ impl ChromaKey {
         if self.close_radius > 0 {
             morph(&mut mask, width, height, self.close_radius, true);
             morph(&mut mask, width, height, self.close_radius, false);
+        }
+        // A colour key that leaves part of the scene reaching the image's edge (a grey floor
+        // or turntable): its plain regions go too.
+        if matches!(used.source, KeySource::Given | KeySource::Found { .. }) && edge_share(&mask, width, height) >= EDGE_WARN_SHARE {
+            used.plain_edge = backdrop::key_within(rgb, width, height, &mut mask).map(|b| b.threshold);
         }
         Ok((mask, used))
     }
@@ -501,7 +512,7 @@ mod tests {
         let default = chromaticity(&DEFAULT_KEY_RGB).unwrap();
         // Grey: one chromaticity everywhere, but grey.
         let grey: Vec<u8> = scene(w, h).chunks_exact(3).flat_map(|p| [((p[0] as u16 + p[1] as u16 + p[2] as u16) / 3) as u8; 3]).collect();
-        assert_eq!(ChromaKey::default().key_of(&grey, w, h), KeyUsed { chroma: default, source: KeySource::NotFound });
+        assert_eq!(ChromaKey::default().key_of(&grey, w, h), KeyUsed { chroma: default, source: KeySource::NotFound, plain_edge: None });
         // A brown object over all but the first four columns, the blue screen there (a
         // quarter of the border): brown is no screen colour, and the screen keys out too
         // little of the border.
@@ -521,7 +532,45 @@ mod tests {
         let used = ChromaKey::default().key_of(&brown(w * 3 / 5), w, h);
         assert!(matches!(used.source, KeySource::Found { .. }) && (used.chroma.0 - default.0).abs() < 0.01, "{used:?}");
         let given = ChromaKey { key: KeyColour::Rgb([120, 80, 40]), ..ChromaKey::default() };
-        assert_eq!(given.key_of(&img, w, h), KeyUsed { chroma: chromaticity(&[120, 80, 40]).unwrap(), source: KeySource::Given });
+        assert_eq!(given.key_of(&img, w, h), KeyUsed { chroma: chromaticity(&[120, 80, 40]).unwrap(), source: KeySource::Given, plain_edge: None });
+    }
+
+    /// A grey floor along the bottom that the blue key leaves reaches the image's edge: its
+    /// plain pixels are keyed out by texture too, the textured object kept, and the key says
+    /// so. A colour mask clear of the edge is left as the colour made it.
+    #[test]
+    fn a_grey_floor_the_colour_leaves_is_keyed_by_texture() {
+        let (w, h) = (96, 72);
+        let mut next = crate::testing::xorshift(0xf100_4);
+        let object = |x: usize, y: usize| (30..62).contains(&x) && (16..44).contains(&y);
+        let mut img = Vec::with_capacity(3 * w * h);
+        for y in 0..h {
+            for x in 0..w {
+                let px = if object(x, y) {
+                    let v = 60 + (next() % 150) as u8;
+                    [v, v - 20, v / 2]
+                } else if y >= 52 {
+                    let v = 100 + (next() % 3) as u8;
+                    [v, v, v]
+                } else {
+                    DEFAULT_KEY_RGB
+                };
+                img.extend(px);
+            }
+        }
+        let (mask, used) = ChromaKey::default().segment_keyed(&img, w, h, None).unwrap();
+        assert!(matches!(used.source, KeySource::Found { .. }) && used.plain_edge.is_some(), "{used:?}");
+        assert_eq!(edge_share(&mask, w, h), 0.0);
+        for y in 0..h {
+            for x in 0..w {
+                let inner = (32..60).contains(&x) && (18..42).contains(&y);
+                let near = (27..65).contains(&x) && (13..47).contains(&y);
+                assert!(if inner { mask[y * w + x] != 0 } else { near || mask[y * w + x] == 0 }, "({x}, {y})");
+            }
+        }
+        // The scene without the floor: the colour's mask as it was.
+        let (_, used) = ChromaKey::default().segment_keyed(&scene(w, h), w, h, None).unwrap();
+        assert_eq!(used.plain_edge, None);
     }
 
     #[test]
