@@ -325,6 +325,41 @@ fn a_range_short_of_the_object_is_widened_to_hold_it() {
     }
 }
 
+/// A toed-in rig (the right camera turned to aim at the object, 160 mm from the left one,
+/// 450 mm away): rectified at alpha 0 the object leaves the right image and nothing matches;
+/// by default the rectification keeps the middle of both views (`rectify_alpha` over 0) and
+/// the range is fitted to the object, and the views hold as many points as over the rig
+/// whose cameras look the same way.
+#[test]
+fn a_toed_in_rig_keeps_the_object_in_both_rectified_images() {
+    let dir = support::temp_dir("rec-toed-in");
+    let scan = |toe_in_deg: f64, alpha: Option<f64>, out: &str| -> serde_json::Value {
+        let rec = dir.join(format!("rec{toe_in_deg}"));
+        if !rec.exists() {
+            let lab = spinscan::hw::sim::Lab { baseline_mm: 160.0, camera_tilt_deg: 25.0, toe_in_deg, ..Default::default() };
+            let opts = RenderOptions { object: SimObject::Builtin { name: "egg".into(), triangles: 20_000 }, frames: 2, image_size: (320, 240), lab, ..RenderOptions::default() };
+            spinscan::hw::sim::render_recording(&opts, &rec, &mut |_, _| {}).unwrap();
+        }
+        let mut opts = replay_opts();
+        opts.pipeline.alpha = alpha;
+        opts.pipeline.fit_range = true;
+        replay::run_recording(Recording::open(&rec).unwrap(), &dir.join(out), &opts, &mut |_, _, _| {}).unwrap();
+        read_json(&dir.join(out).join("report.json"))
+    };
+    let points = |r: &serde_json::Value| -> Vec<u64> { r["frames"].as_array().unwrap().iter().map(|f| f["points"].as_u64().unwrap()).collect() };
+    let toe_in = (160.0f64 / 450.0).atan().to_degrees();
+    let parallel = scan(0.0, None, "parallel");
+    let cropped = scan(toe_in, Some(0.0), "cropped");
+    let kept = scan(toe_in, None, "kept");
+    let alpha = |r: &serde_json::Value| r["matching"]["rectify_alpha"].as_f64().unwrap();
+    println!("points: parallel {:?} (alpha {}), toed in at alpha 0 {:?}, by default {:?} (alpha {:.3})", points(&parallel), alpha(&parallel), points(&cropped), points(&kept), alpha(&kept));
+    assert_eq!(alpha(&parallel), 0.0);
+    assert!(alpha(&kept) > 0.0 && alpha(&kept) < 1.0, "{}", alpha(&kept));
+    for ((c, k), p) in points(&cropped).iter().zip(points(&kept)).zip(points(&parallel)) {
+        assert!(c * 10 < k && k * 10 >= p * 6, "{:?} at alpha 0, {:?} by default, {:?} parallel", points(&cropped), points(&kept), points(&parallel));
+    }
+}
+
 /// Cameras overexposed (the same recording at 3 × the gain, clipped): each frame's entry
 /// counts the object's pixels at or near white, well past the share from which a scan warns;
 /// the recording as rendered has next to none.

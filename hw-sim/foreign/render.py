@@ -12,13 +12,14 @@ rig gt/disparity/ from the ray depths at pixel centres.
     ../.venv-peers/bin/python hw-sim/foreign/render.py OUT [--ideal] [--frames 20]
         [--deg 2] [--seed 3] [--texture-gain 0.9] [--specular 0.18] [--size 640x480]
         [--jpeg Q] [--swap] [--no-angles] [--start-deg D] [--drop 7,8] [--turntable-yaml]
-        [--distance 410] [--off-axis 6] [--exposure 1]
+        [--distance 410] [--off-axis 6] [--exposure 1] [--baseline 55] [--converge]
 
 The last options write what other tools may: JPEG images (an MJPEG camera), a rig whose
 right camera sits left of the left one (negative disparities, so no gt/disparity), no
 table angles (`table_deg` null), a first angle other than 0 (with a negative --deg: a
 clockwise turn), dropped pairs (gaps in seq), and a calibrated axis (turntable.yaml); and
-a nearer camera, an object further off the axis, a dimmer lab.
+a nearer camera, an object further off the axis, a dimmer lab, a wider baseline, and a
+toed-in rig whose cameras both aim at the object.
 
 Needs numpy and opencv-python (`bash ../shared/bench/setup.sh` makes ../.venv-peers with
 both). About 3 s a pair. What it showed: docs/assisted-matching.md, "Seventeenth pass", and
@@ -45,6 +46,8 @@ ap.add_argument("--turntable-yaml", action="store_true", help="write turntable.y
 ap.add_argument("--distance", type=float, default=410.0, help="the left camera's distance from the table's axis, mm (nearer: larger disparities)")
 ap.add_argument("--off-axis", type=float, default=6.0, help="how far the object's centre sits from the table's axis, mm")
 ap.add_argument("--exposure", type=float, default=1.0, help="scales both cameras' gain (0.4: a dim lab, its noise relatively stronger)")
+ap.add_argument("--baseline", type=float, default=55.0, help="distance between the cameras' centres, mm")
+ap.add_argument("--converge", action="store_true", help="the right camera turned to look at the object too (a toed-in rig; not with --ideal)")
 ap.add_argument("--drop", default="", help="comma-separated frame indices left out of the recording (dropped pairs: gaps in seq)")
 args = ap.parse_args()
 W, H = map(int, args.size.split("x"))
@@ -143,15 +146,20 @@ def look(pos, tgt):
     T = np.eye(4); T[:3, :3] = Rc; T[:3, 3] = -Rc @ pos
     return T                          # cam_from_table
 camL_from_table = look(cam_pos, target)
-B = 55.0
+B = args.baseline
 SIDE = 1.0 if args.swap else -1.0      # the right camera centre sits at x = -SIDE * B
 if args.ideal:
     camR_from_camL = np.eye(4); camR_from_camL[:3, 3] = [SIDE * B, 0, 0]
     M1 = np.array([[700.0, 0, 322.5], [0, 700.0, 238.0], [0, 0, 1]]); M2 = M1.copy()
     D1 = np.zeros(5); D2 = np.zeros(5)
 else:
-    Rr = rot([0.1, 1, 0.05], -1.1)     # a little toe-in and roll
     C = np.array([-SIDE * B, 0.9, -1.5])  # right camera centre in the left camera frame
+    if args.converge:   # aimed at the object like the left one, with a little roll
+        camL_to_table = np.linalg.inv(camL_from_table)
+        aimed = look(camL_to_table[:3, :3] @ C + camL_to_table[:3, 3], target)
+        Rr = rot([0, 0, 1], 0.6) @ aimed[:3, :3] @ camL_to_table[:3, :3]
+    else:
+        Rr = rot([0.1, 1, 0.05], -1.1)     # a little toe-in and roll
     camR_from_camL = np.eye(4); camR_from_camL[:3, :3] = Rr; camR_from_camL[:3, 3] = -Rr @ C
     M1 = np.array([[712.0, 0, 331.0], [0, 709.5, 229.0], [0, 0, 1]])
     M2 = np.array([[705.0, 0, 309.0], [0, 706.0, 247.5], [0, 0, 1]])

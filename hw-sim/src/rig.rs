@@ -98,6 +98,25 @@ impl Rig {
         Rig { width, height, left, right, right_from_left: Pose { r, t: [-baseline_mm, 0.6, -0.9] } }
     }
 
+    /// This rig with the right camera turned about its own vertical axis by `deg` towards the
+    /// left camera's line of sight (its centre stays where it is): a toed-in rig, whose
+    /// cameras both aim at the object. `atan(baseline / distance)` aims it at the point of
+    /// the left camera's axis that far away.
+    pub fn toed_in(self, deg: f64) -> Rig {
+        if deg == 0.0 {
+            return self;
+        }
+        let p = self.right_from_left;
+        // The right camera's centre in the left camera's frame: −Rᵀ·t.
+        let rt = crate::math::transpose(&p.r);
+        let c = crate::math::scale(crate::math::mat_vec(&rt, p.t), -1.0);
+        // Towards −x when the right camera sits to the left camera's right (x > 0).
+        let turn = rotation([0.0, 1.0, 0.0], deg.to_radians() * c[0].signum());
+        let r = crate::math::mat_mul(&turn, &p.r);
+        let t = crate::math::scale(crate::math::mat_vec(&r, c), -1.0);
+        Rig { right_from_left: Pose { r, t }, ..self }
+    }
+
     pub fn baseline_mm(&self) -> f64 {
         crate::math::norm(self.right_from_left.t)
     }
@@ -129,5 +148,22 @@ mod tests {
         }
         assert!(Rig::ideal(640, 480, 700.0, 60.0).is_ideal());
         assert!(!rig.is_ideal());
+    }
+
+    /// Toed in by atan(B / Z), the right camera looks at the point of the left camera's axis
+    /// Z away, from where it stood; on either side of the left camera.
+    #[test]
+    fn a_toed_in_right_camera_aims_at_the_left_camera_s_axis() {
+        for baseline in [120.0, -120.0] {
+            let rig = Rig::ideal(640, 480, 700.0, baseline);
+            let toed = rig.toed_in((baseline.abs() / 400.0f64).atan().to_degrees());
+            let aimed = toed.right_from_left.apply([0.0, 0.0, 400.0]);
+            assert!(aimed[0].abs() < 1e-9 && aimed[1].abs() < 1e-9 && aimed[2] > 0.0, "{baseline}: {aimed:?}");
+            let centre = |p: &Pose| crate::math::mat_vec(&crate::math::transpose(&p.r), crate::math::scale(p.t, -1.0));
+            let (a, b) = (centre(&rig.right_from_left), centre(&toed.right_from_left));
+            assert!((0..3).all(|i| (a[i] - b[i]).abs() < 1e-9), "{a:?} against {b:?}");
+            assert!(!toed.is_ideal());
+        }
+        assert_eq!(Rig::realistic(640, 480, 700.0, 60.0).toed_in(0.0), Rig::realistic(640, 480, 700.0, 60.0));
     }
 }

@@ -239,9 +239,11 @@ pub struct RawPairArgs {
 /// How a calibrated pair is rectified (`disparity --calib`, `rectify`, `points`, `replay`).
 #[derive(Args, Clone)]
 pub struct RectArgs {
-    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled).
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub alpha: f64,
+    /// Rectification alpha: 0 (valid pixels only), 1 (all pixels), −1 (unscaled). Default: 0,
+    /// or on a toed-in rig the least alpha that keeps the middle 60 % of both cameras' views
+    /// in the rectified images (docs/calibration.md, "Toed-in rigs")
+    #[arg(long, allow_hyphen_values = true)]
+    pub alpha: Option<f64>,
 }
 
 /// The chroma key's colour and tolerance.

@@ -101,6 +101,11 @@ pub struct SimRenderArgs {
     /// as an object placed by hand does.
     #[arg(long, default_value = "0,0", value_parser = parse_offset, allow_hyphen_values = true, conflicts_with = "target")]
     pub object_offset_mm: [f64; 2],
+    /// How far the right camera is turned towards the left one's line of sight, degrees: a
+    /// toed-in rig, both cameras aimed at the object at atan(baseline / distance) (7.6° at
+    /// the default 60 mm and 450 mm). Such a rig writes no gt/disparity/.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub toe_in_deg: f64,
     /// Output folder (must not hold a recording already).
     #[arg(short = 'o', long = "out")]
     pub out: PathBuf,
@@ -169,7 +174,7 @@ pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
         noise_sigma: a.noise,
         drop_probability: a.drop_probability,
         image_size: a.size,
-        lab: Lab { focal_px: a.focal_px, baseline_mm: a.baseline_mm, object_distance_mm: a.object_distance_mm, camera_tilt_deg: a.camera_tilt_deg, object_offset_mm: a.object_offset_mm },
+        lab: Lab { focal_px: a.focal_px, baseline_mm: a.baseline_mm, object_distance_mm: a.object_distance_mm, camera_tilt_deg: a.camera_tilt_deg, object_offset_mm: a.object_offset_mm, toe_in_deg: a.toe_in_deg },
     };
     let prepared = spinscan::hw::sim::PreparedRender::new(&opts).map_err(input)?;
     let disparities = prepared.object_disparities();
@@ -194,7 +199,7 @@ pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
     println!(
         "{}",
         json!({"out": a.out, "frames": rec.frames.len(), "ideal": a.ideal, "width": rec.image_size.0, "height": rec.image_size.1,
-               "seconds": seconds, "gt_disparity": a.ideal && a.baseline_mm > 0.0, "object_disparity_px": [disparities.0, disparities.1]})
+               "seconds": seconds, "gt_disparity": a.ideal && a.baseline_mm > 0.0 && a.toe_in_deg == 0.0, "object_disparity_px": [disparities.0, disparities.1]})
     );
     Ok(())
 }
@@ -203,7 +208,7 @@ fn render_target(a: &SimRenderArgs, target: TargetArg) -> Result<(), Failure> {
     if a.object.is_some() && target == TargetArg::Chessboard {
         return Err(input("--object with --target chessboard: a held board needs no object (--object goes with chessboard-on-table: the lab of that object's recordings)"));
     }
-    let lab = Lab { focal_px: a.focal_px, baseline_mm: a.baseline_mm, object_distance_mm: a.object_distance_mm, camera_tilt_deg: a.camera_tilt_deg, object_offset_mm: [0.0, 0.0] };
+    let lab = Lab { focal_px: a.focal_px, baseline_mm: a.baseline_mm, object_distance_mm: a.object_distance_mm, camera_tilt_deg: a.camera_tilt_deg, object_offset_mm: [0.0, 0.0], toe_in_deg: a.toe_in_deg };
     let default = Lab::default();
     if target == TargetArg::Chessboard && (lab.object_distance_mm, lab.camera_tilt_deg) != (default.object_distance_mm, default.camera_tilt_deg) {
         return Err(input("--object-distance-mm and --camera-tilt-deg place the cameras around the turntable: they go with --target chessboard-on-table (a held board's distance is --distance-mm)"));

@@ -97,7 +97,7 @@ pub fn cmd_disparity(a: DisparityArgs) -> Result<(), Failure> {
     let (l, r) = load_pair(&a.left, &a.right)?;
     let (w, h) = (l.width, l.height);
     // Rectify first (not timed), then time the matcher alone on grey images.
-    let (left_gray, right_gray, params, sign) = match &a.calib {
+    let (left_gray, right_gray, params, sign, alpha) = match &a.calib {
         Some(path) => {
             let calib = StereoCalib::load(path).map_err(input)?;
             let opts = PipelineOptions {
@@ -109,12 +109,12 @@ pub fn cmd_disparity(a: DisparityArgs) -> Result<(), Failure> {
             let pipe = Pipeline::new(&calib, (w as u32, h as u32), opts).map_err(input)?;
             let (lr, rr) = pipe.rectify_rgb(&l.rgb, &r.rgb);
             let params = (**pipe.matcher().params()).clone();
-            (io::rgb_to_gray(&lr), io::rgb_to_gray(&rr), params, pipe.rect.disparity_sign)
+            (io::rgb_to_gray(&lr), io::rgb_to_gray(&rr), params, pipe.rect.disparity_sign, Some(pipe.rect.alpha))
         }
         None => {
             let params = a.matching.params()?;
             let sign = if params.min_disparity + params.num_disparities as i32 - 1 <= 0 { -1 } else { 1 };
-            (l.gray, r.gray, params, sign)
+            (l.gray, r.gray, params, sign, None)
         }
     };
     let valid = params.clone().validate().map_err(input)?;
@@ -150,6 +150,7 @@ pub fn cmd_disparity(a: DisparityArgs) -> Result<(), Failure> {
         "coarse_to_fine": params.coarse_to_fine,
         "valid_fraction": stats.valid_fraction(),
         "disparity_sign": sign,
+        "rectify_alpha": alpha,
         "width": w,
         "height": h,
         "min_disparity": params.min_disparity,
@@ -177,13 +178,13 @@ pub fn cmd_rectify(a: RectifyArgs) -> Result<(), Failure> {
     let m = |m: nalgebra::DMatrixView<f64>| -> Vec<Vec<f64>> { (0..m.nrows()).map(|i| m.row(i).iter().copied().collect()).collect() };
     let rect = &pipe.rect;
     let doc = json!({
-        "alpha": a.rect.alpha,
+        "alpha": rect.alpha,
         "R1": m(rect.r1.as_view()), "R2": m(rect.r2.as_view()),
         "P1": m(rect.p1.as_view()), "P2": m(rect.p2.as_view()), "Q": m(rect.q.as_view()),
         "disparity_sign": rect.disparity_sign,
     });
     io::write_atomic(&a.out.join("rectification.json"), serde_json::to_string_pretty(&doc).unwrap().as_bytes()).map_err(output)?;
-    println!("{}", json!({"left": a.out.join("left.png"), "right": a.out.join("right.png"), "disparity_sign": rect.disparity_sign, "focal_px": rect.p1[(0, 0)]}));
+    println!("{}", json!({"left": a.out.join("left.png"), "right": a.out.join("right.png"), "disparity_sign": rect.disparity_sign, "focal_px": rect.p1[(0, 0)], "alpha": rect.alpha}));
     Ok(())
 }
 
@@ -244,7 +245,7 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
     println!(
         "{}",
         json!({"points": view.cloud.len(), "match_ms": view.match_ms, "valid_fraction": view.stats.valid_fraction(),
-               "range_edge_px": view.stats.range_edge, "disparity_sign": pipe.rect.disparity_sign, "out": a.out,
+               "range_edge_px": view.stats.range_edge, "disparity_sign": pipe.rect.disparity_sign, "rectify_alpha": pipe.rect.alpha, "out": a.out,
                "min_disparity": pipe.matcher().params().min_disparity, "num_disparities": pipe.matcher().params().num_disparities,
                "range_fit": fit.map(|f| f.entry())})
     );

@@ -278,11 +278,15 @@ pub struct Lab {
     /// Where the object stands off the turntable's axis, (x, z) in the table's plane, mm: it
     /// then swings around the axis as the table turns, as an object placed by hand does.
     pub object_offset_mm: [f64; 2],
+    /// How far the right camera is turned towards the left one's line of sight, degrees (a
+    /// toed-in rig: `atan(baseline / distance)` aims both cameras at the object; 0: the
+    /// cameras look the same way).
+    pub toe_in_deg: f64,
 }
 
 impl Default for Lab {
     fn default() -> Self {
-        Lab { focal_px: None, baseline_mm: 60.0, object_distance_mm: 450.0, camera_tilt_deg: 12.0, object_offset_mm: [0.0, 0.0] }
+        Lab { focal_px: None, baseline_mm: 60.0, object_distance_mm: 450.0, camera_tilt_deg: 12.0, object_offset_mm: [0.0, 0.0], toe_in_deg: 0.0 }
     }
 }
 
@@ -293,14 +297,11 @@ impl Lab {
     }
 
     /// The rig of this lab at image size `(w, h)`: the ideal rectified one, or a realistic
-    /// one (distortion, misalignment).
+    /// one (distortion, misalignment); toed in by `toe_in_deg`.
     pub(super) fn rig(&self, ideal: bool, (w, h): (usize, usize)) -> hw_sim::Rig {
         let (focal, baseline) = (self.focal_at(w), self.baseline_mm);
-        if ideal {
-            hw_sim::Rig::ideal(w, h, focal, baseline)
-        } else {
-            hw_sim::Rig::realistic(w, h, focal, baseline)
-        }
+        let rig = if ideal { hw_sim::Rig::ideal(w, h, focal, baseline) } else { hw_sim::Rig::realistic(w, h, focal, baseline) };
+        rig.toed_in(self.toe_in_deg)
     }
 
     pub(super) fn check(&self) -> Result<(), SimError> {
@@ -319,6 +320,9 @@ impl Lab {
         }
         if !(self.camera_tilt_deg.is_finite() && (-80.0..=80.0).contains(&self.camera_tilt_deg)) {
             return Err(SimError::Option { what: "--camera-tilt-deg", expected: "within −80 … 80 degrees", got: self.camera_tilt_deg.to_string() });
+        }
+        if !(self.toe_in_deg.is_finite() && (-45.0..=45.0).contains(&self.toe_in_deg)) {
+            return Err(SimError::Option { what: "--toe-in-deg", expected: "within −45 … 45 degrees", got: self.toe_in_deg.to_string() });
         }
         Ok(())
     }

@@ -39,8 +39,10 @@ use crate::stereo::{
 /// How a view is processed.
 #[derive(Debug, Clone)]
 pub struct PipelineOptions {
-    /// Rectification scaling: 0 keeps only valid pixels (default), 1 keeps all, −1 unscaled.
-    pub alpha: f64,
+    /// Rectification scaling: 0 keeps only valid pixels, 1 keeps all, −1 unscaled; `None`
+    /// (the default) the least alpha from 0 that keeps the middle of both cameras' views
+    /// ([`Rectification::compute_keeping_views`]: 0 unless the rig is toed in).
+    pub alpha: Option<f64>,
     /// First disparity searched. `None` picks it from the rig: 0 when rectified disparities
     /// are positive, `−(N − 1)` when they are negative, so the N disparities cover the
     /// rig's side of zero.
@@ -57,7 +59,7 @@ pub struct PipelineOptions {
 
 impl Default for PipelineOptions {
     fn default() -> Self {
-        PipelineOptions { alpha: 0.0, min_disparity: None, matching: MatchParams::default(), chroma: ChromaKey::default(), fit_range: false }
+        PipelineOptions { alpha: None, min_disparity: None, matching: MatchParams::default(), chroma: ChromaKey::default(), fit_range: false }
     }
 }
 
@@ -228,7 +230,10 @@ impl Pipeline {
                 return Err(PipelineError::ImageSize(size.0 as usize, size.1 as usize, w, h));
             }
         }
-        let rect = Rectification::compute(calib, size, opts.alpha)?;
+        let rect = match opts.alpha {
+            Some(alpha) => Rectification::compute(calib, size, alpha)?,
+            None => Rectification::compute_keeping_views(calib, size)?,
+        };
         if rect.is_vertical() {
             return Err(PipelineError::VerticalRig);
         }

@@ -149,11 +149,7 @@ pub fn run(
         (Some(a), Some(_)) => Some(pipe.assistant(a.clone())),
         _ => None,
     };
-    let mut matching = super::results::matching_entry(pipe.matcher().params(), assistant.as_ref().map(|a| a.params()));
-    if let Some(f) = &fit {
-        matching["range_fit"] = f.entry();
-    }
-    results.set_matching(matching);
+    results.set_matching(super::results::matching_entry(&pipe, assistant.as_ref().map(|a| a.params()), fit.as_ref()));
     let run = Run { pipe: &mut pipe, plate: plate.as_ref(), results: &mut results, opts, gt, registrar: registrar.as_mut(), assistant: assistant.as_mut(), store: &store, progress };
     let outcome = run.all(source, first).and_then(|mut summary| {
         if let Some(reg) = registrar.as_mut() {

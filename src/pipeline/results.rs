@@ -108,11 +108,14 @@ const DEGENERATE: &str = "registration is degenerate";
 /// Views whose degeneracy is logged; report.json keeps every one.
 const DEGENERATE_LOGGED: usize = 3;
 
-/// `report.json`'s `matching`: the matcher and search the results were made with, so that a
-/// results folder says how to make it again. `assist` is `None` where no frame is assisted
-/// (`--assist none`, or no registration to take the motion from).
-pub fn matching_entry(p: &crate::stereo::MatchParams, assist: Option<&AssistParams>) -> Value {
+/// `report.json`'s `matching`: the rectification, matcher and search the results were made
+/// with, so that a results folder says how to make it again. `assist` is `None` where no
+/// frame is assisted (`--assist none`, or no registration to take the motion from); `fit` is
+/// what the first frame's probe found, where the range was fitted.
+pub fn matching_entry(pipe: &super::Pipeline, assist: Option<&AssistParams>, fit: Option<&super::range::RangeFit>) -> Value {
+    let p = pipe.matcher().params();
     let mut m = json!({
+        "rectify_alpha": pipe.rect.alpha,
         "method": p.method.name(),
         "min_disparity": p.min_disparity,
         "num_disparities": p.num_disparities,
@@ -135,6 +138,9 @@ pub fn matching_entry(p: &crate::stereo::MatchParams, assist: Option<&AssistPara
         for (k, v) in [("p1", json!(p.p1)), ("p2", json!(p.p2)), ("sgm_paths", json!(p.sgm_paths)), ("sgm_ad_cap", json!(p.sgm_ad_cap)), ("sgm_refine", json!(p.sgm_refine)), ("sgm_refine_block", json!(p.sgm_refine_block)), ("sgm_refine_agree", json!(p.sgm_refine_agree))] {
             m[k] = v;
         }
+    }
+    if let Some(f) = fit {
+        m["range_fit"] = f.entry();
     }
     m
 }

@@ -33,7 +33,14 @@ pub struct Rectification {
     pub disparity_sign: i32,
     /// `(width, height)` of the raw and rectified images.
     pub size: (u32, u32),
+    /// The alpha it was computed with (the one found, by
+    /// [`Rectification::compute_keeping_views`]).
+    pub alpha: f64,
 }
+
+/// Share of each raw image's width and height, about its centre, that
+/// [`Rectification::compute_keeping_views`] keeps in view.
+pub const KEPT_VIEW: f64 = 0.6;
 
 /// Rotation vector → matrix (OpenCV `Rodrigues`).
 fn rodrigues(v: &Vector3<f64>) -> Matrix3<f64> {
@@ -91,6 +98,20 @@ fn undistort_rectangles(cam: &Camera, r: &Matrix3<f64>, p: &Matrix3<f64>, size: 
     ((ix0, iy0, ix1, iy1), (ox0, oy0, ox1, oy1))
 }
 
+/// The smallest rectangle around the rectified image of the raw image's middle
+/// ([`KEPT_VIEW`] of its width and height: its corners and the middles of its sides).
+fn middle_rectangle(cam: &Camera, r: &Matrix3<f64>, p: &Matrix3<f64>, size: (u32, u32)) -> Rect {
+    let (w, h) = (size.0 as f64 - 1.0, size.1 as f64 - 1.0);
+    let margin = (1.0 - KEPT_VIEW) / 2.0;
+    let mut out = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+    for (fx, fy) in [(0.0, 0.0), (0.5, 0.0), (1.0, 0.0), (0.0, 0.5), (1.0, 0.5), (0.0, 1.0), (0.5, 1.0), (1.0, 1.0)] {
+        let uv = (w * (margin + KEPT_VIEW * fx), h * (margin + KEPT_VIEW * fy));
+        let (px, py) = undistort_point(cam, r, p, uv, OPENCV_UNDISTORT_ITERATIONS);
+        out = (out.0.min(px), out.1.min(py), out.2.max(px), out.3.max(py));
+    }
+    out
+}
+
 /// Why rectification is impossible.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum RectifyError {
@@ -106,12 +127,32 @@ impl Rectification {
     /// Bouguet's method, as OpenCV 5's `stereoRectify(M1, D1, M2, D2, size, R, T, R1, R2, P1,
     /// P2, Q, CALIB_ZERO_DISPARITY, alpha)`.
     ///
-    /// `alpha`: 0 crops to valid pixels only (spinscan's default: every matched pixel has real
-    /// image data behind it), 1 keeps every raw pixel, −1 keeps OpenCV's unscaled focal length.
+    /// `alpha`: 0 crops to valid pixels only, 1 keeps every raw pixel, −1 keeps OpenCV's
+    /// unscaled focal length.
     pub fn compute(calib: &StereoCalib, size: (u32, u32), alpha: f64) -> Result<Rectification, RectifyError> {
         if !(alpha == -1.0 || (0.0..=1.0).contains(&alpha)) {
             return Err(RectifyError::Alpha(alpha));
         }
+        Self::build(calib, size, Some(alpha))
+    }
+
+    /// spinscan's default: as [`Rectification::compute`] with the least alpha from 0 that
+    /// keeps the middle of both cameras' views ([`KEPT_VIEW`] of each raw image's width and
+    /// height, where a turntable rig aims at its object) inside the rectified images.
+    ///
+    /// That is alpha 0 — valid pixels only, every matched pixel with real image data behind
+    /// it — on a rig whose cameras look nearly the same way. On a toed-in rig, whose cameras
+    /// both aim at the object, the pixels valid in both rectified images are a narrow strip
+    /// between the two views (the object sits right of the middle in the left image and left
+    /// of it in the right one, by its disparity), and alpha 0 zooms into that strip and cuts
+    /// the object out of one image or both; the alpha found instead zooms out just enough to
+    /// hold both views' middles, leaving pixels at the images' sides with no data (black).
+    pub fn compute_keeping_views(calib: &StereoCalib, size: (u32, u32)) -> Result<Rectification, RectifyError> {
+        Self::build(calib, size, None)
+    }
+
+    /// `alpha` None: the one [`Rectification::compute_keeping_views`] finds.
+    fn build(calib: &StereoCalib, size: (u32, u32), alpha: Option<f64>) -> Result<Rectification, RectifyError> {
         if size.0 < 2 || size.1 < 2 {
             return Err(RectifyError::Size(size.0, size.1));
         }
@@ -165,21 +206,36 @@ impl Rectification {
         let (inner1, outer1) = undistort_rectangles(&calib.left, &r1, &proj(fc_new, cc_new[0]), size);
         let (inner2, outer2) = undistort_rectangles(&calib.right, &r2, &proj(fc_new, cc_new[1]), size);
 
-        let mut s = 1.0;
-        if alpha >= 0.0 {
-            // Scale so that the inner rectangle fills the image (alpha 0) or the outer one fits
-            // inside it (alpha 1), for both cameras.
-            let fit = |cc: (f64, f64), r: Rect, pick: fn(f64, f64) -> f64| {
-                let a = cc.0 / (cc.0 - r.0);
-                let b = cc.1 / (cc.1 - r.1);
-                let c = (nx - 1.0 - cc.0) / (r.2 - cc.0);
-                let d = (ny - 1.0 - cc.1) / (r.3 - cc.1);
-                pick(pick(pick(a, b), c), d)
+        // Scale so that the inner rectangle fills the image (alpha 0) or the outer one fits
+        // inside it (alpha 1), for both cameras.
+        let fit = |cc: (f64, f64), r: Rect, pick: fn(f64, f64) -> f64| {
+            let a = cc.0 / (cc.0 - r.0);
+            let b = cc.1 / (cc.1 - r.1);
+            let c = (nx - 1.0 - cc.0) / (r.2 - cc.0);
+            let d = (ny - 1.0 - cc.1) / (r.3 - cc.1);
+            pick(pick(pick(a, b), c), d)
+        };
+        let s0 = fit(cc_new[1], inner2, f64::max).max(fit(cc_new[0], inner1, f64::max));
+        let s1 = fit(cc_new[1], outer2, f64::min).min(fit(cc_new[0], outer1, f64::min));
+        let alpha = alpha.unwrap_or_else(|| {
+            // The largest scale at which both views' middles stay inside the images, and the
+            // alpha that gives it (scales fall from s0 at alpha 0 to s1 at alpha 1).
+            // (A side of the rectangle beyond the centre, as in a strongly toed-in rig, does
+            // not bound it.)
+            let keep = |cc: (f64, f64), r: Rect| {
+                let bound = |room: f64, reach: f64| if reach > 0.0 { room / reach } else { f64::INFINITY };
+                bound(cc.0, cc.0 - r.0).min(bound(cc.1, cc.1 - r.1)).min(bound(nx - 1.0 - cc.0, r.2 - cc.0)).min(bound(ny - 1.0 - cc.1, r.3 - cc.1))
             };
-            let s0 = fit(cc_new[1], inner2, f64::max).max(fit(cc_new[0], inner1, f64::max));
-            let s1 = fit(cc_new[1], outer2, f64::min).min(fit(cc_new[0], outer1, f64::min));
-            s = s0 * (1.0 - alpha) + s1 * alpha;
-        }
+            let middle1 = middle_rectangle(&calib.left, &r1, &proj(fc_new, cc_new[0]), size);
+            let middle2 = middle_rectangle(&calib.right, &r2, &proj(fc_new, cc_new[1]), size);
+            let s_kept = keep(cc_new[0], middle1).min(keep(cc_new[1], middle2));
+            if s_kept >= s0 || s0 <= s1 {
+                0.0
+            } else {
+                ((s0 - s_kept) / (s0 - s1)).min(1.0)
+            }
+        });
+        let s = if alpha >= 0.0 { s0 * (1.0 - alpha) + s1 * alpha } else { 1.0 };
         fc_new *= s;
 
         let mut p1 = Matrix3x4::zeros();
@@ -209,7 +265,7 @@ impl Rectification {
         );
         // x_right = x_left + f·t_idx/Z, so d = x_left − x_right has the sign of −t_idx.
         let disparity_sign = if t_idx < 0.0 { 1 } else { -1 };
-        Ok(Rectification { r1, r2, p1, p2, q, disparity_sign, size })
+        Ok(Rectification { r1, r2, p1, p2, q, disparity_sign, size, alpha })
     }
 
     /// The cameras are stacked vertically: the baseline runs along the rectified y axis (as
@@ -270,6 +326,47 @@ mod tests {
     fn swapped_rig_has_negative_disparities() {
         let r = Rectification::compute(&rig(Vector3::new(60.0, 0.0, 0.0)), (640, 480), 0.0).unwrap();
         assert_eq!(r.disparity_sign, -1);
+    }
+
+    /// A rig whose right camera, 160 mm to the left one's right, is turned to look at the
+    /// point of the left camera's axis 450 mm away (the object of a toed-in turntable rig).
+    fn toed_in_rig() -> StereoCalib {
+        let (b, z) = (160.0f64, 450.0f64);
+        let r = *Rotation3::from_axis_angle(&Vector3::y_axis(), (b / z).atan()).matrix();
+        StereoCalib { r, t_mm: -(r * Vector3::new(b, 0.0, 0.0)), ..rig(Vector3::new(-b, 0.0, 0.0)) }
+    }
+
+    /// Where a raw pixel of each camera lands in the rectified images, and whether inside.
+    fn inside(r: &Rectification, calib: &StereoCalib, uv: (f64, f64)) -> [bool; 2] {
+        let (w, h) = (r.size.0 as f64 - 1.0, r.size.1 as f64 - 1.0);
+        let within = |(x, y): (f64, f64)| (0.0..=w).contains(&x) && (0.0..=h).contains(&y);
+        [within(r.rectify_left_point(calib, uv)), within(r.rectify_right_point(calib, uv))]
+    }
+
+    /// On a toed-in rig alpha 0 zooms into the strip both cameras see and cuts the middle of
+    /// their views out of the rectified images; the default keeps the middle of both (at an
+    /// alpha between 0 and 1, OpenCV's for that alpha). On a rig whose cameras look the same
+    /// way the default is alpha 0 itself.
+    #[test]
+    fn the_default_keeps_the_middle_of_a_toed_in_rig_s_views() {
+        let calib = toed_in_rig();
+        let cropped = Rectification::compute(&calib, (640, 480), 0.0).unwrap();
+        assert!(!inside(&cropped, &calib, (319.5, 239.5)).iter().all(|&v| v), "alpha 0 keeps both centres");
+        let kept = Rectification::compute_keeping_views(&calib, (640, 480)).unwrap();
+        assert!(kept.alpha > 0.0 && kept.alpha < 1.0, "{}", kept.alpha);
+        assert_eq!(kept, Rectification::compute(&calib, (640, 480), kept.alpha).unwrap());
+        let m = (1.0 - KEPT_VIEW) / 2.0;
+        for (fx, fy) in [(m, m), (1.0 - m, m), (m, 1.0 - m), (1.0 - m, 1.0 - m), (0.5, 0.5)] {
+            let uv = (639.0 * fx, 479.0 * fy);
+            assert_eq!(inside(&kept, &calib, uv), [true, true], "{uv:?}");
+        }
+        // Zoomed out no further than it takes: a slightly larger middle does not fit.
+        let edge = (1.0 - KEPT_VIEW * 1.1) / 2.0;
+        let corners = [(edge, edge), (1.0 - edge, edge), (edge, 1.0 - edge), (1.0 - edge, 1.0 - edge)];
+        assert!(corners.iter().any(|&(fx, fy)| inside(&kept, &calib, (639.0 * fx, 479.0 * fy)) != [true, true]));
+        for t in [Vector3::new(-60.0, 0.0, 0.0), Vector3::new(60.0, 0.0, 0.0)] {
+            assert_eq!(Rectification::compute_keeping_views(&rig(t), (640, 480)).unwrap(), Rectification::compute(&rig(t), (640, 480), 0.0).unwrap());
+        }
     }
 
     #[test]

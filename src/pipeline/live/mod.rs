@@ -117,11 +117,7 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
             if let Some(r) = settings.registration.as_mut() {
                 r.track_camera = crate::pipeline::track_camera(&p.rect);
             }
-            let mut matching = super::results::matching_entry(p.matcher().params(), settings.assist_in_use());
-            if let Some(f) = fit {
-                matching["range_fit"] = f.entry();
-            }
-            (p.rect.disparity_sign, matching)
+            (p.rect.disparity_sign, super::results::matching_entry(&p, settings.assist_in_use(), fit.as_ref()))
         }
         Err(e) => return ScanEnd::failed(e),
     };
