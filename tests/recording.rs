@@ -360,6 +360,43 @@ fn a_toed_in_rig_keeps_the_object_in_both_rectified_images() {
     }
 }
 
+/// The right camera at 0.6 × the left's gain (the same recording, its right images darkened):
+/// the first frame's matches measure the cameras' contrast ratio, every right image is scaled
+/// by it, and the scan matches as well as with the cameras alike — against the ground truth,
+/// as many pixels matched about as close.
+#[test]
+fn a_darker_right_camera_is_scaled_to_the_left_s_contrast() {
+    let dir = support::temp_dir("rec-gain");
+    small_recording(&dir.join("sim"), 2, 0.0);
+    let dark = dir.join("dark");
+    rewrite_images(&dir.join("sim"), &dark, |img, path| {
+        let right = path.parent().is_some_and(|p| p.ends_with("right"));
+        let rgb: Vec<u8> = img.rgb.iter().map(|&v| if right { (v as f64 * 0.6).round() as u8 } else { v }).collect();
+        io::write_rgb_png(path, img.width, img.height, &rgb).unwrap();
+    });
+    std::fs::create_dir_all(dark.join("gt/disparity")).unwrap();
+    for f in std::fs::read_dir(dir.join("sim/gt/disparity")).unwrap().chain(std::fs::read_dir(dir.join("sim/gt")).unwrap()) {
+        let p = f.unwrap().path();
+        if p.is_file() {
+            std::fs::copy(&p, dark.join(p.strip_prefix(dir.join("sim")).unwrap())).unwrap();
+        }
+    }
+    let report = |rec: &Path, out: &str| -> serde_json::Value {
+        replay(rec, &dir.join(out)).unwrap();
+        read_json(&dir.join(out).join("report.json"))
+    };
+    let (alike, darker) = (report(&dir.join("sim"), "out-alike"), report(&dark, "out-dark"));
+    let (ca, cd) = (&alike["matching"]["contrast"], &darker["matching"]["contrast"]);
+    println!("contrast: alike {ca}, darker {cd}");
+    assert!((ca["ratio"].as_f64().unwrap() - 1.0).abs() < 0.02 && ca["right_scaled"] == false, "{ca}");
+    assert!((cd["ratio"].as_f64().unwrap() * 0.6 - 1.0).abs() < 0.02 && cd["right_scaled"] == true, "{cd}");
+    for (a, d) in alike["frames"].as_array().unwrap().iter().zip(darker["frames"].as_array().unwrap()) {
+        let (err, coverage) = (d["gt_mean_abs_err_px"].as_f64().unwrap(), d["gt_coverage"].as_f64().unwrap());
+        println!("error {err:.3} px against {:.3}, coverage {coverage:.3} against {:.3}", a["gt_mean_abs_err_px"], a["gt_coverage"]);
+        assert!(err <= a["gt_mean_abs_err_px"].as_f64().unwrap() * 1.05 && coverage >= a["gt_coverage"].as_f64().unwrap() - 0.01, "{d}");
+    }
+}
+
 /// Cameras overexposed (the same recording at 3 × the gain, clipped): each frame's entry
 /// counts the object's pixels at or near white, well past the share from which a scan warns;
 /// the recording as rendered has next to none.

@@ -13,13 +13,14 @@ rig gt/disparity/ from the ray depths at pixel centres.
         [--deg 2] [--seed 3] [--texture-gain 0.9] [--specular 0.18] [--size 640x480]
         [--jpeg Q] [--swap] [--no-angles] [--start-deg D] [--drop 7,8] [--turntable-yaml]
         [--distance 410] [--off-axis 6] [--exposure 1] [--baseline 55] [--converge]
+        [--right-gain 1.07]
 
 The last options write what other tools may: JPEG images (an MJPEG camera), a rig whose
 right camera sits left of the left one (negative disparities, so no gt/disparity), no
 table angles (`table_deg` null), a first angle other than 0 (with a negative --deg: a
 clockwise turn), dropped pairs (gaps in seq), and a calibrated axis (turntable.yaml); and
-a nearer camera, an object further off the axis, a dimmer lab, a wider baseline, and a
-toed-in rig whose cameras both aim at the object.
+a nearer camera, an object further off the axis, a dimmer lab, a wider baseline, a
+toed-in rig whose cameras both aim at the object, and cameras whose gains are set apart.
 
 Needs numpy and opencv-python (`bash ../shared/bench/setup.sh` makes ../.venv-peers with
 both). About 3 s a pair. What it showed: docs/assisted-matching.md, "Seventeenth pass", and
@@ -48,6 +49,7 @@ ap.add_argument("--off-axis", type=float, default=6.0, help="how far the object'
 ap.add_argument("--exposure", type=float, default=1.0, help="scales both cameras' gain (0.4: a dim lab, its noise relatively stronger)")
 ap.add_argument("--baseline", type=float, default=55.0, help="distance between the cameras' centres, mm")
 ap.add_argument("--converge", action="store_true", help="the right camera turned to look at the object too (a toed-in rig; not with --ideal)")
+ap.add_argument("--right-gain", type=float, default=1.07, help="the right camera's gain over the left's (1.07: a pair a little apart; 0.7: set apart)")
 ap.add_argument("--drop", default="", help="comma-separated frame indices left out of the recording (dropped pairs: gaps in seq)")
 args = ap.parse_args()
 W, H = map(int, args.size.split("x"))
@@ -308,7 +310,7 @@ for k in range(args.frames):
     table_obj = turn @ table_from_obj
     obj_from_table = np.linalg.inv(table_obj)
     L = shade(camL_from_table, RAYS["left"], obj_from_table, 1.0 * args.exposure, 0.0, 1000 + k)
-    Rr = shade(camR_from_table, RAYS["right"], obj_from_table, 1.07 * args.exposure, -5.0, 2000 + k)
+    Rr = shade(camR_from_table, RAYS["right"], obj_from_table, args.right_gain * args.exposure, -5.0, 2000 + k)
     wp = [cv2.IMWRITE_JPEG_QUALITY, args.jpeg] if args.jpeg else []
     cv2.imwrite(os.path.join(out, "left/%06d.%s" % (k, ext)), L[:, :, ::-1], wp)
     cv2.imwrite(os.path.join(out, "right/%06d.%s" % (k, ext)), Rr[:, :, ::-1], wp)

@@ -67,6 +67,7 @@ pub fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
             matching: a.matching.params_with_default(128)?,
             chroma: a.key.chroma(),
             fit_range: a.matching.range_unset(),
+            right_gain: None,
         })?
     };
     let total = a.frames.map_or(rec.frames.len(), |m| m.min(rec.frames.len()));

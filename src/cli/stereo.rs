@@ -198,7 +198,7 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
         chroma: a.key.chroma(),
         ..Default::default()
     };
-    let mut pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts.clone()).map_err(input)?;
+    let pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts.clone()).map_err(input)?;
     let plate = a.key.load_plate((l.width, l.height), "the images")?;
     if plate.is_some() && a.mask.as_deref() != Some("auto") {
         return Err(input("--plate is used by the blue-screen segmentation: add --mask auto"));
@@ -218,11 +218,13 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
         }
     }
     .map_err(input)?;
-    // No range given: the pair's own (its object's, with a mask).
-    let mut fit = None;
-    if a.matching.range_unset() {
-        (pipe, _, fit) = spinscan::pipeline::range::fit_prepared(pipe, &calib, &prepared, 0, &opts).map_err(input)?;
-    }
+    // No range given: the pair's own (its object's, with a mask). The right image's contrast
+    // brought to the left's where the cameras differ.
+    let opts = PipelineOptions { fit_range: a.matching.range_unset(), ..opts };
+    let fitted = spinscan::pipeline::range::fit_prepared(pipe, &calib, &prepared, 0, &opts).map_err(input)?;
+    let (mut pipe, fit, contrast) = (fitted.pipe, fitted.range, fitted.contrast);
+    let mut prepared = prepared;
+    pipe.balance(&mut prepared);
     let view = pipe.process_prepared(prepared).map_err(input)?;
     match view.key.map(|k| k.source) {
         Some(spinscan::segment::KeySource::NotFound) => eprintln!("points: warning: {}; give the screen's colour (--key-color R,G,B) or a background plate (--plate)", spinscan::segment::no_screen()),
@@ -247,7 +249,7 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
         json!({"points": view.cloud.len(), "match_ms": view.match_ms, "valid_fraction": view.stats.valid_fraction(),
                "range_edge_px": view.stats.range_edge, "disparity_sign": pipe.rect.disparity_sign, "rectify_alpha": pipe.rect.alpha, "out": a.out,
                "min_disparity": pipe.matcher().params().min_disparity, "num_disparities": pipe.matcher().params().num_disparities,
-               "range_fit": fit.map(|f| f.entry())})
+               "range_fit": fit.map(|f| f.entry()), "contrast": contrast.map(|c| c.entry())})
     );
     if view.stats.range_edge_share() >= spinscan::pipeline::results::RANGE_EDGE_WARN_SHARE {
         eprintln!(

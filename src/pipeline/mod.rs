@@ -55,11 +55,15 @@ pub struct PipelineOptions {
     /// the object ([`range`]; `replay` and `demo` where no range is given, the daemon's
     /// `[matching] fit_range`).
     pub fit_range: bool,
+    /// The right images' contrast is scaled by this before matching: the gain between the
+    /// cameras, where a scan's first frame found them more than 10 % apart
+    /// ([`crate::stereo::gain`], [`range::fit`]).
+    pub right_gain: Option<f64>,
 }
 
 impl Default for PipelineOptions {
     fn default() -> Self {
-        PipelineOptions { alpha: None, min_disparity: None, matching: MatchParams::default(), chroma: ChromaKey::default(), fit_range: false }
+        PipelineOptions { alpha: None, min_disparity: None, matching: MatchParams::default(), chroma: ChromaKey::default(), fit_range: false, right_gain: None }
     }
 }
 
@@ -133,6 +137,8 @@ pub struct View {
     pub assist: Option<AssistOutcome>,
     /// The key the mask was made with, when segmentation ran.
     pub key: Option<KeyUsed>,
+    /// Pixels of the right image at or near white.
+    pub right_near_white: usize,
 }
 
 /// A background plate (an image of the empty scene) in rectified left coordinates, RGB, from
@@ -149,12 +155,23 @@ pub struct Prepared {
     pub mask: Option<Vec<u8>>,
     /// The key the mask was made with, when segmentation ran.
     pub key: Option<KeyUsed>,
+    /// Pixels of the right image at or near white (before any scaling).
+    pub right_near_white: usize,
+    /// The gain the right image's contrast was scaled by ([`Pipeline::balance`]).
+    pub right_gain: Option<f64>,
 }
 
 impl Prepared {
-    /// An already rectified RGB pair, with an optional rectified mask (given, not keyed).
+    fn new(left_rgb: Vec<u8>, left_gray: Vec<u8>, right_gray: Vec<u8>, mask: Option<Vec<u8>>, key: Option<KeyUsed>) -> Prepared {
+        let right_near_white = results::near_white(&right_gray);
+        Prepared { left_gray, right_gray, left_rgb, mask, key, right_near_white, right_gain: None }
+    }
+
+    /// An already rectified RGB pair, with an optional rectified mask (given, not keyed); not
+    /// yet balanced ([`Pipeline::balance`]).
     pub fn from_rectified(left_rgb: Vec<u8>, right_rgb: &[u8], mask: Option<Vec<u8>>) -> Prepared {
-        Prepared { left_gray: rgb_to_gray(&left_rgb), right_gray: rgb_to_gray(right_rgb), left_rgb, mask, key: None }
+        let left_gray = rgb_to_gray(&left_rgb);
+        Prepared::new(left_rgb, left_gray, rgb_to_gray(right_rgb), mask, None)
     }
 }
 
@@ -221,6 +238,7 @@ pub struct Pipeline {
     matcher: StereoMatcher,
     chroma: ChromaKey,
     size: (usize, usize),
+    right_gain: Option<f64>,
 }
 
 impl Pipeline {
@@ -242,7 +260,8 @@ impl Pipeline {
         let params = MatchParams { min_disparity, ..opts.matching }.validate()?;
         let maps = rect.maps(calib);
         // A view's points at the range's end are not where the object is (`drop_range_edges`).
-        Ok(Pipeline { rect, maps, matcher: StereoMatcher::new(params).drop_range_edges(true), chroma: opts.chroma, size: (size.0 as usize, size.1 as usize) })
+        let matcher = StereoMatcher::new(params).drop_range_edges(true);
+        Ok(Pipeline { rect, maps, matcher, chroma: opts.chroma, size: (size.0 as usize, size.1 as usize), right_gain: opts.right_gain })
     }
 
     pub fn matcher(&self) -> &StereoMatcher {
@@ -324,7 +343,18 @@ impl Pipeline {
         } else {
             (None, None)
         };
-        Ok(Prepared { left_gray, right_gray, left_rgb, mask, key })
+        let mut prepared = Prepared::new(left_rgb, left_gray, right_gray, mask, key);
+        self.balance(&mut prepared);
+        Ok(prepared)
+    }
+
+    /// Scales a prepared pair's right image by the scan's contrast gain
+    /// ([`PipelineOptions::right_gain`]), once.
+    pub fn balance(&self, frame: &mut Prepared) {
+        if let (Some(g), None) = (self.right_gain, frame.right_gain) {
+            crate::stereo::gain::scale_contrast(&mut frame.right_gray, g);
+            frame.right_gain = Some(g);
+        }
     }
 
     /// Matches frame `seq` over the intervals the assistant plans from `poses`; a result the
@@ -358,7 +388,17 @@ impl Pipeline {
     pub fn finish_view(&self, frame: Prepared, m: AssistedMatch) -> View {
         let cloud = triangulate(&m.disparity, &self.rect, &frame.left_rgb);
         let match_ms = m.outcome.match_ms;
-        View { disparity: m.disparity, left_rgb: frame.left_rgb, mask: frame.mask, cloud, stats: m.stats, match_ms, assist: m.assisted.then_some(m.outcome), key: frame.key }
+        View {
+            disparity: m.disparity,
+            left_rgb: frame.left_rgb,
+            mask: frame.mask,
+            cloud,
+            stats: m.stats,
+            match_ms,
+            assist: m.assisted.then_some(m.outcome),
+            key: frame.key,
+            right_near_white: frame.right_near_white,
+        }
     }
 
     /// Processes a raw RGB pair. `segment`: match only the chroma-keyed foreground.

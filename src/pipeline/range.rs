@@ -9,10 +9,15 @@
 //! disparities do not lie inside the range the scan would search, the range is widened to
 //! hold them, with room for the object to come nearer as it turns. Where they do, nothing
 //! changes: the range stays the one given or the default.
+//!
+//! The probe's matches also measure the cameras' contrast ratio ([`crate::stereo::gain`]):
+//! where the two cameras' gains differ by more than 10 %, the scan scales every right image
+//! by it. That is done whether or not the range is fitted.
 
 use super::{FrameError, Pipeline, PipelineError, PipelineOptions, Prepared, RectifiedPlate};
 use crate::calib::StereoCalib;
 use crate::hw::StereoFrame;
+use crate::stereo::gain::{self, Contrast};
 use crate::stereo::{DisparityMap, GrayView, MatchError, MatchParams, Method, StereoMatcher};
 
 /// The most disparities probed (half the image's width, at most this).
@@ -51,10 +56,11 @@ pub fn range_holding(lo: f32, hi: f32, sign: i32) -> (i32, u32) {
     }
 }
 
-/// Probes `frame` (prepared by `pipe`) over a wide range: where its object lies, and the
-/// range to search instead of `pipe`'s where that one does not hold it. None where too few
-/// of the object's pixels match to tell.
-pub fn probe(pipe: &Pipeline, frame: &Prepared) -> Result<Option<RangeFit>, PipelineError> {
+/// Probes `frame` (prepared by `pipe`, not yet balanced) over a wide range: where its object
+/// lies, and the range to search instead of `pipe`'s where that one does not hold it; and
+/// the cameras' contrast ratio at the pixels matched. None where too few of the object's
+/// pixels match to tell.
+pub fn probe(pipe: &Pipeline, frame: &Prepared) -> Result<Option<(RangeFit, Option<Contrast>)>, PipelineError> {
     let (w, h) = pipe.size;
     let sign = pipe.rect.disparity_sign;
     let current = pipe.matcher().params();
@@ -65,6 +71,7 @@ pub fn probe(pipe: &Pipeline, frame: &Prepared) -> Result<Option<RangeFit>, Pipe
     let rv = GrayView::new(w, h, &frame.right_gray).ok_or(MatchError::Buffer(frame.right_gray.len(), w * h))?;
     let mut out = DisparityMap::new(w, h);
     matcher.compute(lv, rv, &matcher.full_intervals(w, h, frame.mask.as_deref()), &mut out)?;
+    let contrast = gain::matched_ratio(lv, rv, &out);
     let mut magnitudes: Vec<f32> = (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).filter_map(|(x, y)| out.get(x, y)).map(|d| d * sign as f32).collect();
     if magnitudes.len() < MIN_MATCHED {
         return Ok(None);
@@ -78,34 +85,59 @@ pub fn probe(pipe: &Pipeline, frame: &Prepared) -> Result<Option<RangeFit>, Pipe
     let (first, last) = (a.min(b) as f32, a.max(b) as f32);
     let holds = lo >= first + 1.0 && hi <= last - 1.0;
     let object = if sign < 0 { (-hi, -lo) } else { (lo, hi) };
-    Ok(Some(RangeFit { object, matched: magnitudes.len(), widened: (!holds).then(|| range_holding(lo, hi, sign)) }))
+    Ok(Some((RangeFit { object, matched: magnitudes.len(), widened: (!holds).then(|| range_holding(lo, hi, sign)) }, contrast)))
+}
+
+/// A scan's pipeline fitted to its first frame ([`fit`]).
+pub struct Fitted {
+    /// The pipeline to scan with, and the options it was built from.
+    pub pipe: Pipeline,
+    pub opts: PipelineOptions,
+    /// Where the probe found the object, where the range is fitted (`opts.fit_range`).
+    pub range: Option<RangeFit>,
+    /// The cameras' contrast ratio, where the probe could measure it.
+    pub contrast: Option<Contrast>,
 }
 
 /// A scan's pipeline fitted to its first frame: `first` probed with `pipe` (built from
-/// `opts`), and, where `pipe`'s range does not hold the object, the pipeline rebuilt over one
-/// that does. The pipeline to scan with, the options it was built from, and what the probe
-/// found.
-pub fn fit(pipe: Pipeline, calib: &StereoCalib, first: &StereoFrame, segment: bool, plate: Option<&RectifiedPlate>, opts: &PipelineOptions) -> Result<(Pipeline, PipelineOptions, Option<RangeFit>), FrameError> {
+/// `opts`), and the pipeline rebuilt where the probe says to — over a range that holds the
+/// object where `pipe`'s does not (with `opts.fit_range`), with the right images scaled to
+/// the left's contrast where the cameras' gains differ.
+pub fn fit(pipe: Pipeline, calib: &StereoCalib, first: &StereoFrame, segment: bool, plate: Option<&RectifiedPlate>, opts: &PipelineOptions) -> Result<Fitted, FrameError> {
     let prepared = pipe.prepare_frame(first, segment, plate)?;
     Ok(fit_prepared(pipe, calib, &prepared, first.seq, opts)?)
 }
 
 /// [`fit`] on a frame already prepared by `pipe` (frame `seq`; a single pair's is 0).
-pub fn fit_prepared(pipe: Pipeline, calib: &StereoCalib, prepared: &Prepared, seq: u64, opts: &PipelineOptions) -> Result<(Pipeline, PipelineOptions, Option<RangeFit>), PipelineError> {
-    let found = probe(&pipe, prepared)?;
-    match refit(&pipe, found.as_ref(), seq, opts) {
-        Some(o) => Ok((Pipeline::new(calib, (pipe.size.0 as u32, pipe.size.1 as u32), o.clone())?, o, found)),
-        None => Ok((pipe, opts.clone(), found)),
+pub fn fit_prepared(pipe: Pipeline, calib: &StereoCalib, prepared: &Prepared, seq: u64, opts: &PipelineOptions) -> Result<Fitted, PipelineError> {
+    let Some((found, contrast)) = probe(&pipe, prepared)? else {
+        tracing::info!("frame seq {seq}: too few of the object's pixels matched (under {MIN_MATCHED}) over a wide range to fit the disparity range to it or to compare the cameras' contrast; searching the range set");
+        return Ok(Fitted { pipe, opts: opts.clone(), range: None, contrast: None });
+    };
+    let mut fitted = opts.clone();
+    if let Some(c) = contrast.filter(Contrast::scales_right) {
+        tracing::warn!(
+            "frame seq {seq}: the right camera's images have {:.2} × the left's contrast (their gain or exposure differ): each is scaled to the left's before matching, but what one camera clipped or lost in its noise stays lost; set both cameras alike (the daemon's [cameras] exposure_100us, gain)",
+            1.0 / c.ratio
+        );
+        // (On a frame already scaled by a gain the options carried, the two compose.)
+        fitted.right_gain = Some(c.ratio * opts.right_gain.unwrap_or(1.0));
     }
+    let range = opts.fit_range.then_some(found);
+    let mut pipe = match range.as_ref().and_then(|f| refit(&pipe, f, seq, opts)) {
+        Some(o) => {
+            fitted = PipelineOptions { right_gain: fitted.right_gain, ..o };
+            Pipeline::new(calib, (pipe.size.0 as u32, pipe.size.1 as u32), fitted.clone())?
+        }
+        None => pipe,
+    };
+    pipe.right_gain = fitted.right_gain;
+    Ok(Fitted { pipe, opts: fitted, range, contrast })
 }
 
-/// Says what the probe of frame `seq` found and, where `pipe`'s range does not hold the
-/// object, returns `opts` over one that does.
-fn refit(pipe: &Pipeline, fit: Option<&RangeFit>, seq: u64, opts: &PipelineOptions) -> Option<PipelineOptions> {
-    let Some(f) = fit else {
-        tracing::info!("frame seq {seq}: too few of the object's pixels matched (under {MIN_MATCHED}) over a wide range to fit the disparity range to it; searching the one set");
-        return None;
-    };
+/// Where `pipe`'s range does not hold the object the probe of frame `seq` found, says so and
+/// returns `opts` over one that does.
+fn refit(pipe: &Pipeline, f: &RangeFit, seq: u64, opts: &PipelineOptions) -> Option<PipelineOptions> {
     let (min, n) = f.widened?;
     let p = pipe.matcher().params();
     tracing::warn!(

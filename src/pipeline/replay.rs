@@ -135,12 +135,10 @@ pub fn run(
     };
     let (w, h, _) = first.left.to_rgb().map_err(|source| ReplayError::Frame { seq: first.seq, source: FrameError::Decode { side: "left", source } })?;
     let size = (w as u32, h as u32);
-    let mut pipe = Pipeline::new(&calib, size, opts.pipeline.clone()).map_err(|source| ReplayError::Pipeline { seq: first.seq, source })?;
+    let pipe = Pipeline::new(&calib, size, opts.pipeline.clone()).map_err(|source| ReplayError::Pipeline { seq: first.seq, source })?;
     let plate = opts.plate.as_deref().map(|p| pipe.rectify_plate(p));
-    let mut fit = None;
-    if opts.pipeline.fit_range {
-        (pipe, _, fit) = super::range::fit(pipe, &calib, &first, opts.segment, plate.as_ref(), &opts.pipeline).map_err(|source| ReplayError::Frame { seq: first.seq, source })?;
-    }
+    let fitted = super::range::fit(pipe, &calib, &first, opts.segment, plate.as_ref(), &opts.pipeline).map_err(|source| ReplayError::Frame { seq: first.seq, source })?;
+    let (mut pipe, fit, contrast) = (fitted.pipe, fitted.range, fitted.contrast);
     let mut results = ResultsWriter::create(out, &source.describe(), pipe.rect.disparity_sign)?;
     let store = Arc::new(PoseStore::new());
     let mut registrar = opts.registration.clone().map(|p| super::registrar(p, inputs.calibrated_axis.as_ref(), Some(&pipe.rect), store.clone()));
@@ -149,7 +147,7 @@ pub fn run(
         (Some(a), Some(_)) => Some(pipe.assistant(a.clone())),
         _ => None,
     };
-    results.set_matching(super::results::matching_entry(&pipe, assistant.as_ref().map(|a| a.params()), fit.as_ref()));
+    results.set_matching(super::results::matching_entry(&pipe, assistant.as_ref().map(|a| a.params()), fit.as_ref(), contrast.as_ref()));
     let run = Run { pipe: &mut pipe, plate: plate.as_ref(), results: &mut results, opts, gt, registrar: registrar.as_mut(), assistant: assistant.as_mut(), store: &store, progress };
     let outcome = run.all(source, first).and_then(|mut summary| {
         if let Some(reg) = registrar.as_mut() {

@@ -36,8 +36,12 @@ const FEW_MATCHED_WARN_SHARE: f64 = 0.25;
 /// cameras' gain at 1.8 × (poses 0.53° off against 0.035°, a tenth of the surface missing).
 pub const SATURATED_WARN_SHARE: f64 = 0.1;
 
-/// The luma from which a pixel counts as clipped to white.
-const NEAR_WHITE: u8 = 250;
+use crate::stereo::gain::NEAR_WHITE;
+
+/// Pixels of a grey image at or near white (at least [`NEAR_WHITE`]).
+pub fn near_white(gray: &[u8]) -> usize {
+    gray.iter().filter(|&&v| v >= NEAR_WHITE).count()
+}
 
 /// The share (0…1) of `mask`'s object pixels (every pixel without one) of an RGB image whose
 /// luma is at least [`NEAR_WHITE`].
@@ -111,8 +115,9 @@ const DEGENERATE_LOGGED: usize = 3;
 /// `report.json`'s `matching`: the rectification, matcher and search the results were made
 /// with, so that a results folder says how to make it again. `assist` is `None` where no
 /// frame is assisted (`--assist none`, or no registration to take the motion from); `fit` is
-/// what the first frame's probe found, where the range was fitted.
-pub fn matching_entry(pipe: &super::Pipeline, assist: Option<&AssistParams>, fit: Option<&super::range::RangeFit>) -> Value {
+/// what the first frame's probe found, where the range was fitted, and `contrast` the
+/// cameras' contrast ratio it measured.
+pub fn matching_entry(pipe: &super::Pipeline, assist: Option<&AssistParams>, fit: Option<&super::range::RangeFit>, contrast: Option<&crate::stereo::gain::Contrast>) -> Value {
     let p = pipe.matcher().params();
     let mut m = json!({
         "rectify_alpha": pipe.rect.alpha,
@@ -141,6 +146,9 @@ pub fn matching_entry(pipe: &super::Pipeline, assist: Option<&AssistParams>, fit
     }
     if let Some(f) = fit {
         m["range_fit"] = f.entry();
+    }
+    if let Some(c) = contrast {
+        m["contrast"] = c.entry();
     }
     m
 }
@@ -210,8 +218,10 @@ impl ResultsWriter {
             // or self-correction); `assist` says why.
             "fallback": view.assist.as_ref().is_none_or(|a| a.searched_full_range()),
             "points": view.cloud.len(),
-            // The object's pixels clipped to white: overexposed cameras.
+            // The object's pixels clipped to white: overexposed cameras. The right image's
+            // over as many pixels (its object is not segmented).
             "saturated_share": saturated_share(&view.left_rgb, view.mask.as_deref()),
+            "right_saturated_share": view.right_near_white as f64 / view.mask.as_deref().map_or(view.left_rgb.len() / 3, |m| m.iter().filter(|&&v| v != 0).count()).max(1) as f64,
             "table_deg": frame.table_deg,
             "t_left_ns": frame.t_left_ns,
             "skew_ns": frame.t_right_ns as i64 - frame.t_left_ns as i64,
@@ -284,13 +294,16 @@ impl ResultsWriter {
         if first(&|f| f["segmentation"]["edge_object_share"].as_f64().is_some_and(|s| s >= EDGE_WARN_SHARE as f64)) {
             tracing::warn!("frame seq {}: {}; cover it in the screen's colour, or give a background plate (`--plate`, the daemon's `[matching] plate`)", entry["seq"], object_on_edge(share("edge_object_share")));
         }
-        if first(&|f| f["saturated_share"].as_f64().is_some_and(|s| s >= SATURATED_WARN_SHARE)) {
-            tracing::warn!(
-                "frame seq {}: {:.0} % of the object's pixels are at or near white (luma {NEAR_WHITE} or more in the left image): the cameras are overexposed and clipped paint has no texture to match; lower their exposure or gain (the daemon's [cameras] exposure_100us, gain)",
-                entry["seq"],
-                100.0 * entry["saturated_share"].as_f64().unwrap_or(0.0)
-            );
+        for (key, camera) in [("saturated_share", "left"), ("right_saturated_share", "right")] {
+            if first(&|f| f[key].as_f64().is_some_and(|s| s >= SATURATED_WARN_SHARE)) {
+                tracing::warn!(
+                    "frame seq {}: {:.0} % of the object's pixels are at or near white (luma {NEAR_WHITE} or more in the {camera} image): the {camera} camera is overexposed and clipped paint has no texture to match; lower its exposure or gain (the daemon's [cameras] exposure_100us, gain)",
+                    entry["seq"],
+                    100.0 * entry[key].as_f64().unwrap_or(0.0)
+                );
+            }
         }
+
         if first(&|f| f["range_edge_share"].as_f64().is_some_and(|s| s >= RANGE_EDGE_WARN_SHARE)) {
             tracing::warn!(
                 "frame seq {}: {} of the object's pixels ({:.1} % of those searched) found their best match at an end of the disparity range and were dropped: the object comes closer (or lies farther) than the range covers; widen it (`--num-disparities`, `--min-disparity`; the daemon's `[matching] num_disparities`)",

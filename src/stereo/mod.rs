@@ -3,6 +3,7 @@
 
 mod buffer;
 pub mod disparity;
+pub mod gain;
 mod kernels;
 pub mod matcher;
 pub mod params;

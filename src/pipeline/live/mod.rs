@@ -112,12 +112,12 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
 
     let mut settings = settings.clone();
     let (sign, matching) = match fitted_pipeline(&calib, size, &first, &mut settings) {
-        Ok((p, fit)) => {
+        Ok(f) => {
             // The registration thread tracks texture in the rectified left images.
             if let Some(r) = settings.registration.as_mut() {
-                r.track_camera = crate::pipeline::track_camera(&p.rect);
+                r.track_camera = crate::pipeline::track_camera(&f.pipe.rect);
             }
-            (p.rect.disparity_sign, super::results::matching_entry(&p, settings.assist_in_use(), fit.as_ref()))
+            (f.pipe.rect.disparity_sign, super::results::matching_entry(&f.pipe, settings.assist_in_use(), f.range.as_ref(), f.contrast.as_ref()))
         }
         Err(e) => return ScanEnd::failed(e),
     };
@@ -194,17 +194,15 @@ fn run_scan(devices: &mut Devices, shared: Arc<ScanShared>, settings: &PipelineS
     }
 }
 
-/// A scan's first pipeline, its range fitted to the first frame's object where the settings
-/// ask (`pipeline::range`); `settings` then carry the range the matchers are built with.
-fn fitted_pipeline(calib: &crate::calib::StereoCalib, size: (u32, u32), first: &StereoFrame, settings: &mut PipelineSettings) -> Result<(Pipeline, Option<crate::pipeline::range::RangeFit>), ScanError> {
+/// A scan's first pipeline, fitted to its first frame (`pipeline::range`): the range to the
+/// object where the settings ask, the right images' contrast to the left's where the
+/// cameras differ; `settings` then carry what the matchers are built with.
+fn fitted_pipeline(calib: &crate::calib::StereoCalib, size: (u32, u32), first: &StereoFrame, settings: &mut PipelineSettings) -> Result<crate::pipeline::range::Fitted, ScanError> {
     let pipe = Pipeline::new(calib, size, settings.pipeline.clone())?;
-    if !settings.pipeline.fit_range {
-        return Ok((pipe, None));
-    }
     let plate = settings.plate.as_ref().map(|p| pipe.rectify_plate(&p.rgb));
-    let (pipe, options, fit) = crate::pipeline::range::fit(pipe, calib, first, settings.segment, plate.as_ref(), &settings.pipeline).map_err(ScanError::FirstFrame)?;
-    settings.pipeline = options;
-    Ok((pipe, fit))
+    let fitted = crate::pipeline::range::fit(pipe, calib, first, settings.segment, plate.as_ref(), &settings.pipeline).map_err(ScanError::FirstFrame)?;
+    settings.pipeline = fitted.opts.clone();
+    Ok(fitted)
 }
 
 /// The error that caused the others: a stage that stopped because another failed ("the
