@@ -139,6 +139,8 @@ pub struct View {
     pub key: Option<KeyUsed>,
     /// Pixels of the right image at or near white.
     pub right_near_white: usize,
+    /// Matches dropped because a camera clipped them to white ([`crate::stereo::gain::drop_clipped`]).
+    pub clipped_px: usize,
 }
 
 /// A background plate (an image of the empty scene) in rectified left coordinates, RGB, from
@@ -159,12 +161,14 @@ pub struct Prepared {
     pub right_near_white: usize,
     /// The gain the right image's contrast was scaled by ([`Pipeline::balance`]).
     pub right_gain: Option<f64>,
+    /// The right image's level from which it is clipped to white (after the scaling).
+    pub right_clip: u8,
 }
 
 impl Prepared {
     fn new(left_rgb: Vec<u8>, left_gray: Vec<u8>, right_gray: Vec<u8>, mask: Option<Vec<u8>>, key: Option<KeyUsed>) -> Prepared {
         let right_near_white = results::near_white(&right_gray);
-        Prepared { left_gray, right_gray, left_rgb, mask, key, right_near_white, right_gain: None }
+        Prepared { left_gray, right_gray, left_rgb, mask, key, right_near_white, right_gain: None, right_clip: crate::stereo::gain::NEAR_WHITE }
     }
 
     /// An already rectified RGB pair, with an optional rectified mask (given, not keyed); not
@@ -352,7 +356,7 @@ impl Pipeline {
     /// ([`PipelineOptions::right_gain`]), once.
     pub fn balance(&self, frame: &mut Prepared) {
         if let (Some(g), None) = (self.right_gain, frame.right_gain) {
-            crate::stereo::gain::scale_contrast(&mut frame.right_gray, g);
+            frame.right_clip = crate::stereo::gain::scale_contrast(&mut frame.right_gray, g);
             frame.right_gain = Some(g);
         }
     }
@@ -385,7 +389,9 @@ impl Pipeline {
     }
 
     /// Triangulates a matched frame into a [`View`].
-    pub fn finish_view(&self, frame: Prepared, m: AssistedMatch) -> View {
+    pub fn finish_view(&self, frame: Prepared, mut m: AssistedMatch) -> View {
+        let clipped_px = crate::stereo::gain::drop_clipped(&mut m.disparity, &frame.left_gray, &frame.right_gray, frame.right_clip);
+        m.stats.matched -= clipped_px;
         let cloud = triangulate(&m.disparity, &self.rect, &frame.left_rgb);
         let match_ms = m.outcome.match_ms;
         View {
@@ -398,6 +404,7 @@ impl Pipeline {
             assist: m.assisted.then_some(m.outcome),
             key: frame.key,
             right_near_white: frame.right_near_white,
+            clipped_px,
         }
     }
 

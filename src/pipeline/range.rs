@@ -56,10 +56,10 @@ pub fn range_holding(lo: f32, hi: f32, sign: i32) -> (i32, u32) {
     }
 }
 
-/// Probes `frame` (prepared by `pipe`, not yet balanced) over a wide range: where its object
-/// lies, and the range to search instead of `pipe`'s where that one does not hold it; and
-/// the cameras' contrast ratio at the pixels matched. None where too few of the object's
-/// pixels match to tell.
+/// Probes `frame` (prepared by `pipe`) over a wide range: where its object lies, and the
+/// range to search instead of `pipe`'s where that one does not hold it; and the cameras'
+/// contrast ratio at the pixels matched. None where too few of the object's pixels match to
+/// tell.
 pub fn probe(pipe: &Pipeline, frame: &Prepared) -> Result<Option<(RangeFit, Option<Contrast>)>, PipelineError> {
     let (w, h) = pipe.size;
     let sign = pipe.rect.disparity_sign;

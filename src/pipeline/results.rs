@@ -221,6 +221,8 @@ impl ResultsWriter {
             // The object's pixels clipped to white: overexposed cameras. The right image's
             // over as many pixels (its object is not segmented).
             "saturated_share": saturated_share(&view.left_rgb, view.mask.as_deref()),
+            // Matches dropped at pixels either camera clipped to white (`gain::drop_clipped`).
+            "clipped_px": view.clipped_px,
             "right_saturated_share": view.right_near_white as f64 / view.mask.as_deref().map_or(view.left_rgb.len() / 3, |m| m.iter().filter(|&&v| v != 0).count()).max(1) as f64,
             "table_deg": frame.table_deg,
             "t_left_ns": frame.t_left_ns,

@@ -93,17 +93,42 @@ pub fn matched_ratio(left: GrayView, right: GrayView, disparity: &DisparityMap) 
 
 /// Scales `img`'s contrast by `gain` about its mean (the matcher's prefilter ignores the
 /// offset), rounding and clipping to 1…255; a pixel of value 0 (outside the rectified image)
-/// stays 0.
-pub fn scale_contrast(img: &mut [u8], gain: f64) {
+/// stays 0. Returns the level [`NEAR_WHITE`] became: from it up, the scaled image is clipped
+/// (clipped as delivered, or pushed to 255 by a gain over 1).
+pub fn scale_contrast(img: &mut [u8], gain: f64) -> u8 {
     let (sum, n) = img.iter().filter(|&&v| v != 0).fold((0u64, 0u64), |(s, n), &v| (s + v as u64, n + 1));
     if n == 0 {
-        return;
+        return NEAR_WHITE;
     }
     let mean = sum as f64 / n as f64;
     let lut: Vec<u8> = (0..256).map(|v| if v == 0 { 0 } else { (mean + (v as f64 - mean) * gain).round().clamp(1.0, 255.0) as u8 }).collect();
     for v in img.iter_mut() {
         *v = lut[*v as usize];
     }
+    lut[NEAR_WHITE as usize]
+}
+
+/// Drops the matches of `disparity` whose left pixel or right match (the nearest column) is
+/// clipped to white: the left at [`NEAR_WHITE`] or more, the right at `right_clip` or more
+/// (the level [`scale_contrast`] returned, else [`NEAR_WHITE`]). Paint clipped to white holds
+/// no texture, and a specular highlight lies where the light and that camera put it, not on
+/// the surface: both matchers return a disparity there that is not the surface's (`sgm` fills
+/// it from its neighbours along the paths). Returns how many were dropped.
+pub fn drop_clipped(disparity: &mut DisparityMap, left: &[u8], right: &[u8], right_clip: u8) -> usize {
+    let (w, h) = (disparity.width, disparity.height);
+    let mut dropped = 0;
+    for y in 0..h {
+        for x in 0..w {
+            let Some(d) = disparity.get(x, y) else { continue };
+            let xr = (x as f32 - d).round();
+            let right_white = (0.0..w as f32).contains(&xr) && right[y * w + xr as usize] >= right_clip;
+            if left[y * w + x] >= NEAR_WHITE || right_white {
+                disparity.set(x, y, None);
+                dropped += 1;
+            }
+        }
+    }
+    dropped
 }
 
 #[cfg(test)]
@@ -158,6 +183,25 @@ mod tests {
         assert!(matched_ratio(view(&left), view(&right), &map).is_some_and(|c| (c.ratio * 0.7 - 1.0).abs() > 0.02));
         let few = DisparityMap::new(w, h);
         assert_eq!(matched_ratio(view(&left), view(&right), &few), None);
+    }
+
+    /// Matches at a pixel clipped to white in either image are dropped, the right image's
+    /// clip level where it was scaled; the rest are kept.
+    #[test]
+    fn matches_at_clipped_pixels_are_dropped() {
+        let (w, h) = (200, 100);
+        let mut left = textured(w, h, 60.0, 5);
+        left[10 * w + 50] = 255;
+        let (mut right, mut map) = right_view(&left, w, 12, 1.0, 0.0);
+        right[20 * w + 70 - 12] = 252;
+        let before = (0..w * h).filter(|&i| map.get(i % w, i / w).is_some()).count();
+        // The left pixel (50, 10), and (70, 20), whose match (58, 20) the right image clipped.
+        assert_eq!(drop_clipped(&mut map, &left, &right, NEAR_WHITE), 2);
+        assert!(map.get(50, 10).is_none() && map.get(70, 20).is_none() && map.get(51, 10).is_some());
+        assert_eq!((0..w * h).filter(|&i| map.get(i % w, i / w).is_some()).count(), before - 2);
+        // Scaled by 0.7 about its mean, 250 falls below 250: the level returned finds them.
+        let level = scale_contrast(&mut right, 0.7);
+        assert!(level < NEAR_WHITE && right[20 * w + 58] >= level && right[20 * w + 57] < level, "{level}");
     }
 
     /// Scaled, a darker right image gets the left's contrast back, about its mean; pixels
