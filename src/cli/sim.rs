@@ -199,7 +199,7 @@ pub fn cmd_sim_render(a: SimRenderArgs) -> Result<(), Failure> {
     println!(
         "{}",
         json!({"out": a.out, "frames": rec.frames.len(), "ideal": a.ideal, "width": rec.image_size.0, "height": rec.image_size.1,
-               "seconds": seconds, "gt_disparity": a.ideal && a.baseline_mm > 0.0 && a.toe_in_deg == 0.0, "object_disparity_px": [disparities.0, disparities.1]})
+               "seconds": seconds, "gt_disparity": a.out.join("gt/disparity").is_dir(), "object_disparity_px": [disparities.0, disparities.1]})
     );
     Ok(())
 }

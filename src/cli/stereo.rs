@@ -203,7 +203,7 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
     if plate.is_some() && a.mask.as_deref() != Some("auto") {
         return Err(input("--plate is used by the blue-screen segmentation: add --mask auto"));
     }
-    let prepared = match a.mask.as_deref() {
+    let mut prepared = match a.mask.as_deref() {
         None => pipe.prepare_rgb(&l.rgb, &r.rgb, false, None),
         Some("auto") => pipe.prepare_rgb(&l.rgb, &r.rgb, true, plate.map(|p| pipe.rectify_plate(&p)).as_ref()),
         Some(file) => {
@@ -223,7 +223,6 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
     let opts = PipelineOptions { fit_range: a.matching.range_unset(), ..opts };
     let fitted = spinscan::pipeline::range::fit_prepared(pipe, &calib, &prepared, 0, &opts).map_err(input)?;
     let (mut pipe, fit, contrast) = (fitted.pipe, fitted.range, fitted.contrast);
-    let mut prepared = prepared;
     pipe.balance(&mut prepared);
     let view = pipe.process_prepared(prepared).map_err(input)?;
     match view.key.map(|k| k.source) {

@@ -15,6 +15,7 @@ use crate::hw::StereoFrame;
 use crate::io;
 use crate::register::posestore::ViewPose;
 use crate::segment::{edge_share, no_screen, object_on_edge, plain_backdrop, EDGE_WARN_SHARE};
+use crate::stereo::gain::NEAR_WHITE;
 use crate::stereo::DisparityMap;
 
 /// Share of a view's searched pixels dropped at an end of the disparity range from which a
@@ -35,8 +36,6 @@ const FEW_MATCHED_WARN_SHARE: f64 = 0.25;
 /// independent renderer's recordings, 1.5 % with a strong specular highlight, 80 % with both
 /// cameras' gain at 1.8 × (poses 0.53° off against 0.035°, a tenth of the surface missing).
 pub const SATURATED_WARN_SHARE: f64 = 0.1;
-
-use crate::stereo::gain::NEAR_WHITE;
 
 /// Pixels of a grey image at or near white (at least [`NEAR_WHITE`]).
 pub fn near_white(gray: &[u8]) -> usize {
@@ -218,10 +217,10 @@ impl ResultsWriter {
             // or self-correction); `assist` says why.
             "fallback": view.assist.as_ref().is_none_or(|a| a.searched_full_range()),
             "points": view.cloud.len(),
-            // The object's pixels clipped to white: overexposed cameras. The right image's
-            // over as many pixels (its object is not segmented).
+            // The object's pixels clipped to white: overexposed cameras. Matches dropped where
+            // either camera clipped them (`gain::drop_clipped`). The right image's near-white
+            // pixels over the left's object pixels (the right image is not segmented).
             "saturated_share": saturated_share(&view.left_rgb, view.mask.as_deref()),
-            // Matches dropped at pixels either camera clipped to white (`gain::drop_clipped`).
             "clipped_px": view.clipped_px,
             "right_saturated_share": view.right_near_white as f64 / view.mask.as_deref().map_or(view.left_rgb.len() / 3, |m| m.iter().filter(|&&v| v != 0).count()).max(1) as f64,
             "table_deg": frame.table_deg,

@@ -207,25 +207,26 @@ impl Rectification {
         let (inner2, outer2) = undistort_rectangles(&calib.right, &r2, &proj(fc_new, cc_new[1]), size);
 
         // Scale so that the inner rectangle fills the image (alpha 0) or the outer one fits
-        // inside it (alpha 1), for both cameras.
-        let fit = |cc: (f64, f64), r: Rect, pick: fn(f64, f64) -> f64| {
+        // inside it (alpha 1), for both cameras. `fill`: the least scale at which rectangle `r`
+        // (about the principal point `cc`) covers the image; `keep`: the largest at which it
+        // stays inside it (a side beyond the centre, as a toed-in rig's middle has, does not
+        // bound it).
+        let fill = |cc: (f64, f64), r: Rect| {
             let a = cc.0 / (cc.0 - r.0);
             let b = cc.1 / (cc.1 - r.1);
             let c = (nx - 1.0 - cc.0) / (r.2 - cc.0);
             let d = (ny - 1.0 - cc.1) / (r.3 - cc.1);
-            pick(pick(pick(a, b), c), d)
+            a.max(b).max(c).max(d)
         };
-        let s0 = fit(cc_new[1], inner2, f64::max).max(fit(cc_new[0], inner1, f64::max));
-        let s1 = fit(cc_new[1], outer2, f64::min).min(fit(cc_new[0], outer1, f64::min));
+        let keep = |cc: (f64, f64), r: Rect| {
+            let bound = |room: f64, reach: f64| if reach > 0.0 { room / reach } else { f64::INFINITY };
+            bound(cc.0, cc.0 - r.0).min(bound(cc.1, cc.1 - r.1)).min(bound(nx - 1.0 - cc.0, r.2 - cc.0)).min(bound(ny - 1.0 - cc.1, r.3 - cc.1))
+        };
+        let s0 = fill(cc_new[1], inner2).max(fill(cc_new[0], inner1));
+        let s1 = keep(cc_new[1], outer2).min(keep(cc_new[0], outer1));
         let alpha = alpha.unwrap_or_else(|| {
             // The largest scale at which both views' middles stay inside the images, and the
             // alpha that gives it (scales fall from s0 at alpha 0 to s1 at alpha 1).
-            // (A side of the rectangle beyond the centre, as in a strongly toed-in rig, does
-            // not bound it.)
-            let keep = |cc: (f64, f64), r: Rect| {
-                let bound = |room: f64, reach: f64| if reach > 0.0 { room / reach } else { f64::INFINITY };
-                bound(cc.0, cc.0 - r.0).min(bound(cc.1, cc.1 - r.1)).min(bound(nx - 1.0 - cc.0, r.2 - cc.0)).min(bound(ny - 1.0 - cc.1, r.3 - cc.1))
-            };
             let middle1 = middle_rectangle(&calib.left, &r1, &proj(fc_new, cc_new[0]), size);
             let middle2 = middle_rectangle(&calib.right, &r2, &proj(fc_new, cc_new[1]), size);
             let s_kept = keep(cc_new[0], middle1).min(keep(cc_new[1], middle2));
