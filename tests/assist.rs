@@ -81,6 +81,11 @@ fn table1_prints_the_table_and_writes_its_json_and_figure() {
     assert_eq!((fig.width(), fig.height()), (4 * 160 + 3 * 4, 2 * 120 + 4));
     assert_eq!(t["fig_tiles"].as_array().unwrap().len(), 5);
 
+    // The first frame compared the cameras' contrast (alike: nothing scaled, nothing said).
+    let c = &t["contrast"];
+    assert!(c["ratio"].as_f64().is_some_and(|r| (r - 1.0).abs() < 0.05) && c["right_scaled"] == false, "{c}");
+    assert!(!stdout.contains("\ncontrast:"), "{stdout}");
+
     // The torus fits 0 … 63: nothing is dropped at the range's end, and nothing is said of it.
     assert!(rows.iter().all(|r| r["range_edge_px"].as_array().unwrap().iter().all(|v| v == 0)), "{rows:?}");
     assert!(!stdout.contains("\nrange:"), "{stdout}");

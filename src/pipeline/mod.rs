@@ -352,6 +352,11 @@ impl Pipeline {
         Ok(prepared)
     }
 
+    /// Sets the gain every right image is scaled by ([`PipelineOptions::right_gain`]).
+    pub fn set_right_gain(&mut self, gain: Option<f64>) {
+        self.right_gain = gain;
+    }
+
     /// Scales a prepared pair's right image by the scan's contrast gain
     /// ([`PipelineOptions::right_gain`]), once.
     pub fn balance(&self, frame: &mut Prepared) {

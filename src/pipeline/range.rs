@@ -131,7 +131,7 @@ pub fn fit_prepared(pipe: Pipeline, calib: &StereoCalib, prepared: &Prepared, se
         }
         None => pipe,
     };
-    pipe.right_gain = fitted.right_gain;
+    pipe.set_right_gain(fitted.right_gain);
     Ok(Fitted { pipe, opts: fitted, range, contrast })
 }
 
