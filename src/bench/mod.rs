@@ -8,7 +8,9 @@
 //! interval construction + matching (left–right check included, and a full-range redo when
 //! self-correction rejects the assisted result), the median of `repeat` runs of that frame
 //! from the same state. The motion comes from spinscan's own registration of the row's own
-//! views (seeded by `table_deg`); ground truth is read only to score.
+//! views (seeded by `table_deg`); ground truth is read only to score. As in a scan, the
+//! first frame's probe compares the cameras' contrast and every right image is scaled where
+//! they differ (`stereo::gain`); the range is not fitted (every row searches the one set).
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;

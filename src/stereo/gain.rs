@@ -1,4 +1,6 @@
-//! The right camera's contrast brought to the left's before matching.
+//! Where the two cameras see the same surface differently: the right camera's contrast
+//! brought to the left's before matching, and matches at pixels a camera clipped to white
+//! dropped after it ([`drop_clipped`]).
 //!
 //! Two cameras rarely deliver the same brightness for the same surface: their gain and
 //! exposure are set apart (or automatically), and their sensors differ. The matcher's x-Sobel
@@ -21,8 +23,9 @@ use super::disparity::{DisparityMap, GrayView};
 /// either way), a large one is.
 pub const TOLERANCE: f64 = 1.1;
 
-/// The level from which a pixel counts as clipped to white: it no longer follows the
-/// camera's gain, so [`matched_ratio`] leaves it out.
+/// The level (luma) from which a pixel counts as clipped to white: it holds no texture and no
+/// longer follows the camera's gain ([`matched_ratio`] leaves it out, [`drop_clipped`] drops
+/// its matches, and a scan warns where many of the object's pixels are).
 pub const NEAR_WHITE: u8 = 250;
 
 /// Fewest corresponding pixels the ratio is measured over.
@@ -53,8 +56,8 @@ impl Contrast {
 /// of `disparity` with a match, and the right image's level where it matched (interpolated
 /// between the two nearest columns). The ratio is the slope of the least-squares line of the
 /// left levels on the right ones (a gain with any offset). Pairs that touch a pixel of value
-/// 0 (outside a rectified image) or one clipped to white ([`NEAR_WHITE`]) are left out. None under [`MIN_PAIRS`] pairs, or where the
-/// right levels do not vary.
+/// 0 (outside a rectified image) or one clipped to white ([`NEAR_WHITE`]) are left out. None
+/// under [`MIN_PAIRS`] pairs, or where the right levels do not vary.
 ///
 /// Measured on the pixels both cameras see of the same surface, it is the cameras' own ratio
 /// within about 1 %: 0.942 for a right camera at 1.07 × the gain (0.935), 1.000 for alike
