@@ -133,25 +133,6 @@ fn table1_runs_every_row_for_each_listed_method() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("only `bench table1` takes a list"));
 }
 
-/// A copy of recording `src` whose right camera has `gain` × the left's (its images scaled).
-fn with_right_gain(src: &Path, dst: &Path, gain: f64) {
-    fn copy(src: &Path, dst: &Path) {
-        std::fs::create_dir_all(dst).unwrap();
-        for e in std::fs::read_dir(src).unwrap() {
-            let p = e.unwrap().path();
-            let to = dst.join(p.file_name().unwrap());
-            if p.is_dir() { copy(&p, &to) } else { std::fs::copy(&p, &to).map(drop).unwrap() }
-        }
-    }
-    copy(src, dst);
-    for e in std::fs::read_dir(dst.join("right")).unwrap() {
-        let p = e.unwrap().path();
-        let img = spinscan::io::load_image(&p).unwrap();
-        let rgb: Vec<u8> = img.rgb.iter().map(|&v| (v as f64 * gain).round().min(255.0) as u8).collect();
-        spinscan::io::write_rgb_png(&p, img.width, img.height, &rgb).unwrap();
-    }
-}
-
 /// Cameras of different gain (the right at 0.6 ×): `bench table1` measures the ratio on the
 /// first frame, scales every right image as a scan does, says so, and scores as with alike
 /// cameras.
@@ -160,7 +141,7 @@ fn table1_scales_a_darker_right_camera_as_a_scan_does() {
     let dir = support::temp_dir("assist-table1-gain");
     let rec = small_turn(&dir, 3, false);
     let dark = dir.join("dark");
-    with_right_gain(&rec, &dark, 0.6);
+    support::copy_with_right_gain(&rec, &dark, 0.6);
     let (_, alike) = table1(&rec, &dir, &["--weights", "0.8", "--no-predicted"]);
     let (o, t) = table1(&dark, &dir, &["--weights", "0.8", "--no-predicted"]);
     let c = &t["contrast"];

@@ -369,18 +369,7 @@ fn a_darker_right_camera_is_scaled_to_the_left_s_contrast() {
     let dir = support::temp_dir("rec-gain");
     small_recording(&dir.join("sim"), 2, 0.0);
     let dark = dir.join("dark");
-    rewrite_images(&dir.join("sim"), &dark, |img, path| {
-        let right = path.parent().is_some_and(|p| p.ends_with("right"));
-        let rgb: Vec<u8> = img.rgb.iter().map(|&v| if right { (v as f64 * 0.6).round() as u8 } else { v }).collect();
-        io::write_rgb_png(path, img.width, img.height, &rgb).unwrap();
-    });
-    std::fs::create_dir_all(dark.join("gt/disparity")).unwrap();
-    for f in std::fs::read_dir(dir.join("sim/gt/disparity")).unwrap().chain(std::fs::read_dir(dir.join("sim/gt")).unwrap()) {
-        let p = f.unwrap().path();
-        if p.is_file() {
-            std::fs::copy(&p, dark.join(p.strip_prefix(dir.join("sim")).unwrap())).unwrap();
-        }
-    }
+    support::copy_with_right_gain(&dir.join("sim"), &dark, 0.6);
     let report = |rec: &Path, out: &str| -> serde_json::Value {
         replay(rec, &dir.join(out)).unwrap();
         read_json(&dir.join(out).join("report.json"))

@@ -167,7 +167,7 @@ pub struct Prepared {
 
 impl Prepared {
     fn new(left_rgb: Vec<u8>, left_gray: Vec<u8>, right_gray: Vec<u8>, mask: Option<Vec<u8>>, key: Option<KeyUsed>) -> Prepared {
-        let right_near_white = results::near_white(&right_gray);
+        let right_near_white = crate::stereo::gain::near_white(&right_gray);
         Prepared { left_gray, right_gray, left_rgb, mask, key, right_near_white, right_gain: None, right_clip: crate::stereo::gain::NEAR_WHITE }
     }
 

@@ -37,11 +37,6 @@ const FEW_MATCHED_WARN_SHARE: f64 = 0.25;
 /// cameras' gain at 1.8 × (poses 0.53° off against 0.035°, a tenth of the surface missing).
 pub const SATURATED_WARN_SHARE: f64 = 0.1;
 
-/// Pixels of a grey image at or near white (at least [`NEAR_WHITE`]).
-pub fn near_white(gray: &[u8]) -> usize {
-    gray.iter().filter(|&&v| v >= NEAR_WHITE).count()
-}
-
 /// The share (0…1) of `mask`'s object pixels (every pixel without one) of an RGB image whose
 /// luma is at least [`NEAR_WHITE`].
 pub fn saturated_share(rgb: &[u8], mask: Option<&[u8]>) -> f64 {

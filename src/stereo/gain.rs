@@ -28,6 +28,11 @@ pub const TOLERANCE: f64 = 1.1;
 /// its matches, and a scan warns where many of the object's pixels are).
 pub const NEAR_WHITE: u8 = 250;
 
+/// Pixels of a grey image at or near white (at least [`NEAR_WHITE`]).
+pub fn near_white(gray: &[u8]) -> usize {
+    gray.iter().filter(|&&v| v >= NEAR_WHITE).count()
+}
+
 /// Fewest corresponding pixels the ratio is measured over.
 pub const MIN_PAIRS: usize = 500;
 

@@ -1,7 +1,7 @@
 //! Helpers shared by the integration tests.
 #![allow(dead_code)]
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 pub mod daemon;
 
@@ -10,6 +10,26 @@ pub fn shared_data(name: &str) -> PathBuf {
     let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data").join(name);
     assert!(p.is_dir(), "test data {} is missing: these tests need ../shared beside the repository", p.display());
     p
+}
+
+/// A copy of recording `src` (every file, ground truth included) whose right camera has
+/// `gain` × the left's: its right images scaled and clipped at 255.
+pub fn copy_with_right_gain(src: &Path, dst: &Path, gain: f64) {
+    fn copy(src: &Path, dst: &Path) {
+        std::fs::create_dir_all(dst).unwrap();
+        for e in std::fs::read_dir(src).unwrap() {
+            let p = e.unwrap().path();
+            let to = dst.join(p.file_name().unwrap());
+            if p.is_dir() { copy(&p, &to) } else { std::fs::copy(&p, &to).map(drop).unwrap() }
+        }
+    }
+    copy(src, dst);
+    for e in std::fs::read_dir(dst.join("right")).unwrap() {
+        let p = e.unwrap().path();
+        let img = spinscan::io::load_image(&p).unwrap();
+        let rgb: Vec<u8> = img.rgb.iter().map(|&v| (v as f64 * gain).round().min(255.0) as u8).collect();
+        spinscan::io::write_rgb_png(&p, img.width, img.height, &rgb).unwrap();
+    }
 }
 
 /// A fresh temporary folder for one test, removed when the test ends — kept (and named on
