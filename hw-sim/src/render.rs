@@ -43,6 +43,9 @@ pub const SCREEN_RGB: [f64; 3] = [40.0, 70.0, 190.0];
 const TABLE_RGB: [f64; 3] = [36.0, 64.0, 176.0];
 const OBJECT_RGB: [f64; 3] = [196.0, 164.0, 124.0];
 const TABLE_THICKNESS_MM: f64 = 14.0;
+/// Towards the lab's one light, in the left camera's frame (x right, y down, z forward): from
+/// the upper left, on the cameras' side of the object (normalised where used).
+const LIGHT_LEFT: Vec3 = [-0.4, -0.6, -0.7];
 
 impl SceneConfig {
     /// The default lab (640×480, f = 700 px, 60 mm baseline, object 450 mm away) with this
@@ -236,9 +239,13 @@ impl Renderer {
         let right_from_obj = rig.right_from_left.compose(&cam_from_obj);
         let mut images = [Vec::new(), Vec::new()];
         let mut gt = None;
+        // One light for the lab, fixed with the rig (given in the left camera's frame): each
+        // camera sees the same Lambertian shading, whatever the angle between the two.
+        let light_left = normalize(LIGHT_LEFT);
+        let lights = [light_left, math::mat_vec(&rig.right_from_left.r, light_left)];
         for (cam, pose) in [(0usize, cam_from_obj), (1, right_from_obj)] {
             self.rasterize(cam, &pose);
-            self.shade(cam, &pose);
+            self.shade(cam, &pose, lights[cam]);
             if cam == 0 && rig.is_ideal() {
                 gt = Some(self.ground_truth_disparity());
             }
@@ -319,10 +326,10 @@ impl Renderer {
         }
     }
 
-    /// Shading pass: colour of every canvas pixel, without noise.
-    fn shade(&mut self, cam: usize, pose: &Pose) {
+    /// Shading pass: colour of every canvas pixel, without noise. `light`: the direction
+    /// towards the light in this camera's frame.
+    fn shade(&mut self, cam: usize, pose: &Pose, light: Vec3) {
         let view = &mut self.views[cam];
-        let light = normalize([-0.4, -0.6, -0.7]);
         let contrast = self.scene.texture_contrast as f32;
         let r = pose.r;
         let w = view.canvas_w;
@@ -598,6 +605,46 @@ mod tests {
         }
         assert!(checked > 100, "{checked}");
         assert!(worst < 0.02, "worst disparity error {worst} px");
+    }
+
+    /// The lab has one light: a plain sphere's points that both cameras of a rig toed in by
+    /// 15° see face-on have one colour in both images (Lambertian shading does not depend on
+    /// the camera). With the light fixed to each camera instead, they differed by up to 27
+    /// levels.
+    #[test]
+    fn both_cameras_of_a_toed_in_rig_see_one_shading() {
+        let mut scene = SceneConfig { noise_sigma: 0.0, texture_contrast: 0.0, ..small("sphere", 20_000) };
+        scene.rig = scene.rig.toed_in(15.0);
+        let rig = scene.rig;
+        let mut r = Renderer::new(scene.clone()).unwrap();
+        let pair = r.render(0.0, 0);
+        let right_from_obj = rig.right_from_left.compose(&pair.cam_from_obj);
+        let n = scene.object.vertices.len() as f64;
+        let centre: Vec3 = std::array::from_fn(|d| scene.object.vertices.iter().map(|v| v[d] as f64).sum::<f64>() / n);
+        let (mut checked, mut worst) = (0, 0u8);
+        for v in scene.object.vertices.iter().step_by(7) {
+            let p = v.map(|c| c as f64);
+            let (normal, top) = (normalize(math::sub(p, centre)), p[1] > centre[1]);
+            // Face-on to both cameras (no grazing pixels, which mix in the screen), upper half
+            // (clear of the table).
+            let facing = |pose: &Pose| {
+                let (q, nq) = (pose.apply(p), math::mat_vec(&pose.r, normal));
+                math::dot(nq, math::scale(normalize(q), -1.0)) > 0.7
+            };
+            if !(top && facing(&pair.cam_from_obj) && facing(&right_from_obj)) {
+                continue;
+            }
+            let colour = |rgb: &[u8], k: &Intrinsics, q: Vec3| {
+                let (u, v) = k.project(q);
+                let (u, v) = (u.round() as usize, v.round() as usize);
+                [0, 1, 2].map(|c| rgb[3 * (v * rig.width + u) + c])
+            };
+            let (a, b) = (colour(&pair.left_rgb, &rig.left, pair.cam_from_obj.apply(p)), colour(&pair.right_rgb, &rig.right, right_from_obj.apply(p)));
+            worst = worst.max((0..3).map(|c| a[c].abs_diff(b[c])).max().unwrap());
+            checked += 1;
+        }
+        assert!(checked > 50, "{checked} points checked");
+        assert!(worst <= 6, "colours differ by up to {worst} levels between the cameras");
     }
 
     #[test]
