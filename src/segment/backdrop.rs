@@ -49,9 +49,24 @@ pub struct Backdrop {
     pub threshold: f32,
 }
 
+/// The pixels of an RGB image's border ([`border_grid`]) that hold the scene: all but the black
+/// ones (0, 0, 0), which a rectified image is wherever it maps outside the camera's (a
+/// toed-in rig zoomed out by its alpha shows wide black margins). None where fewer than
+/// [`MIN_LIT_BORDER`] are left (and not all of them): too few to say what the border shows.
+pub(super) fn lit_border(rgb: &[u8], w: usize, h: usize) -> Option<Vec<usize>> {
+    let grid = border_grid(w, h);
+    let all = grid.len();
+    let at: Vec<usize> = grid.into_iter().filter(|&i| rgb[3 * i..3 * i + 3] != [0, 0, 0]).collect();
+    (at.len() >= MIN_LIT_BORDER || (at.len() == all && all > 0)).then_some(at)
+}
+
+/// Fewest border pixels ([`lit_border`]) a key is found from, unless the whole border is lit
+/// (a tiny image's).
+const MIN_LIT_BORDER: usize = 64;
+
 /// The pixels of a `w` × `h` image's border — a ring of a sixteenth of the smaller side — on a
 /// grid of an eighth of that (about 7 000 pixels of a 640 × 480 frame), as indices.
-pub(super) fn border_grid(w: usize, h: usize) -> Vec<usize> {
+fn border_grid(w: usize, h: usize) -> Vec<usize> {
     let ring = (w.min(h) / 16).max(1);
     let step = (ring / 8).max(1);
     let mut at = Vec::new();
@@ -218,8 +233,8 @@ fn plain(rgb: &[u8], w: usize, h: usize) -> Option<(Vec<bool>, Backdrop)> {
     if w == 0 || h == 0 || rgb.len() != 3 * w * h {
         return None;
     }
+    let border = lit_border(rgb, w, h)?;
     let var = texture(rgb, w, h);
-    let border = border_grid(w, h);
     let mut noise: Vec<f32> = border.iter().map(|&i| var[i]).collect();
     noise.sort_unstable_by(f32::total_cmp);
     let noise = noise[noise.len() / 2].sqrt();

@@ -183,15 +183,17 @@ struct Key {
 }
 
 /// The colour test, pixel by pixel: 0 where a pixel is bright enough and its chromaticity
-/// lies within the tolerance of the key's, 255 elsewhere. Branch-free per pixel: a pixel of
-/// sum 0 has no chromaticity (its ratios are NaN, which fails the test).
+/// lies within the tolerance of the key's, or where it is black (0, 0, 0: no light, as a
+/// rectified image is where it maps outside the camera's; nothing there to match), 255
+/// elsewhere. Branch-free per pixel: a pixel of sum 0 has no chromaticity (its ratios are
+/// NaN, which fails the colour test).
 fn key_portable(key: &Key, rgb: &[u8], mask: &mut [u8]) {
     for (m, px) in mask.iter_mut().zip(rgb.chunks_exact(3)) {
         let (r, g, b) = (px[0] as f32, px[1] as f32, px[2] as f32);
         let s = r + g + b;
         let bright = px[0] as u16 + px[1] as u16 + px[2] as u16 >= key.dark_level;
         let (dr, dg) = (r / s - key.chroma.0, g / s - key.chroma.1);
-        let keyed = bright & (s > 0.0) & (dr * dr + dg * dg <= key.tol2);
+        let keyed = (bright & (s > 0.0) & (dr * dr + dg * dg <= key.tol2)) | (s == 0.0);
         *m = if keyed { 0 } else { 255 };
     }
 }
@@ -230,7 +232,8 @@ unsafe fn key_avx2(key: &Key, rgb: &[u8], mask: &mut [u8]) -> usize {
         let dg = _mm256_sub_ps(_mm256_div_ps(g, s), k1);
         let near = _mm256_cmp_ps::<_CMP_LE_OQ>(_mm256_add_ps(_mm256_mul_ps(dr, dr), _mm256_mul_ps(dg, dg)), tol2);
         let lit = _mm256_cmp_ps::<_CMP_GT_OQ>(s, zero);
-        let keyed = _mm256_and_si256(bright, _mm256_castps_si256(_mm256_and_ps(near, lit)));
+        let black = _mm256_cmp_ps::<_CMP_EQ_OQ>(s, zero);
+        let keyed = _mm256_or_si256(_mm256_and_si256(bright, _mm256_castps_si256(_mm256_and_ps(near, lit))), _mm256_castps_si256(black));
         // 255 where not keyed: the lanes' 32-bit masks narrowed to bytes.
         let m = _mm256_andnot_si256(keyed, _mm256_set1_epi32(-1));
         let m = _mm256_packs_epi16(_mm256_packs_epi32(m, m), _mm256_setzero_si256());
@@ -246,26 +249,26 @@ fn chromaticity(p: &[u8]) -> Option<(f32, f32)> {
     (s > 0.0).then(|| (p[0] as f32 / s, p[1] as f32 / s))
 }
 
-/// The pixels of an RGB image's border ([`backdrop::border_grid`]): how many there are, and
-/// the chromaticities of the bright ones.
-fn border_chromaticities(rgb: &[u8], w: usize, h: usize, dark_level: u16) -> (usize, Vec<(f32, f32)>) {
-    let at = backdrop::border_grid(w, h);
+/// The pixels of an RGB image's border that hold the scene ([`backdrop::lit_border`]): how
+/// many there are, and the chromaticities of the bright ones. None where too few do.
+fn border_chromaticities(rgb: &[u8], w: usize, h: usize, dark_level: u16) -> Option<(usize, Vec<(f32, f32)>)> {
+    let at = backdrop::lit_border(rgb, w, h)?;
     let bright = |px: &&[u8]| px[0] as u16 + px[1] as u16 + px[2] as u16 >= dark_level;
     let chroma = at.iter().map(|&i| &rgb[3 * i..3 * i + 3]).filter(bright).filter_map(chromaticity).collect();
-    (at.len(), chroma)
+    Some((at.len(), chroma))
 }
 
 /// The screen's chromaticity in an RGB image, and the share of the border's pixels within
 /// `tolerance` of it: the most common chromaticity (bins of 1/32) among the bright pixels of
-/// the border — a ring of a sixteenth of the smaller side, on a grid of an eighth of that —
-/// refined to the mean of those within half the tolerance of it. Only blue or green colours
+/// the border — a ring of a sixteenth of the smaller side, on a grid of an eighth of that,
+/// its black pixels (outside a rectified image) left out — refined to the mean of those within half the tolerance of it. Only blue or green colours
 /// away from grey count (red not the strongest channel; farther than the tolerance from
 /// grey), as screens are: keying a grey or brown border would take out an object of that
 /// colour. None where no such colour keys out [`AUTO_MIN_SHARE`] of the border.
 fn find_screen(rgb: &[u8], w: usize, h: usize, dark_level: u16, tolerance: f32) -> Option<((f32, f32), f32)> {
     const BINS: usize = 32;
     // (About 7 000 pixels of a 640 × 480 frame's border: plenty for the histogram.)
-    let (all, chroma) = border_chromaticities(rgb, w, h, dark_level);
+    let (all, chroma) = border_chromaticities(rgb, w, h, dark_level)?;
     let bin = |(r, g): (f32, f32)| ((r * BINS as f32) as usize).min(BINS - 1) * BINS + ((g * BINS as f32) as usize).min(BINS - 1);
     let mut hist = vec![(0u32, 0.0f64, 0.0f64); BINS * BINS];
     for &c in &chroma {
@@ -431,261 +434,4 @@ fn morph(mask: &mut [u8], w: usize, h: usize, radius: usize, dilate: bool) {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn scene(w: usize, h: usize) -> Vec<u8> {
-        scene_on(w, h, DEFAULT_KEY_RGB)
-    }
-
-    /// A screen of colour `screen` darkening to the right (shading), a grey square in the
-    /// middle (columns 10–29, rows 8–23).
-    fn scene_on(w: usize, h: usize, screen: [u8; 3]) -> Vec<u8> {
-        let mut img = Vec::with_capacity(w * h * 3);
-        for y in 0..h {
-            for x in 0..w {
-                let shade = 1.0 - 0.5 * x as f32 / w as f32;
-                let inside = (10..30).contains(&x) && (8..24).contains(&y);
-                let px = if inside { [150, 140, 130] } else { screen };
-                img.extend(px.iter().map(|&v| (v as f32 * shade) as u8));
-            }
-        }
-        img
-    }
-
-    /// `auto` keys a screen of any saturated colour as the given colour would, and says it
-    /// found it: a chromaticity within a hundredth of the screen's, over the whole border.
-    #[test]
-    fn auto_finds_a_screen_of_any_colour() {
-        let (w, h) = (48, 32);
-        // The simulated lab's blue, chroma-key blue, a purer blue, green.
-        for screen in [DEFAULT_KEY_RGB, [0, 71, 187], [10, 30, 230], [0, 177, 64]] {
-            let img = scene_on(w, h, screen);
-            let (mask, used) = ChromaKey::default().segment_keyed(&img, w, h, None).unwrap();
-            let given = ChromaKey { key: KeyColour::Rgb(screen), ..ChromaKey::default() }.segment(&img, w, h, None).unwrap();
-            assert_eq!(mask, given, "screen {screen:?}");
-            assert_eq!(mask.iter().filter(|&&m| m == 255).count(), 20 * 16, "screen {screen:?}");
-            let want = chromaticity(&screen).unwrap();
-            assert!((used.chroma.0 - want.0).abs() < 0.01 && (used.chroma.1 - want.1).abs() < 0.01, "screen {screen:?}: {used:?}");
-            assert!(matches!(used.source, KeySource::Found { border_share } if border_share > 0.99), "screen {screen:?}: {used:?}");
-        }
-        // A turntable of another colour along the bottom: the screen is still the most common.
-        let mut img = scene_on(w, h, [0, 71, 187]);
-        for px in img[(h - 2) * w * 3..].chunks_exact_mut(3) {
-            px.copy_from_slice(&[90, 90, 90]);
-        }
-        let used = ChromaKey::default().key_of(&img, w, h);
-        assert!(matches!(used.source, KeySource::Found { .. }) && (used.chroma.1 - 0.275).abs() < 0.01, "{used:?}");
-    }
-
-    /// The edge share counts each outermost pixel once, corners included, on masks of one
-    /// row or column too.
-    #[test]
-    fn the_edge_share_counts_the_outermost_pixels() {
-        let (w, h) = (10, 6);
-        let mut mask = vec![0u8; w * h];
-        assert_eq!(edge_share(&mask, w, h), 0.0);
-        // An object inside the view: nothing on the edge.
-        for y in 2..4 {
-            mask[y * w + 3..y * w + 7].fill(255);
-        }
-        assert_eq!(edge_share(&mask, w, h), 0.0);
-        // A floor along the bottom row: 10 of the 28 edge pixels; then the left column's
-        // inner pixels too.
-        mask[(h - 1) * w..].fill(255);
-        assert_eq!(edge_share(&mask, w, h), 10.0 / 28.0);
-        for y in 1..h - 1 {
-            mask[y * w] = 255;
-        }
-        assert_eq!(edge_share(&mask, w, h), 14.0 / 28.0);
-        assert_eq!(edge_share(&[255; 7], 7, 1), 1.0);
-        assert_eq!(edge_share(&[0, 255, 0], 1, 3), 1.0 / 3.0);
-        assert_eq!(edge_share(&[255; 12], 4, 3), 1.0);
-        assert!(object_on_edge(0.44).starts_with("44 % of the left image's edge"), "{}", object_on_edge(0.44));
-    }
-
-    /// Where the border shows no coloured screen — grey frames, or an object over most of
-    /// it — `auto` keys by the default colour and says so; a given colour is used as given.
-    #[test]
-    fn auto_falls_back_where_the_border_shows_no_screen() {
-        let (w, h) = (48, 32);
-        let default = chromaticity(&DEFAULT_KEY_RGB).unwrap();
-        // Grey: one chromaticity everywhere, but grey.
-        let grey: Vec<u8> = scene(w, h).chunks_exact(3).flat_map(|p| [((p[0] as u16 + p[1] as u16 + p[2] as u16) / 3) as u8; 3]).collect();
-        assert_eq!(ChromaKey::default().key_of(&grey, w, h), KeyUsed { chroma: default, source: KeySource::NotFound, plain_edge: None });
-        // A brown object over all but the first four columns, the blue screen there (a
-        // quarter of the border): brown is no screen colour, and the screen keys out too
-        // little of the border.
-        let brown = |cols: usize| {
-            let mut img = scene(w, h);
-            for (i, px) in img.chunks_exact_mut(3).enumerate() {
-                if i % w >= w - cols {
-                    px.copy_from_slice(&[120, 80, 40]);
-                }
-            }
-            img
-        };
-        let img = brown(w - 4);
-        assert_eq!(ChromaKey::default().key_of(&img, w, h).source, KeySource::NotFound);
-        // Over three fifths of the columns (more of the border than the screen, which keys out
-        // 43 % of it): the screen is found, not the brown.
-        let used = ChromaKey::default().key_of(&brown(w * 3 / 5), w, h);
-        assert!(matches!(used.source, KeySource::Found { .. }) && (used.chroma.0 - default.0).abs() < 0.01, "{used:?}");
-        let given = ChromaKey { key: KeyColour::Rgb([120, 80, 40]), ..ChromaKey::default() };
-        assert_eq!(given.key_of(&img, w, h), KeyUsed { chroma: chromaticity(&[120, 80, 40]).unwrap(), source: KeySource::Given, plain_edge: None });
-    }
-
-    /// A grey floor along the bottom that the blue key leaves reaches the image's edge: its
-    /// plain pixels are keyed out by texture too, the textured object kept, and the key says
-    /// so. A colour mask clear of the edge is left as the colour made it.
-    #[test]
-    fn a_grey_floor_the_colour_leaves_is_keyed_by_texture() {
-        let (w, h) = (96, 72);
-        let mut next = crate::testing::xorshift(0xf100_4);
-        let object = |x: usize, y: usize| (30..62).contains(&x) && (16..44).contains(&y);
-        let mut img = Vec::with_capacity(3 * w * h);
-        for y in 0..h {
-            for x in 0..w {
-                let px = if object(x, y) {
-                    let v = 60 + (next() % 150) as u8;
-                    [v, v - 20, v / 2]
-                } else if y >= 52 {
-                    let v = 100 + (next() % 3) as u8;
-                    [v, v, v]
-                } else {
-                    DEFAULT_KEY_RGB
-                };
-                img.extend(px);
-            }
-        }
-        let (mask, used) = ChromaKey::default().segment_keyed(&img, w, h, None).unwrap();
-        assert!(matches!(used.source, KeySource::Found { .. }) && used.plain_edge.is_some(), "{used:?}");
-        assert_eq!(edge_share(&mask, w, h), 0.0);
-        for y in 0..h {
-            for x in 0..w {
-                let inner = (32..60).contains(&x) && (18..42).contains(&y);
-                let near = (27..65).contains(&x) && (13..47).contains(&y);
-                assert!(if inner { mask[y * w + x] != 0 } else { near || mask[y * w + x] == 0 }, "({x}, {y})");
-            }
-        }
-        // The scene without the floor: the colour's mask as it was.
-        let (_, used) = ChromaKey::default().segment_keyed(&scene(w, h), w, h, None).unwrap();
-        assert_eq!(used.plain_edge, None);
-    }
-
-    #[test]
-    fn the_no_screen_message_names_the_share_and_the_colour() {
-        assert_eq!(no_screen(), "no coloured screen or plain backdrop in the border of the left image (an object or a textured background over more than 70 % of the border): keyed by the default colour 40,70,190");
-    }
-
-    #[test]
-    fn key_colours_parse_as_written() {
-        assert_eq!("auto".parse(), Ok(KeyColour::Auto));
-        assert_eq!(" AUTO ".parse(), Ok(KeyColour::Auto));
-        assert_eq!("0, 71 ,187".parse(), Ok(KeyColour::Rgb([0, 71, 187])));
-        for bad in ["", "blue", "1,2", "1,2,3,4", "0,0,256", "-1,0,0"] {
-            let e = bad.parse::<KeyColour>().unwrap_err().to_string();
-            assert!(e.contains("expected `auto` or R,G,B"), "{bad}: {e}");
-        }
-        for k in [KeyColour::Auto, KeyColour::Rgb([40, 70, 190])] {
-            assert_eq!(k.to_string().parse(), Ok(k));
-        }
-    }
-
-    #[test]
-    fn keys_out_a_shaded_screen() {
-        let (w, h) = (48, 32);
-        let mask = ChromaKey::default().segment(&scene(w, h), w, h, None).unwrap();
-        assert_eq!(mask[16 * w + 20], 255);
-        assert_eq!(mask[2 * w + 45], 0, "the darker screen is still background");
-        let fg = mask.iter().filter(|&&m| m == 255).count();
-        assert_eq!(fg, 20 * 16);
-    }
-
-    #[test]
-    fn opening_removes_a_speck() {
-        let (w, h) = (48, 32);
-        let mut img = scene(w, h);
-        let i = (3 * w + 3) * 3;
-        img[i..i + 3].copy_from_slice(&[200, 200, 200]);
-        let mask = ChromaKey::default().segment(&img, w, h, None).unwrap();
-        assert_eq!(mask[3 * w + 3], 0);
-    }
-
-    #[test]
-    fn plate_keys_dark_background() {
-        let (w, h) = (16, 8);
-        let plate = vec![5u8; w * h * 3];
-        let mut img = plate.clone();
-        for x in 4..12 {
-            for y in 2..6 {
-                img[(y * w + x) * 3..(y * w + x) * 3 + 3].copy_from_slice(&[120, 100, 90]);
-            }
-        }
-        // The blue screen's key given (`auto` would key this plain black as a backdrop).
-        let key = ChromaKey { key: KeyColour::Rgb(DEFAULT_KEY_RGB), open_radius: 0, close_radius: 0, ..Default::default() };
-        let without = key.segment(&img, w, h, None).unwrap();
-        assert_eq!(without[0], 255, "too dark to key by colour");
-        let with = key.segment(&img, w, h, Some(&plate)).unwrap();
-        assert_eq!(with[0], 0);
-        assert_eq!(with[3 * w + 5], 255);
-    }
-
-    /// The colour test in AVX2 gives the portable mask: random pixels (dark ones, black
-    /// ones, and ones on either side of the tolerance around the key), lengths that end in a
-    /// partial group of eight.
-    #[test]
-    fn the_avx2_key_is_the_portable_one() {
-        #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx2") {
-            let mut next = crate::testing::xorshift(0x5e9_7e47);
-            for (n, tolerance, dark_level) in [(1, 0.12, 60), (37, 0.12, 60), (1000, 0.05, 0), (4099, 0.3, 200)] {
-                let key = Key { chroma: chromaticity(&DEFAULT_KEY_RGB).unwrap(), tol2: tolerance * tolerance, dark_level };
-                let rgb: Vec<u8> = (0..n)
-                    .flat_map(|_| match next() % 4 {
-                        // Near the key, scaled and jittered: both sides of the tolerance.
-                        0 | 1 => {
-                            let scale = 0.2 + (next() % 100) as f32 / 60.0;
-                            DEFAULT_KEY_RGB.map(|v| ((v as f32 * scale) as i32 + (next() % 31) as i32 - 15).clamp(0, 255) as u8)
-                        }
-                        2 => [(next() % 8) as u8, (next() % 8) as u8, (next() % 8) as u8],
-                        _ => [next() as u8, next() as u8, next() as u8],
-                    })
-                    .collect();
-                let mut want = vec![0; n];
-                key_portable(&key, &rgb, &mut want);
-                let mut got = vec![0; n];
-                // SAFETY: the CPU has AVX2 (checked above); 3 bytes per pixel.
-                let done = unsafe { key_avx2(&key, &rgb, &mut got) };
-                key_portable(&key, &rgb[3 * done..], &mut got[done..]);
-                assert!(n < 16 || done >= n - 16, "{done} of {n} in the lanes");
-                assert_eq!(got, want, "{n} pixels, tolerance {tolerance}, dark level {dark_level}");
-                assert!(want.contains(&0) && want.contains(&255) || n < 40, "both outcomes among {n} pixels");
-            }
-        }
-    }
-
-    /// Dilation and erosion against the rule written out: a pixel of the result is set when
-    /// any (dilation) or every (erosion) pixel of the square window around it, clipped to the
-    /// image, is set — on random masks, radii 0–3, sizes down to one pixel.
-    #[test]
-    fn morph_is_the_square_window_rule() {
-        let mut next = crate::testing::xorshift(0x9e37_79b9_7f4a_7c15);
-        for (w, h) in [(1, 1), (1, 7), (9, 1), (13, 11), (40, 23)] {
-            for radius in 0..4 {
-                for dilate in [false, true] {
-                    let mask: Vec<u8> = (0..w * h).map(|_| if next() % 3 != 0 { 255 } else { 0 }).collect();
-                    let mut got = mask.clone();
-                    morph(&mut got, w, h, radius, dilate);
-                    for y in 0..h {
-                        for x in 0..w {
-                            let mut window = (y.saturating_sub(radius)..(y + radius + 1).min(h)).flat_map(|yy| (x.saturating_sub(radius)..(x + radius + 1).min(w)).map(move |xx| (xx, yy)));
-                            let on = if dilate { window.any(|(xx, yy)| mask[yy * w + xx] != 0) } else { window.all(|(xx, yy)| mask[yy * w + xx] != 0) };
-                            assert_eq!(got[y * w + x], if on { 255 } else { 0 }, "{w}×{h}, radius {radius}, dilate {dilate}, at ({x}, {y})");
-                        }
-                    }
-                }
-            }
-        }
-    }
-}
+mod tests;
