@@ -386,6 +386,39 @@ fn a_darker_right_camera_is_scaled_to_the_left_s_contrast() {
     }
 }
 
+/// The points within `rim_px` of the object's silhouette are left out of the views' clouds
+/// (what is fused): the first frame has exactly that many points fewer than with the rim
+/// kept, and every view lies closer to the true surface (its 95th percentile above all: the
+/// rim holds a view's worst points). Registration takes them either way: the same poses.
+#[test]
+fn the_views_leave_out_the_silhouette_s_rim() {
+    let dir = support::temp_dir("rec-rim");
+    small_recording(&dir.join("sim"), 2, 0.0);
+    let run = |rim_px: usize, out: &str| -> serde_json::Value {
+        let mut pipeline = replay_opts().pipeline;
+        pipeline.chroma.rim_px = rim_px;
+        let opts = ReplayOptions::with_registration(pipeline);
+        let rec = Recording::open(&dir.join("sim")).unwrap();
+        replay::run_recording(rec, &dir.join(out), &opts, &mut |_, _, _| {}).unwrap();
+        read_json(&dir.join(out).join("report.json"))
+    };
+    let (kept, trimmed) = (run(0, "out-kept"), run(spinscan::segment::DEFAULT_RIM_PX, "out-trimmed"));
+    assert_eq!((kept["matching"]["rim_px"].as_u64(), trimmed["matching"]["rim_px"].as_u64()), (Some(0), Some(3)));
+    let (k, t) = (kept["frames"].as_array().unwrap(), trimmed["frames"].as_array().unwrap());
+    let n = |f: &serde_json::Value, key: &str| f[key].as_u64().unwrap();
+    assert_eq!(n(&k[0], "rim_points"), 0);
+    assert!(n(&t[0], "rim_points") > 300, "{}", t[0]);
+    assert_eq!(n(&k[0], "points") - n(&t[0], "points"), n(&t[0], "rim_points"));
+    assert_eq!(kept["registration"]["gt_pose_err_deg"], trimmed["registration"]["gt_pose_err_deg"]);
+    for (k, t) in k.iter().zip(t) {
+        assert_eq!(k["live_first_from_view"], t["live_first_from_view"]);
+        let (dk, dt) = (&k["gt_view_distance_mm"], &t["gt_view_distance_mm"]);
+        println!("view {}: {} → {}", k["seq"], dk, dt);
+        let at = |d: &serde_json::Value, q: &str| d[q].as_f64().unwrap();
+        assert!(at(dt, "median") <= at(dk, "median") && at(dt, "p95") < 0.9 * at(dk, "p95"), "{dk} → {dt}");
+    }
+}
+
 /// Cameras overexposed (the same recording at 3 × the gain, clipped): each frame's entry
 /// counts the object's pixels at or near white, well past the share from which a scan warns;
 /// the recording as rendered has next to none.

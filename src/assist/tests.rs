@@ -270,7 +270,7 @@ fn rect_camera_inverts_its_projection_and_agrees_with_triangulation() {
     assert!((back - p).norm() < 1e-9);
     let mut map = DisparityMap::new(320, 240);
     map.set(100, 50, Some(40.0));
-    let cloud = crate::stereo::triangulate::triangulate(&map, &scene.rect, &vec![0u8; 320 * 240 * 3]);
+    let (cloud, _) = crate::stereo::triangulate::triangulate(&map, &scene.rect, &vec![0u8; 320 * 240 * 3], None);
     let q = scene.cam.point(100.0, 50.0, 40.0).unwrap();
     let t = cloud.points[0];
     assert!((Vector3::new(t[0] as f64, t[1] as f64, t[2] as f64) - q).norm() < 1e-3, "{t:?} vs {q}");

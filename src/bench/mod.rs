@@ -453,7 +453,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
                 row.fig = Some(view.disparity.clone());
             }
             if let Some(reg) = st.registrar.as_mut() {
-                match reg.add_view(*seq, *table_deg, &view.cloud) {
+                match reg.add_view(*seq, *table_deg, view.registration_cloud()) {
                     Ok(r) => {
                         if let Some(icp) = &r.icp {
                             st.assistant.observe_registration(*seq, icp.fitness, icp.rmse);

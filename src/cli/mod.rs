@@ -258,11 +258,18 @@ pub struct KeyColourArgs {
     /// Largest chromaticity distance from the key colour still counted as background (0…1).
     #[arg(long, default_value_t = ChromaKey::default().tolerance)]
     pub key_tolerance: f32,
+    /// The points within this many pixels of the object's silhouette (the mask's edge, not the
+    /// image's) are left out of the fused model and mesh, the views' clouds and `points`'
+    /// cloud, and kept for registration: their windows reach across the outline, and they are
+    /// the least accurate a view has. Parts of the object narrower than 2 N + 1 pixels are
+    /// left out; 0 keeps everything (docs/segmentation.md, "The silhouette's rim").
+    #[arg(long, value_name = "N", default_value_t = ChromaKey::default().rim_px, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=spinscan::segment::MAX_RIM_PX as u64))]
+    pub rim_px: usize,
 }
 
 impl KeyColourArgs {
     pub fn chroma(&self) -> ChromaKey {
-        ChromaKey { key: self.key_color, tolerance: self.key_tolerance, ..ChromaKey::default() }
+        ChromaKey { key: self.key_color, tolerance: self.key_tolerance, rim_px: self.rim_px, ..ChromaKey::default() }
     }
 }
 

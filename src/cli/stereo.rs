@@ -246,7 +246,7 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
     println!(
         "{}",
         json!({"points": view.cloud.len(), "match_ms": view.match_ms, "valid_fraction": view.stats.valid_fraction(),
-               "range_edge_px": view.stats.range_edge, "disparity_sign": pipe.rect.disparity_sign, "rectify_alpha": pipe.rect.alpha, "out": a.out,
+               "range_edge_px": view.stats.range_edge, "rim_points": view.rim_points(), "disparity_sign": pipe.rect.disparity_sign, "rectify_alpha": pipe.rect.alpha, "out": a.out,
                "min_disparity": pipe.matcher().params().min_disparity, "num_disparities": pipe.matcher().params().num_disparities,
                "range_fit": fit.map(|f| f.entry()), "contrast": contrast.map(|c| c.entry())})
     );

@@ -141,6 +141,22 @@ pub struct View {
     pub right_near_white: usize,
     /// Matches dropped because a camera clipped them to white ([`crate::stereo::gain::drop_clipped`]).
     pub clipped_px: usize,
+    /// Every point, in pixel order as `cloud`, the rim's too: those within
+    /// [`ChromaKey::rim_px`] of the object's silhouette, left out of `cloud` (what is fused).
+    /// Registration takes it ([`View::registration_cloud`]). `None` where no rim was cut.
+    pub with_rim: Option<PointCloud>,
+}
+
+impl View {
+    /// What registration takes of the view: every point, its rim's too.
+    pub fn registration_cloud(&self) -> &PointCloud {
+        self.with_rim.as_ref().unwrap_or(&self.cloud)
+    }
+
+    /// How many points the rim held (left out of `cloud`).
+    pub fn rim_points(&self) -> usize {
+        self.with_rim.as_ref().map_or(0, |all| all.len() - self.cloud.len())
+    }
 }
 
 /// A background plate (an image of the empty scene) in rectified left coordinates, RGB, from
@@ -397,7 +413,14 @@ impl Pipeline {
     pub fn finish_view(&self, frame: Prepared, mut m: AssistedMatch) -> View {
         let clipped_px = crate::stereo::gain::drop_clipped(&mut m.disparity, &frame.left_gray, &frame.right_gray, frame.right_clip);
         m.stats.matched -= clipped_px;
-        let cloud = triangulate(&m.disparity, &self.rect, &frame.left_rgb);
+        // The silhouette's rim: registered with, not fused (ChromaKey::rim_px).
+        let px = self.chroma.rim_px;
+        let inner = frame.mask.as_deref().filter(|_| px > 0).map(|mask| crate::segment::inside_rim(mask, m.disparity.width, m.disparity.height, px));
+        let (all, inner) = triangulate(&m.disparity, &self.rect, &frame.left_rgb, inner.as_deref());
+        let (cloud, with_rim) = match inner {
+            Some(inner) => (inner, Some(all)),
+            None => (all, None),
+        };
         let match_ms = m.outcome.match_ms;
         View {
             disparity: m.disparity,
@@ -410,6 +433,7 @@ impl Pipeline {
             key: frame.key,
             right_near_white: frame.right_near_white,
             clipped_px,
+            with_rim,
         }
     }
 

@@ -59,7 +59,7 @@ pub struct RegistrationInputs {
 /// noted and skipped, not fatal.
 pub fn register_view(reg: &mut Registrar, frame: &StereoFrame, view: &View, entry: &mut Value) -> Option<(f64, f64)> {
     let seq = frame.seq;
-    match reg.add_view(seq, frame.table_deg, &view.cloud) {
+    match reg.add_view(seq, frame.table_deg, view.registration_cloud()) {
         Ok(r) => {
             let image = TrackImage { rgb: &view.left_rgb, disparity: view.disparity.values(), width: view.disparity.width, height: view.disparity.height };
             let track_ms = reg.track_view(seq, image);

@@ -115,6 +115,7 @@ pub fn matching_entry(pipe: &super::Pipeline, assist: Option<&AssistParams>, fit
     let p = pipe.matcher().params();
     let mut m = json!({
         "rectify_alpha": pipe.rect.alpha,
+        "rim_px": pipe.chroma.rim_px,
         "method": p.method.name(),
         "min_disparity": p.min_disparity,
         "num_disparities": p.num_disparities,
@@ -217,6 +218,9 @@ impl ResultsWriter {
             // pixels over the left's object pixels (the right image is not segmented).
             "saturated_share": saturated_share(&view.left_rgb, view.mask.as_deref()),
             "clipped_px": view.clipped_px,
+            // Points within `matching.rim_px` of the object's silhouette: registered with, not
+            // fused, not in `points` or views/.
+            "rim_points": view.rim_points(),
             "right_saturated_share": view.right_near_white as f64 / view.mask.as_deref().map_or(view.left_rgb.len() / 3, |m| m.iter().filter(|&&v| v != 0).count()).max(1) as f64,
             "table_deg": frame.table_deg,
             "t_left_ns": frame.t_left_ns,

@@ -279,3 +279,27 @@ fn morph_is_the_square_window_rule() {
         }
     }
 }
+
+/// The rim is taken from the mask's edge, not the image's: a block cut by the image's left
+/// edge loses `px` pixels on its three other sides only, and a bar 2 px + 1 wide keeps its
+/// middle line at `px` and goes entirely at `px + 1`.
+#[test]
+fn the_rim_is_the_silhouette_s_not_the_image_edge_s() {
+    let (w, h) = (40, 30);
+    let mut mask = vec![0u8; w * h];
+    let set = |mask: &mut Vec<u8>, xs: std::ops::Range<usize>, ys: std::ops::Range<usize>| {
+        for y in ys {
+            mask[y * w + xs.start..y * w + xs.end].fill(255);
+        }
+    };
+    set(&mut mask, 0..20, 5..25); // the block, cut by the left edge
+    set(&mut mask, 30..35, 2..28); // the bar, 5 px wide
+    let inner = inside_rim(&mask, w, h, 2);
+    let kept = |m: &[u8], x: usize, y: usize| m[y * w + x] == 255;
+    assert!(kept(&inner, 0, 7) && kept(&inner, 17, 22) && !kept(&inner, 18, 10) && !kept(&inner, 5, 6) && !kept(&inner, 5, 23));
+    assert_eq!(inner.iter().filter(|&&v| v == 255).count(), 18 * 16 + 22, "the block less 2 px on three sides, the bar's middle column");
+    assert!((4..26).all(|y| kept(&inner, 32, y)) && !kept(&inner, 31, 10) && !kept(&inner, 33, 10));
+    let inner = inside_rim(&mask, w, h, 3);
+    assert!((0..h).all(|y| !kept(&inner, 32, y)), "a bar 5 px wide goes at 3");
+    assert_eq!(inside_rim(&mask, w, h, 0), mask);
+}

@@ -9,8 +9,10 @@ use crate::cloud::PointCloud;
 /// Triangulates every pixel with a disparity. `colors` is the rectified left image as
 /// interleaved RGB (same size as the map). Points are in millimetres in the left raw camera
 /// frame (`left_from_rectleft = R1ᵀ`); pixels whose point falls behind the camera are skipped.
-pub fn triangulate(disp: &DisparityMap, rect: &Rectification, colors: &[u8]) -> PointCloud {
-    let mut cloud = PointCloud::default();
+/// With `inner` (one byte per pixel), also the cloud of the pixels where it is not 0 (the
+/// view less the silhouette's rim: [`crate::segment::inside_rim`]). Both in pixel order.
+pub fn triangulate(disp: &DisparityMap, rect: &Rectification, colors: &[u8], inner: Option<&[u8]>) -> (PointCloud, Option<PointCloud>) {
+    let (mut cloud, mut kept) = (PointCloud::default(), inner.map(|_| PointCloud::default()));
     let left_from_rect = rect.r1.transpose();
     for y in 0..disp.height {
         for x in 0..disp.width {
@@ -24,10 +26,17 @@ pub fn triangulate(disp: &DisparityMap, rect: &Rectification, colors: &[u8]) -> 
                 continue;
             }
             let p = left_from_rect * p_rect;
-            let i = (y * disp.width + x) * 3;
-            cloud.points.push([p.x as f32, p.y as f32, p.z as f32]);
-            cloud.colors.push([colors[i], colors[i + 1], colors[i + 2]]);
+            let i = y * disp.width + x;
+            let (point, color) = ([p.x as f32, p.y as f32, p.z as f32], [colors[3 * i], colors[3 * i + 1], colors[3 * i + 2]]);
+            cloud.points.push(point);
+            cloud.colors.push(color);
+            if let (Some(kept), Some(inner)) = (kept.as_mut(), inner) {
+                if inner[i] != 0 {
+                    kept.points.push(point);
+                    kept.colors.push(color);
+                }
+            }
         }
     }
-    cloud
+    (cloud, kept)
 }
