@@ -120,12 +120,12 @@ fn segmentation(filter: Option<&str>) {
         let (min, med) = time(std::env::var("RUNS").ok().and_then(|s| s.parse().ok()).unwrap_or(15), || drop(key.segment(rgb, pair.width, pair.height, None).unwrap()));
         println!("{name:<34} {min:>9.2} {med:>9.2}");
     }
-    // The silhouette's rim found (the default 3 px), as each frame of a scan pays it after
-    // matching.
+    // The silhouette's rim found (3 px, `--rim-px 3`), as each frame of such a scan pays it
+    // after matching.
     let name = "segment rim";
     if filter.is_none_or(|f| name.contains(f)) {
         let mask = key.segment(&pair.left_rgb, pair.width, pair.height, None).unwrap();
-        let (min, med) = time(std::env::var("RUNS").ok().and_then(|s| s.parse().ok()).unwrap_or(15), || drop(spinscan::segment::inside_rim(&mask, pair.width, pair.height, key.rim_px)));
+        let (min, med) = time(std::env::var("RUNS").ok().and_then(|s| s.parse().ok()).unwrap_or(15), || drop(spinscan::segment::inside_rim(&mask, pair.width, pair.height, 3)));
         println!("{name:<34} {min:>9.2} {med:>9.2}");
     }
     // The right image scaled to the left's contrast (0.7 × the gain), as each frame of a scan

@@ -402,7 +402,7 @@ fn the_views_leave_out_the_silhouette_s_rim() {
         replay::run_recording(rec, &dir.join(out), &opts, &mut |_, _, _| {}).unwrap();
         read_json(&dir.join(out).join("report.json"))
     };
-    let (kept, trimmed) = (run(0, "out-kept"), run(spinscan::segment::DEFAULT_RIM_PX, "out-trimmed"));
+    let (kept, trimmed) = (run(0, "out-kept"), run(3, "out-trimmed"));
     assert_eq!((kept["matching"]["rim_px"].as_u64(), trimmed["matching"]["rim_px"].as_u64()), (Some(0), Some(3)));
     let (k, t) = (kept["frames"].as_array().unwrap(), trimmed["frames"].as_array().unwrap());
     let n = |f: &serde_json::Value, key: &str| f[key].as_u64().unwrap();

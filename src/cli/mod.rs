@@ -261,8 +261,9 @@ pub struct KeyColourArgs {
     /// The points within this many pixels of the object's silhouette (the mask's edge, not the
     /// image's) are left out of the fused model and mesh, the views' clouds and `points`'
     /// cloud, and kept for registration: their windows reach across the outline, and they are
-    /// the least accurate a view has. Parts of the object narrower than 2 N + 1 pixels are
-    /// left out; 0 keeps everything (docs/segmentation.md, "The silhouette's rim").
+    /// the least accurate a view has. 3 brings the mesh 4–16 % closer to the surface but covers
+    /// up to 2.6 % less of it; parts of the object narrower than 2 N + 1 pixels are left out. 0
+    /// fuses every point (docs/segmentation.md, "The silhouette's rim").
     #[arg(long, value_name = "N", default_value_t = ChromaKey::default().rim_px, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=spinscan::segment::MAX_RIM_PX as u64))]
     pub rim_px: usize,
 }
