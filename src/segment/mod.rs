@@ -266,10 +266,11 @@ fn border_chromaticities(rgb: &[u8], w: usize, h: usize, dark_level: u16) -> Opt
 /// The screen's chromaticity in an RGB image, and the share of the border's pixels within
 /// `tolerance` of it: the most common chromaticity (bins of 1/32) among the bright pixels of
 /// the border — a ring of a sixteenth of the smaller side, on a grid of an eighth of that,
-/// its black pixels (outside a rectified image) left out — refined to the mean of those within half the tolerance of it. Only blue or green colours
-/// away from grey count (red not the strongest channel; farther than the tolerance from
-/// grey), as screens are: keying a grey or brown border would take out an object of that
-/// colour. None where no such colour keys out [`AUTO_MIN_SHARE`] of the border.
+/// its black pixels (outside a rectified image) left out — refined to the mean of those
+/// within half the tolerance of it. Only blue or green colours away from grey count (red not
+/// the strongest channel; farther than the tolerance from grey), as screens are: keying a
+/// grey or brown border would take out an object of that colour. None where no such colour
+/// keys out [`AUTO_MIN_SHARE`] of the border, or where too little of the border is lit.
 fn find_screen(rgb: &[u8], w: usize, h: usize, dark_level: u16, tolerance: f32) -> Option<((f32, f32), f32)> {
     const BINS: usize = 32;
     // (About 7 000 pixels of a 640 × 480 frame's border: plenty for the histogram.)
