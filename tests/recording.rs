@@ -510,7 +510,9 @@ fn simulated_camera_faults_reach_the_camera_seam() {
 
 /// A rig whose right camera sits left of the left one (negative disparities, as on the XIMEA
 /// fixture's rig) scans as well as its mirror image, the usual rig: the range on its side of
-/// zero, the views as dense and as close to the true surface, the poses as good.
+/// zero, the views as dense and as close to the true surface, the poses as good. (Six views,
+/// 10° of turn: with four, 6°, the texture tracks cannot fix the axis, the views' points fit it
+/// a few degrees off, and the final poses, 0.27–0.54° off, compared two such estimates.)
 #[test]
 fn a_rig_with_negative_disparities_scans_as_well() {
     let dir = support::temp_dir("rec-negative");
@@ -518,7 +520,7 @@ fn a_rig_with_negative_disparities_scans_as_well() {
         let rec = dir.join(format!("rec{baseline_mm}"));
         let opts = RenderOptions {
             object: SimObject::Builtin { name: "egg".into(), triangles: 20_000 },
-            frames: 4,
+            frames: 6,
             ideal: true,
             image_size: (320, 240),
             lab: spinscan::hw::sim::Lab { baseline_mm, ..Default::default() },
