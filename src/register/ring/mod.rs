@@ -268,6 +268,12 @@ const MAX_KEPT: usize = 360;
 const WEAK_FIT_GAIN: f64 = 0.97;
 const WEAK_FIT_MIN_FITNESS: f64 = 0.98;
 
+/// After a step solved the turn, the symmetry test's line is taken for the table's axis only
+/// within this many degrees of the line that step turned about (measured: a vase's 0.1–2.0°;
+/// an egg's 2.5–25°, its own axis lying up to 22° off the table's; the independent renderer's
+/// object 20–25°).
+const SOLVED_TURN_LINE_DEG: f64 = 6.0;
+
 impl Registrar {
     pub fn new(params: RegistrationParams, store: std::sync::Arc<PoseStore>) -> Registrar {
         let model = VoxelModel::new(params.model_voxel);
@@ -394,8 +400,9 @@ impl Registrar {
         let upright = |d: &super::icp::Degeneracy| d.axis.filter(|(_, dir)| dir[1].abs() > std::f64::consts::FRAC_1_SQRT_2);
         // After a weak motion was solved (`turn_seen`), the surfaces showed a turn, and the
         // line their weak motion turns about — an egg's own axis — need not be the table's:
-        // the table's step about it is then kept only when it fits the views as well as that
-        // solution (within 5 %, measured on the same pairs).
+        // the table's step about it is then kept only when that line lies near the one the
+        // solved step turned about (`SOLVED_TURN_LINE_DEG`) and it fits the views as well as
+        // that solution (within 5 %, measured on the same pairs).
         if let (None, Some(now), Some(before)) = (self.seed_axis(), table_deg, prev.table_deg) {
             let weak_or_free = |r: &IcpResult| {
                 let free = r.degenerate.iter().find_map(upright);
@@ -429,11 +436,15 @@ impl Registrar {
                     up = -up;
                 }
                 let table_seed = rotation_about_axis(&Vector3::from(point), &up, -(now - before));
+                // A step that solved the turn turned about (nearly) the table's axis: a line
+                // further from that is the object's own axis (`turn_seen` only).
+                let solved_about = result.transform.rotation.axis().map_or(0.0, |a| a.dot(&up).abs().min(1.0).acos().to_degrees());
                 let (retry, base_rmse) = match exact.as_mut() {
                     Some((tree, rmse)) => (icp(&own, tree, &table_seed, &self.params.icp), *rmse),
                     None => (icp(&own, &mut prev_target, &table_seed, &self.params.icp), result.rmse),
                 };
-                if let Some(retry) = retry.ok().filter(|r| (free.is_some() && !turn_seen) || r.rmse <= 1.05 * base_rmse) {
+                let fits = |r: &IcpResult| if turn_seen { solved_about <= SOLVED_TURN_LINE_DEG && r.rmse <= 1.05 * base_rmse } else { free.is_some() || r.rmse <= 1.05 * base_rmse };
+                if let Some(retry) = retry.ok().filter(fits) {
                     self.symmetry_axis = Some((Vector3::from(point), up));
                     seed = table_seed;
                     seed_kind = "turntable";
