@@ -226,6 +226,9 @@ pub struct Registrar {
     long_steps: Vec<(Isometry3<f64>, Option<f64>)>,
     /// The symmetry axis of a surface of revolution, found by ICP's degeneracy.
     symmetry_axis: Option<(Vector3<f64>, Vector3<f64>)>,
+    /// The line (point, direction) the last step that solved a weak turn turned about: near
+    /// the table's axis, which stands still in the camera's frame (see `add_view`).
+    turn_line: Option<(Vector3<f64>, Vector3<f64>)>,
     /// `prev_from_view` found by ICP for each view (None: first view, or ICP distrusted).
     steps: Vec<Option<Isometry3<f64>>>,
     /// [`edge_variance`] of each view's step (first view: unused).
@@ -255,6 +258,20 @@ fn unit(mut t: Isometry3<f64>) -> Isometry3<f64> {
     t
 }
 
+/// The line a rigid motion turns about (a point on it, its unit direction); None for a turn
+/// too small to have one.
+fn screw_line(t: &Isometry3<f64>) -> Option<(Vector3<f64>, Vector3<f64>)> {
+    let dir = t.rotation.axis()?.into_inner();
+    if t.rotation.angle() < 1e-4 {
+        return None;
+    }
+    // R c + t = c along the line (the motion's slide along it aside): (I − R) c = t − (t·u) u.
+    let r = t.rotation.to_rotation_matrix().into_inner();
+    let v = t.translation.vector;
+    let point = (nalgebra::Matrix3::identity() - r).svd(true, true).solve(&(v - dir * dir.dot(&v)), 1e-9).ok()?;
+    Some((point - dir * dir.dot(&point), dir))
+}
+
 /// Steps whose free rotation is looked at again with exact pairs (see [`Registrar::add_view`]).
 const MAX_SYMMETRY_TESTS: usize = 2;
 
@@ -277,7 +294,7 @@ const SOLVED_TURN_LINE_DEG: f64 = 6.0;
 impl Registrar {
     pub fn new(params: RegistrationParams, store: std::sync::Arc<PoseStore>) -> Registrar {
         let model = VoxelModel::new(params.model_voxel);
-        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, steps: Vec::new(), step_variance: Vec::new(), kept: Vec::new(), kept_index: Vec::new(), kept_stride: 1, refined: None, refine_errors: Vec::new(), refine_scores: None, symmetry_tests: 0, texture: Default::default() }
+        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, turn_line: None, steps: Vec::new(), step_variance: Vec::new(), kept: Vec::new(), kept_index: Vec::new(), kept_stride: 1, refined: None, refine_errors: Vec::new(), refine_scores: None, symmetry_tests: 0, texture: Default::default() }
     }
 
     /// The latest pose of every view.
@@ -384,6 +401,7 @@ impl Registrar {
                     notes.push(format!("view {seq}: ICP from the identity held a weak motion; solving it fits the views closer (RMSE {:.3} against {:.3} mm), so the step solves it", solved.rmse, result.rmse));
                     result = solved;
                     turn_seen = true;
+                    self.turn_line = screw_line(&result.transform).or(self.turn_line);
                 }
             }
         }
@@ -398,11 +416,13 @@ impl Registrar {
         // the probe ratio) gets the same second try, kept when it fits as well (RMSE within
         // 5 %): ICP from the identity would settle on "no turn" there.
         let upright = |d: &super::icp::Degeneracy| d.axis.filter(|(_, dir)| dir[1].abs() > std::f64::consts::FRAC_1_SQRT_2);
-        // After a weak motion was solved (`turn_seen`), the surfaces showed a turn, and the
-        // line their weak motion turns about — an egg's own axis — need not be the table's:
-        // the table's step about it is then kept only when that line lies near the one the
-        // solved step turned about (`SOLVED_TURN_LINE_DEG`) and it fits the views as well as
-        // that solution (within 5 %, measured on the same pairs).
+        // Once a step has solved a weak turn (this one: `turn_seen`, or an earlier one), the
+        // line the weak motion turns about — an egg's own axis — need not be the table's: it
+        // is taken only within `SOLVED_TURN_LINE_DEG` of the line that step turned about
+        // (`turn_line`), and its table step kept only when it fits the views as well as the
+        // solved step (within 5 %, measured on the same pairs). Further off, this step keeps
+        // its solution; a step that held the turn instead tries the table's step about the
+        // solved step's line, kept when it fits as well as the held result.
         if let (None, Some(now), Some(before)) = (self.seed_axis(), table_deg, prev.table_deg) {
             let weak_or_free = |r: &IcpResult| {
                 let free = r.degenerate.iter().find_map(upright);
@@ -430,22 +450,27 @@ impl Registrar {
                     }
                 }
             }
-            if let Some((point, dir)) = free.or(weak) {
-                let mut up = Vector3::from(dir);
-                if up.y > 0.0 {
-                    up = -up;
-                }
-                let table_seed = rotation_about_axis(&Vector3::from(point), &up, -(now - before));
-                // A step that solved the turn turned about (nearly) the table's axis: a line
-                // further from that is the object's own axis (`turn_seen` only).
-                let solved_about = result.transform.rotation.axis().map_or(0.0, |a| a.dot(&up).abs().min(1.0).acos().to_degrees());
+            let upwards = |d: Vector3<f64>| if d.y > 0.0 { -d } else { d };
+            let candidate = free.or(weak).map(|(point, dir)| (Vector3::from(point), upwards(Vector3::from(dir))));
+            // A step that solved the turn turned about (nearly) the table's axis: a line
+            // further from that is the object's own axis.
+            let off_turn = |dir: &Vector3<f64>| self.turn_line.is_some_and(|(_, t)| t.dot(dir).abs().min(1.0).acos().to_degrees() > SOLVED_TURN_LINE_DEG);
+            let line = match candidate {
+                Some(c) if !off_turn(&c.1) => Some((c, true)),
+                Some(_) if !turn_seen => self.turn_line.map(|(p, d)| ((p, upwards(d)), false)),
+                _ => None,
+            };
+            if let Some(((point, up), symmetric)) = line {
+                let table_seed = rotation_about_axis(&point, &up, -(now - before));
                 let (retry, base_rmse) = match exact.as_mut() {
                     Some((tree, rmse)) => (icp(&own, tree, &table_seed, &self.params.icp), *rmse),
                     None => (icp(&own, &mut prev_target, &table_seed, &self.params.icp), result.rmse),
                 };
-                let fits = |r: &IcpResult| if turn_seen { solved_about <= SOLVED_TURN_LINE_DEG && r.rmse <= 1.05 * base_rmse } else { free.is_some() || r.rmse <= 1.05 * base_rmse };
+                let fits = |r: &IcpResult| (free.is_some() && symmetric && self.turn_line.is_none()) || r.rmse <= 1.05 * base_rmse;
                 if let Some(retry) = retry.ok().filter(fits) {
-                    self.symmetry_axis = Some((Vector3::from(point), up));
+                    if symmetric {
+                        self.symmetry_axis = Some((point, up));
+                    }
                     seed = table_seed;
                     seed_kind = "turntable";
                     result = retry;

@@ -129,6 +129,20 @@ fn a_weak_turn_held_at_the_identity_is_solved_when_it_fits_closer() {
     assert!(notes.iter().any(|n| n.contains("held a weak motion")), "{notes:?}");
 }
 
+/// The line a step turns about is the line it was made about: the table's axis stands still
+/// in the camera's frame, so a solved step's line is remembered for the symmetry test of the
+/// steps after it (`Registrar::add_view`, `turn_line`).
+#[test]
+fn a_step_s_line_is_the_line_it_turns_about() {
+    let (point, dir) = (Vector3::new(12.0, -30.0, 410.0), Vector3::new(0.05, -0.93, -0.37).normalize());
+    for deg in [2.0, -6.0, 40.0] {
+        let (p, d) = super::screw_line(&rotation_about_axis(&point, &dir, deg)).unwrap();
+        assert!(d.cross(&dir).norm() < 1e-9, "{deg}°: direction {d:?}");
+        assert!((p - point).cross(&dir).norm() < 1e-6, "{deg}°: point {p:?} off the line");
+    }
+    assert!(super::screw_line(&nalgebra::Isometry3::translation(1.0, 2.0, 3.0)).is_none());
+}
+
 /// The camera-facing side of a vase: a surface of revolution about the table's axis (radius
 /// 30 ± 8 mm with height), seen as the table turns `deg` — which its surface cannot show.
 fn vase_view(deg: f64, axis: (Vector3<f64>, Vector3<f64>)) -> PointCloud {
