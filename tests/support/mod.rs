@@ -3,6 +3,11 @@
 
 use std::path::{Path, PathBuf};
 
+use spinscan::hw::sim::{RenderOptions, SimObject};
+use spinscan::pipeline::replay::{self, ReplayOptions};
+use spinscan::recording::Recording;
+use spinscan::stereo::MatchParams;
+
 pub mod daemon;
 
 /// A data set under `../shared/data` (beside the repository; CI has it).
@@ -65,4 +70,36 @@ impl Drop for TempDir {
             let _ = std::fs::remove_dir_all(&self.0);
         }
     }
+}
+
+/// A small ideal recording of the simulated lab's egg (320×240, f = 350 px: disparities up to
+/// ~64).
+pub fn small_recording(dir: &Path, frames: usize, drop_probability: f64) -> Recording {
+    let opts = RenderOptions {
+        object: SimObject::Builtin { name: "egg".into(), triangles: 20_000 },
+        frames,
+        ideal: true,
+        image_size: (320, 240),
+        drop_probability,
+        ..RenderOptions::default()
+    };
+    spinscan::hw::sim::render_recording(&opts, dir, &mut |_, _| {}).unwrap()
+}
+
+/// Replay options of the recording tests: segmented, 80 disparities.
+pub fn replay_opts() -> ReplayOptions {
+    let mut opts = ReplayOptions { segment: true, ..Default::default() };
+    opts.pipeline.matching = MatchParams { num_disparities: 80, ..Default::default() };
+    opts
+}
+
+/// Replays recording `dir` into `out` with [`replay_opts`].
+pub fn replay(dir: &Path, out: &Path) -> Result<replay::ReplaySummary, String> {
+    let rec = Recording::open(dir).map_err(|e| e.to_string())?;
+    replay::run_recording(rec, out, &replay_opts(), &mut |_, _, _| {}).map_err(|e| e.to_string())
+}
+
+/// A JSON file, parsed.
+pub fn read_json(p: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
 }
