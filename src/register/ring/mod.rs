@@ -29,6 +29,8 @@
 //! table's angle about that axis), published at once; ICP still runs (its steps feed the
 //! final check between the turntable's poses and the registered ones, and the seeds of
 //! views without an angle), and the block step leaves such views alone: they have no drift.
+//! Without a calibration, an axis fitted to the views so far gives the published poses the
+//! same way once it passes the final poses' test (`live.rs`); the chain stays as registered.
 //!
 //! ## Per-view cost
 //! Every view is registered as it comes, within a camera's frame period: its target (the
@@ -106,6 +108,7 @@ pub use params::RegistrationParams;
 pub use texture::TrackedTurn;
 
 mod closing;
+mod live;
 mod params;
 #[cfg(test)]
 mod tests;
@@ -117,8 +120,9 @@ mod weak;
 #[derive(Debug, Clone)]
 pub struct ViewRegistration {
     pub seq: u64,
-    /// As registered when the view arrived (later block steps and loop closure refine it;
-    /// [`Registrar::poses`] has the latest).
+    /// As published when the view arrived: registered, or the turntable's pose (`live.rs`);
+    /// later block steps, fits and loop closure refine it ([`Registrar::poses`] has the
+    /// registered chain, and after [`Registrar::finish`] the final poses).
     pub first_from_view: Isometry3<f64>,
     /// ICP of this view onto the previous one (None for the first view).
     pub icp: Option<IcpResult>,
@@ -235,6 +239,10 @@ pub struct Registrar {
     refine_scores: Option<(f64, f64)>,
     /// Steps whose free rotation was looked at with exact pairs so far.
     symmetry_tests: usize,
+    /// The axis fitted while the views come whose turntable poses are published (`live.rs`),
+    /// and the kept views it was last fitted to.
+    live_axis: Option<(Vector3<f64>, Vector3<f64>)>,
+    live_fitted_views: usize,
     texture: texture::Texture,
 }
 
@@ -251,7 +259,7 @@ const MAX_KEPT: usize = 360;
 impl Registrar {
     pub fn new(params: RegistrationParams, store: std::sync::Arc<PoseStore>) -> Registrar {
         let model = VoxelModel::new(params.model_voxel);
-        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, turn_line: None, steps: Vec::new(), step_variance: Vec::new(), kept: Vec::new(), kept_index: Vec::new(), kept_stride: 1, refined: None, refine_errors: Vec::new(), refine_scores: None, symmetry_tests: 0, texture: Default::default() }
+        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, turn_line: None, steps: Vec::new(), step_variance: Vec::new(), kept: Vec::new(), kept_index: Vec::new(), kept_stride: 1, refined: None, refine_errors: Vec::new(), refine_scores: None, symmetry_tests: 0, live_axis: None, live_fitted_views: 0, texture: Default::default() }
     }
 
     /// The latest pose of every view.
@@ -466,10 +474,13 @@ impl Registrar {
         let (publish_ms, block) = self.publish_and_refine(seq, table_deg, own, target, started, &mut split, &mut warnings, &mut notes);
         split.chain_ms = publish_ms - split.prepare_ms;
         self.update_axis();
-        self.store.publish(self.poses.clone());
+        self.refit_live_axis();
+        let published = self.published();
+        let first_from_view = published.last().unwrap().first_from_view;
+        self.store.publish(published);
         Ok(ViewRegistration {
             seq,
-            first_from_view: self.poses.last().unwrap().first_from_view,
+            first_from_view,
             icp: Some(result),
             seed: seed_kind,
             block,
@@ -492,7 +503,7 @@ impl Registrar {
         let k = self.poses.len() - 1;
         self.remember(k, &own);
         self.keep_for_refinement(k, table_deg, &own);
-        self.store.publish(self.poses.clone());
+        self.store.publish(self.published());
         let publish_ms = ms(started);
         let t = Instant::now();
         if let Err(e) = self.long_step(k, table_deg, &own) {

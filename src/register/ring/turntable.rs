@@ -5,7 +5,7 @@
 use nalgebra::{Isometry3, Vector3};
 
 use super::{Registrar, TurntableFit, MAX_KEPT};
-use crate::register::refine::{AxisFit, RefineSet, RefineView, TrackFigures};
+use crate::register::refine::{AxisFit, RefineParams, RefineSet, RefineView, TrackFigures};
 use crate::register::{rotation_about_axis, subsample_indices};
 
 impl Registrar {
@@ -38,14 +38,7 @@ impl Registrar {
             return;
         }
         let started = std::time::Instant::now();
-        // On an arc shorter than twice `pair_deg`, few views have a partner that far round:
-        // the long pairs are taken half the arc apart instead (an egg turned 78°: its last
-        // view 1.15° off with 60° pairs, 0.56° with 39°).
-        let mut params = self.params.refine.clone();
-        let span = self.kept.iter().map(|v| v.table_deg).fold(f64::NEG_INFINITY, f64::max) - self.kept.iter().map(|v| v.table_deg).fold(f64::INFINITY, f64::min);
-        if span.is_finite() && span > 0.0 {
-            params.pair_deg = params.pair_deg.min(span / 2.0);
-        }
+        let params = self.kept_refine_params();
         let set = match RefineSet::new(&self.kept, &params) {
             Ok(set) => set,
             Err(e) => {
@@ -60,14 +53,7 @@ impl Registrar {
                 starts.push(axis);
             }
         }
-        let mut best: Option<AxisFit> = None;
-        for start in starts {
-            match set.fit_axis(start, &self.params.refine) {
-                Ok(fit) if best.as_ref().is_none_or(|b| fit.rms_mm < b.rms_mm) => best = Some(fit),
-                Ok(_) => {}
-                Err(e) => self.refine_errors.push(e.to_string()),
-            }
-        }
+        let mut best = best_fit(&set, &starts, &self.params.refine, &mut self.refine_errors);
         if let Some(fit) = &best {
             tracing::info!("turntable refinement: the axis fitted to {} views in {:.1} s (direction ±{:.3}°, fit RMS {:.2} mm)", self.kept.len(), started.elapsed().as_secs_f64(), fit.sigma_dir_deg, fit.rms_mm);
         }
@@ -89,16 +75,38 @@ impl Registrar {
             None => {}
         }
         if let Some(fit) = &best {
-            // The turntable's poses of the kept views against the registered ones, by one
-            // measure.
-            let first_deg = self.kept[0].table_deg;
-            let first_index = self.kept_index[0];
-            let base = self.poses[first_index].first_from_view;
-            let turned: Vec<Isometry3<f64>> = self.kept.iter().map(|v| rotation_about_axis(&fit.point, &fit.dir, -(v.table_deg - first_deg))).collect();
-            let registered: Vec<Isometry3<f64>> = self.kept_index.iter().map(|&k| base.inverse() * self.poses[k].first_from_view).collect();
-            self.refine_scores = Some((set.score(&turned, &self.params.refine), set.score(&registered, &self.params.refine)));
+            self.refine_scores = Some(self.scores(&set, fit, &(0..self.kept.len()).collect::<Vec<_>>()));
         }
         self.refined = best;
+    }
+
+    /// The refinement's settings for the kept views: on an arc shorter than twice
+    /// `pair_deg`, few views have a partner that far round, so the long pairs are taken half
+    /// the arc apart instead (an egg turned 78°: its last view 1.15° off with 60° pairs, 0.56°
+    /// with 39°).
+    pub(super) fn kept_refine_params(&self) -> RefineParams {
+        let mut params = self.params.refine.clone();
+        let span = self.kept_span_deg();
+        if span.is_finite() && span > 0.0 {
+            params.pair_deg = params.pair_deg.min(span / 2.0);
+        }
+        params
+    }
+
+    /// The arc the kept views' table angles span, degrees (−∞ with none).
+    pub(super) fn kept_span_deg(&self) -> f64 {
+        self.kept.iter().map(|v| v.table_deg).fold(f64::NEG_INFINITY, f64::max) - self.kept.iter().map(|v| v.table_deg).fold(f64::INFINITY, f64::min)
+    }
+
+    /// How well the turntable's poses about `fit`'s axis and the registered poses put the
+    /// kept views `views` (indices into the kept ones, those `set` was built from) onto each
+    /// other, by one measure ([`RefineSet::score`], mm): (turntable, registered).
+    pub(super) fn scores(&self, set: &RefineSet, fit: &AxisFit, views: &[usize]) -> (f64, f64) {
+        let first_deg = self.kept[views[0]].table_deg;
+        let base = self.poses[self.kept_index[views[0]]].first_from_view;
+        let turned: Vec<Isometry3<f64>> = views.iter().map(|&v| rotation_about_axis(&fit.point, &fit.dir, -(self.kept[v].table_deg - first_deg))).collect();
+        let registered: Vec<Isometry3<f64>> = views.iter().map(|&v| base.inverse() * self.poses[self.kept_index[v]].first_from_view).collect();
+        (set.score(&turned, &self.params.refine), set.score(&registered, &self.params.refine))
     }
 
     /// Compares every pose with the turntable's prediction and uses the predictions when every
@@ -117,33 +125,8 @@ impl Registrar {
                 return;
             }
         };
-        let predicted: Vec<Option<Isometry3<f64>>> = self.poses.iter().map(|p| p.table_deg.map(|d| rotation_about_axis(&axis.0, &axis.1, -(d - first_deg)))).collect();
-        let mut devs = Vec::new();
-        for k in 1..self.poses.len() {
-            if let (Some(step), Some(a), Some(b)) = (self.steps[k], predicted[k - 1], predicted[k]) {
-                let predicted_step = a.inverse() * b;
-                devs.push((self.poses[k].seq, (predicted_step.inverse() * step).rotation.angle().to_degrees()));
-            }
-        }
-        if devs.len() < 3 {
-            return;
-        }
-        let (worst_seq, max) = worst_step(&devs);
-        let rms = (devs.iter().map(|d| d.1 * d.1).sum::<f64>() / devs.len() as f64).sqrt();
         let refined = if source != "calibrated" { self.refined.clone() } else { None };
-        let kept_because = if !self.params.turntable_poses {
-            Some("turntable poses are off".to_string())
-        } else if let Some(why) = refined.as_ref().and_then(|f| axis_too_uncertain(f.sigma_dir_deg, self.params.max_axis_sigma_deg, self.refine_scores)) {
-            Some(why)
-        } else if source != "calibrated" && self.refine_scores.is_none() {
-            Some("the turntable's poses could not be scored against the registered ones".to_string())
-        } else {
-            // Texture tracks that follow the table's angles about their axis to a fraction of
-            // a pixel have seen the object turn by those angles, whatever ICP made of its
-            // steps (a ball's, a smooth blob's).
-            let texture_follows_table = refined.as_ref().and_then(|f| f.tracks).is_some_and(|t| tracks_follow_turn(&t));
-            steps_disagree(&devs, (worst_seq, max), self.params.max_turntable_deviation_deg, scores_of(source, self.refine_scores), texture_follows_table)
-        };
+        let Some(Verdict { steps, rms, max, worst_seq, kept_because }) = self.verdict(axis, source, refined.as_ref(), scores_of(source, self.refine_scores)) else { return };
         let applied = kept_because.is_none();
         if applied {
             let mut turn: Vec<Option<f64>> = self.poses.iter().map(|p| p.table_deg.map(|d| d - first_deg)).collect();
@@ -175,8 +158,69 @@ impl Registrar {
             tracing::warn!("{}; keeping the registered poses", kept_because.as_deref().unwrap_or_default());
         }
         let scores = scores_of(source, self.refine_scores);
-        self.turntable_fit = Some(TurntableFit { steps: devs.len(), rms_deviation_deg: rms, max_deviation_deg: max, worst_seq, applied, axis_source: source, refined, scores, kept_because });
+        self.turntable_fit = Some(TurntableFit { steps, rms_deviation_deg: rms, max_deviation_deg: max, worst_seq, applied, axis_source: source, refined, scores, kept_because });
     }
+
+    /// How every registered step compares with the turntable's predicted step about `axis`
+    /// (from `source`: "calibrated", "refined", "tracked"; `refined`, its fit; `scores`, its
+    /// poses' and the registered ones', see [`Registrar::scores`]), and why its poses must
+    /// not replace the registered ones, if they must not. None with fewer than three steps
+    /// to compare.
+    pub(super) fn verdict(&self, axis: (Vector3<f64>, Vector3<f64>), source: &str, refined: Option<&AxisFit>, scores: Option<(f64, f64)>) -> Option<Verdict> {
+        let first_deg = self.poses.first().and_then(|p| p.table_deg)?;
+        let predicted: Vec<Option<Isometry3<f64>>> = self.poses.iter().map(|p| p.table_deg.map(|d| rotation_about_axis(&axis.0, &axis.1, -(d - first_deg)))).collect();
+        let mut devs = Vec::new();
+        for k in 1..self.poses.len() {
+            if let (Some(step), Some(a), Some(b)) = (self.steps[k], predicted[k - 1], predicted[k]) {
+                let predicted_step = a.inverse() * b;
+                devs.push((self.poses[k].seq, (predicted_step.inverse() * step).rotation.angle().to_degrees()));
+            }
+        }
+        if devs.len() < 3 {
+            return None;
+        }
+        let (worst_seq, max) = worst_step(&devs);
+        let rms = (devs.iter().map(|d| d.1 * d.1).sum::<f64>() / devs.len() as f64).sqrt();
+        let kept_because = if !self.params.turntable_poses {
+            Some("turntable poses are off".to_string())
+        } else if let Some(why) = refined.and_then(|f| axis_too_uncertain(f.sigma_dir_deg, self.params.max_axis_sigma_deg, scores)) {
+            Some(why)
+        } else if source != "calibrated" && scores.is_none() {
+            Some("the turntable's poses could not be scored against the registered ones".to_string())
+        } else {
+            // Texture tracks that follow the table's angles about their axis to a fraction of
+            // a pixel have seen the object turn by those angles, whatever ICP made of its
+            // steps (a ball's, a smooth blob's).
+            let texture_follows_table = refined.and_then(|f| f.tracks).is_some_and(|t| tracks_follow_turn(&t));
+            steps_disagree(&devs, (worst_seq, max), self.params.max_turntable_deviation_deg, scores, texture_follows_table)
+        };
+        Some(Verdict { steps: devs.len(), rms, max, worst_seq, kept_because })
+    }
+}
+
+/// [`Registrar::verdict`]: the steps compared, their RMS and largest disagreement with the
+/// turntable's predicted steps (degrees) and the view of the largest, and why the
+/// turntable's poses must not replace the registered ones (None: they may).
+pub(super) struct Verdict {
+    pub steps: usize,
+    pub rms: f64,
+    pub max: f64,
+    pub worst_seq: u64,
+    pub kept_because: Option<String>,
+}
+
+/// The refinement from each of `starts`, keeping the fit with the smallest residual; the
+/// fits that fail say why in `errors`.
+pub(super) fn best_fit(set: &RefineSet, starts: &[(Vector3<f64>, Vector3<f64>)], p: &RefineParams, errors: &mut Vec<String>) -> Option<AxisFit> {
+    let mut best: Option<AxisFit> = None;
+    for &start in starts {
+        match set.fit_axis(start, p) {
+            Ok(fit) if best.as_ref().is_none_or(|b| fit.rms_mm < b.rms_mm) => best = Some(fit),
+            Ok(_) => {}
+            Err(e) => errors.push(e.to_string()),
+        }
+    }
+    best
 }
 
 /// The texture tracks' RMS residual, pixels, up to which (with the worst view's, below)

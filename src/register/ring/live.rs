@@ -1,0 +1,142 @@
+//! The turntable's poses while the views come, without a calibrated axis.
+//!
+//! A chain of ICP steps carries every step's error into every later pose. Where the views'
+//! points cannot fix the turn — a smooth, nearly symmetric object, faint texture, noisy
+//! clouds — every step under-turns alike, and the published poses wander by a degree a view
+//! (the independent renderer's faint, dim object: 10° off at the median, 20° at the end of a
+//! 38° scan) while the turntable's poses at the end of the scan are 0.2–0.3° off. Those
+//! poses feed the matchers' assisted search and the daemon's live model.
+//!
+//! So the refinement that [`Registrar::finish`] runs at the end of a scan
+//! (`register::refine`: the axis fitted to every kept view's points at once, placed by the
+//! table's angles) also runs while the views come, each time the kept views have doubled
+//! (from [`LIVE_MIN_VIEWS`] over [`LIVE_MIN_SPAN_DEG`] of turn on). Its axis gives the
+//! published poses when it passes the final poses' test ([`Registrar::verdict`]: no slip,
+//! an axis known well enough or poses that fit the views as well as the registered ones),
+//! is known to within [`LIVE_MAX_SIGMA_DEG`], and — the first time — when the registered
+//! poses have wandered from its poses well beyond what its uncertainty allows
+//! ([`LIVE_WANDER_MARGIN`]): where the chain is as good, it stays. Then every view with a
+//! table angle is published at the turntable's pose about that axis, and so is every later
+//! view, as with a calibrated axis; when a later fit fails, the registered poses are
+//! published again. The chain itself is left as registered: the block steps, loop closure
+//! and the final test work on it, and the final poses are [`Registrar::finish`]'s.
+
+use nalgebra::{Isometry3, Vector3};
+
+use super::turntable::best_fit;
+use super::Registrar;
+use crate::register::posestore::ViewPose;
+use crate::register::refine::{RefineSet, RefineView};
+use crate::register::rotation_about_axis;
+
+/// Fewest kept views for a fit while the views come (the fit at the end needs 3; its σ, from
+/// leaving one pair of views out, means little with fewer than six pairs).
+pub(super) const LIVE_MIN_VIEWS: usize = 6;
+
+/// Smallest turn the kept views span, degrees, before a fit while the views come: the
+/// chain's own axis needs `axis_min_span_deg` (9°) to seed the fit at all.
+pub(super) const LIVE_MIN_SPAN_DEG: f64 = 10.0;
+
+/// Most kept views a fit while the views come takes (spread evenly over them), so that one
+/// fit costs about what the fit over 24 views costs (0.1–0.2 s on a 2-core machine) however
+/// long the scan: the views wait for it, and a continuous scan skips registering those that
+/// waited too long.
+pub(super) const LIVE_MAX_VIEWS: usize = 24;
+
+/// The fit runs again each time the kept views have grown this many times over: at 6, 12,
+/// 24, 48, … kept views, a handful of fits in a scan.
+pub(super) const LIVE_REFIT_GROWTH: usize = 2;
+
+/// Largest uncertainty (one σ of the direction, degrees) of an axis whose turntable poses are
+/// published while the views come. A sphere's and a torus's first fits (±1.5–5.4°) still put
+/// the views onto each other as well as the registered poses, and would have published poses
+/// 6–10° off where the chain's were 1°.
+pub(super) const LIVE_MAX_SIGMA_DEG: f64 = 1.0;
+
+/// The first axis gives the published poses only where the registered poses lie further from
+/// its poses (the median view) than this many times the furthest view's expected error of its
+/// poses (the kept views' span, radians, times its direction's σ): where the chain has
+/// wandered, not where it is about as good. Measured at the first fits: 8–27 × on the
+/// recordings whose chains wandered 1.5–10° (the independent renderer's), 2.0–2.4 × on chains
+/// 0.3° off (a simulated toed-in rig's: its poses 0.68° off at ±0.83°, against the chain's
+/// 0.31°).
+pub(super) const LIVE_WANDER_MARGIN: f64 = 3.0;
+
+impl Registrar {
+    /// Fits the turntable's axis to the views kept so far when they have grown enough since
+    /// the last fit (module docs), and keeps its poses for publication when they pass the
+    /// final poses' test. Returns whether the published poses changed.
+    pub(super) fn refit_live_axis(&mut self) -> bool {
+        let n = self.kept.len();
+        if self.params.calibrated_axis.is_some() || !self.params.turntable_poses || n < LIVE_MIN_VIEWS || n < LIVE_REFIT_GROWTH * self.live_fitted_views || !(self.kept_span_deg() >= LIVE_MIN_SPAN_DEG) {
+            return false;
+        }
+        self.live_fitted_views = n;
+        let started = std::time::Instant::now();
+        // At most LIVE_MAX_VIEWS of the kept views, spread evenly over them.
+        let m = n.min(LIVE_MAX_VIEWS);
+        let views: Vec<usize> = (0..m).map(|i| (i * (n - 1) + (m - 1) / 2) / (m - 1)).collect();
+        let subset: Vec<RefineView> = views.iter().map(|&v| self.kept[v].clone()).collect();
+        let Ok(set) = RefineSet::new(&subset, &self.kept_refine_params()) else { return false };
+        // From the axis the last fit gave, else from every axis known (as at the end).
+        let starts: Vec<(Vector3<f64>, Vector3<f64>)> = match self.live_axis {
+            Some(axis) => vec![axis],
+            None => self.axis.iter().map(|a| (a.point, a.dir)).chain(self.symmetry_axis).collect(),
+        };
+        let before = self.live_axis;
+        let fit = best_fit(&set, &starts, &self.params.refine, &mut Vec::new());
+        self.live_axis = fit.and_then(|fit| {
+            let scores = self.scores(&set, &fit, &views);
+            let verdict = self.verdict((fit.point, fit.dir), "refined", Some(&fit), Some(scores))?;
+            // How far the registered poses lie from the turntable's (median over the views),
+            // against how far the turntable's may lie from the truth at the furthest view.
+            let wander = self.wander_deg((fit.point, fit.dir));
+            let expected = self.kept_span_deg().to_radians() * fit.sigma_dir_deg;
+            let why = if let Some(why) = verdict.kept_because {
+                Some(why)
+            } else if !(fit.sigma_dir_deg <= LIVE_MAX_SIGMA_DEG) {
+                Some(format!("the axis is known only to ±{:.3}° (more than {LIVE_MAX_SIGMA_DEG}°)", fit.sigma_dir_deg))
+            } else if before.is_none() && !(wander >= LIVE_WANDER_MARGIN * expected) {
+                Some(format!("the registered poses lie {wander:.3}° from its poses, less than {LIVE_WANDER_MARGIN} × the {expected:.3}° its poses may be off"))
+            } else {
+                None
+            };
+            tracing::debug!("live turntable fit over {n} views in {:.0} ms: ±{:.3}° over {:.1}°, the registered poses {wander:.3}° from its poses, scores {:.3} / {:.3} mm: {}", started.elapsed().as_secs_f64() * 1e3, fit.sigma_dir_deg, self.kept_span_deg(), scores.0, scores.1, why.as_deref().unwrap_or("published"));
+            why.is_none().then_some((fit.point, fit.dir))
+        });
+        before != self.live_axis
+    }
+
+    /// The median angle, degrees, between a view's registered pose and its turntable pose
+    /// about `axis` (the views with a table angle).
+    fn wander_deg(&self, (point, up): (Vector3<f64>, Vector3<f64>)) -> f64 {
+        let Some(first) = self.poses.first().and_then(|p| p.table_deg) else { return 0.0 };
+        let mut apart: Vec<f64> = self.poses.iter().filter_map(|p| p.table_deg.map(|deg| (p.first_from_view.inverse() * rotation_about_axis(&point, &up, -(deg - first))).rotation.angle().to_degrees())).collect();
+        apart.sort_by(f64::total_cmp);
+        apart.get(apart.len() / 2).copied().unwrap_or(0.0)
+    }
+
+    /// The poses to publish: the registered ones, or — with an axis from
+    /// [`Registrar::refit_live_axis`] — the turntable's about it for every view with a
+    /// table angle, and for a view without one its nearest earlier view's turntable pose
+    /// moved by the registered motion between the two.
+    pub(super) fn published(&self) -> Vec<ViewPose> {
+        let (Some((point, up)), Some(first)) = (self.live_axis, self.poses.first().and_then(|p| p.table_deg)) else { return self.poses.clone() };
+        let mut anchor: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
+        self.poses
+            .iter()
+            .map(|p| {
+                let pose = match (p.table_deg, anchor) {
+                    (Some(deg), _) => {
+                        let turned = rotation_about_axis(&point, &up, -(deg - first));
+                        anchor = Some((p.first_from_view, turned));
+                        turned
+                    }
+                    (None, Some((registered, turned))) => turned * registered.inverse() * p.first_from_view,
+                    (None, None) => p.first_from_view,
+                };
+                ViewPose { first_from_view: pose, ..p.clone() }
+            })
+            .collect()
+    }
+}
