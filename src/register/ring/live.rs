@@ -56,20 +56,23 @@ pub(super) const LIVE_MAX_SIGMA_DEG: f64 = 1.0;
 /// The first axis gives the published poses only where the registered poses lie further from
 /// its poses (the median view) than this many times the furthest view's expected error of its
 /// poses (the kept views' span, radians, times its direction's σ): where the chain has
-/// wandered, not where it is about as good. Measured at the first fits: 8–27 × on the
-/// recordings whose chains wandered 1.5–10° (the independent renderer's), 2.0–2.4 × on chains
-/// 0.3° off (a simulated toed-in rig's: its poses 0.68° off at ±0.83°, against the chain's
-/// 0.31°).
+/// wandered, not where it is about as good. Measured at the first fits: 7.6–27 × where the
+/// chains had wandered 1–10° (the independent renderer's recordings, the simulated egg
+/// ring), 2.0–2.4 × where they were 0.3° off (the simulated 19.6° toed-in rig, whose poses
+/// a margin of 2 published 0.68° off against the chain's 0.31°; the independent 120 mm
+/// toed-in rig, whose live poses a margin of 2 took from 0.33° to 0.09° — the margin's
+/// price).
 pub(super) const LIVE_WANDER_MARGIN: f64 = 3.0;
 
 impl Registrar {
     /// Fits the turntable's axis to the views kept so far when they have grown enough since
     /// the last fit (module docs), and keeps its poses for publication when they pass the
-    /// final poses' test. Returns whether the published poses changed.
-    pub(super) fn refit_live_axis(&mut self) -> bool {
+    /// final poses' test. Returns a note for the view's report when the published poses
+    /// change from the registered ones to the turntable's or back.
+    pub(super) fn refit_live_axis(&mut self) -> Option<String> {
         let n = self.kept.len();
         if self.params.calibrated_axis.is_some() || !self.params.turntable_poses || n < LIVE_MIN_VIEWS || n < LIVE_REFIT_GROWTH * self.live_fitted_views || !(self.kept_span_deg() >= LIVE_MIN_SPAN_DEG) {
-            return false;
+            return None;
         }
         self.live_fitted_views = n;
         let started = std::time::Instant::now();
@@ -77,7 +80,7 @@ impl Registrar {
         let m = n.min(LIVE_MAX_VIEWS);
         let views: Vec<usize> = (0..m).map(|i| (i * (n - 1) + (m - 1) / 2) / (m - 1)).collect();
         let subset: Vec<RefineView> = views.iter().map(|&v| self.kept[v].clone()).collect();
-        let Ok(set) = RefineSet::new(&subset, &self.kept_refine_params()) else { return false };
+        let Ok(set) = RefineSet::new(&subset, &self.kept_refine_params()) else { return None };
         // From the axis the last fit gave, else from every axis known (as at the end).
         let starts: Vec<(Vector3<f64>, Vector3<f64>)> = match self.live_axis {
             Some(axis) => vec![axis],
@@ -85,6 +88,7 @@ impl Registrar {
         };
         let before = self.live_axis;
         let fit = best_fit(&set, &starts, &self.params.refine, &mut Vec::new());
+        let mut refused = None;
         self.live_axis = fit.and_then(|fit| {
             let scores = self.scores(&set, &fit, &views);
             let verdict = self.verdict((fit.point, fit.dir), "refined", Some(&fit), Some(scores))?;
@@ -102,9 +106,14 @@ impl Registrar {
                 None
             };
             tracing::debug!("live turntable fit over {n} views in {:.0} ms: ±{:.3}° over {:.1}°, the registered poses {wander:.3}° from its poses, scores {:.3} / {:.3} mm: {}", started.elapsed().as_secs_f64() * 1e3, fit.sigma_dir_deg, self.kept_span_deg(), scores.0, scores.1, why.as_deref().unwrap_or("published"));
+            refused = why.clone();
             why.is_none().then_some((fit.point, fit.dir))
         });
-        before != self.live_axis
+        match (before, self.live_axis) {
+            (None, Some(_)) => Some(format!("the turntable's poses about the axis fitted to {n} views so far are published from here on (the registered poses stay for the final test)")),
+            (Some(_), None) => Some(format!("the registered poses are published again, as the axis fitted to {n} views so far does not pass: {}", refused.unwrap_or_else(|| "it could not be fitted, or compared with fewer than three steps".into()))),
+            _ => None,
+        }
     }
 
     /// The median angle, degrees, between a view's registered pose and its turntable pose

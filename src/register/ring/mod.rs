@@ -474,7 +474,9 @@ impl Registrar {
         let (publish_ms, block) = self.publish_and_refine(seq, table_deg, own, target, started, &mut split, &mut warnings, &mut notes);
         split.chain_ms = publish_ms - split.prepare_ms;
         self.update_axis();
-        self.refit_live_axis();
+        if let Some(note) = self.refit_live_axis() {
+            notes.push(format!("view {seq}: {note}"));
+        }
         let published = self.published();
         let first_from_view = published.last().unwrap().first_from_view;
         self.store.publish(published);

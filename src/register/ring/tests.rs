@@ -229,11 +229,15 @@ fn the_views_are_published_at_the_turntable_s_poses_once_an_axis_fits() {
     let mut params = RegistrationParams { block: 3, ..Default::default() };
     params.icp.max_distance = 8.0;
     let mut reg = Registrar::new(params, store.clone());
-    let mut published = Vec::new();
+    let (mut published, mut notes) = (Vec::new(), Vec::new());
     for k in 0..14u64 {
         let deg = 3.0 * k as f64;
-        published.push(reg.add_view(k, (k != 12).then_some(deg), &rippled_view(deg, axis, 1.0)).unwrap().first_from_view);
+        let r = reg.add_view(k, (k != 12).then_some(deg), &rippled_view(deg, axis, 1.0)).unwrap();
+        published.push(r.first_from_view);
+        notes.extend(r.notes);
     }
+    // The view where the switch happened says so in its report.
+    assert!(notes.iter().any(|n| n.starts_with("view 5: the turntable's poses about the axis fitted to 6 views")), "{notes:?}");
     let truth = |k: usize| rotation_about_axis(&axis.0, &axis.1, -3.0 * k as f64);
     let off = |pose: &nalgebra::Isometry3<f64>, k: usize| (pose.inverse() * truth(k)).rotation.angle().to_degrees();
     // The chain wandered a degree by the last view; what was published stayed on the turn.
