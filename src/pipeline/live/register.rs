@@ -83,10 +83,13 @@ fn register_all(
                             let _ = o.send((frame_meta.seq, fitness, rmse));
                         }
                     }
-                    if let (Some(live), Some(p)) = (&live, reg.poses().iter().rev().find(|p| p.seq == frame_meta.seq)) {
+                    // The poses as published (the turntable's, once an axis fitted to the
+                    // views so far passes its tests; register::ring::live).
+                    let published = reg.published();
+                    if let (Some(live), Some(p)) = (&live, published.iter().rev().find(|p| p.seq == frame_meta.seq)) {
                         live.add(&view.cloud, &p.first_from_view);
                     }
-                    results.write_poses(reg.poses())?;
+                    results.write_poses(&published)?;
                     if let Some(p) = reg.poses().last() {
                         c.pose_deg_bits.store(reg.turned_deg().to_bits(), Ordering::Relaxed);
                         c.pose_seq.store(p.seq + 1, Ordering::Relaxed);

@@ -125,11 +125,13 @@ impl Registrar {
         apart.get(apart.len() / 2).copied().unwrap_or(0.0)
     }
 
-    /// The poses to publish: the registered ones, or — with an axis from
-    /// [`Registrar::refit_live_axis`] — the turntable's about it for every view with a
+    /// The poses published while the views come (to the pose store, and what a scan's live
+    /// model and its `poses.jsonl` use until the end): the registered ones, or — with an axis
+    /// from [`Registrar::refit_live_axis`] — the turntable's about it for every view with a
     /// table angle, and for a view without one its nearest earlier view's turntable pose
-    /// moved by the registered motion between the two.
-    pub(super) fn published(&self) -> Vec<ViewPose> {
+    /// moved by the registered motion between the two. After [`Registrar::finish`],
+    /// [`Registrar::poses`] holds the final poses.
+    pub fn published(&self) -> Vec<ViewPose> {
         let (Some((point, up)), Some(first)) = (self.live_axis, self.poses.first().and_then(|p| p.table_deg)) else { return self.poses.clone() };
         let mut anchor: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
         self.poses
