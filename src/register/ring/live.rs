@@ -17,7 +17,8 @@
 //! poses have wandered from its poses well beyond what its uncertainty allows
 //! ([`LIVE_WANDER_MARGIN`]): where the chain is as good, it stays. Then every view with a
 //! table angle is published at the turntable's pose about that axis, and so is every later
-//! view, as with a calibrated axis; when a later fit fails, the registered poses are
+//! view, as with a calibrated axis; when a later fit fails, or a single step disagrees with
+//! the table's as a slip would ([`Registrar::check_live_step`]), the registered poses are
 //! published again. The chain itself is left as registered: the block steps, loop closure
 //! and the final test work on it, and the final poses are [`Registrar::finish`]'s.
 
@@ -88,7 +89,7 @@ impl Registrar {
         };
         let before = self.live_axis;
         let fit = best_fit(&set, &starts, &self.params.refine, &mut Vec::new());
-        let mut refused = None;
+        let (mut refused, mut typical) = (None, 0.0);
         self.live_axis = fit.and_then(|fit| {
             let scores = self.scores(&set, &fit, &views);
             let verdict = self.verdict((fit.point, fit.dir), "refined", Some(&fit), Some(scores))?;
@@ -96,6 +97,7 @@ impl Registrar {
             // against how far the turntable's may lie from the truth at the furthest view.
             let wander = self.wander_deg((fit.point, fit.dir));
             let expected = self.kept_span_deg().to_radians() * fit.sigma_dir_deg;
+            typical = verdict.typical;
             let why = if let Some(why) = verdict.kept_because {
                 Some(why)
             } else if !(fit.sigma_dir_deg <= LIVE_MAX_SIGMA_DEG) {
@@ -109,11 +111,32 @@ impl Registrar {
             refused = why.clone();
             why.is_none().then_some((fit.point, fit.dir))
         });
+        self.live_typical_deg = typical;
         match (before, self.live_axis) {
             (None, Some(_)) => Some(format!("the turntable's poses about the axis fitted to {n} views so far are published from here on (the registered poses stay for the final test)")),
             (Some(_), None) => Some(format!("the registered poses are published again, as the axis fitted to {n} views so far does not pass: {}", refused.unwrap_or_else(|| "it could not be fitted, or compared with fewer than three steps".into()))),
             _ => None,
         }
+    }
+
+    /// After a new view's step: with an axis giving the published poses, a step that
+    /// disagrees with the turntable's predicted step about it by more than
+    /// `max_turntable_deviation_deg` beyond the typical step's disagreement at the last fit —
+    /// the final test's sign of a slip — puts the registered poses back at once (the next fit
+    /// decides again), so that a turntable that slipped, or an object that moved on it, costs
+    /// the published poses no more than that view. Returns a note for the view's report.
+    pub(super) fn check_live_step(&mut self) -> Option<String> {
+        let (axis, k) = (self.live_axis?, self.poses.len() - 1);
+        let step = self.steps[k]?;
+        let (now, before) = (self.poses[k].table_deg?, self.poses[k.checked_sub(1)?].table_deg?);
+        let predicted = rotation_about_axis(&axis.0, &axis.1, -(now - before));
+        let off = (predicted.inverse() * step).rotation.angle().to_degrees();
+        let bound = self.live_typical_deg + self.params.max_turntable_deviation_deg;
+        if off <= bound {
+            return None;
+        }
+        self.live_axis = None;
+        Some(format!("its step is {off:.2}° from the turntable's predicted step (more than {bound:.2}°): the table may have slipped or the object moved; the registered poses are published again"))
     }
 
     /// The median angle, degrees, between a view's registered pose and its turntable pose

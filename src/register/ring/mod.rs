@@ -243,6 +243,8 @@ pub struct Registrar {
     /// and the kept views it was last fitted to.
     live_axis: Option<(Vector3<f64>, Vector3<f64>)>,
     live_fitted_views: usize,
+    /// The typical step's disagreement with the turntable's at the last fit, degrees.
+    live_typical_deg: f64,
     texture: texture::Texture,
 }
 
@@ -259,7 +261,7 @@ const MAX_KEPT: usize = 360;
 impl Registrar {
     pub fn new(params: RegistrationParams, store: std::sync::Arc<PoseStore>) -> Registrar {
         let model = VoxelModel::new(params.model_voxel);
-        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, turn_line: None, steps: Vec::new(), step_variance: Vec::new(), kept: Vec::new(), kept_index: Vec::new(), kept_stride: 1, refined: None, refine_errors: Vec::new(), refine_scores: None, symmetry_tests: 0, live_axis: None, live_fitted_views: 0, texture: Default::default() }
+        Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, turn_line: None, steps: Vec::new(), step_variance: Vec::new(), kept: Vec::new(), kept_index: Vec::new(), kept_stride: 1, refined: None, refine_errors: Vec::new(), refine_scores: None, symmetry_tests: 0, live_axis: None, live_fitted_views: 0, live_typical_deg: 0.0, texture: Default::default() }
     }
 
     /// The latest pose of every view.
@@ -474,7 +476,7 @@ impl Registrar {
         let (publish_ms, block) = self.publish_and_refine(seq, table_deg, own, target, started, &mut split, &mut warnings, &mut notes);
         split.chain_ms = publish_ms - split.prepare_ms;
         self.update_axis();
-        if let Some(note) = self.refit_live_axis() {
+        if let Some(note) = self.check_live_step().or_else(|| self.refit_live_axis()) {
             notes.push(format!("view {seq}: {note}"));
         }
         let published = self.published();

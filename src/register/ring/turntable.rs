@@ -126,7 +126,7 @@ impl Registrar {
             }
         };
         let refined = if source != "calibrated" { self.refined.clone() } else { None };
-        let Some(Verdict { steps, rms, max, worst_seq, kept_because }) = self.verdict(axis, source, refined.as_ref(), scores_of(source, self.refine_scores)) else { return };
+        let Some(Verdict { steps, rms, max, worst_seq, kept_because, .. }) = self.verdict(axis, source, refined.as_ref(), scores_of(source, self.refine_scores)) else { return };
         let applied = kept_because.is_none();
         if applied {
             let mut turn: Vec<Option<f64>> = self.poses.iter().map(|p| p.table_deg.map(|d| d - first_deg)).collect();
@@ -194,17 +194,20 @@ impl Registrar {
             let texture_follows_table = refined.and_then(|f| f.tracks).is_some_and(|t| tracks_follow_turn(&t));
             steps_disagree(&devs, (worst_seq, max), self.params.max_turntable_deviation_deg, scores, texture_follows_table)
         };
-        Some(Verdict { steps: devs.len(), rms, max, worst_seq, kept_because })
+        let mut sorted: Vec<f64> = devs.iter().map(|d| d.1).collect();
+        sorted.sort_by(f64::total_cmp);
+        Some(Verdict { steps: devs.len(), rms, max, typical: sorted[sorted.len() / 2], worst_seq, kept_because })
     }
 }
 
-/// [`Registrar::verdict`]: the steps compared, their RMS and largest disagreement with the
-/// turntable's predicted steps (degrees) and the view of the largest, and why the
-/// turntable's poses must not replace the registered ones (None: they may).
+/// [`Registrar::verdict`]: the steps compared, their RMS, largest and median (typical)
+/// disagreement with the turntable's predicted steps (degrees) and the view of the largest,
+/// and why the turntable's poses must not replace the registered ones (None: they may).
 pub(super) struct Verdict {
     pub steps: usize,
     pub rms: f64,
     pub max: f64,
+    pub typical: f64,
     pub worst_seq: u64,
     pub kept_because: Option<String>,
 }
