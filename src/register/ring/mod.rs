@@ -264,7 +264,9 @@ impl Registrar {
         Registrar { params, store, poses: Vec::new(), prev: None, opening: Vec::new(), closing: std::collections::VecDeque::new(), block: Vec::new(), model, axis: None, reference: Vector3::zeros(), turned_deg: 0.0, turntable_fit: None, history: std::collections::VecDeque::new(), long_steps: Vec::new(), symmetry_axis: None, turn_line: None, steps: Vec::new(), step_variance: Vec::new(), kept: Vec::new(), kept_index: Vec::new(), kept_stride: 1, refined: None, refine_errors: Vec::new(), refine_scores: None, symmetry_tests: 0, live_axis: None, live_fitted_views: 0, live_typical_deg: 0.0, texture: Default::default() }
     }
 
-    /// The latest pose of every view.
+    /// The latest pose of every view: while views come the registered chain (what is
+    /// published may be the turntable's poses instead: [`Registrar::published`]), after
+    /// [`Registrar::finish`] the final poses.
     pub fn poses(&self) -> &[ViewPose] {
         &self.poses
     }
