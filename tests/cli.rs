@@ -560,7 +560,7 @@ fn another_lab_s_object_beyond_the_range_is_dropped_and_named() {
 /// they are many: the simulated sphere searched over 0 … 15, short of it, then over 0 … 47.
 #[test]
 fn points_name_the_matches_dropped_at_the_range_s_end() {
-    let dir = support::temp_dir("cli-points-range");
+    let dir = support::temp_dir("cli-points-range-end");
     let (l, r) = sim_pair(&dir);
     let calib = dir.join("calib.yaml");
     let run = |n: &str| {
