@@ -49,7 +49,7 @@ fn register_all(
     shared: &Arc<ScanShared>,
     settings: &PipelineSettings,
 ) -> Result<(), ScanError> {
-    let mut registrar = settings.registration.clone().map(|p| crate::pipeline::registrar(p, settings.calibrated_axis.as_ref(), None, store));
+    let mut registrar = settings.registration.clone().map(|p| crate::pipeline::registrar(p, settings.calibrated_axis.as_ref(), None, store.clone()));
     // The live surface (fusion.rs): registered views, fused as their poses are published.
     let live = match (&registrar, ModelOptions::default().mesh) {
         (Some(_), Some(params)) => Some(LiveFusion::start(shared.clone(), params, REGISTER_NICE + 2)),
@@ -83,13 +83,14 @@ fn register_all(
                             let _ = o.send((frame_meta.seq, fitness, rmse));
                         }
                     }
-                    // The poses as published (the turntable's, once an axis fitted to the
-                    // views so far passes its tests; register::ring::live).
-                    let published = reg.published();
-                    if let (Some(live), Some(p)) = (&live, published.iter().rev().find(|p| p.seq == frame_meta.seq)) {
+                    // The poses as the view's registration just published them (the
+                    // turntable's, once an axis fitted to the views so far passes its tests;
+                    // register::ring::live).
+                    let published = store.snapshot();
+                    if let (Some(live), Some(p)) = (&live, published.views.iter().rev().find(|p| p.seq == frame_meta.seq)) {
                         live.add(&view.cloud, &p.first_from_view);
                     }
-                    results.write_poses(&published)?;
+                    results.write_poses(&published.views)?;
                     if let Some(p) = reg.poses().last() {
                         c.pose_deg_bits.store(reg.turned_deg().to_bits(), Ordering::Relaxed);
                         c.pose_seq.store(p.seq + 1, Ordering::Relaxed);

@@ -28,7 +28,7 @@ use super::turntable::best_fit;
 use super::Registrar;
 use crate::register::posestore::ViewPose;
 use crate::register::refine::{RefineSet, RefineView};
-use crate::register::rotation_about_axis;
+use crate::register::angle_deg;
 
 /// Fewest kept views for a fit while the views come (the fit at the end needs 3; its σ, from
 /// leaving one pair of views out, means little with fewer than six pairs).
@@ -71,8 +71,8 @@ impl Registrar {
     /// final poses' test. Returns a note for the view's report when the published poses
     /// change from the registered ones to the turntable's or back.
     pub(super) fn refit_live_axis(&mut self) -> Option<String> {
-        let n = self.kept.len();
-        if self.params.calibrated_axis.is_some() || !self.params.turntable_poses || n < LIVE_MIN_VIEWS || n < LIVE_REFIT_GROWTH * self.live_fitted_views || !(self.kept_span_deg() >= LIVE_MIN_SPAN_DEG) {
+        let (n, span) = (self.kept.len(), self.kept_span_deg());
+        if self.params.calibrated_axis.is_some() || !self.params.turntable_poses || n < LIVE_MIN_VIEWS || n < LIVE_REFIT_GROWTH * self.live_fitted_views || !(span >= LIVE_MIN_SPAN_DEG) {
             return None;
         }
         self.live_fitted_views = n;
@@ -96,7 +96,7 @@ impl Registrar {
             // How far the registered poses lie from the turntable's (median over the views),
             // against how far the turntable's may lie from the truth at the furthest view.
             let wander = self.wander_deg((fit.point, fit.dir));
-            let expected = self.kept_span_deg().to_radians() * fit.sigma_dir_deg;
+            let expected = span.to_radians() * fit.sigma_dir_deg;
             typical = verdict.typical;
             let why = if let Some(why) = verdict.kept_because {
                 Some(why)
@@ -107,7 +107,7 @@ impl Registrar {
             } else {
                 None
             };
-            tracing::debug!("live turntable fit over {n} views in {:.0} ms: ±{:.3}° over {:.1}°, the registered poses {wander:.3}° from its poses, scores {:.3} / {:.3} mm: {}", started.elapsed().as_secs_f64() * 1e3, fit.sigma_dir_deg, self.kept_span_deg(), scores.0, scores.1, why.as_deref().unwrap_or("published"));
+            tracing::debug!("live turntable fit over {n} views in {:.0} ms: ±{:.3}° over {:.1}°, the registered poses {wander:.3}° from its poses, scores {:.3} / {:.3} mm: {}", started.elapsed().as_secs_f64() * 1e3, fit.sigma_dir_deg, span, scores.0, scores.1, why.as_deref().unwrap_or("published"));
             refused = why.clone();
             why.is_none().then_some((fit.point, fit.dir))
         });
@@ -126,11 +126,7 @@ impl Registrar {
     /// decides again), so that a turntable that slipped, or an object that moved on it, costs
     /// the published poses no more than that view. Returns a note for the view's report.
     pub(super) fn check_live_step(&mut self) -> Option<String> {
-        let (axis, k) = (self.live_axis?, self.poses.len() - 1);
-        let step = self.steps[k]?;
-        let (now, before) = (self.poses[k].table_deg?, self.poses[k.checked_sub(1)?].table_deg?);
-        let predicted = rotation_about_axis(&axis.0, &axis.1, -(now - before));
-        let off = (predicted.inverse() * step).rotation.angle().to_degrees();
+        let off = self.step_off_deg(self.poses.len() - 1, &self.turntable_poses(self.live_axis?))?;
         let bound = self.live_typical_deg + self.params.max_turntable_deviation_deg;
         if off <= bound {
             return None;
@@ -141,9 +137,8 @@ impl Registrar {
 
     /// The median angle, degrees, between a view's registered pose and its turntable pose
     /// about `axis` (the views with a table angle).
-    fn wander_deg(&self, (point, up): (Vector3<f64>, Vector3<f64>)) -> f64 {
-        let Some(first) = self.poses.first().and_then(|p| p.table_deg) else { return 0.0 };
-        let mut apart: Vec<f64> = self.poses.iter().filter_map(|p| p.table_deg.map(|deg| (p.first_from_view.inverse() * rotation_about_axis(&point, &up, -(deg - first))).rotation.angle().to_degrees())).collect();
+    fn wander_deg(&self, axis: (Vector3<f64>, Vector3<f64>)) -> f64 {
+        let mut apart: Vec<f64> = self.turntable_poses(axis).iter().zip(&self.poses).filter_map(|(turned, p)| turned.map(|t| angle_deg(&(p.first_from_view.inverse() * t)))).collect();
         apart.sort_by(f64::total_cmp);
         apart.get(apart.len() / 2).copied().unwrap_or(0.0)
     }
@@ -155,14 +150,14 @@ impl Registrar {
     /// moved by the registered motion between the two. After [`Registrar::finish`],
     /// [`Registrar::poses`] holds the final poses.
     pub fn published(&self) -> Vec<ViewPose> {
-        let (Some((point, up)), Some(first)) = (self.live_axis, self.poses.first().and_then(|p| p.table_deg)) else { return self.poses.clone() };
+        let Some(axis) = self.live_axis else { return self.poses.clone() };
         let mut anchor: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
         self.poses
             .iter()
-            .map(|p| {
-                let pose = match (p.table_deg, anchor) {
-                    (Some(deg), _) => {
-                        let turned = rotation_about_axis(&point, &up, -(deg - first));
+            .zip(self.turntable_poses(axis))
+            .map(|(p, turned)| {
+                let pose = match (turned, anchor) {
+                    (Some(turned), _) => {
                         anchor = Some((p.first_from_view, turned));
                         turned
                     }

@@ -6,7 +6,7 @@ use nalgebra::{Isometry3, Vector3};
 
 use super::{Registrar, TurntableFit, MAX_KEPT};
 use crate::register::refine::{AxisFit, RefineParams, RefineSet, RefineView, TrackFigures};
-use crate::register::{rotation_about_axis, subsample_indices};
+use crate::register::{angle_deg, rotation_about_axis, subsample_indices};
 
 impl Registrar {
     /// Keeps a subsample of view `k`'s points for the refinement.
@@ -161,21 +161,29 @@ impl Registrar {
         self.turntable_fit = Some(TurntableFit { steps, rms_deviation_deg: rms, max_deviation_deg: max, worst_seq, applied, axis_source: source, refined, scores, kept_because });
     }
 
+    /// Each view's turntable pose about `axis`: the first view turned by −(θ_k − θ_first).
+    /// None for a view without a table angle (for every view when the first has none).
+    pub(super) fn turntable_poses(&self, axis: (Vector3<f64>, Vector3<f64>)) -> Vec<Option<Isometry3<f64>>> {
+        let first = self.poses.first().and_then(|p| p.table_deg);
+        self.poses.iter().map(|p| first.zip(p.table_deg).map(|(first, deg)| rotation_about_axis(&axis.0, &axis.1, -(deg - first)))).collect()
+    }
+
+    /// How far, degrees, view `k`'s registered step lies from the turntable's step between
+    /// the `predicted` poses ([`Registrar::turntable_poses`]) of views k − 1 and k; None where
+    /// either has no table angle or the step was distrusted.
+    pub(super) fn step_off_deg(&self, k: usize, predicted: &[Option<Isometry3<f64>>]) -> Option<f64> {
+        let (step, a, b) = (self.steps[k]?, predicted[k.checked_sub(1)?]?, predicted[k]?);
+        Some(angle_deg(&((a.inverse() * b).inverse() * step)))
+    }
+
     /// How every registered step compares with the turntable's predicted step about `axis`
     /// (from `source`: "calibrated", "refined", "tracked"; `refined`, its fit; `scores`, its
     /// poses' and the registered ones', see [`Registrar::scores`]), and why its poses must
     /// not replace the registered ones, if they must not. None with fewer than three steps
     /// to compare.
     pub(super) fn verdict(&self, axis: (Vector3<f64>, Vector3<f64>), source: &str, refined: Option<&AxisFit>, scores: Option<(f64, f64)>) -> Option<Verdict> {
-        let first_deg = self.poses.first().and_then(|p| p.table_deg)?;
-        let predicted: Vec<Option<Isometry3<f64>>> = self.poses.iter().map(|p| p.table_deg.map(|d| rotation_about_axis(&axis.0, &axis.1, -(d - first_deg)))).collect();
-        let mut devs = Vec::new();
-        for k in 1..self.poses.len() {
-            if let (Some(step), Some(a), Some(b)) = (self.steps[k], predicted[k - 1], predicted[k]) {
-                let predicted_step = a.inverse() * b;
-                devs.push((self.poses[k].seq, (predicted_step.inverse() * step).rotation.angle().to_degrees()));
-            }
-        }
+        let predicted = self.turntable_poses(axis);
+        let devs: Vec<(u64, f64)> = (1..self.poses.len()).filter_map(|k| self.step_off_deg(k, &predicted).map(|d| (self.poses[k].seq, d))).collect();
         if devs.len() < 3 {
             return None;
         }
