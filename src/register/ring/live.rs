@@ -92,7 +92,7 @@ impl Registrar {
         let (mut refused, mut typical) = (None, 0.0);
         self.live_axis = fit.and_then(|fit| {
             let scores = self.scores(&set, &fit, &views);
-            let verdict = self.verdict((fit.point, fit.dir), "refined", Some(&fit), Some(scores))?;
+            let verdict = self.verdict((fit.point, fit.dir), "refined", Some(&fit), Some(scores), false)?;
             // How far the registered poses lie from the turntable's (median over the views),
             // against how far the turntable's may lie from the truth at the furthest view.
             let wander = self.wander_deg((fit.point, fit.dir));

@@ -105,7 +105,7 @@ use super::{rotation_about_axis, subsample_indices, RegisterError};
 use crate::cloud::PointCloud;
 use weak::{screw_line, without_angles, MAX_SYMMETRY_TESTS, SOLVED_TURN_LINE_DEG, WEAK_FIT_GAIN, WEAK_FIT_MIN_FITNESS};
 pub use params::RegistrationParams;
-pub use texture::TrackedTurn;
+pub use texture::{TrackedTurn, TurnCheck};
 
 mod closing;
 mod live;
@@ -175,6 +175,8 @@ pub struct TurntableFit {
     pub scores: Option<(f64, f64)>,
     /// Why the predictions were not applied (None when they were).
     pub kept_because: Option<String>,
+    /// The texture tracks' own turn, where an uncertain axis left the choice to it.
+    pub turn_check: Option<TurnCheck>,
 }
 
 /// The outcome of loop closure.

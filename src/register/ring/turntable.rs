@@ -126,7 +126,23 @@ impl Registrar {
             }
         };
         let refined = if source != "calibrated" { self.refined.clone() } else { None };
-        let Some(Verdict { steps, rms, max, worst_seq, kept_because, .. }) = self.verdict(axis, source, refined.as_ref(), scores_of(source, self.refine_scores)) else { return };
+        let scores = scores_of(source, self.refine_scores);
+        let Some(mut verdict) = self.verdict(axis, source, refined.as_ref(), scores, false) else { return };
+        // Kept only because the axis is uncertain and the registered poses score a little
+        // better: the texture tracks' own turn says whose angles to believe.
+        let mut turn_check = None;
+        if verdict.axis_uncertain {
+            turn_check = refined.as_ref().and_then(|f| self.check_turn_with_texture(axis, f.sigma_dir_deg));
+            match turn_check {
+                Some(c) if c.sides_with_table => verdict = self.verdict(axis, source, refined.as_ref(), scores, true).expect("the same steps compare"),
+                Some(c) => {
+                    let why = verdict.kept_because.take().unwrap_or_default();
+                    verdict.kept_because = Some(format!("{why}; and the texture tracks' own turn, {:.2}° first to last view, does not side with the table's {:.2}° against the registered {:.2}° ({:.3}° and {:.3}° RMS from them{})", c.tracked_deg, c.table_deg, c.registered_deg, c.rms_from_table_deg, c.rms_from_registered_deg, if c.tracks_follow { "" } else { "; the tracks do not follow it closely enough" }));
+                }
+                None => {}
+            }
+        }
+        let Verdict { steps, rms, max, worst_seq, kept_because, .. } = verdict;
         let applied = kept_because.is_none();
         if applied {
             let mut turn: Vec<Option<f64>> = self.poses.iter().map(|p| p.table_deg.map(|d| d - first_deg)).collect();
@@ -157,8 +173,7 @@ impl Registrar {
         } else if self.params.turntable_poses {
             tracing::warn!("{}; keeping the registered poses", kept_because.as_deref().unwrap_or_default());
         }
-        let scores = scores_of(source, self.refine_scores);
-        self.turntable_fit = Some(TurntableFit { steps, rms_deviation_deg: rms, max_deviation_deg: max, worst_seq, applied, axis_source: source, refined, scores, kept_because });
+        self.turntable_fit = Some(TurntableFit { steps, rms_deviation_deg: rms, max_deviation_deg: max, worst_seq, applied, axis_source: source, refined, scores, kept_because, turn_check });
     }
 
     /// Each view's turntable pose about `axis`: the first view turned by −(θ_k − θ_first).
@@ -179,9 +194,10 @@ impl Registrar {
     /// How every registered step compares with the turntable's predicted step about `axis`
     /// (from `source`: "calibrated", "refined", "tracked"; `refined`, its fit; `scores`, its
     /// poses' and the registered ones', see [`Registrar::scores`]), and why its poses must
-    /// not replace the registered ones, if they must not. None with fewer than three steps
-    /// to compare.
-    pub(super) fn verdict(&self, axis: (Vector3<f64>, Vector3<f64>), source: &str, refined: Option<&AxisFit>, scores: Option<(f64, f64)>) -> Option<Verdict> {
+    /// not replace the registered ones, if they must not. `turn_confirmed`: the texture
+    /// tracks' own turn sided with the table's ([`super::TurnCheck`]), so an uncertain axis is no
+    /// reason. None with fewer than three steps to compare.
+    pub(super) fn verdict(&self, axis: (Vector3<f64>, Vector3<f64>), source: &str, refined: Option<&AxisFit>, scores: Option<(f64, f64)>, turn_confirmed: bool) -> Option<Verdict> {
         let predicted = self.turntable_poses(axis);
         let devs: Vec<(u64, f64)> = (1..self.poses.len()).filter_map(|k| self.step_off_deg(k, &predicted).map(|d| (self.poses[k].seq, d))).collect();
         if devs.len() < 3 {
@@ -189,9 +205,10 @@ impl Registrar {
         }
         let (worst_seq, max) = worst_step(&devs);
         let rms = (devs.iter().map(|d| d.1 * d.1).sum::<f64>() / devs.len() as f64).sqrt();
+        let uncertain = refined.and_then(|f| axis_too_uncertain(f.sigma_dir_deg, self.params.max_axis_sigma_deg, scores)).filter(|_| self.params.turntable_poses);
         let kept_because = if !self.params.turntable_poses {
             Some("turntable poses are off".to_string())
-        } else if let Some(why) = refined.and_then(|f| axis_too_uncertain(f.sigma_dir_deg, self.params.max_axis_sigma_deg, scores)) {
+        } else if let Some(why) = uncertain.clone().filter(|_| !turn_confirmed) {
             Some(why)
         } else if source != "calibrated" && scores.is_none() {
             Some("the turntable's poses could not be scored against the registered ones".to_string())
@@ -204,19 +221,22 @@ impl Registrar {
         };
         let mut sorted: Vec<f64> = devs.iter().map(|d| d.1).collect();
         sorted.sort_by(f64::total_cmp);
-        Some(Verdict { steps: devs.len(), rms, max, typical: sorted[sorted.len() / 2], worst_seq, kept_because })
+        Some(Verdict { steps: devs.len(), rms, max, typical: sorted[sorted.len() / 2], worst_seq, axis_uncertain: uncertain.is_some() && !turn_confirmed, kept_because })
     }
 }
 
 /// [`Registrar::verdict`]: the steps compared, their RMS, largest and median (typical)
 /// disagreement with the turntable's predicted steps (degrees) and the view of the largest,
-/// and why the turntable's poses must not replace the registered ones (None: they may).
+/// and why the turntable's poses must not replace the registered ones (None: they may);
+/// `axis_uncertain`, when that is an axis known only to more than `max_axis_sigma_deg` with
+/// registered poses that score better beyond the tie.
 pub(super) struct Verdict {
     pub steps: usize,
     pub rms: f64,
     pub max: f64,
     pub typical: f64,
     pub worst_seq: u64,
+    pub axis_uncertain: bool,
     pub kept_because: Option<String>,
 }
 
