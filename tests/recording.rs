@@ -523,7 +523,7 @@ fn with_table_angles(src: &Path, dst: &Path, f: impl Fn(f64) -> serde_json::Valu
 /// better, the texture tracks' own turn decides whether the table's angles stand
 /// (docs/registration.md, "Fixed: an uncertain axis kept a chain that under-turned"). Here
 /// the table's angles read 5 % over the truth; the tracks' turn stays with the truth, so the
-/// registered poses stay and the report says why. (Every axis counts as uncertain here:
+/// registered poses stay, the report says why and warns of the table's scale. (Every axis counts as uncertain here:
 /// `max_axis_sigma_deg` 0.)
 #[test]
 fn the_tracks_own_turn_does_not_vouch_for_a_table_on_a_wrong_scale() {
@@ -546,5 +546,9 @@ fn the_tracks_own_turn_does_not_vouch_for_a_table_on_a_wrong_scale() {
     // …and its angles lie nearer the registered chain's than the table's.
     assert!(check["rms_from_table_deg"].as_f64().unwrap() > check["rms_from_registered_deg"].as_f64().unwrap(), "{check}");
     assert!(fit["kept_because"].as_str().unwrap().contains("does not side with the table's 31.50°"), "{fit}");
+    // The table's 5 % is beyond the tracks' own uncertainty: the report says so.
+    let sigma = check["tracked_sigma_deg"].as_f64().unwrap();
+    assert!(sigma > 0.0 && sigma < 0.3, "{check}");
+    assert!(check["warning"].as_str().is_some_and(|w| w.contains("% more than the object's texture did") && w.contains("wrong scale")), "{check}");
     assert!(reg["gt_pose_err_deg"]["final"]["median"].as_f64().unwrap() < 0.3, "{}", reg["gt_pose_err_deg"]);
 }

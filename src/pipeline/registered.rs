@@ -184,10 +184,10 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
             "axis_fit_tracks": f.refined.as_ref().and_then(|r| r.tracks).map(|t| t.tracks), "axis_fit_rms_px": f.refined.as_ref().and_then(|r| r.tracks).map(|t| t.rms_px),
             "turntable_score_mm": f.scores.map(|s| s.0), "registered_score_mm": f.scores.map(|s| s.1),
             // Where the axis was uncertain: the texture tracks' own turn against the table's and the chain's.
-            "turn_check": f.turn_check.map(|c| json!({
-                "table_deg": c.table_deg, "registered_deg": c.registered_deg, "tracked_deg": c.tracked_deg,
+            "turn_check": f.turn_check.as_ref().map(|c| json!({
+                "table_deg": c.table_deg, "registered_deg": c.registered_deg, "tracked_deg": c.tracked_deg, "tracked_sigma_deg": c.tracked_sigma_deg,
                 "rms_from_table_deg": c.rms_from_table_deg, "rms_from_registered_deg": c.rms_from_registered_deg,
-                "tracks_follow": c.tracks_follow, "sides_with_table": c.sides_with_table,
+                "tracks_follow": c.tracks_follow, "sides_with_table": c.sides_with_table, "warning": c.warning,
             })),
         })),
         // A scan without the table's angles: the turn fitted to the texture tracks.

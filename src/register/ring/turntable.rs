@@ -128,12 +128,13 @@ impl Registrar {
         let refined = if source != "calibrated" { self.refined.clone() } else { None };
         let scores = scores_of(source, self.refine_scores);
         let Some(mut verdict) = self.verdict(axis, source, refined.as_ref(), scores, false) else { return };
+        // The texture tracks' own turn, beside the table's and the chain's (with a fitted
+        // axis: a calibrated one tracks nothing).
+        let turn_check = refined.as_ref().and_then(|f| self.check_turn_with_texture(axis, f.sigma_dir_deg));
         // Kept only because the axis is uncertain and the registered poses score a little
-        // better: the texture tracks' own turn says whose angles to believe.
-        let mut turn_check = None;
+        // better: that turn says whose angles to believe.
         if verdict.axis_uncertain {
-            turn_check = refined.as_ref().and_then(|f| self.check_turn_with_texture(axis, f.sigma_dir_deg));
-            match turn_check {
+            match &turn_check {
                 Some(c) if c.sides_with_table => verdict = self.verdict(axis, source, refined.as_ref(), scores, true).expect("the same steps compare"),
                 Some(c) => {
                     let why = verdict.kept_because.take().unwrap_or_default();
