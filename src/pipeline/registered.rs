@@ -183,7 +183,7 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
             "axis_fit_rms_mm": points_fit.map(|r| r.rms_mm), "axis_fit_pairs": points_fit.map(|r| r.pairs),
             "axis_fit_tracks": f.refined.as_ref().and_then(|r| r.tracks).map(|t| t.tracks), "axis_fit_rms_px": f.refined.as_ref().and_then(|r| r.tracks).map(|t| t.rms_px),
             "turntable_score_mm": f.scores.map(|s| s.0), "registered_score_mm": f.scores.map(|s| s.1),
-            // Where the axis was uncertain: the texture tracks' own turn against the table's and the chain's.
+            // The texture tracks' own turn against the table's and the chain's (a fitted axis and tracks).
             "turn_check": f.turn_check.as_ref().map(|c| json!({
                 "table_deg": c.table_deg, "registered_deg": c.registered_deg, "tracked_deg": c.tracked_deg, "tracked_sigma_deg": c.tracked_sigma_deg,
                 "rms_from_table_deg": c.rms_from_table_deg, "rms_from_registered_deg": c.rms_from_registered_deg,

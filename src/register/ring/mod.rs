@@ -175,7 +175,7 @@ pub struct TurntableFit {
     pub scores: Option<(f64, f64)>,
     /// Why the predictions were not applied (None when they were).
     pub kept_because: Option<String>,
-    /// The texture tracks' own turn, where an uncertain axis left the choice to it.
+    /// The texture tracks' own turn beside the table's and the chain's (a fitted axis, tracks).
     pub turn_check: Option<TurnCheck>,
 }
 

@@ -49,9 +49,9 @@ pub struct TrackedTurn {
 
 /// How many times closer to the table's angles than to the registered chain's the tracks' own
 /// angles must lie (RMS over the views) to side with the table ([`TurnCheck`]). The tracks'
-/// own turn is off by 0.2–1.4 % of a scan's turn (docs/registration.md, "without the table's
-/// angles"): on the independent renderer's ideal 30-view recording it read 58.23° of 58°,
-/// where the chain under-turned to 56.4°.
+/// own turn is off by −1.1 … +0.8 % of a scan's turn on the recordings measured (below, and
+/// docs/registration.md), the chain by up to −24 %: on the independent renderer's ideal
+/// 30-view recording the tracks turned 58.19° of 58°, where the chain under-turned to 56.23°.
 const TRACKS_SIDE_RATIO: f64 = 3.0;
 
 /// The tracks' angles' RMS distance from the table's and from the chain's (one per view,
@@ -88,11 +88,12 @@ fn jackknife_sigma(est: &[f64], groups: usize) -> f64 {
 }
 
 /// The texture tracks' own turn (every view's angle fitted) beside the table's and the
-/// registered chain's ([`Registrar::check_turn_with_texture`]): asked where the turntable's
-/// axis is known only to more than `max_axis_sigma_deg` and the registered poses put the views
-/// onto each other a little closer than its poses. ICP's chain under-turns a smooth object,
-/// and a table whose angles are on a wrong scale over-turns it; the score alone cannot tell
-/// which, and the tracks' angles, free of both, can.
+/// registered chain's ([`Registrar::check_turn_with_texture`]), at the end of a scan with a
+/// fitted axis. It decides where the turntable's axis is known only to more than
+/// `max_axis_sigma_deg` and the registered poses put the views onto each other a little
+/// closer than its poses: ICP's chain under-turns a smooth object, and a table whose angles
+/// are on a wrong scale over- or under-turns it; the score alone cannot tell which, and the
+/// tracks' angles, free of both, can. And it warns of a table on a wrong scale.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TurnCheck {
     /// The whole turn, first to last view, degrees: the table's, the registered chain's about
@@ -304,7 +305,7 @@ impl Registrar {
             format!(
                 "the table's angles turn {:.1} % {} than the object's texture did ({:.2}° against {:.2}° ± {tracked_sigma_deg:.2}° from the first view to the last): the turntable's steps per revolution, or the recording's table_deg, may be on a wrong scale",
                 100.0 * off.abs() / tracked[last].abs(),
-                if off.abs() > 0.0 && off.signum() == table[last].signum() { "more" } else { "less" },
+                if off.signum() == table[last].signum() { "more" } else { "less" },
                 table[last],
                 tracked[last]
             )
