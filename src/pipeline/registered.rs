@@ -187,7 +187,8 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
             "turn_check": f.turn_check.as_ref().map(|c| json!({
                 "table_deg": c.table_deg, "registered_deg": c.registered_deg, "tracked_deg": c.tracked_deg, "tracked_sigma_deg": c.tracked_sigma_deg,
                 "rms_from_table_deg": c.rms_from_table_deg, "rms_from_registered_deg": c.rms_from_registered_deg,
-                "tracks_follow": c.tracks_follow, "sides_with_table": c.sides_with_table, "warning": c.warning,
+                "tracks_follow": c.tracks_follow, "sides_with_table": c.sides_with_table, "warning": c.warning, "applied": c.applied,
+                "table_scale": c.table_scale, "scaled_rms_deg": c.scaled_rms_deg,
             })),
         })),
         // A scan without the table's angles: the turn fitted to the texture tracks.
@@ -199,7 +200,7 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
             None if poses.iter().all(|p| p.table_deg.is_none()) => json!({"applied": false, "kept_because": reg.texture_note()}),
             None => Value::Null,
         },
-        "pose_source": if reg.turntable_fit().is_some_and(|f| f.applied) { "turntable" } else if reg.tracked_turn().is_some_and(|t| t.applied) { "tracks" } else { "registration" },
+        "pose_source": if reg.turntable_fit().is_some_and(|f| f.applied) { "turntable" } else if reg.tracked_turn().is_some_and(|t| t.applied) || reg.turntable_fit().and_then(|f| f.turn_check.as_ref()).is_some_and(|c| c.applied) { "tracks" } else { "registration" },
     });
     // The axis fitted to every view when there is one, else the one estimated from the poses.
     let axis = match (reg.refined_axis(), reg.estimated_axis()) {

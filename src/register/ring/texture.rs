@@ -76,6 +76,12 @@ const TABLE_SCALE_SHARE: f64 = 0.02;
 /// …and by how many of the tracks' turn's standard deviations.
 const TABLE_SCALE_SIGMAS: f64 = 4.0;
 
+/// The tracks' RMS distance from the table's angles scaled to them, degrees, up to which the
+/// scaled table gives the poses where the table's angles are off: the table's steps then
+/// differ from the tracks' by a scale alone, and keep their even spacing, which the tracks'
+/// angles (jittering by 0.05–0.1° from view to view) do not.
+const SCALED_TABLE_RMS_DEG: f64 = 0.25;
+
 /// The delete-a-group jackknife's standard deviation from the estimates `est` left by each
 /// of `groups` groups in turn (those that failed left out); NaN with fewer than half of them.
 fn jackknife_sigma(est: &[f64], groups: usize) -> f64 {
@@ -117,6 +123,19 @@ pub struct TurnCheck {
     /// than [`TABLE_SCALE_SHARE`] of it and [`TABLE_SCALE_SIGMAS`] × its σ: that the table's
     /// angles may be on a wrong scale, with the figures.
     pub warning: Option<String>,
+    /// The scale that takes the table's angles closest to the tracks' (least squares over
+    /// the views), and the tracks' RMS distance from the table's angles so scaled, degrees.
+    pub table_scale: f64,
+    pub scaled_rms_deg: f64,
+    /// The turn the poses take where the table's angles are off ([`TurnCheck::warning`]),
+    /// view by view from the first (degrees about `axis.1`): the table's angles scaled by
+    /// `table_scale` where the tracks lie within [`SCALED_TABLE_RMS_DEG`] of them (the table's
+    /// steps keep their even spacing, only their scale was wrong), else the tracks' own
+    /// angles; and the axis fitted with the tracks' angles: (point, direction).
+    pub angles_deg: Vec<f64>,
+    pub axis: (Vector3<f64>, Vector3<f64>),
+    /// The poses became those turns (with [`TurnCheck::warning`]).
+    pub applied: bool,
 }
 
 impl Registrar {
@@ -300,10 +319,13 @@ impl Registrar {
             })
             .collect();
         let tracked_sigma_deg = jackknife_sigma(&turns, TURN_GROUPS);
+        // The table's angles on the tracks' scale (signed as the tracks' angles).
+        let scale = tracked.iter().zip(&table).map(|(t, a)| t * a).sum::<f64>() / table.iter().map(|a| a * a).sum::<f64>();
+        let scaled_rms_deg = (tracked.iter().zip(&table).map(|(t, a)| (t - scale * a).powi(2)).sum::<f64>() / table.len() as f64).sqrt();
         let off = table[last] - tracked[last];
         let warning = (follows && off.abs() > TABLE_SCALE_SHARE * table[last].abs() && off.abs() > TABLE_SCALE_SIGMAS * tracked_sigma_deg).then(|| {
             format!(
-                "the table's angles turn {:.1} % {} than the object's texture did ({:.2}° against {:.2}° ± {tracked_sigma_deg:.2}° from the first view to the last): the turntable's steps per revolution, or the recording's table_deg, may be on a wrong scale",
+                "the table's angles turn {:.1} % {} than the object's texture did ({:.2}° against {:.2}° ± {tracked_sigma_deg:.2}° from the first view to the last): the turntable's steps per degree (`$100`), or the recording's table_deg, may be on a wrong scale, or the table slipped; the poses follow the texture's turn",
                 100.0 * off.abs() / tracked[last].abs(),
                 if off.signum() == table[last].signum() { "more" } else { "less" },
                 table[last],
@@ -320,10 +342,12 @@ impl Registrar {
             tracks_follow: follows,
             sides_with_table: sides,
             warning,
+            table_scale: scale,
+            scaled_rms_deg,
+            angles_deg: if scaled_rms_deg <= SCALED_TABLE_RMS_DEG { table.iter().map(|a| sign * scale * a).collect() } else { fit.deg.iter().map(|d| d - fit.deg[0]).collect() },
+            axis: fit.axis,
+            applied: false,
         };
-        if let Some(w) = &check.warning {
-            tracing::warn!("{w}");
-        }
         tracing::info!(
             "texture tracks: their own turn {:.2}° ± {tracked_sigma_deg:.2}° first to last view, against the table's {:.2}° and the registered {:.2}° (views {from_table:.3}° and {from_registered:.3}° RMS from them; RMS {:.2} px): {}",
             check.tracked_deg,

@@ -130,7 +130,7 @@ impl Registrar {
         let Some(mut verdict) = self.verdict(axis, source, refined.as_ref(), scores, false) else { return };
         // The texture tracks' own turn, beside the table's and the chain's (with a fitted
         // axis: a calibrated one tracks nothing).
-        let turn_check = refined.as_ref().and_then(|f| self.check_turn_with_texture(axis, f.sigma_dir_deg));
+        let mut turn_check = refined.as_ref().and_then(|f| self.check_turn_with_texture(axis, f.sigma_dir_deg));
         // Kept only because the axis is uncertain and the registered poses score a little
         // better: that turn says whose angles to believe.
         if verdict.axis_uncertain {
@@ -143,7 +143,24 @@ impl Registrar {
                 None => {}
             }
         }
-        let Verdict { steps, rms, max, worst_seq, kept_because, .. } = verdict;
+        let Verdict { steps, rms, max, worst_seq, mut kept_because, .. } = verdict;
+        // Table angles that disagree with the texture's turn beyond its uncertainty (a wrong
+        // scale, a slip): the tracks' turn gives the poses, as in a scan without angles.
+        if let Some(c) = turn_check.as_mut().filter(|c| c.warning.is_some()) {
+            tracing::warn!("{}", c.warning.as_deref().unwrap_or_default());
+            if self.params.turntable_poses {
+                for (p, deg) in self.poses.iter_mut().zip(&c.angles_deg) {
+                    p.first_from_view = rotation_about_axis(&c.axis.0, &c.axis.1, -deg);
+                }
+                self.turned_deg = c.tracked_deg.abs();
+                c.applied = true;
+                let warning = c.warning.clone().unwrap_or_default();
+                kept_because = Some(match kept_because {
+                    Some(why) => format!("{why}; and {warning}"),
+                    None => warning,
+                });
+            }
+        }
         let applied = kept_because.is_none();
         if applied {
             let mut turn: Vec<Option<f64>> = self.poses.iter().map(|p| p.table_deg.map(|d| d - first_deg)).collect();
@@ -171,7 +188,7 @@ impl Registrar {
                     p.first_from_view = rotation_about_axis(&axis.0, &axis.1, -deg);
                 }
             }
-        } else if self.params.turntable_poses {
+        } else if self.params.turntable_poses && !turn_check.as_ref().is_some_and(|c| c.applied) {
             tracing::warn!("{}; keeping the registered poses", kept_because.as_deref().unwrap_or_default());
         }
         self.turntable_fit = Some(TurntableFit { steps, rms_deviation_deg: rms, max_deviation_deg: max, worst_seq, applied, axis_source: source, refined, scores, kept_because, turn_check });
