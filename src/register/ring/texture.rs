@@ -108,7 +108,9 @@ pub struct TurnCheck {
     pub registered_deg: f64,
     pub tracked_deg: f64,
     /// The tracks' whole turn's standard deviation, degrees (a jackknife over [`TURN_GROUPS`]
-    /// sets of tracks; NaN where fewer than half of them could be fitted).
+    /// sets of tracks), where the table's turn differs from theirs by more than
+    /// [`TABLE_SCALE_SHARE`]; NaN elsewhere, and where fewer than half the sets could be
+    /// fitted.
     pub tracked_sigma_deg: f64,
     /// RMS over the views of the tracks' angles from the table's and from the chain's, degrees.
     pub rms_from_table_deg: f64,
@@ -310,20 +312,27 @@ impl Registrar {
         let span = table.iter().copied().fold(f64::NEG_INFINITY, f64::max) - table.iter().copied().fold(f64::INFINITY, f64::min);
         let (from_table, from_registered, sides) = sides_with_table(&tracked, &table, &chained, follows, TRACKS_SIDE_RATIO * span.to_radians() * sigma_deg);
         let last = table.len() - 1;
-        // The whole turn's uncertainty: a delete-a-group jackknife over the tracks.
-        let turns: Vec<f64> = (0..TURN_GROUPS)
-            .filter_map(|g| {
-                let subset: Vec<TrackObs> = tracker.observations().iter().filter(|o| o.track as usize % TURN_GROUPS != g).copied().collect();
-                let f = fit_angles_to_tracks(&subset, &fit.deg, &[], tracker.camera(), fit.axis, false, &self.params.bundle).ok()?;
-                Some(f.axis.1.dot(&fit.axis.1).signum() * (f.deg[last] - f.deg[0]))
-            })
-            .collect();
-        let tracked_sigma_deg = jackknife_sigma(&turns, TURN_GROUPS);
         // The table's angles on the tracks' scale (signed as the tracks' angles).
         let scale = tracked.iter().zip(&table).map(|(t, a)| t * a).sum::<f64>() / table.iter().map(|a| a * a).sum::<f64>();
         let scaled_rms_deg = (tracked.iter().zip(&table).map(|(t, a)| (t - scale * a).powi(2)).sum::<f64>() / table.len() as f64).sqrt();
         let off = table[last] - tracked[last];
-        let warning = (follows && off.abs() > TABLE_SCALE_SHARE * table[last].abs() && off.abs() > TABLE_SCALE_SIGMAS * tracked_sigma_deg).then(|| {
+        // The whole turn's uncertainty, where the warning needs it (the turns differ by more
+        // than the share): a delete-a-group jackknife over the tracks, eight more fits (13 s
+        // more at the end of a 450-view scan, whose one fit takes 1.5 s).
+        let suspect = follows && off.abs() > TABLE_SCALE_SHARE * table[last].abs();
+        let tracked_sigma_deg = if suspect {
+            let turns: Vec<f64> = (0..TURN_GROUPS)
+                .filter_map(|g| {
+                    let subset: Vec<TrackObs> = tracker.observations().iter().filter(|o| o.track as usize % TURN_GROUPS != g).copied().collect();
+                    let f = fit_angles_to_tracks(&subset, &fit.deg, &[], tracker.camera(), fit.axis, false, &self.params.bundle).ok()?;
+                    Some(f.axis.1.dot(&fit.axis.1).signum() * (f.deg[last] - f.deg[0]))
+                })
+                .collect();
+            jackknife_sigma(&turns, TURN_GROUPS)
+        } else {
+            f64::NAN
+        };
+        let warning = (suspect && off.abs() > TABLE_SCALE_SIGMAS * tracked_sigma_deg).then(|| {
             format!(
                 "the table's angles turn {:.1} % {} than the object's texture did ({:.2}° against {:.2}° ± {tracked_sigma_deg:.2}° from the first view to the last): the turntable's steps per degree (`$100`), or the recording's table_deg, may be on a wrong scale, or the table slipped; the poses follow the texture's turn",
                 100.0 * off.abs() / tracked[last].abs(),
@@ -349,8 +358,9 @@ impl Registrar {
             applied: false,
         };
         tracing::info!(
-            "texture tracks: their own turn {:.2}° ± {tracked_sigma_deg:.2}° first to last view, against the table's {:.2}° and the registered {:.2}° (views {from_table:.3}° and {from_registered:.3}° RMS from them; RMS {:.2} px): {}",
+            "texture tracks: their own turn {:.2}°{} first to last view, against the table's {:.2}° and the registered {:.2}° (views {from_table:.3}° and {from_registered:.3}° RMS from them; RMS {:.2} px): {}",
             check.tracked_deg,
+            if tracked_sigma_deg.is_finite() { format!(" ± {tracked_sigma_deg:.2}°") } else { String::new() },
             check.table_deg,
             check.registered_deg,
             fit.figures.rms_px,
