@@ -471,23 +471,7 @@ fn a_turntable_without_angles_turns_by_its_texture() {
     let dir = support::temp_dir("rec-no-angles");
     small_recording(&dir.join("sim"), 12, 0.0);
     let blind = dir.join("blind");
-    std::fs::create_dir_all(&blind).unwrap();
-    for entry in std::fs::read_dir(dir.join("sim")).unwrap() {
-        let entry = entry.unwrap();
-        if entry.file_name() != "frames.jsonl" {
-            std::fs::rename(entry.path(), blind.join(entry.file_name())).unwrap();
-        }
-    }
-    let frames: String = std::fs::read_to_string(dir.join("sim/frames.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| {
-            let mut j: serde_json::Value = serde_json::from_str(l).unwrap();
-            j["table_deg"] = serde_json::Value::Null;
-            format!("{j}\n")
-        })
-        .collect();
-    std::fs::write(blind.join("frames.jsonl"), frames).unwrap();
+    with_table_angles(&dir.join("sim"), &blind, |_| serde_json::Value::Null);
     let opts = ReplayOptions::with_registration(replay_opts().pipeline);
     replay::run_recording(Recording::open(&blind).unwrap(), &dir.join("out"), &opts, &mut |_, _, _| {}).unwrap();
     let reg = &read_json(&dir.join("out/report.json"))["registration"];
@@ -498,7 +482,7 @@ fn a_turntable_without_angles_turns_by_its_texture() {
     assert!(err["max"].as_f64().unwrap() < 0.5, "final poses {err}; the tracks' turn {turn}");
 }
 
-/// A copy of the simulated recording `src` in `dst` with every table angle changed by `f`.
+/// The simulated recording `src` moved to `dst` with every table angle changed by `f`.
 fn with_table_angles(src: &Path, dst: &Path, f: impl Fn(f64) -> serde_json::Value) {
     std::fs::create_dir_all(dst).unwrap();
     for entry in std::fs::read_dir(src).unwrap() {
