@@ -536,6 +536,7 @@ fn the_tracks_own_turn_does_not_vouch_for_a_table_on_a_wrong_scale() {
     assert!(sigma > 0.0 && sigma < 0.3, "{check}");
     assert!(check["warning"].as_str().is_some_and(|w| w.contains("% more than the object's texture did") && w.contains("wrong scale")), "{check}");
     assert_eq!(check["applied"], true, "{check}");
+    assert!(fit["kept_because"].as_str().unwrap().ends_with("the poses follow the texture's turn"), "{fit}");
     assert_eq!(reg["pose_source"], "tracks");
     assert!((reg["turned_deg"].as_f64().unwrap() - 30.0).abs() < 0.5, "{}", reg["turned_deg"]);
     let err = &reg["gt_pose_err_deg"]["final"];

@@ -334,7 +334,7 @@ impl Registrar {
         };
         let warning = (suspect && off.abs() > TABLE_SCALE_SIGMAS * tracked_sigma_deg).then(|| {
             format!(
-                "the table's angles turn {:.1} % {} than the object's texture did ({:.2}° against {:.2}° ± {tracked_sigma_deg:.2}° from the first view to the last): the turntable's steps per degree (`$100`), or the recording's table_deg, may be on a wrong scale, or the table slipped; the poses follow the texture's turn",
+                "the table's angles turn {:.1} % {} than the object's texture did ({:.2}° against {:.2}° ± {tracked_sigma_deg:.2}° from the first view to the last): the turntable's steps per degree (`$100`), or the recording's table_deg, may be on a wrong scale, or the table slipped",
                 100.0 * off.abs() / tracked[last].abs(),
                 if off.signum() == table[last].signum() { "more" } else { "less" },
                 table[last],

@@ -147,18 +147,20 @@ impl Registrar {
         // Table angles that disagree with the texture's turn beyond its uncertainty (a wrong
         // scale, a slip): the tracks' turn gives the poses, as in a scan without angles.
         if let Some(c) = turn_check.as_mut().filter(|c| c.warning.is_some()) {
-            tracing::warn!("{}", c.warning.as_deref().unwrap_or_default());
+            let warning = c.warning.clone().unwrap_or_default();
             if self.params.turntable_poses {
+                tracing::warn!("{warning}; the poses follow the texture's turn");
                 for (p, deg) in self.poses.iter_mut().zip(&c.angles_deg) {
                     p.first_from_view = rotation_about_axis(&c.axis.0, &c.axis.1, -deg);
                 }
-                self.turned_deg = c.tracked_deg.abs();
+                self.turned_deg = c.angles_deg.last().map_or(0.0, |d| d.abs());
                 c.applied = true;
-                let warning = c.warning.clone().unwrap_or_default();
                 kept_because = Some(match kept_because {
-                    Some(why) => format!("{why}; and {warning}"),
-                    None => warning,
+                    Some(why) => format!("{why}; and {warning}: the poses follow the texture's turn"),
+                    None => format!("{warning}: the poses follow the texture's turn"),
                 });
+            } else {
+                tracing::warn!("{warning}");
             }
         }
         let applied = kept_because.is_none();
