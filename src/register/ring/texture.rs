@@ -60,9 +60,13 @@ const TRACKS_SIDE_RATIO: f64 = 3.0;
 /// chain lies at least `min_gap_deg` from them — further than the axis's uncertainty could
 /// move the table's poses, so that the turn, not the axis, is what the two disagree on.
 fn sides_with_table(tracked: &[f64], table: &[f64], chained: &[f64], follows: bool, min_gap_deg: f64) -> (f64, f64, bool) {
-    let rms = |a: &[f64]| (tracked.iter().zip(a).map(|(t, x)| (t - x).powi(2)).sum::<f64>() / a.len() as f64).sqrt();
-    let (from_table, from_registered) = (rms(table), rms(chained));
+    let (from_table, from_registered) = (rms_apart(tracked, table), rms_apart(tracked, chained));
     (from_table, from_registered, follows && TRACKS_SIDE_RATIO * from_table < from_registered && from_registered >= min_gap_deg)
+}
+
+/// The RMS difference of two turns, view by view, degrees.
+fn rms_apart(a: &[f64], b: &[f64]) -> f64 {
+    (a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / a.len() as f64).sqrt()
 }
 
 /// Sets of tracks (interleaved by track) for the jackknife of the tracks' own turn.
@@ -314,7 +318,8 @@ impl Registrar {
         let last = table.len() - 1;
         // The table's angles on the tracks' scale (signed as the tracks' angles).
         let scale = tracked.iter().zip(&table).map(|(t, a)| t * a).sum::<f64>() / table.iter().map(|a| a * a).sum::<f64>();
-        let scaled_rms_deg = (tracked.iter().zip(&table).map(|(t, a)| (t - scale * a).powi(2)).sum::<f64>() / table.len() as f64).sqrt();
+        let scaled: Vec<f64> = table.iter().map(|a| scale * a).collect();
+        let scaled_rms_deg = rms_apart(&tracked, &scaled);
         let off = table[last] - tracked[last];
         // The whole turn's uncertainty, where the warning needs it (the turns differ by more
         // than the share): a delete-a-group jackknife over the tracks, eight more fits (13 s
@@ -353,7 +358,8 @@ impl Registrar {
             warning,
             table_scale: scale,
             scaled_rms_deg,
-            angles_deg: if scaled_rms_deg <= SCALED_TABLE_RMS_DEG { table.iter().map(|a| sign * scale * a).collect() } else { fit.deg.iter().map(|d| d - fit.deg[0]).collect() },
+            // About the fitted direction: the tracks' angles unsigned.
+            angles_deg: if scaled_rms_deg <= SCALED_TABLE_RMS_DEG { scaled.iter().map(|a| sign * a).collect() } else { fit.deg.iter().map(|d| d - fit.deg[0]).collect() },
             axis: fit.axis,
             applied: false,
         };

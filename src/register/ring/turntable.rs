@@ -127,21 +127,14 @@ impl Registrar {
         };
         let refined = if source != "calibrated" { self.refined.clone() } else { None };
         let scores = scores_of(source, self.refine_scores);
-        let Some(mut verdict) = self.verdict(axis, source, refined.as_ref(), scores, false) else { return };
         // The texture tracks' own turn, beside the table's and the chain's (with a fitted
-        // axis: a calibrated one tracks nothing).
+        // axis: a calibrated one tracks nothing). Where the axis is uncertain and the
+        // registered poses score a little better, it says whose angles to believe.
         let mut turn_check = refined.as_ref().and_then(|f| self.check_turn_with_texture(axis, f.sigma_dir_deg));
-        // Kept only because the axis is uncertain and the registered poses score a little
-        // better: that turn says whose angles to believe.
-        if verdict.axis_uncertain {
-            match &turn_check {
-                Some(c) if c.sides_with_table => verdict = self.verdict(axis, source, refined.as_ref(), scores, true).expect("the same steps compare"),
-                Some(c) => {
-                    let why = verdict.kept_because.take().unwrap_or_default();
-                    verdict.kept_because = Some(format!("{why}; and the texture tracks' own turn, {:.2}° first to last view, does not side with the table's {:.2}° against the registered {:.2}° ({:.3}° and {:.3}° RMS from them{})", c.tracked_deg, c.table_deg, c.registered_deg, c.rms_from_table_deg, c.rms_from_registered_deg, if c.tracks_follow { "" } else { "; the tracks do not follow it closely enough" }));
-                }
-                None => {}
-            }
+        let Some(mut verdict) = self.verdict(axis, source, refined.as_ref(), scores, turn_check.as_ref().is_some_and(|c| c.sides_with_table)) else { return };
+        if let (true, Some(c)) = (verdict.axis_uncertain, &turn_check) {
+            let why = verdict.kept_because.take().unwrap_or_default();
+            verdict.kept_because = Some(format!("{why}; and the texture tracks' own turn, {:.2}° first to last view, does not side with the table's {:.2}° against the registered {:.2}° ({:.3}° and {:.3}° RMS from them{})", c.tracked_deg, c.table_deg, c.registered_deg, c.rms_from_table_deg, c.rms_from_registered_deg, if c.tracks_follow { "" } else { "; the tracks do not follow it closely enough" }));
         }
         let Verdict { steps, rms, max, worst_seq, mut kept_because, .. } = verdict;
         // Table angles that disagree with the texture's turn beyond its uncertainty (a wrong
@@ -224,6 +217,7 @@ impl Registrar {
             return None;
         }
         let (worst_seq, max) = worst_step(&devs);
+        let typical = typical_step(&devs);
         let rms = (devs.iter().map(|d| d.1 * d.1).sum::<f64>() / devs.len() as f64).sqrt();
         let uncertain = refined.and_then(|f| axis_too_uncertain(f.sigma_dir_deg, self.params.max_axis_sigma_deg, scores)).filter(|_| self.params.turntable_poses);
         let kept_because = if !self.params.turntable_poses {
@@ -237,11 +231,9 @@ impl Registrar {
             // a pixel have seen the object turn by those angles, whatever ICP made of its
             // steps (a ball's, a smooth blob's).
             let texture_follows_table = refined.and_then(|f| f.tracks).is_some_and(|t| tracks_follow_turn(&t));
-            steps_disagree(&devs, (worst_seq, max), self.params.max_turntable_deviation_deg, scores, texture_follows_table)
+            steps_disagree((worst_seq, max), typical, self.params.max_turntable_deviation_deg, scores, texture_follows_table)
         };
-        let mut sorted: Vec<f64> = devs.iter().map(|d| d.1).collect();
-        sorted.sort_by(f64::total_cmp);
-        Some(Verdict { steps: devs.len(), rms, max, typical: sorted[sorted.len() / 2], worst_seq, axis_uncertain: uncertain.is_some() && !turn_confirmed, kept_because })
+        Some(Verdict { steps: devs.len(), rms, max, typical, worst_seq, axis_uncertain: uncertain.is_some() && !turn_confirmed, kept_because })
     }
 }
 
@@ -344,6 +336,14 @@ fn worst_step(devs: &[(u64, f64)]) -> (u64, f64) {
     devs.iter().copied().fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a })
 }
 
+/// The typical step's disagreement with the turntable's prediction: the median of `devs`
+/// (`(seq, degrees)`, at least one).
+fn typical_step(devs: &[(u64, f64)]) -> f64 {
+    let mut sorted: Vec<f64> = devs.iter().map(|d| d.1).collect();
+    sorted.sort_by(f64::total_cmp);
+    sorted[sorted.len() / 2]
+}
+
 /// The refinement's scores (turntable, registered) when the axis was fitted at the end of
 /// the scan (to the views' points or to the texture tracks).
 fn scores_of(source: &str, scores: Option<(f64, f64)>) -> Option<(f64, f64)> {
@@ -354,9 +354,9 @@ fn scores_of(source: &str, scores: Option<(f64, f64)>) -> Option<(f64, f64)> {
     }
 }
 
-/// Why the turntable's poses must not replace the registered ones, judged from each step's
-/// disagreement with the turntable's predicted step (`(seq, degrees)`; `worst`, the largest),
-/// or None. A slip — the
+/// Why the turntable's poses must not replace the registered ones, judged from the steps'
+/// disagreement with the turntable's predicted steps (`(worst_seq, worst)`, the largest;
+/// `typical`, the median: [`worst_step`], [`typical_step`]), or None. A slip — the
 /// object moved on the table — shows as a step that disagrees by more than `max_deg` beyond
 /// the typical (median) step, and leaves the turntable's poses fitting the views worse than
 /// the registered ones: the views after it are turned away from those before. Where the
@@ -371,10 +371,7 @@ fn scores_of(source: &str, scores: Option<(f64, f64)>) -> Option<(f64, f64)> {
 /// every view (see [`TRACKS_FOLLOW_TABLE_PX`]): the object turned by those angles, so steps
 /// that disagree — all of them, or one — are ICP's failure (a ball, the first steps before
 /// the axis seeds ICP), not the table's, nor a slip.
-fn steps_disagree(devs: &[(u64, f64)], (worst_seq, worst): (u64, f64), max_deg: f64, scores: Option<(f64, f64)>, texture_follows_table: bool) -> Option<String> {
-    let mut sorted: Vec<f64> = devs.iter().map(|d| d.1).collect();
-    sorted.sort_by(f64::total_cmp);
-    let typical = sorted.get(sorted.len() / 2).copied()?;
+fn steps_disagree((worst_seq, worst): (u64, f64), typical: f64, max_deg: f64, scores: Option<(f64, f64)>, texture_follows_table: bool) -> Option<String> {
     if texture_follows_table {
         return None;
     }
@@ -398,9 +395,9 @@ fn steps_disagree(devs: &[(u64, f64)], (worst_seq, worst): (u64, f64), max_deg: 
 
 #[cfg(test)]
 mod tests {
-    /// [`super::steps_disagree`] with the worst step found as `fit_turntable` finds it.
+    /// [`super::steps_disagree`] with the worst and typical steps found as `verdict` finds them.
     fn steps_disagree(devs: &[(u64, f64)], max_deg: f64, scores: Option<(f64, f64)>) -> Option<String> {
-        super::steps_disagree(devs, super::worst_step(devs), max_deg, scores, false)
+        super::steps_disagree(super::worst_step(devs), super::typical_step(devs), max_deg, scores, false)
     }
 
     #[test]
@@ -429,8 +426,8 @@ mod tests {
         assert!(steps_disagree(&under, 1.5, None).unwrap().contains("typically"));
         // Texture tracks that followed the table's angles in every view overrule the steps:
         // under-turned ones (a ball: ICP sees no turn) and a single wrong one alike.
-        assert_eq!(super::steps_disagree(&under, super::worst_step(&under), 1.5, Some((1.70, 1.62)), true), None);
-        assert_eq!(super::steps_disagree(&slipped, super::worst_step(&slipped), 1.5, None, true), None);
+        assert_eq!(super::steps_disagree(super::worst_step(&under), super::typical_step(&under), 1.5, Some((1.70, 1.62)), true), None);
+        assert_eq!(super::steps_disagree(super::worst_step(&slipped), super::typical_step(&slipped), 1.5, None, true), None);
     }
 
     #[test]
