@@ -392,9 +392,11 @@ fn sgm_stripes(params: &ValidMatchParams, sgms: &mut Vec<super::sgm::Sgm>, left:
     } else {
         std::array::from_fn(|v| v as u8)
     };
+    // The blocks' grid, one for the call too: stripes of one map share it.
+    let shift = super::sgm::grid::shift(intervals, params.min_disparity, params.max_disparity());
     if stripes == 1 {
         sgms.resize_with(1, Default::default);
-        return Ok(sgms[0].compute(params, left, right, &levels, intervals, 0..h, out)?);
+        return Ok(sgms[0].compute(params, left, right, &levels, shift, intervals, 0..h, out)?);
     }
     sgms.resize_with(stripes, Default::default);
     let rows_per = h.div_ceil(stripes);
@@ -415,7 +417,7 @@ fn sgm_stripes(params: &ValidMatchParams, sgms: &mut Vec<super::sgm::Sgm>, left:
                         let iv = DisparityIntervals { width: w, height: n, lo: intervals.lo[ext.start * w..ext.end * w].to_vec(), hi: intervals.hi[ext.start * w..ext.end * w].to_vec() };
                         let mut part = DisparityMap::new(w, n);
                         let keep = rows.start - ext.start..rows.end - ext.start;
-                        let stats = sgm.compute(params, GrayView { width: w, height: n, data: l }, GrayView { width: w, height: n, data: r }, &levels, &iv, keep, &mut part);
+                        let stats = sgm.compute(params, GrayView { width: w, height: n, data: l }, GrayView { width: w, height: n, data: r }, &levels, shift, &iv, keep, &mut part);
                         (rows, ext, part, stats)
                     })
                     .expect("spawning a matcher thread")

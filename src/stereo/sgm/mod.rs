@@ -49,11 +49,13 @@ use super::params::ValidMatchParams;
 
 mod census;
 mod costs;
+pub(in crate::stereo) mod grid;
 pub(super) use census::{level_map, level_map_from_prior};
 mod select;
 mod single;
 #[cfg(target_arch = "x86_64")]
 mod simd;
+
 #[cfg(test)]
 mod tests;
 
@@ -181,8 +183,9 @@ pub(super) struct Sgm {
     census_r_hi: Vec<u8>,
     /// The right image's grey levels matched to the left's, padded as `census_r`.
     levels_r: Vec<u8>,
-    /// Per pixel: the aggregated band (first disparity index, multiple of [`LANES`], and
-    /// count, a multiple of it; 0 = not searched), and the interval searched inside it.
+    /// Per pixel: the aggregated band (first disparity index, on the call's grid of blocks
+    /// ([`grid::shift`]) but at the range's ends, and count, a multiple of [`LANES`]; 0 = not
+    /// searched), and the interval searched inside it.
     band_a: Vec<u16>,
     band_m: Vec<u16>,
     lo: Vec<u16>,
@@ -317,24 +320,24 @@ impl Sgm {
     /// and counts) the rows `keep` — the others only feed the paths; the speckle filter is the
     /// caller's. `levels` maps `right`'s grey levels onto the left image's for the intensity
     /// term ([`level_map_from_prior`], or [`level_map`] over the whole images).
-    pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, VolumeRefused> {
+    pub(super) fn compute(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], shift: u32, intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, VolumeRefused> {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("popcnt") {
             // SAFETY: the CPU supports AVX2 and POPCNT, checked just above.
-            return unsafe { self.compute_avx2(p, left, right, levels, intervals, keep, out) };
+            return unsafe { self.compute_avx2(p, left, right, levels, shift, intervals, keep, out) };
         }
-        self.compute_impl::<false>(p, left, right, levels, intervals, keep, out)
+        self.compute_impl::<false>(p, left, right, levels, shift, intervals, keep, out)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,popcnt")]
-    unsafe fn compute_avx2(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, VolumeRefused> {
-        self.compute_impl::<true>(p, left, right, levels, intervals, keep, out)
+    unsafe fn compute_avx2(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], shift: u32, intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, VolumeRefused> {
+        self.compute_impl::<true>(p, left, right, levels, shift, intervals, keep, out)
     }
 
     /// The whole matcher; inlined into each SIMD-level wrapper so the loops vectorise for it.
     #[inline(always)]
-    fn compute_impl<const AVX2: bool>(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, VolumeRefused> {
+    fn compute_impl<const AVX2: bool>(&mut self, p: &ValidMatchParams, left: GrayView, right: GrayView, levels: &[u8; 256], shift: u32, intervals: &DisparityIntervals, keep: Range<usize>, out: &mut DisparityMap) -> Result<MatchStats, VolumeRefused> {
         let (w, h) = (left.width, left.height);
         let n = (p.num_disparities as usize).div_ceil(LANES) * LANES;
         let dmin = p.min_disparity;
@@ -371,7 +374,7 @@ impl Sgm {
         census::pad_rows(right.data, w, h, (pad_l, pad_r), levels, &mut self.levels_r);
         let mut stats = MatchStats { prefilter_ns: t0.elapsed().as_nanos() as u64, ..MatchStats::default() };
         let single = p.sgm_paths == 5;
-        let row_max = self.bands(p, g, intervals, keep.clone(), single, &mut stats);
+        let row_max = self.bands(p, g, shift, intervals, keep.clone(), single, &mut stats);
         let total = self.off[w * h];
         // Pass one writes every cost and sum before anything reads them: no clearing. Folded,
         // the costs of the row being stepped only; in one pass, the costs and sums of one row.
@@ -406,14 +409,17 @@ impl Sgm {
     /// band of whole blocks around it, and the packed offsets: over the whole image, or
     /// (`per_row`) from each row's start. Returns the most values a row packs.
     #[inline(always)]
-    fn bands(&mut self, p: &ValidMatchParams, g: Geo, iv: &DisparityIntervals, keep: Range<usize>, per_row: bool, stats: &mut MatchStats) -> usize {
-        let Geo { w, h, dmin, .. } = g;
+    fn bands(&mut self, p: &ValidMatchParams, g: Geo, shift: u32, iv: &DisparityIntervals, keep: Range<usize>, per_row: bool, stats: &mut MatchStats) -> usize {
+        let Geo { w, h, dmin, n, .. } = g;
         let dmax = p.max_disparity();
         for v in [&mut self.band_a, &mut self.band_m, &mut self.lo, &mut self.hi] {
             v.resize(w * h, 0);
         }
         self.off.resize(w * h + 1, 0);
         self.span.resize(h, 0..0);
+        // The blocks' grid: `shift` disparities below the multiples of 16, one for the call
+        // ([`grid::shift`]), so that neighbours with the same interval keep sharing a band.
+        let (shift, npad) = (shift as i32, n as i32);
         let (mut total, mut row_max) = (0usize, 0usize);
         for y in 0..h {
             if per_row {
@@ -438,8 +444,15 @@ impl Sgm {
                 // (Kept from overflowing where nothing is searched — its values are not
                 // used; where something is, lo ≥ dmin and a ≤ khi, so they change nothing.)
                 let (klo, khi) = ((lo - dmin).max(0) as u32, (hi - dmin).max(0) as u32);
-                let a = klo / LANES as u32 * LANES as u32;
-                let m = ((khi / LANES as u32 + 1) * LANES as u32).saturating_sub(a);
+                // The blocks of the shifted grid that hold klo … khi, clipped to the range's
+                // blocks (a band that would pass either end moves inside; at shift 0 none does).
+                const B: i32 = LANES as i32;
+                let a0 = ((klo as i32 + shift) & !(B - 1)) - shift;
+                let e0 = ((khi as i32 + shift) & !(B - 1)) + B - shift;
+                let a1 = a0.max(0);
+                let m = ((e0 - a1 + B - 1) & !(B - 1)).min(npad);
+                let a = a1.min(npad - m);
+                let (a, m) = (a as u32, m as u32);
                 band_a[x] = if searched { a as u16 } else { 0 };
                 band_m[x] = if searched { m as u16 } else { 0 };
                 lo_out[x] = if searched { klo as u16 } else { 0 };

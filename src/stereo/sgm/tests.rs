@@ -40,7 +40,8 @@ fn params(n: u32) -> ValidMatchParams {
 
 fn run(p: &ValidMatchParams, l: &[u8], r: &[u8], w: usize, h: usize, iv: &DisparityIntervals) -> (DisparityMap, MatchStats) {
     let mut out = DisparityMap::new(w, h);
-    let stats = Sgm::default().compute(p, GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), &level_map(l, r), iv, 0..h, &mut out).unwrap();
+    let shift = grid::shift(iv, p.min_disparity, p.max_disparity());
+    let stats = Sgm::default().compute(p, GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), &level_map(l, r), shift, iv, 0..h, &mut out).unwrap();
     (out, stats)
 }
 
@@ -146,7 +147,7 @@ fn every_pixel_is_costed_over_its_own_band() {
     let p = params(128);
     let mut sgm = Sgm::default();
     let mut out = DisparityMap::new(w, h);
-    sgm.compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), &wide_patches(w, h), 0..h, &mut out).unwrap();
+    sgm.compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), 0, &wide_patches(w, h), 0..h, &mut out).unwrap();
     let (n, dmin) = (128, p.min_disparity);
     let pad_l = (dmin + n - 1).max(0) as usize;
     let wr = sgm.census_r.len() / h;
@@ -192,7 +193,7 @@ fn the_portable_build_gives_the_same_map() {
             let p = MatchParams { sgm_paths: paths, uniqueness_ratio, ..(*params(range)).clone() }.validate().unwrap();
             let (fast, _) = run(&p, &l, &r, w, h, iv);
             let mut portable = DisparityMap::new(w, h);
-            Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), iv, 0..h, &mut portable).unwrap();
+            Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), grid::shift(iv, p.min_disparity, p.max_disparity()), iv, 0..h, &mut portable).unwrap();
             let same = fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits());
             assert!(same, "{what}, {paths} paths, uniqueness {uniqueness_ratio}");
             assert!(fast.valid_count() * 5 > w * h, "{what}, {paths} paths, uniqueness {uniqueness_ratio}: {} matched", fast.valid_count());
@@ -249,6 +250,36 @@ fn narrow_intervals_are_searched_and_nothing_else() {
     assert!(stats.evaluated <= (stats.searched * 2 * LANES) as u64);
     assert_eq!(stats.evaluated % LANES as u64, 0);
     assert!(stats.evaluated * 2 <= full_stats.evaluated);
+}
+
+/// An assisted frame's intervals gather about the object's disparity. Where that lies on a
+/// multiple of 16, the plain grid of blocks gives every pixel two; the call's grid moves so
+/// that one block holds each interval ([`grid::shift`]), and the map is as good.
+#[test]
+fn intervals_across_a_multiple_of_16_take_one_block_on_a_moved_grid() {
+    let (w, h) = (100, 40);
+    let truth = |_x: usize, y: usize| 31.25 + 0.5 * (y % 2) as f32;
+    let (l, r) = pair(w, h, truth);
+    let p = params(64);
+    let mut iv = DisparityIntervals::empty(w, h);
+    (iv.lo.fill(28), iv.hi.fill(35));
+    assert_eq!(grid::shift(&iv, p.min_disparity, p.max_disparity()), 4);
+    let (out, stats) = run(&p, &l, &r, w, h, &iv);
+    // One block per searched pixel (every pixel from x = 28 on, where the interval has right
+    // pixels).
+    assert_eq!(stats.searched, (w - 28) * h);
+    assert_eq!(stats.evaluated, (stats.searched * LANES) as u64);
+    let (full, _) = run(&p, &l, &r, w, h, &DisparityIntervals::full(w, h, 0, 63));
+    let (mut good, mut good_full, mut total) = (0, 0, 0);
+    for y in 0..h {
+        for x in 40..w {
+            let t = truth(x, y);
+            total += 1;
+            good += ((out.values()[y * w + x] - t).abs() <= 0.5) as usize;
+            good_full += ((full.values()[y * w + x] - t).abs() <= 0.5) as usize;
+        }
+    }
+    assert!(good * 10 >= total * 9 && good >= good_full, "within 0.5 px: {good} on the moved grid, {good_full} at full range, of {total}");
 }
 
 #[test]
@@ -395,7 +426,7 @@ fn folded_sums_hold_the_largest_path_values() {
             assert_eq!(folds(&p), folded, "P2 {p2}");
             let (fast, _) = run(&p, &l, &r, w, h, &iv);
             let mut portable = DisparityMap::new(w, h);
-            Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), &iv, 0..h, &mut portable).unwrap();
+            Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), grid::shift(&iv, p.min_disparity, p.max_disparity()), &iv, 0..h, &mut portable).unwrap();
             assert!(fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits()), "P2 {p2}");
         }
     }
@@ -415,7 +446,7 @@ fn one_pass_sums_are_the_five_paths_of_the_recurrence() {
     let (lv, rv, levels) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), level_map(&l, &r));
     let mut sgm = Sgm::default();
     let mut out = DisparityMap::new(w, h);
-    sgm.compute_impl::<false>(&p, lv, rv, &levels, &DisparityIntervals::full(w, h, 0, 15), 0..h, &mut out).unwrap();
+    sgm.compute_impl::<false>(&p, lv, rv, &levels, 0, &DisparityIntervals::full(w, h, 0, 15), 0..h, &mut out).unwrap();
     let wr = sgm.census_r.len() / h;
     let cost = |x: usize, y: usize| {
         let px = census::Pixel { cl: sgm.census_l[y * w + x], il: l[y * w + x], cr_row: &sgm.census_r[y * wr..][..wr], ir_row: &sgm.levels_r[y * wr..][..wr], cap: p.sgm_ad_cap };
@@ -459,7 +490,7 @@ fn one_pass_sums_are_the_five_paths_of_the_recurrence() {
     if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("popcnt") {
         let mut fast = Sgm::default();
         // SAFETY: the CPU has AVX2 and POPCNT, checked just above.
-        unsafe { fast.compute_avx2(&p, lv, rv, &levels, &DisparityIntervals::full(w, h, 0, 15), 0..h, &mut out) }.unwrap();
+        unsafe { fast.compute_avx2(&p, lv, rv, &levels, 0, &DisparityIntervals::full(w, h, 0, 15), 0..h, &mut out) }.unwrap();
         assert_eq!(got(&fast), want, "AVX2");
     }
 }
