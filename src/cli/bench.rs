@@ -96,7 +96,8 @@ pub struct LiveArgs {
     /// Assistance: predicted, paper or none.
     #[arg(long, default_value = "predicted")]
     pub assist: String,
-    /// How finely the assisted search range is set: auto, pixel or tile.
+    /// How finely the assisted search range is set: auto, pixel, tile or plane (as `replay
+    /// --assist-granularity`).
     #[arg(long, default_value = "auto")]
     pub assist_granularity: String,
     /// The matcher, as the daemon's `[matching] method`: `bm` or `sgm` (with its default
