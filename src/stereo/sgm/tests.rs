@@ -199,6 +199,26 @@ fn the_portable_build_gives_the_same_map() {
             assert!(fast.valid_count() * 5 > w * h, "{what}, {paths} paths, uniqueness {uniqueness_ratio}: {} matched", fast.valid_count());
         }
     }
+    // Narrow intervals across 16, on a moved grid of blocks ([`grid::shift`]).
+    let truth = |x: usize, y: usize| 14.0 + ((x / 20 + y / 10) % 3) as f32 * 1.5;
+    let (l, r) = pair(w, h, truth);
+    let mut moved = DisparityIntervals::empty(w, h);
+    for y in 0..h {
+        for x in 0..w {
+            let t = truth(x, y) as i16;
+            (moved.lo[y * w + x], moved.hi[y * w + x]) = (t - 3, t + 3);
+        }
+    }
+    let p = params(40);
+    assert_eq!(grid::shift(&moved, p.min_disparity, p.max_disparity()), 5);
+    for paths in [4, 5, 8] {
+        let p = MatchParams { sgm_paths: paths, ..(*p).clone() }.validate().unwrap();
+        let (fast, _) = run(&p, &l, &r, w, h, &moved);
+        let mut portable = DisparityMap::new(w, h);
+        Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), 5, &moved, 0..h, &mut portable).unwrap();
+        assert!(fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits()), "moved grid, {paths} paths");
+        assert!(fast.valid_count() * 5 > w * h, "moved grid, {paths} paths: {} matched", fast.valid_count());
+    }
 }
 
 #[test]
