@@ -282,7 +282,8 @@ fn intervals_across_a_multiple_of_16_take_one_block_on_a_moved_grid() {
     let (l, r) = pair(w, h, truth);
     let p = params(64);
     let mut iv = DisparityIntervals::empty(w, h);
-    (iv.lo.fill(28), iv.hi.fill(35));
+    iv.lo.fill(28);
+    iv.hi.fill(35);
     assert_eq!(grid::shift(&iv, p.min_disparity, p.max_disparity()), 4);
     let (out, stats) = run(&p, &l, &r, w, h, &iv);
     // One block per searched pixel (every pixel from x = 28 on, where the interval has right
