@@ -290,7 +290,7 @@ impl Registrar {
 
     /// The registered chain's turn about direction `dir` since the first view, view by view
     /// (unwrapped), degrees: `first_from_view` turns by −θ about the axis.
-    fn chained_turn_deg(&self, dir: &Vector3<f64>) -> Vec<f64> {
+    pub(super) fn chained_turn_deg(&self, dir: &Vector3<f64>) -> Vec<f64> {
         let mut chained = vec![0.0];
         for k in 1..self.poses.len() {
             let step = self.poses[k - 1].first_from_view.inverse() * self.poses[k].first_from_view;
