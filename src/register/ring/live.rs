@@ -12,7 +12,9 @@
 //! table's angles) also runs while the views come, each time the kept views have doubled
 //! (from [`LIVE_MIN_VIEWS`] over [`LIVE_MIN_SPAN_DEG`] of turn on). Its axis gives the
 //! published poses when it passes the final poses' test ([`Registrar::verdict`]: no slip,
-//! an axis known well enough or poses that fit the views as well as the registered ones),
+//! an axis known well enough or poses that fit the views as well as the registered ones —
+//! or a chain that turned more than [`LIVE_TURN_GAP`] apart from the table, whose closer fit
+//! is its under-turn's),
 //! is known to within [`LIVE_MAX_SIGMA_DEG`], and — the first time — when the registered
 //! poses have wandered from its poses well beyond what its uncertainty allows
 //! ([`LIVE_WANDER_MARGIN`]): where the chain is as good, it stays. Then every view with a
@@ -68,13 +70,19 @@ pub(super) const LIVE_WANDER_MARGIN: f64 = 3.0;
 /// Share of the table's turn (first view to the last with an angle) by which the registered
 /// chain's turn about the fitted axis must differ from it before the chain's closer fit of
 /// the views stops counting against an uncertain axis while the views come. A chain that
-/// under-turns by a tenth or more is ICP held towards "no motion" by the clouds' camera-fixed
-/// errors, which also make its poses score closer: on the independent renderer's faint, dim
-/// recording with `sgm` the chain was 3.8–4.6° short of the table's 22° (17–21 %) and scored
-/// 0.7 % closer with one build, 1.1 % with the next, across the 1 % tie. Table angles on a
-/// wrong scale were measured 3–5 % off, and the chains of the other recordings' first fits
-/// lay 0.1–8 % from their tables (docs/registration.md, Known limits). The final test keeps
-/// its own rule: by then the texture tracks give a turn of their own where they can.
+/// turns that much less than the table is ICP held towards "no motion" by the clouds'
+/// camera-fixed errors, which also make its poses score closer: on the independent
+/// renderer's faint, dim recording with `sgm` the chain had turned 14.05° of the table's 22°
+/// (36 % short) at the twelfth view and scored 1.1 % closer (0.7 % with the build before,
+/// whose views differed by thousandths of a millimetre), across the 1 % tie (`SCORE_TIE`).
+/// At the live fits of 25 other recordings the chains lay 0–10 % from their tables from the
+/// twelfth view on where the texture could be followed (up to 16 % at a first fit of six
+/// views), 19–37 % on faint or dim ones, whose scores tied, and 3–35 % on spheres, whose axes
+/// the σ bound refuses; where the table's angles are true, the rule only publishes them
+/// sooner.
+/// Table angles on a wrong scale were measured 3–5 % off. The final test keeps its own rule:
+/// by then the texture tracks give a turn of their own where they can (docs/registration.md,
+/// Known limits).
 pub(super) const LIVE_TURN_GAP: f64 = 0.10;
 
 /// Whether a chain that turned `chain_deg` strays from the table's `table_deg` (first view to
