@@ -13,8 +13,8 @@
 //! (from [`LIVE_MIN_VIEWS`] over [`LIVE_MIN_SPAN_DEG`] of turn on). Its axis gives the
 //! published poses when it passes the final poses' test ([`Registrar::verdict`]: no slip,
 //! an axis known well enough or poses that fit the views as well as the registered ones —
-//! or a chain that turned more than [`LIVE_TURN_GAP`] apart from the table, whose closer fit
-//! is its under-turn's),
+//! or, on an object too faint to track, a chain that turned more than [`LIVE_TURN_GAP`]
+//! apart from the table, whose closer fit is its under-turn's),
 //! is known to within [`LIVE_MAX_SIGMA_DEG`], and — the first time — when the registered
 //! poses have wandered from its poses well beyond what its uncertainty allows
 //! ([`LIVE_WANDER_MARGIN`]): where the chain is as good, it stays. Then every view with a
@@ -69,20 +69,21 @@ pub(super) const LIVE_WANDER_MARGIN: f64 = 3.0;
 
 /// Share of the table's turn (first view to the last with an angle) by which the registered
 /// chain's turn about the fitted axis must differ from it before the chain's closer fit of
-/// the views stops counting against an uncertain axis while the views come. A chain that
-/// turns that much less than the table is ICP held towards "no motion" by the clouds'
-/// camera-fixed errors, which also make its poses score closer: on the independent
-/// renderer's faint, dim recording with `sgm` the chain had turned 14.05° of the table's 22°
-/// (36 % short) at the twelfth view and scored 1.1 % closer (0.7 % with the build before,
+/// the views stops counting against an uncertain axis while the views come — on an object
+/// whose texture the tracker cannot follow (fewer than `bundle.min_tracks` usable tracks so
+/// far). Such a chain is ICP held towards "no motion" by the clouds' camera-fixed errors,
+/// which also make its poses score closer: on the independent renderer's faint, dim
+/// recording with `sgm` the chain had turned 14.05° of the table's 22° (36 % short) at the
+/// twelfth view, with 3 usable tracks, and scored 1.1 % closer (0.7 % with the build before,
 /// whose views differed by thousandths of a millimetre), across the 1 % tie (`SCORE_TIE`).
-/// At the live fits of 25 other recordings the chains lay 0–10 % from their tables from the
-/// twelfth view on where the texture could be followed (up to 16 % at a first fit of six
-/// views), 19–37 % on faint or dim ones, whose scores tied, and 3–35 % on spheres, whose axes
-/// the σ bound refuses; where the table's angles are true, the rule only publishes them
-/// sooner.
-/// Table angles on a wrong scale were measured 3–5 % off. The final test keeps its own rule:
-/// by then the texture tracks give a turn of their own where they can (docs/registration.md,
-/// Known limits).
+/// Where the texture is followed (66–179 usable tracks at the twelfth view of the recordings
+/// measured) the chain's score keeps its say: a torus whose table angles read 12 % over had
+/// its chain 19 % short of them and scoring 1.5 % closer, and it was right. At the live fits
+/// of 25 other recordings the chains lay 0–10 % from their tables from the twelfth view on
+/// where the texture could be followed (up to 16 % at a first fit of six views, where no
+/// track spans the 9° a fit needs yet, so the rule applies there on any object), 19–37 % on
+/// faint or dim ones, and 3–35 % on spheres, whose axes the σ bound refuses
+/// (docs/registration.md, Known limits).
 pub(super) const LIVE_TURN_GAP: f64 = 0.10;
 
 /// Whether a chain that turned `chain_deg` strays from the table's `table_deg` (first view to
@@ -119,11 +120,12 @@ impl Registrar {
         self.live_axis = fit.and_then(|fit| {
             let scores = self.scores(&set, &fit, &views);
             let mut verdict = self.verdict((fit.point, fit.dir), "refined", Some(&fit), Some(scores), false)?;
-            if verdict.axis_uncertain {
-                // A chain that turned far less (or more) than the table: its closer score is
-                // no reason against the table's poses (LIVE_TURN_GAP); the other tests stand.
+            if verdict.axis_uncertain && self.usable_tracks_so_far() < self.params.bundle.min_tracks {
+                // A chain that turned far less (or more) than the table on an object whose
+                // texture cannot be followed: its closer score is no reason against the
+                // table's poses (LIVE_TURN_GAP); the other tests stand.
                 if let Some((chain, table)) = self.chain_and_table_turn_deg(&fit.dir).filter(|&(c, t)| chain_turn_strays(c, t)) {
-                    tracing::debug!("live turntable fit over {n} views: the registered chain turned {chain:.2}° against the table's {table:.2}° (more than {:.0} % apart), so its closer score ({:.3} against {:.3} mm) does not keep it", LIVE_TURN_GAP * 100.0, scores.1, scores.0);
+                    tracing::debug!("live turntable fit over {n} views: the registered chain turned {chain:.2}° against the table's {table:.2}° (more than {:.0} % apart) on an object too faint to track, so its closer score ({:.3} against {:.3} mm) does not keep it", LIVE_TURN_GAP * 100.0, scores.1, scores.0);
                     verdict = self.verdict((fit.point, fit.dir), "refined", Some(&fit), Some(scores), true)?;
                 }
             }

@@ -295,8 +295,8 @@ fn a_slip_puts_the_registered_poses_back() {
 /// motion" — and still puts the first six views onto each other about 3 % closer than the
 /// turntable's poses, about an axis known only to ±0.2°. The score alone would keep it (the
 /// final test's rule, `SCORE_TIE`); but it turned a tenth less than the table
-/// (`LIVE_TURN_GAP`), so the turntable's poses are published from the sixth view on, nearer
-/// the truth than the chain.
+/// (`LIVE_TURN_GAP`) and nothing is tracked (these views have no images), so the
+/// turntable's poses are published from the sixth view on, nearer the truth than the chain.
 #[test]
 fn a_chain_that_turned_a_tenth_short_of_the_table_is_not_published() {
     use super::live::chain_turn_strays;

@@ -10,7 +10,7 @@ use nalgebra::Vector3;
 use super::turntable::{tracks_follow_turn, tracks_stray};
 use super::Registrar;
 use crate::register::angles::fit_angles_to_tracks;
-use crate::register::bundle::fit_axis_to_tracks;
+use crate::register::bundle::{fit_axis_to_tracks, usable_tracks};
 use crate::register::refine::{AxisFit, TrackFigures};
 use crate::register::rotation_about_axis;
 use crate::register::tracks::{TrackImage, TrackObs, Tracker};
@@ -286,6 +286,13 @@ impl Registrar {
         let tracker = self.texture.tracker.as_ref().filter(|t| t.table_deg().len() == self.poses.len())?;
         let fit = fit_angles_to_tracks(tracker.observations(), start, held, tracker.camera(), axis, true, &self.params.bundle).map_err(|e| tracing::info!("texture tracks: no angles for the views without one ({e})")).ok()?;
         tracks_follow_turn(&fit.figures).then_some(fit.deg)
+    }
+
+    /// How many texture tracks of the views so far a fit of their own could use
+    /// (`register::bundle`: three observations or more over `bundle.min_span_deg` of the
+    /// table's turn); 0 without tracking.
+    pub(super) fn usable_tracks_so_far(&self) -> usize {
+        self.texture.tracker.as_ref().map_or(0, |t| usable_tracks(t.observations(), t.table_deg(), t.camera(), &self.params.bundle).len())
     }
 
     /// The registered chain's turn about direction `dir` since the first view, view by view
