@@ -26,9 +26,14 @@ fn view(deg: f64, axis: (Vector3<f64>, Vector3<f64>)) -> PointCloud {
 }
 
 /// A registrar with `params` and ICP's pairs within 8 mm (the synthetic views' steps).
-fn registrar(mut params: RegistrationParams) -> Registrar {
+fn registrar(params: RegistrationParams) -> Registrar {
+    registrar_to(params, Arc::new(PoseStore::new()))
+}
+
+/// [`registrar`], publishing to `store`.
+fn registrar_to(mut params: RegistrationParams, store: Arc<PoseStore>) -> Registrar {
     params.icp.max_distance = 8.0;
-    Registrar::new(params, Arc::new(PoseStore::new()))
+    Registrar::new(params, store)
 }
 
 /// Guards the per-view targets: range grids (the default) and exact cell grids both follow a turn
@@ -217,6 +222,27 @@ fn rippled_view(deg: f64, axis: (Vector3<f64>, Vector3<f64>), ripple: f32) -> Po
     cloud
 }
 
+/// The axis the live tests' table turns about.
+fn live_axis() -> (Vector3<f64>, Vector3<f64>) {
+    (Vector3::new(0.0, 0.0, 450.0), Vector3::new(0.0, -0.978, -0.208).normalize())
+}
+
+/// Views `0..views` of [`rippled_view`] (`step_deg` apart about [`live_axis`], a ripple of
+/// `ripple` mm), each with the table reading `reading(k, deg)`, added to a registrar of block
+/// steps of three views that publishes to `store`: the registrar, the pose each view was
+/// published at, and every view's notes.
+fn rippled_scan(store: Arc<PoseStore>, views: u64, step_deg: f64, ripple: f32, reading: impl Fn(u64, f64) -> Option<f64>) -> (Registrar, Vec<nalgebra::Isometry3<f64>>, Vec<String>) {
+    let mut reg = registrar_to(RegistrationParams { block: 3, ..Default::default() }, store);
+    let (mut published, mut notes) = (Vec::new(), Vec::new());
+    for k in 0..views {
+        let deg = step_deg * k as f64;
+        let r = reg.add_view(k, reading(k, deg), &rippled_view(deg, live_axis(), ripple)).unwrap();
+        published.push(r.first_from_view);
+        notes.extend(r.notes);
+    }
+    (reg, published, notes)
+}
+
 /// Without a calibrated axis, the axis fitted to the views so far gives the published poses
 /// once it passes the final poses' test and the chain has wandered from it (`live.rs`): each
 /// view at the table's angle about that one line — a view without an angle moved from its
@@ -224,18 +250,9 @@ fn rippled_view(deg: f64, axis: (Vector3<f64>, Vector3<f64>), ripple: f32) -> Po
 /// and loop closure work on, stays as ICP made it.
 #[test]
 fn the_views_are_published_at_the_turntable_s_poses_once_an_axis_fits() {
-    let axis = (Vector3::new(0.0, 0.0, 450.0), Vector3::new(0.0, -0.978, -0.208).normalize());
+    let axis = live_axis();
     let store = Arc::new(PoseStore::new());
-    let mut params = RegistrationParams { block: 3, ..Default::default() };
-    params.icp.max_distance = 8.0;
-    let mut reg = Registrar::new(params, store.clone());
-    let (mut published, mut notes) = (Vec::new(), Vec::new());
-    for k in 0..14u64 {
-        let deg = 3.0 * k as f64;
-        let r = reg.add_view(k, (k != 12).then_some(deg), &rippled_view(deg, axis, 1.0)).unwrap();
-        published.push(r.first_from_view);
-        notes.extend(r.notes);
-    }
+    let (reg, published, notes) = rippled_scan(store.clone(), 14, 3.0, 1.0, |k, deg| (k != 12).then_some(deg));
     // The view where the switch happened says so in its report.
     assert!(notes.iter().any(|n| n.starts_with("view 5: the turntable's poses about the axis fitted to 6 views")), "{notes:?}");
     let truth = |k: usize| rotation_about_axis(&axis.0, &axis.1, -3.0 * k as f64);
@@ -271,18 +288,8 @@ fn the_views_are_published_at_the_turntable_s_poses_once_an_axis_fits() {
 /// them (the final test's slip).
 #[test]
 fn a_slip_puts_the_registered_poses_back() {
-    let axis = (Vector3::new(0.0, 0.0, 450.0), Vector3::new(0.0, -0.978, -0.208).normalize());
-    let mut params = RegistrationParams { block: 3, ..Default::default() };
-    params.icp.max_distance = 8.0;
-    let mut reg = Registrar::new(params, Arc::new(PoseStore::new()));
-    let (mut published, mut notes) = (Vec::new(), Vec::new());
-    for k in 0..14u64 {
-        let deg = 3.0 * k as f64;
-        let reading = if k >= 9 { deg + 4.0 } else { deg };
-        let r = reg.add_view(k, Some(reading), &rippled_view(deg, axis, 1.0)).unwrap();
-        published.push(r.first_from_view);
-        notes.extend(r.notes);
-    }
+    let axis = live_axis();
+    let (reg, published, notes) = rippled_scan(Arc::new(PoseStore::new()), 14, 3.0, 1.0, |k, deg| Some(if k >= 9 { deg + 4.0 } else { deg }));
     assert!(notes.iter().any(|n| n.starts_with("view 9: its step is") && n.contains("slipped")), "{notes:?}");
     assert!(reg.live_axis.is_none());
     for k in 9..14 {
@@ -303,17 +310,8 @@ fn a_chain_that_turned_a_tenth_short_of_the_table_is_not_published() {
     // The faint, dim recording's chain with `sgm`: 14.05° of the table's 22°.
     assert!(chain_turn_strays(14.05, 22.0) && chain_turn_strays(-14.05, 22.0) && chain_turn_strays(24.5, 22.0));
     assert!(!chain_turn_strays(20.0, 22.0) && !chain_turn_strays(-20.0, -22.0) && !chain_turn_strays(3.0, 0.0));
-    let axis = (Vector3::new(0.0, 0.0, 450.0), Vector3::new(0.0, -0.978, -0.208).normalize());
-    let mut params = RegistrationParams { block: 3, ..Default::default() };
-    params.icp.max_distance = 8.0;
-    let mut reg = Registrar::new(params, Arc::new(PoseStore::new()));
-    let (mut published, mut notes) = (Vec::new(), Vec::new());
-    for k in 0..8u64 {
-        let deg = 2.0 * k as f64;
-        let r = reg.add_view(k, Some(deg), &rippled_view(deg, axis, 3.0)).unwrap();
-        published.push(r.first_from_view);
-        notes.extend(r.notes);
-    }
+    let axis = live_axis();
+    let (reg, published, notes) = rippled_scan(Arc::new(PoseStore::new()), 8, 2.0, 3.0, |_, deg| Some(deg));
     assert!(notes.iter().any(|n| n.starts_with("view 5: the turntable's poses about the axis fitted to 6 views")), "{notes:?}");
     let off = |pose: &nalgebra::Isometry3<f64>| (pose.inverse() * rotation_about_axis(&axis.0, &axis.1, -14.0)).rotation.angle().to_degrees();
     let chain = off(&reg.poses()[7].first_from_view);
