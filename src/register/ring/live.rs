@@ -116,7 +116,7 @@ impl Registrar {
         };
         let before = self.live_axis;
         let fit = best_fit(&set, &starts, &self.params.refine, &mut Vec::new());
-        let (mut refused, mut typical) = (None, 0.0);
+        let (mut refused, mut typical, mut overruled) = (None, 0.0, None);
         self.live_axis = fit.and_then(|fit| {
             let scores = self.scores(&set, &fit, &views);
             let mut verdict = self.verdict((fit.point, fit.dir), "refined", Some(&fit), Some(scores), false)?;
@@ -125,7 +125,7 @@ impl Registrar {
                 // texture cannot be followed: its closer score is no reason against the
                 // table's poses (LIVE_TURN_GAP); the other tests stand.
                 if let Some((chain, table)) = self.chain_and_table_turn_deg(&fit.dir).filter(|&(c, t)| chain_turn_strays(c, t)) {
-                    tracing::debug!("live turntable fit over {n} views: the registered chain turned {chain:.2}° against the table's {table:.2}° (more than {:.0} % apart) on an object too faint to track, so its closer score ({:.3} against {:.3} mm) does not keep it", LIVE_TURN_GAP * 100.0, scores.1, scores.0);
+                    overruled = Some(format!("the registered chain turned {chain:.2}° against the table's {table:.2}° (more than {:.0} % apart) on an object too faint to track, so its closer fit of the views ({:.3} against {:.3} mm) does not keep it", LIVE_TURN_GAP * 100.0, scores.1, scores.0));
                     verdict = self.verdict((fit.point, fit.dir), "refined", Some(&fit), Some(scores), true)?;
                 }
             }
@@ -149,7 +149,7 @@ impl Registrar {
         });
         self.live_typical_deg = typical;
         match (before, self.live_axis) {
-            (None, Some(_)) => Some(format!("the turntable's poses about the axis fitted to {n} views so far are published from here on (the registered poses stay for the final test)")),
+            (None, Some(_)) => Some(format!("the turntable's poses about the axis fitted to {n} views so far are published from here on (the registered poses stay for the final test){}", overruled.map_or(String::new(), |why| format!(": {why}")))),
             (Some(_), None) => Some(format!("the registered poses are published again, as the axis fitted to {n} views so far does not pass: {}", refused.unwrap_or_else(|| "it could not be fitted, or compared with fewer than three steps".into()))),
             _ => None,
         }

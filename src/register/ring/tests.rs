@@ -312,7 +312,8 @@ fn a_chain_that_turned_a_tenth_short_of_the_table_is_not_published() {
     assert!(!chain_turn_strays(20.0, 22.0) && !chain_turn_strays(-20.0, -22.0) && !chain_turn_strays(3.0, 0.0));
     let axis = live_axis();
     let (reg, published, notes) = rippled_scan(Arc::new(PoseStore::new()), 8, 2.0, 3.0, |_, deg| Some(deg));
-    assert!(notes.iter().any(|n| n.starts_with("view 5: the turntable's poses about the axis fitted to 6 views")), "{notes:?}");
+    // The view's report says why the chain's closer fit did not keep it.
+    assert!(notes.iter().any(|n| n.starts_with("view 5: the turntable's poses about the axis fitted to 6 views") && n.contains("the registered chain turned") && n.contains("too faint to track")), "{notes:?}");
     let off = |pose: &nalgebra::Isometry3<f64>| (pose.inverse() * rotation_about_axis(&axis.0, &axis.1, -14.0)).rotation.angle().to_degrees();
     let chain = off(&reg.poses()[7].first_from_view);
     assert!(off(&published[7]) < 0.5 * chain, "published {:.3}° off, the chain {chain:.3}°", off(&published[7]));
