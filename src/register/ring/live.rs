@@ -70,21 +70,29 @@ pub(super) const LIVE_WANDER_MARGIN: f64 = 3.0;
 /// Share of the table's turn (first view to the last with an angle) by which the registered
 /// chain's turn about the fitted axis must differ from it before the chain's closer fit of
 /// the views stops counting against an uncertain axis while the views come — on an object
-/// whose texture the tracker cannot follow (fewer than `bundle.min_tracks` usable tracks so
-/// far). Such a chain is ICP held towards "no motion" by the clouds' camera-fixed errors,
-/// which also make its poses score closer: on the independent renderer's faint, dim
-/// recording with `sgm` the chain had turned 14.05° of the table's 22° (36 % short) at the
-/// twelfth view, with 3 usable tracks, and scored 1.1 % closer (0.7 % with the build before,
-/// whose views differed by thousandths of a millimetre), across the 1 % tie (`SCORE_TIE`).
-/// Where the texture is followed (66–179 usable tracks at the twelfth view of the recordings
-/// measured) the chain's score keeps its say: a torus whose table angles read 12 % over had
-/// its chain 19 % short of them and scoring 1.5 % closer, and it was right. At the live fits
-/// of 25 other recordings the chains lay 0–10 % from their tables from the twelfth view on
-/// where the texture could be followed (up to 16 % at a first fit of six views, where no
-/// track spans the 9° a fit needs yet, so the rule applies there on any object), 19–37 % on
-/// faint or dim ones, and 3–35 % on spheres, whose axes the σ bound refuses
-/// (docs/registration.md, Known limits).
+/// whose texture the tracker cannot follow ([`LIVE_MIN_TRACKS`]). Such a chain is ICP held
+/// towards "no motion" by the clouds' camera-fixed errors, which also make its poses score
+/// closer: on the independent renderer's faint, dim recording with `sgm` the chain had
+/// turned 14.05° of the table's 22° (36 % short) at the twelfth view, with 7 tracks followed,
+/// and scored 1.1 % closer (0.7 % with the build before, whose views differed by thousandths
+/// of a millimetre), across the 1 % tie (`SCORE_TIE`). At the live fits of 25 other
+/// recordings the chains lay 0–10 % from their tables on the textured ones (up to 16 % at a
+/// first fit of six views), 19–37 % on faint or dim ones and 3–35 % on spheres, whose axes
+/// the σ bound refuses (docs/registration.md, Known limits).
 pub(super) const LIVE_TURN_GAP: f64 = 0.10;
+
+/// Fewest texture tracks followed through three views or more (with table angles) for an
+/// object whose texture can be followed: there the chain's closer score keeps its say against
+/// a table its turn strays from ([`LIVE_TURN_GAP`]). A torus whose table angles read 12 % over
+/// had its chain 19 % short of them, scoring 1.5 % closer, and it was right (212 tracks at
+/// the twelfth view). Counted at the live fits: 64–157 at the first fit of six views and
+/// 82–261 at the twelfth view on the simulated and independent recordings with texture,
+/// including a faint simulated egg and the spheres, whose chains also stray (there the score
+/// and the σ bound decide, as before); 51–57 on the dim JPEG recording; 6–7 on the faint,
+/// dim one. The number is `bundle.min_tracks`, the tracks a fit of their own needs; those
+/// must also span 9°, which none can at a first fit over 10°, so here they are counted over
+/// any turn.
+pub(super) const LIVE_MIN_TRACKS: usize = 30;
 
 /// Whether a chain that turned `chain_deg` strays from the table's `table_deg` (first view to
 /// the last with an angle, either sign) by more than [`LIVE_TURN_GAP`] of the table's turn.
@@ -120,7 +128,7 @@ impl Registrar {
         self.live_axis = fit.and_then(|fit| {
             let scores = self.scores(&set, &fit, &views);
             let mut verdict = self.verdict((fit.point, fit.dir), "refined", Some(&fit), Some(scores), false)?;
-            if verdict.axis_uncertain && self.usable_tracks_so_far() < self.params.bundle.min_tracks {
+            if verdict.axis_uncertain && self.followed_tracks_so_far() < LIVE_MIN_TRACKS {
                 // A chain that turned far less (or more) than the table on an object whose
                 // texture cannot be followed: its closer score is no reason against the
                 // table's poses (LIVE_TURN_GAP); the other tests stand.

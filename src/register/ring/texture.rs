@@ -10,7 +10,7 @@ use nalgebra::Vector3;
 use super::turntable::{tracks_follow_turn, tracks_stray};
 use super::Registrar;
 use crate::register::angles::fit_angles_to_tracks;
-use crate::register::bundle::{fit_axis_to_tracks, usable_tracks};
+use crate::register::bundle::{fit_axis_to_tracks, usable_tracks, BundleParams};
 use crate::register::refine::{AxisFit, TrackFigures};
 use crate::register::rotation_about_axis;
 use crate::register::tracks::{TrackImage, TrackObs, Tracker};
@@ -288,11 +288,12 @@ impl Registrar {
         tracks_follow_turn(&fit.figures).then_some(fit.deg)
     }
 
-    /// How many texture tracks of the views so far a fit of their own could use
-    /// (`register::bundle`: three observations or more over `bundle.min_span_deg` of the
-    /// table's turn); 0 without tracking.
-    pub(super) fn usable_tracks_so_far(&self) -> usize {
-        self.texture.tracker.as_ref().map_or(0, |t| usable_tracks(t.observations(), t.table_deg(), t.camera(), &self.params.bundle).len())
+    /// How many texture tracks the views so far have followed through three views or more
+    /// (with table angles; over any turn, unlike the `bundle.min_span_deg` a fit of their own
+    /// needs, so that the count means something from the first views on); 0 without tracking.
+    pub(super) fn followed_tracks_so_far(&self) -> usize {
+        let p = BundleParams { min_span_deg: 0.0, ..self.params.bundle.clone() };
+        self.texture.tracker.as_ref().map_or(0, |t| usable_tracks(t.observations(), t.table_deg(), t.camera(), &p).len())
     }
 
     /// The registered chain's turn about direction `dir` since the first view, view by view
