@@ -89,9 +89,9 @@ pub(super) const LIVE_TURN_GAP: f64 = 0.10;
 /// 82–261 at the twelfth view on the simulated and independent recordings with texture,
 /// including a faint simulated egg and the spheres, whose chains also stray (there the score
 /// and the σ bound decide, as before); 51–57 on the dim JPEG recording; 6–7 on the faint,
-/// dim one. The number is `bundle.min_tracks`, the tracks a fit of their own needs; those
-/// must also span 9°, which none can at a first fit over 10°, so here they are counted over
-/// any turn.
+/// dim one. 30 is also the default of `bundle.min_tracks`, the tracks a fit of their own
+/// needs; those must span 9° besides, which none can at a first fit over 10°, so here they
+/// are counted over any turn.
 pub(super) const LIVE_MIN_TRACKS: usize = 30;
 
 /// Whether a chain that turned `chain_deg` strays from the table's `table_deg` (first view to
