@@ -85,13 +85,12 @@ pub(super) const LIVE_TURN_GAP: f64 = 0.10;
 /// object whose texture can be followed: there the chain's closer score keeps its say against
 /// a table its turn strays from ([`LIVE_TURN_GAP`]). A torus whose table angles read 12 % over
 /// had its chain 19 % short of them, scoring 1.5 % closer, and it was right (212 tracks at
-/// the twelfth view). Counted at the live fits: 64–157 at the first fit of six views and
-/// 82–261 at the twelfth view on the simulated and independent recordings with texture,
-/// including a faint simulated egg and the spheres, whose chains also stray (there the score
-/// and the σ bound decide, as before); 51–57 on the dim JPEG recording; 6–7 on the faint,
-/// dim one. 30 is also the default of `bundle.min_tracks`, the tracks a fit of their own
-/// needs; those must span 9° besides, which none can at a first fit over 10°, so here they
-/// are counted over any turn.
+/// the twelfth view). Counted at the live fits of eight recordings: 64–157 at the first fit
+/// of six views and 82–261 at the twelfth view on those with texture (a faint simulated egg
+/// and a sphere among them, whose chains also stray: there the score and the σ bound decide,
+/// as before); 51–57 on the dim JPEG recording; 6–7 on the faint, dim one. 30 is also the
+/// default of `bundle.min_tracks`, the tracks a fit of their own needs; those must span 9°
+/// besides, which none can at a first fit over 10°, so here they are counted over any turn.
 pub(super) const LIVE_MIN_TRACKS: usize = 30;
 
 /// Whether a chain that turned `chain_deg` strays from the table's `table_deg` (first view to
