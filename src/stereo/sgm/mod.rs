@@ -55,6 +55,7 @@ mod select;
 mod single;
 #[cfg(target_arch = "x86_64")]
 mod simd;
+
 #[cfg(test)]
 mod tests;
 

@@ -169,6 +169,17 @@ fn every_pixel_is_costed_over_its_own_band() {
     assert!(costed > w * h / 2, "{costed}");
 }
 
+/// The map of [`run`] (AVX2 where the CPU has it) and of the portable code on `iv`, on the
+/// same grid of blocks, bit for bit, with more than a fifth of the pixels matched; `what`
+/// names the case.
+fn assert_portable_agrees(p: &ValidMatchParams, l: &[u8], r: &[u8], w: usize, h: usize, iv: &DisparityIntervals, what: &str) {
+    let (fast, _) = run(p, l, r, w, h, iv);
+    let mut portable = DisparityMap::new(w, h);
+    Sgm::default().compute_impl::<false>(p, GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), &level_map(l, r), grid::shift(iv, p.min_disparity, p.max_disparity()), iv, 0..h, &mut portable).unwrap();
+    assert!(fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits()), "{what}");
+    assert!(fast.valid_count() * 5 > w * h, "{what}: {} matched", fast.valid_count());
+}
+
 #[test]
 fn the_portable_build_gives_the_same_map() {
     let (w, h) = (90, 40);
@@ -191,12 +202,7 @@ fn the_portable_build_gives_the_same_map() {
         // (Uniqueness 15 and 0, SGM's default: without the test the fits run in the lanes.)
         for (paths, uniqueness_ratio) in [(4, 15), (5, 15), (8, 15), (4, 0), (5, 0), (8, 0)] {
             let p = MatchParams { sgm_paths: paths, uniqueness_ratio, ..(*params(range)).clone() }.validate().unwrap();
-            let (fast, _) = run(&p, &l, &r, w, h, iv);
-            let mut portable = DisparityMap::new(w, h);
-            Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), grid::shift(iv, p.min_disparity, p.max_disparity()), iv, 0..h, &mut portable).unwrap();
-            let same = fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits());
-            assert!(same, "{what}, {paths} paths, uniqueness {uniqueness_ratio}");
-            assert!(fast.valid_count() * 5 > w * h, "{what}, {paths} paths, uniqueness {uniqueness_ratio}: {} matched", fast.valid_count());
+            assert_portable_agrees(&p, &l, &r, w, h, iv, &format!("{what}, {paths} paths, uniqueness {uniqueness_ratio}"));
         }
     }
     // Narrow intervals across 16, on a moved grid of blocks ([`grid::shift`]).
@@ -213,11 +219,7 @@ fn the_portable_build_gives_the_same_map() {
     assert_eq!(grid::shift(&moved, p.min_disparity, p.max_disparity()), 5);
     for paths in [4, 5, 8] {
         let p = MatchParams { sgm_paths: paths, ..(*p).clone() }.validate().unwrap();
-        let (fast, _) = run(&p, &l, &r, w, h, &moved);
-        let mut portable = DisparityMap::new(w, h);
-        Sgm::default().compute_impl::<false>(&p, GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &level_map(&l, &r), 5, &moved, 0..h, &mut portable).unwrap();
-        assert!(fast.values().iter().zip(portable.values()).all(|(a, b)| a.to_bits() == b.to_bits()), "moved grid, {paths} paths");
-        assert!(fast.valid_count() * 5 > w * h, "moved grid, {paths} paths: {} matched", fast.valid_count());
+        assert_portable_agrees(&p, &l, &r, w, h, &moved, &format!("moved grid, {paths} paths"));
     }
 }
 
