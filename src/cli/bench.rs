@@ -104,6 +104,10 @@ pub struct LiveArgs {
     /// penalties, paths and refinement).
     #[arg(long, default_value = "bm")]
     pub method: spinscan::stereo::Method,
+    /// Leave the views' disparities as the matcher gives them (the daemon's `[matching]
+    /// follow_surface = false`; docs/matcher.md, "The window that follows the surface").
+    #[arg(long)]
+    pub no_follow_surface: bool,
     /// Write the runs as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -119,6 +123,7 @@ pub fn cmd_bench_live(a: LiveArgs) -> Result<(), Failure> {
     config.matching.method = a.method;
     config.matching.assist = a.assist.clone();
     config.matching.assist_granularity = a.assist_granularity.clone();
+    config.matching.follow_surface = !a.no_follow_surface;
     config.validate(Path::new("bench live flags")).map_err(input)?;
     if a.pairs == 0 || a.pace.iter().any(|p| p.is_nan() || *p <= 0.0) {
         return Err(input("--pairs must be at least 1 and every --pace positive"));
@@ -180,7 +185,7 @@ pub fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
         None => None,
     };
     let opts = spinscan::bench::Table1Options {
-        pipeline: PipelineOptions { min_disparity: a.matching.min_disparity, matching: matchers[0].clone(), chroma: a.key.chroma(), ..Default::default() },
+        pipeline: PipelineOptions { min_disparity: a.matching.min_disparity, matching: matchers[0].clone(), chroma: a.key.chroma(), follow_surface: !a.matching.no_follow_surface, ..Default::default() },
         plate,
         matchers,
         weights: a.weights.clone(),

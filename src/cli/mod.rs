@@ -126,6 +126,14 @@ pub struct MatchArgs {
     /// the two values must agree", "The agreement limit on realistic rigs").
     #[arg(long, value_name = "PX", default_value_t = MatchParams::default().sgm_refine_agree)]
     pub sgm_refine_agree: f32,
+    /// Leave each view's sub-pixel disparities as the matcher gives them, instead of refining
+    /// them by a second correlation whose window follows the surface (views 15–25 % and
+    /// fused models 4–39 % closer to the truth on the recordings measured; docs/matcher.md,
+    /// "The window that follows the surface"). Used where views are made: `points`,
+    /// `replay`, `demo`, `bench table1`'s errors and `bench live`; `disparity` writes the
+    /// matcher's own map either way.
+    #[arg(long)]
+    pub no_follow_surface: bool,
     /// First disparity searched (may be negative). Default: 0, or −(N−1) on a calibrated rig
     /// whose rectified disparities are negative.
     #[arg(long, allow_hyphen_values = true)]

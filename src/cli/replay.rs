@@ -68,6 +68,7 @@ pub fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
             chroma: a.key.chroma(),
             fit_range: a.matching.range_unset(),
             right_gain: None,
+            follow_surface: !a.matching.no_follow_surface,
         })?
     };
     let total = a.frames.map_or(rec.frames.len(), |m| m.min(rec.frames.len()));

@@ -264,7 +264,7 @@ pub fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
     eprintln!("demo: replaying {} (segment the blue screen, rectify, match, triangulate)…", rec_dir.display());
     let replay_opts = ReplayOptions {
         assist: a.assist.params(!a.reg.no_register)?,
-        ..a.reg.options(PipelineOptions { min_disparity: a.matching.min_disparity, matching: a.matching.params_with_default(128)?, fit_range: a.matching.range_unset(), ..Default::default() })?
+        ..a.reg.options(PipelineOptions { min_disparity: a.matching.min_disparity, matching: a.matching.params_with_default(128)?, fit_range: a.matching.range_unset(), follow_surface: !a.matching.no_follow_surface, ..Default::default() })?
     };
     let summary = replay::run_recording(rec, &results_dir, &replay_opts, &mut |done, seq, ms| {
         progress::show(format!("demo: replayed {done}/{} (seq {seq}, {ms:.0} ms)", a.frames))

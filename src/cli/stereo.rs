@@ -196,6 +196,7 @@ pub fn cmd_points(a: PointsArgs) -> Result<(), Failure> {
         min_disparity: a.matching.min_disparity,
         matching: a.matching.params()?,
         chroma: a.key.chroma(),
+        follow_surface: !a.matching.no_follow_surface,
         ..Default::default()
     };
     let pipe = Pipeline::new(&calib, (l.width as u32, l.height as u32), opts.clone()).map_err(input)?;

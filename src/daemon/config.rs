@@ -309,6 +309,9 @@ pub struct MatchingSection {
     pub key_color: String,
     /// Points this near the object's silhouette are not fused, only registered (0 … 32 px).
     pub rim_px: usize,
+    /// Refine each view's sub-pixel disparities with a window that follows the surface before
+    /// they are triangulated (registration takes the matcher's own).
+    pub follow_surface: bool,
     /// An image of the empty scene from the left camera (PNG or JPEG), "" for none.
     pub plate: PathBuf,
 }
@@ -376,7 +379,7 @@ impl Default for MatchingSection {
         // 128 disparities: the lab rig (60 mm baseline, f ≈ 700 px) sees the object from
         // about 330 mm on.
         let m = crate::stereo::MatchParams::default();
-        MatchingSection { method: m.method, num_disparities: 128, fit_range: true, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, sgm_refine_agree: m.sgm_refine_agree, coarse_to_fine: CoarseToFine::Auto, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string(), rim_px: crate::segment::DEFAULT_RIM_PX, plate: PathBuf::new() }
+        MatchingSection { method: m.method, num_disparities: 128, fit_range: true, block: m.block, p1: m.p1, p2: m.p2, sgm_paths: m.sgm_paths, sgm_ad_cap: m.sgm_ad_cap, sgm_refine: m.sgm_refine, sgm_refine_block: m.sgm_refine_block, sgm_refine_agree: m.sgm_refine_agree, coarse_to_fine: CoarseToFine::Auto, assist: "predicted".into(), assist_w: 0.8, assist_granularity: Granularity::default().name().into(), segment: true, key_color: KeyColour::Auto.to_string(), rim_px: crate::segment::DEFAULT_RIM_PX, follow_surface: true, plate: PathBuf::new() }
     }
 }
 
@@ -539,6 +542,7 @@ impl Config {
         // (An unknown colour is refused by `validate`; unvalidated configs find the screen.)
         pipeline.chroma.key = m.key_color.parse().unwrap_or(KeyColour::Auto);
         pipeline.chroma.rim_px = m.rim_px;
+        pipeline.follow_surface = m.follow_surface;
         let registration = config.scan.register.then(|| {
             let mut p = crate::register::ring::RegistrationParams::default();
             if config.scan.register_max_points > 0 {

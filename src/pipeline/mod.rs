@@ -59,11 +59,15 @@ pub struct PipelineOptions {
     /// cameras, where a scan's first frame found them more than 10 % apart
     /// ([`crate::stereo::gain`], [`range::fit`]).
     pub right_gain: Option<f64>,
+    /// Refine each view's sub-pixel disparities with a window that follows the surface
+    /// ([`crate::stereo::follow`]) before they are triangulated; registration takes the
+    /// matcher's own (docs/matcher.md, "The window that follows the surface").
+    pub follow_surface: bool,
 }
 
 impl Default for PipelineOptions {
     fn default() -> Self {
-        PipelineOptions { alpha: None, min_disparity: None, matching: MatchParams::default(), chroma: ChromaKey::default(), fit_range: false, right_gain: None }
+        PipelineOptions { alpha: None, min_disparity: None, matching: MatchParams::default(), chroma: ChromaKey::default(), fit_range: false, right_gain: None, follow_surface: true }
     }
 }
 
@@ -141,21 +145,34 @@ pub struct View {
     pub right_near_white: usize,
     /// Matches dropped because a camera clipped them to white ([`crate::stereo::gain::drop_clipped`]).
     pub clipped_px: usize,
-    /// Every point, in pixel order as `cloud`, the rim's too: those within
-    /// [`ChromaKey::rim_px`] of the object's silhouette, left out of `cloud` (what is fused).
-    /// Registration takes it ([`View::registration_cloud`]). `None` where no rim was cut.
-    pub with_rim: Option<PointCloud>,
+    /// What registration takes ([`View::registration_cloud`]) where it is not `cloud`: every
+    /// point of the matcher's own map, in pixel order — the rim's too (those within
+    /// [`ChromaKey::rim_px`] of the object's silhouette, left out of `cloud`, what is fused),
+    /// and before the surface-following refinement (`disparity` and `cloud` are after it).
+    /// `None` where no rim was cut and no refinement ran.
+    pub for_registration: Option<PointCloud>,
+    /// What the surface-following refinement looked at and moved (all 0 where it is off).
+    pub followed: crate::stereo::follow::FollowStats,
+    /// The matcher's own map where the refinement changed `disparity`: the texture tracks'
+    /// depths, as registration's points, come from it ([`View::registration_disparity`]).
+    pub matched_disparity: Option<DisparityMap>,
 }
 
 impl View {
-    /// What registration takes of the view: every point, its rim's too.
+    /// What registration takes of the view: every point, its rim's too, of the matcher's own
+    /// map.
     pub fn registration_cloud(&self) -> &PointCloud {
-        self.with_rim.as_ref().unwrap_or(&self.cloud)
+        self.for_registration.as_ref().unwrap_or(&self.cloud)
+    }
+
+    /// The disparities registration takes (the texture tracks' depths): the matcher's own.
+    pub fn registration_disparity(&self) -> &DisparityMap {
+        self.matched_disparity.as_ref().unwrap_or(&self.disparity)
     }
 
     /// How many points the rim held (left out of `cloud`).
     pub fn rim_points(&self) -> usize {
-        self.with_rim.as_ref().map_or(0, |all| all.len() - self.cloud.len())
+        self.for_registration.as_ref().map_or(0, |all| all.len().saturating_sub(self.cloud.len()))
     }
 }
 
@@ -259,6 +276,7 @@ pub struct Pipeline {
     chroma: ChromaKey,
     size: (usize, usize),
     right_gain: Option<f64>,
+    follow_surface: bool,
 }
 
 impl Pipeline {
@@ -281,11 +299,17 @@ impl Pipeline {
         let maps = rect.maps(calib);
         // A view's points at the range's end are not where the object is (`drop_range_edges`).
         let matcher = StereoMatcher::new(params).drop_range_edges(true);
-        Ok(Pipeline { rect, maps, matcher, chroma: opts.chroma, size: (size.0 as usize, size.1 as usize), right_gain: opts.right_gain })
+        Ok(Pipeline { rect, maps, matcher, chroma: opts.chroma, size: (size.0 as usize, size.1 as usize), right_gain: opts.right_gain, follow_surface: opts.follow_surface })
     }
 
     pub fn matcher(&self) -> &StereoMatcher {
         &self.matcher
+    }
+
+    /// Whether views are refined by a window that follows the surface
+    /// ([`PipelineOptions::follow_surface`]).
+    pub fn follows_surface(&self) -> bool {
+        self.follow_surface
     }
 
     /// An assistant for this rig's rectification and this matcher's search range.
@@ -416,10 +440,20 @@ impl Pipeline {
         // The silhouette's rim: registered with, not fused (ChromaKey::rim_px).
         let px = self.chroma.rim_px;
         let inner = frame.mask.as_deref().filter(|_| px > 0).map(|mask| crate::segment::inside_rim(mask, m.disparity.width, m.disparity.height, px));
+        // Registration takes the matcher's own map: on the refined one a sphere's ICP slid
+        // and a realistic recording's fitted axis moved (docs/matcher.md, "The window that
+        // follows the surface").
+        let mut followed = Default::default();
+        let unrefined = self.follow_surface.then(|| {
+            let own = m.disparity.clone();
+            followed = crate::stereo::follow::refine_following(&frame.left_gray, &frame.right_gray, &mut m.disparity);
+            own
+        });
         let (all, inner) = triangulate(&m.disparity, &self.rect, &frame.left_rgb, inner.as_deref());
-        let (cloud, with_rim) = match inner {
-            Some(inner) => (inner, Some(all)),
-            None => (all, None),
+        let (cloud, for_registration) = match (inner, &unrefined) {
+            (inner, Some(own)) => (inner.unwrap_or(all), Some(triangulate(own, &self.rect, &frame.left_rgb, None).0)),
+            (Some(inner), None) => (inner, Some(all)),
+            (None, None) => (all, None),
         };
         let match_ms = m.outcome.match_ms;
         View {
@@ -433,7 +467,9 @@ impl Pipeline {
             key: frame.key,
             right_near_white: frame.right_near_white,
             clipped_px,
-            with_rim,
+            for_registration,
+            followed,
+            matched_disparity: unrefined,
         }
     }
 

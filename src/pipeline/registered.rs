@@ -61,7 +61,8 @@ pub fn register_view(reg: &mut Registrar, frame: &StereoFrame, view: &View, entr
     let seq = frame.seq;
     match reg.add_view(seq, frame.table_deg, view.registration_cloud()) {
         Ok(r) => {
-            let image = TrackImage { rgb: &view.left_rgb, disparity: view.disparity.values(), width: view.disparity.width, height: view.disparity.height };
+            let disparity = view.registration_disparity();
+            let image = TrackImage { rgb: &view.left_rgb, disparity: disparity.values(), width: disparity.width, height: disparity.height };
             let track_ms = reg.track_view(seq, image);
             entry["register_ms"] = json!(r.register_ms);
             entry["track_ms"] = json!(track_ms);

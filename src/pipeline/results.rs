@@ -116,6 +116,7 @@ pub fn matching_entry(pipe: &super::Pipeline, assist: Option<&AssistParams>, fit
     let mut m = json!({
         "rectify_alpha": pipe.rect.alpha,
         "rim_px": pipe.chroma.rim_px,
+        "follow_surface": pipe.follows_surface(),
         "method": p.method.name(),
         "min_disparity": p.min_disparity,
         "num_disparities": p.num_disparities,
@@ -221,6 +222,9 @@ impl ResultsWriter {
             // Points within `matching.rim_px` of the object's silhouette: registered with, not
             // fused, not in `points` or views/.
             "rim_points": view.rim_points(),
+            // The surface-following refinement (`matching.follow_surface`): the matched pixels
+            // whose window it looked at (wholly matched), and those it gave a new value.
+            "followed_px": {"looked": view.followed.looked, "refined": view.followed.refined},
             "right_saturated_share": view.right_near_white as f64 / view.mask.as_deref().map_or(view.left_rgb.len() / 3, |m| m.iter().filter(|&&v| v != 0).count()).max(1) as f64,
             "table_deg": frame.table_deg,
             "t_left_ns": frame.t_left_ns,

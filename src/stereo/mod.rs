@@ -3,6 +3,7 @@
 
 mod buffer;
 pub mod disparity;
+pub mod follow;
 pub mod gain;
 mod kernels;
 pub mod matcher;

@@ -1,0 +1,213 @@
+//! A view's sub-pixel disparities refined by a window that follows the surface.
+//!
+//! Block matching reports, at each pixel, the disparity that best shifts its whole window:
+//! the mean of the true disparities under it, weighted by where the texture's gradients
+//! lie. On a curved surface that mean falls short of the centre's disparity where the
+//! surface bulges towards the camera (by σ²/2 × the map's Laplacian, σ² the window's
+//! variance), and on a slanted one it moves with the texture. These errors move with the
+//! object, so the fusion of many views keeps them (docs/meshing.md, "Where the fused
+//! surface's error comes from").
+//!
+//! Here every matched pixel is correlated once more, with the right window warped by the
+//! map itself: each pixel q of the window is compared with the right image at
+//! `x_q − S(q) − δ`, `S` the map smoothed, for a few residual shifts δ shared by the window.
+//! The residual's minimum (an equiangular fit through the three samples around it) added to
+//! `S` at the centre is the new disparity. The window's mean of the residual is then the
+//! mean of `d − S`, small and smooth wherever `S` follows the surface, so neither the
+//! curvature nor the texture's weighting biases it (docs/matcher.md, "The window that
+//! follows the surface").
+//!
+//! Pixels whose window is not wholly matched (the silhouette's rim, the edges of holes) keep
+//! their value, as do those whose residual's minimum lies at an end of the shifts searched,
+//! and those the refinement would move by more than [`MAX_MOVE_PX`].
+
+use super::disparity::DisparityMap;
+
+/// Side of the warped window, pixels.
+pub const FOLLOW_BLOCK: usize = 11;
+
+/// Radius of the box the map is smoothed with (three passes: nearly a Gaussian of
+/// σ ≈ 3.5 px), pixels.
+pub const FOLLOW_SMOOTH_RADIUS: usize = 3;
+
+/// The residual shifts tried, pixels: a smoothed map lies within a pixel of the surface
+/// almost everywhere the window is wholly matched.
+const SHIFTS: [f32; 5] = [-1.0, -0.5, 0.0, 0.5, 1.0];
+
+/// The most a pixel's value is moved, pixels: further, the smoothed map it was refined
+/// around did not follow the surface there.
+const MAX_MOVE_PX: f32 = 1.0;
+
+/// The x-Sobel prefilter's clip, grey levels (twice the matcher's default cap: the
+/// refinement's interpolated samples keep more of the gradients' size).
+const CAP: f32 = 62.0;
+
+/// Pixels the refinement moved and kept.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct FollowStats {
+    /// Matched pixels whose window was wholly matched (the ones looked at).
+    pub looked: usize,
+    /// Of those, the ones given a new value.
+    pub refined: usize,
+}
+
+/// Refines `disp` in place (see the module's documentation). `left`, `right`: the rectified
+/// grey images the map was matched on, `disp.width × disp.height` each.
+pub fn refine_following(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> FollowStats {
+    let (w, h) = (disp.width, disp.height);
+    assert!(left.len() == w * h && right.len() == w * h, "images of the map's size");
+    let half = FOLLOW_BLOCK / 2;
+    let Some((x0, x1, y0, y1)) = bounds(disp.values(), w, h) else { return FollowStats::default() };
+    // The region worked on: the matched pixels' box and a window's half around it.
+    let (rx0, rx1) = (x0.saturating_sub(half), (x1 + half + 1).min(w));
+    let (ry0, ry1) = (y0.saturating_sub(half), (y1 + half + 1).min(h));
+    let (rw, rh) = (rx1 - rx0, ry1 - ry0);
+    if rw < FOLLOW_BLOCK || rh < FOLLOW_BLOCK {
+        return FollowStats::default();
+    }
+    let region = |y: usize| (y + ry0) * w + rx0..(y + ry0) * w + rx1;
+    // The map over the region (NaN unmatched), its validity, and the smoothed map.
+    let mut d = Vec::with_capacity(rw * rh);
+    for y in 0..rh {
+        d.extend_from_slice(&disp.values()[region(y)]);
+    }
+    let valid: Vec<f32> = d.iter().map(|v| if v.is_nan() { 0.0 } else { 1.0 }).collect();
+    let mut num: Vec<f32> = d.iter().map(|v| if v.is_nan() { 0.0 } else { *v }).collect();
+    let mut den = valid.clone();
+    let mut tmp = vec![0f32; rw * rh];
+    for _ in 0..3 {
+        box_sum(&mut num, &mut tmp, rw, rh, FOLLOW_SMOOTH_RADIUS);
+        box_sum(&mut den, &mut tmp, rw, rh, FOLLOW_SMOOTH_RADIUS);
+    }
+    let smooth: Vec<f32> = num.iter().zip(&den).map(|(&n, &c)| if c > 0.0 { n / c } else { f32::NAN }).collect();
+    // A pixel is looked at where its whole window is matched.
+    let mut count = valid;
+    box_sum(&mut count, &mut tmp, rw, rh, half);
+    let full = (FOLLOW_BLOCK * FOLLOW_BLOCK) as f32 - 0.5;
+    // The prefiltered images: the left over the region, the right over the region's rows.
+    let lpf = prefilter(left, w, h, ry0, ry1, rx0, rx1);
+    let rpf = prefilter(right, w, h, ry0, ry1, 0, w);
+    // Per shift, each pixel's summed absolute difference over its warped window.
+    let mut costs = vec![0f32; SHIFTS.len() * rw * rh];
+    for (k, &shift) in SHIFTS.iter().enumerate() {
+        let cost = &mut costs[k * rw * rh..(k + 1) * rw * rh];
+        for y in 0..rh {
+            let (s, l, r) = (&smooth[y * rw..(y + 1) * rw], &lpf[y * rw..(y + 1) * rw], &rpf[y * w..(y + 1) * w]);
+            let out = &mut cost[y * rw..(y + 1) * rw];
+            for x in 0..rw {
+                // The right image at x − S − δ, linearly between its two pixels (clamped to
+                // the row; NaN where the map was never near: no difference counted).
+                let xr = (rx0 + x) as f32 - s[x] - shift;
+                let xr = if xr.is_nan() { -1.0 } else { xr.clamp(0.0, (w - 1) as f32) };
+                let i = (xr as usize).min(w - 2);
+                let f = xr - i as f32;
+                let v = r[i] + f * (r[i + 1] - r[i]);
+                out[x] = if xr < 0.0 { 0.0 } else { (l[x] - v).abs() };
+            }
+        }
+        box_sum(cost, &mut tmp, rw, rh, half);
+    }
+    let mut stats = FollowStats::default();
+    let vals = disp.values_mut();
+    for y in 0..rh {
+        for x in 0..rw {
+            let j = y * rw + x;
+            if d[j].is_nan() || count[j] < full {
+                continue;
+            }
+            stats.looked += 1;
+            let c: [f32; 5] = std::array::from_fn(|k| costs[k * rw * rh + j]);
+            let best = (0..SHIFTS.len()).fold(0, |b, k| if c[k] < c[b] { k } else { b });
+            if best == 0 || best == SHIFTS.len() - 1 {
+                continue;
+            }
+            let step = SHIFTS[1] - SHIFTS[0];
+            let new = smooth[j] + SHIFTS[best] + step * equiangular(c[best - 1], c[best], c[best + 1]);
+            // Across a depth edge the smoothed map lies between the two sides, and the
+            // window's residual measures neither: such a pixel keeps its own value.
+            if (new - d[j]).abs() <= MAX_MOVE_PX {
+                vals[region(y).start + x] = new;
+                stats.refined += 1;
+            }
+        }
+    }
+    stats
+}
+
+/// The equiangular (V-shaped) fit's offset from the middle of three costs whose middle is
+/// the least, in steps: within ±0.5.
+fn equiangular(c0: f32, c1: f32, c2: f32) -> f32 {
+    let rise = (c0 - c1).max(c2 - c1);
+    if rise > 0.0 {
+        (0.5 * (c0 - c2) / rise).clamp(-0.5, 0.5)
+    } else {
+        0.0
+    }
+}
+
+/// The box of the matched pixels: first and last column and row.
+fn bounds(v: &[f32], w: usize, h: usize) -> Option<(usize, usize, usize, usize)> {
+    let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
+    for y in 0..h {
+        let row = &v[y * w..(y + 1) * w];
+        if let Some(first) = row.iter().position(|d| !d.is_nan()) {
+            let last = row.iter().rposition(|d| !d.is_nan()).unwrap_or(first);
+            (x0, x1, y0, y1) = (x0.min(first), x1.max(last), y0.min(y), y);
+        }
+    }
+    (y0 != usize::MAX).then_some((x0, x1, y0, y1))
+}
+
+/// The x-Sobel of `img` (`w` wide, `h` high) over rows `y0..y1` and columns `x0..x1`,
+/// clipped to ±[`CAP`]; borders replicated.
+fn prefilter(img: &[u8], w: usize, h: usize, y0: usize, y1: usize, x0: usize, x1: usize) -> Vec<f32> {
+    let mut out = Vec::with_capacity((y1 - y0) * (x1 - x0));
+    for y in y0..y1 {
+        let rows = [y.saturating_sub(1), y, (y + 1).min(h - 1)].map(|r| &img[r * w..(r + 1) * w]);
+        for x in x0..x1 {
+            let (a, b) = (x.saturating_sub(1), (x + 1).min(w - 1));
+            let g = (rows[0][b] as f32 - rows[0][a] as f32) + 2.0 * (rows[1][b] as f32 - rows[1][a] as f32) + (rows[2][b] as f32 - rows[2][a] as f32);
+            out.push(g.clamp(-CAP, CAP));
+        }
+    }
+    out
+}
+
+/// Replaces `a` (`w × h`) by its sums over the (2r + 1)² square around each pixel, the part
+/// of it inside the image; `tmp` is scratch of the same size.
+fn box_sum(a: &mut [f32], tmp: &mut [f32], w: usize, h: usize, r: usize) {
+    // Along the rows, a running sum.
+    for y in 0..h {
+        let (row, out) = (&a[y * w..(y + 1) * w], &mut tmp[y * w..(y + 1) * w]);
+        let mut s: f32 = row[..(r + 1).min(w)].iter().sum();
+        for x in 0..w {
+            out[x] = s;
+            if x + r + 1 < w {
+                s += row[x + r + 1];
+            }
+            if x >= r {
+                s -= row[x - r];
+            }
+        }
+    }
+    // Down the columns, whole rows at a time (so that it vectorises).
+    let mut s = vec![0f32; w];
+    for y in 0..(r + 1).min(h) {
+        for (acc, v) in s.iter_mut().zip(&tmp[y * w..(y + 1) * w]) {
+            *acc += v;
+        }
+    }
+    for y in 0..h {
+        a[y * w..(y + 1) * w].copy_from_slice(&s);
+        if y + r + 1 < h {
+            for (acc, v) in s.iter_mut().zip(&tmp[(y + r + 1) * w..(y + r + 2) * w]) {
+                *acc += v;
+            }
+        }
+        if y >= r {
+            for (acc, v) in s.iter_mut().zip(&tmp[(y - r) * w..(y - r + 1) * w]) {
+                *acc -= v;
+            }
+        }
+    }
+}
