@@ -153,6 +153,8 @@ pub struct View {
     pub for_registration: Option<PointCloud>,
     /// What the surface-following refinement looked at and moved (all 0 where it is off).
     pub followed: crate::stereo::follow::FollowStats,
+    /// Its time, milliseconds.
+    pub follow_ms: f64,
     /// The matcher's own map where the refinement changed `disparity`: the texture tracks'
     /// depths, as registration's points, come from it ([`View::registration_disparity`]).
     pub matched_disparity: Option<DisparityMap>,
@@ -443,10 +445,12 @@ impl Pipeline {
         // Registration takes the matcher's own map: on the refined one a sphere's ICP slid
         // and a realistic recording's fitted axis moved (docs/matcher.md, "The window that
         // follows the surface").
-        let mut followed = Default::default();
+        let (mut followed, mut follow_ms) = (Default::default(), 0.0);
         let unrefined = self.follow_surface.then(|| {
             let own = m.disparity.clone();
+            let t0 = Instant::now();
             followed = crate::stereo::follow::refine_following(&frame.left_gray, &frame.right_gray, &mut m.disparity);
+            follow_ms = t0.elapsed().as_secs_f64() * 1e3;
             own
         });
         let (all, inner) = triangulate(&m.disparity, &self.rect, &frame.left_rgb, inner.as_deref());
@@ -469,6 +473,7 @@ impl Pipeline {
             clipped_px,
             for_registration,
             followed,
+            follow_ms,
             matched_disparity: unrefined,
         }
     }

@@ -223,8 +223,9 @@ impl ResultsWriter {
             // fused, not in `points` or views/.
             "rim_points": view.rim_points(),
             // The surface-following refinement (`matching.follow_surface`): the matched pixels
-            // whose window it looked at (wholly matched), and those it gave a new value.
-            "followed_px": {"looked": view.followed.looked, "refined": view.followed.refined},
+            // it looked at (half their window matched or more), those it gave a new value, and
+            // its time.
+            "followed_px": {"looked": view.followed.looked, "refined": view.followed.refined, "ms": view.follow_ms},
             "right_saturated_share": view.right_near_white as f64 / view.mask.as_deref().map_or(view.left_rgb.len() / 3, |m| m.iter().filter(|&&v| v != 0).count()).max(1) as f64,
             "table_deg": frame.table_deg,
             "t_left_ns": frame.t_left_ns,

@@ -17,8 +17,8 @@
 //! curvature nor the texture's weighting biases it (docs/matcher.md, "The window that
 //! follows the surface").
 //!
-//! Pixels whose window is not wholly matched (the silhouette's rim, the edges of holes) keep
-//! their value, as do those whose residual's minimum lies at an end of the shifts searched,
+//! Pixels with less than half their window matched (at the edge of large holes) keep their
+//! value, as do those whose residual's minimum lies at an end of the shifts searched,
 //! and those the refinement would move by more than [`MAX_MOVE_PX`].
 
 use super::disparity::DisparityMap;
@@ -30,8 +30,15 @@ pub const FOLLOW_BLOCK: usize = 11;
 /// σ ≈ 3.5 px), pixels.
 pub const FOLLOW_SMOOTH_RADIUS: usize = 3;
 
+/// The least share of a pixel's window that must be matched for it to be refined: where
+/// less is, the smoothed map under the window is mostly extrapolated. Measured on realistic
+/// recordings (docs/matcher.md, "The window that follows the surface"): the whole window
+/// (1) left 45 % of `bm`'s matched pixels as they were, and half of it gained most of what
+/// any share down to none did.
+const MIN_MATCHED_SHARE: f32 = 0.5;
+
 /// The residual shifts tried, pixels: a smoothed map lies within a pixel of the surface
-/// almost everywhere the window is wholly matched.
+/// almost everywhere its window is matched.
 const SHIFTS: [f32; 5] = [-1.0, -0.5, 0.0, 0.5, 1.0];
 
 /// The most a pixel's value is moved, pixels: further, the smoothed map it was refined
@@ -45,7 +52,7 @@ const CAP: f32 = 62.0;
 /// Pixels the refinement moved and kept.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct FollowStats {
-    /// Matched pixels whose window was wholly matched (the ones looked at).
+    /// Matched pixels with at least half their window matched (the ones looked at).
     pub looked: usize,
     /// Of those, the ones given a new value.
     pub refined: usize,
@@ -80,29 +87,37 @@ pub fn refine_following(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> F
         box_sum(&mut den, &mut tmp, rw, rh, FOLLOW_SMOOTH_RADIUS);
     }
     let smooth: Vec<f32> = num.iter().zip(&den).map(|(&n, &c)| if c > 0.0 { n / c } else { f32::NAN }).collect();
-    // A pixel is looked at where its whole window is matched.
+    // A pixel is looked at where at least MIN_MATCHED_SHARE of its window is matched.
     let mut count = valid;
     box_sum(&mut count, &mut tmp, rw, rh, half);
-    let full = (FOLLOW_BLOCK * FOLLOW_BLOCK) as f32 - 0.5;
-    // The prefiltered images: the left over the region, the right over the region's rows.
+    let least = (FOLLOW_BLOCK * FOLLOW_BLOCK) as f32 * MIN_MATCHED_SHARE - 0.5;
+    // The prefiltered images: the left over the region, the right over the region's rows
+    // and the columns its shifted windows reach.
+    let (dlo, dhi) = d.iter().filter(|v| !v.is_nan()).fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    let c0 = ((rx0 as f32 - dhi - 3.0).floor().max(0.0) as usize).min(w - 2);
+    let c1 = ((rx1 as f32 - dlo + 3.0).ceil().max(0.0) as usize).clamp(c0 + 2, w);
     let lpf = prefilter(left, w, h, ry0, ry1, rx0, rx1);
-    let rpf = prefilter(right, w, h, ry0, ry1, 0, w);
+    let rpf = prefilter(right, w, h, ry0, ry1, c0, c1);
+    let cw = c1 - c0;
+    // The columns a shifted sample may fall between: the span's pixels, as offsets into it.
+    let (first, last) = (c0 as f32, (c1 - 2) as f32);
     // Per shift, each pixel's summed absolute difference over its warped window.
     let mut costs = vec![0f32; SHIFTS.len() * rw * rh];
     for (k, &shift) in SHIFTS.iter().enumerate() {
         let cost = &mut costs[k * rw * rh..(k + 1) * rw * rh];
         for y in 0..rh {
-            let (s, l, r) = (&smooth[y * rw..(y + 1) * rw], &lpf[y * rw..(y + 1) * rw], &rpf[y * w..(y + 1) * w]);
+            let (s, l, r) = (&smooth[y * rw..(y + 1) * rw], &lpf[y * rw..(y + 1) * rw], &rpf[y * cw..(y + 1) * cw]);
             let out = &mut cost[y * rw..(y + 1) * rw];
             for x in 0..rw {
-                // The right image at x − S − δ, linearly between its two pixels (clamped to
-                // the row; NaN where the map was never near: no difference counted).
+                // The right image at x − S − δ, linearly between its two pixels, clamped to the
+                // span; where the map was never near (S is NaN) no difference is counted.
                 let xr = (rx0 + x) as f32 - s[x] - shift;
-                let xr = if xr.is_nan() { -1.0 } else { xr.clamp(0.0, (w - 1) as f32) };
-                let i = (xr as usize).min(w - 2);
-                let f = xr - i as f32;
+                let near = !xr.is_nan();
+                let xr = if near { xr.max(first).min(last + 0.999) } else { first };
+                let i = (xr - first) as usize;
+                let f = xr - first - i as f32;
                 let v = r[i] + f * (r[i + 1] - r[i]);
-                out[x] = if xr < 0.0 { 0.0 } else { (l[x] - v).abs() };
+                out[x] = if near { (l[x] - v).abs() } else { 0.0 };
             }
         }
         box_sum(cost, &mut tmp, rw, rh, half);
@@ -112,7 +127,7 @@ pub fn refine_following(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> F
     for y in 0..rh {
         for x in 0..rw {
             let j = y * rw + x;
-            if d[j].is_nan() || count[j] < full {
+            if d[j].is_nan() || count[j] < least {
                 continue;
             }
             stats.looked += 1;
@@ -161,13 +176,31 @@ fn bounds(v: &[f32], w: usize, h: usize) -> Option<(usize, usize, usize, usize)>
 /// The x-Sobel of `img` (`w` wide, `h` high) over rows `y0..y1` and columns `x0..x1`,
 /// clipped to ±[`CAP`]; borders replicated.
 fn prefilter(img: &[u8], w: usize, h: usize, y0: usize, y1: usize, x0: usize, x1: usize) -> Vec<f32> {
-    let mut out = Vec::with_capacity((y1 - y0) * (x1 - x0));
-    for y in y0..y1 {
-        let rows = [y.saturating_sub(1), y, (y + 1).min(h - 1)].map(|r| &img[r * w..(r + 1) * w]);
-        for x in x0..x1 {
+    let mut out = vec![0f32; (y1 - y0) * (x1 - x0)];
+    let cap = CAP as i16;
+    for (y, dst) in (y0..y1).zip(out.chunks_exact_mut(x1 - x0)) {
+        let [up, mid, down] = [y.saturating_sub(1), y, (y + 1).min(h - 1)].map(|r| &img[r * w..(r + 1) * w]);
+        let g = |x: usize| {
             let (a, b) = (x.saturating_sub(1), (x + 1).min(w - 1));
-            let g = (rows[0][b] as f32 - rows[0][a] as f32) + 2.0 * (rows[1][b] as f32 - rows[1][a] as f32) + (rows[2][b] as f32 - rows[2][a] as f32);
-            out.push(g.clamp(-CAP, CAP));
+            ((up[b] as i16 - up[a] as i16) + 2 * (mid[b] as i16 - mid[a] as i16) + (down[b] as i16 - down[a] as i16)).clamp(-cap, cap) as f32
+        };
+        // The interior without the borders' checks, so that it vectorises.
+        let (lo, hi) = (x0.max(1), x1.min(w - 1).max(x0.max(1)));
+        for x in x0..lo {
+            dst[x - x0] = g(x);
+        }
+        for ((((o, (u0, u1)), (m0, m1)), (d0, d1)), _) in dst[lo - x0..hi - x0]
+            .iter_mut()
+            .zip(up[lo - 1..hi - 1].iter().zip(&up[lo + 1..hi + 1]))
+            .zip(mid[lo - 1..hi - 1].iter().zip(&mid[lo + 1..hi + 1]))
+            .zip(down[lo - 1..hi - 1].iter().zip(&down[lo + 1..hi + 1]))
+            .zip(lo..hi)
+        {
+            let g = (*u1 as i16 - *u0 as i16) + 2 * (*m1 as i16 - *m0 as i16) + (*d1 as i16 - *d0 as i16);
+            *o = g.clamp(-cap, cap) as f32;
+        }
+        for x in hi..x1 {
+            dst[x - x0] = g(x);
         }
     }
     out
