@@ -244,3 +244,158 @@ fn box_sum(a: &mut [f32], tmp: &mut [f32], w: usize, h: usize, r: usize) {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A band-limited texture, smooth enough to be sampled between pixels.
+    fn texture(u: f64, v: f64) -> f64 {
+        let waves = [(0.31, 0.07, 0.3, 30.0), (-0.12, 0.27, 1.1, 25.0), (0.19, -0.21, 2.0, 20.0), (0.45, 0.33, 0.7, 12.0), (-0.37, 0.15, 2.9, 12.0)];
+        128.0 + waves.iter().map(|&(a, b, p, amp)| amp * (a * u + b * v + p).sin()).sum::<f64>()
+    }
+
+    /// A rectified pair of the texture painted on a surface whose disparity is `disp(x, y)`
+    /// (NaN: the background, a flat grey on both images), `w × h`.
+    fn pair(w: usize, h: usize, disp: &dyn Fn(f64, f64) -> f64) -> (Vec<u8>, Vec<u8>) {
+        let mut left = vec![100u8; w * h];
+        let mut right = vec![100u8; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let (xf, yf) = (x as f64, y as f64);
+                if !disp(xf, yf).is_nan() {
+                    left[y * w + x] = texture(xf, yf).round() as u8;
+                }
+                // The left column this right pixel sees: x_l − d(x_l) = x_r, by fixed point.
+                let mut xl = xf + 20.0;
+                for _ in 0..30 {
+                    let d = disp(xl, yf);
+                    if d.is_nan() {
+                        break;
+                    }
+                    xl = xf + d;
+                }
+                if !disp(xl, yf).is_nan() {
+                    right[y * w + x] = texture(xl, yf).round() as u8;
+                }
+            }
+        }
+        (left, right)
+    }
+
+    /// A window's mean of the true map (what a block matcher reports on a curved surface),
+    /// `side` wide, over the matched pixels.
+    fn window_mean(truth: &[f32], w: usize, h: usize, side: usize) -> Vec<f32> {
+        let r = side as isize / 2;
+        (0..w * h)
+            .map(|i| {
+                let (x, y) = ((i % w) as isize, (i / w) as isize);
+                if truth[i].is_nan() {
+                    return f32::NAN;
+                }
+                let (mut s, mut n) = (0.0, 0.0);
+                for dy in -r..=r {
+                    for dx in -r..=r {
+                        let (xx, yy) = (x + dx, y + dy);
+                        if xx >= 0 && yy >= 0 && (xx as usize) < w && (yy as usize) < h {
+                            let v = truth[yy as usize * w + xx as usize];
+                            if !v.is_nan() {
+                                s += v;
+                                n += 1.0;
+                            }
+                        }
+                    }
+                }
+                s / n
+            })
+            .collect()
+    }
+
+    fn median(mut v: Vec<f32>) -> f32 {
+        v.sort_by(|a, b| a.total_cmp(b));
+        v[v.len() / 2]
+    }
+
+    #[test]
+    fn a_bulge_is_no_longer_flattened_by_the_window() {
+        // A dome towards the camera: 16 px of disparity at its rim, 26 at its top.
+        let (w, h) = (160, 120);
+        let dome = |x: f64, y: f64| {
+            let q = ((x - 80.0) / 55.0).powi(2) + ((y - 60.0) / 45.0).powi(2);
+            if q < 1.0 { 16.0 + 10.0 * (1.0 - q).sqrt() } else { f64::NAN }
+        };
+        let (left, right) = pair(w, h, &dome);
+        let truth: Vec<f32> = (0..w * h).map(|i| dome((i % w) as f64, (i / w) as f64) as f32).collect();
+        // The matcher's map: the window's mean (11 px, the prefilter's Sobel around a 9 px block).
+        let matched = window_mean(&truth, w, h, 11);
+        let mut map = DisparityMap::new(w, h);
+        map.values_mut().copy_from_slice(&matched);
+        let stats = refine_following(&left, &right, &mut map);
+        // Away from the rim, where the dome is a smooth surface.
+        let inner: Vec<usize> = (0..w * h).filter(|&i| dome((i % w) as f64, (i / w) as f64) > 22.0).collect();
+        let err = |m: &[f32]| inner.iter().map(|&i| m[i] - truth[i]).collect::<Vec<f32>>();
+        let (before, after) = (err(&matched), err(map.values()));
+        let mean = |e: &[f32]| e.iter().sum::<f32>() / e.len() as f32;
+        let abs_median = |e: &[f32]| median(e.iter().map(|v| v.abs()).collect());
+        assert!(mean(&before) < -0.05, "the window's mean falls short on the dome: {}", mean(&before));
+        assert!(mean(&after).abs() < 0.25 * mean(&before).abs(), "bias {} → {}", mean(&before), mean(&after));
+        assert!(abs_median(&after) < 0.5 * abs_median(&before), "median |error| {} → {}", abs_median(&before), abs_median(&after));
+        assert!(stats.refined > inner.len() / 2 && stats.refined <= stats.looked, "{stats:?}");
+        // Nothing is matched where nothing was.
+        assert!(map.values().iter().zip(&matched).all(|(a, b)| a.is_nan() == b.is_nan()));
+    }
+
+    #[test]
+    fn pixels_with_little_of_their_window_matched_keep_their_value() {
+        let (w, h) = (96, 64);
+        let plane = |x: f64, _y: f64| 20.0 + 0.05 * x;
+        let (left, right) = pair(w, h, &plane);
+        // A true map, off by 0.3 px everywhere, but matched only on a few lone pixels and a
+        // square of 30 × 30.
+        let mut map = DisparityMap::new(w, h);
+        let lone = [5 * w + 5, 40 * w + 80, 58 * w + 12];
+        for i in 0..w * h {
+            let (x, y) = (i % w, i / w);
+            if lone.contains(&i) || ((20..50).contains(&x) && (15..45).contains(&y)) {
+                map.values_mut()[i] = plane(x as f64, y as f64) as f32 + 0.3;
+            }
+        }
+        let before = map.values().to_vec();
+        refine_following(&left, &right, &mut map);
+        for &i in &lone {
+            assert_eq!(map.values()[i], before[i], "a lone pixel (seq {i}) keeps its value");
+        }
+        // The square's middle is pulled back onto the plane.
+        let i = 30 * w + 35;
+        assert!((map.values()[i] - plane(35.0, 30.0) as f32).abs() < 0.1, "{} against {}", map.values()[i], plane(35.0, 30.0));
+    }
+
+    #[test]
+    fn an_empty_map_stays_empty() {
+        let (w, h) = (40, 30);
+        let img = vec![90u8; w * h];
+        let mut map = DisparityMap::new(w, h);
+        assert_eq!(refine_following(&img, &img, &mut map), FollowStats::default());
+        assert!(map.values().iter().all(|v| v.is_nan()));
+    }
+
+    #[test]
+    fn the_box_sum_is_the_sum_over_the_square() {
+        let (w, h, r) = (13, 9, 2);
+        let a: Vec<f32> = (0..w * h).map(|i| ((i * 37) % 11) as f32).collect();
+        let mut b = a.clone();
+        let mut tmp = vec![0.0; w * h];
+        box_sum(&mut b, &mut tmp, w, h, r);
+        for y in 0..h {
+            for x in 0..w {
+                let mut s = 0.0;
+                for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+                    for xx in x.saturating_sub(r)..(x + r + 1).min(w) {
+                        s += a[yy * w + xx];
+                    }
+                }
+                assert_eq!(b[y * w + x], s, "at ({x}, {y})");
+            }
+        }
+    }
+}
