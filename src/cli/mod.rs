@@ -127,8 +127,8 @@ pub struct MatchArgs {
     #[arg(long, value_name = "PX", default_value_t = MatchParams::default().sgm_refine_agree)]
     pub sgm_refine_agree: f32,
     /// Leave each view's sub-pixel disparities as the matcher gives them, instead of refining
-    /// them by a second correlation whose window follows the surface (views 15–25 % and
-    /// fused models 4–39 % closer to the truth on the recordings measured; docs/matcher.md,
+    /// them by a second correlation whose window follows the surface (fused models 8–50 %
+    /// and views up to 44 % closer to the truth on the recordings measured; docs/matcher.md,
     /// "The window that follows the surface"). Used where views are made: `points`,
     /// `replay`, `demo`, `bench table1`'s errors and `bench live`; `disparity` writes the
     /// matcher's own map either way.

@@ -10,7 +10,8 @@
 //!
 //! Here every matched pixel is correlated once more, with the right window warped by the
 //! map itself: each pixel q of the window is compared with the right image at
-//! `x_q − S(q) − δ`, `S` the map smoothed, for a few residual shifts δ shared by the window.
+//! `x_q − S(q) − δ`, `S` the map smoothed, for a few residual shifts δ shared by the window
+//! (its matched pixels only: the background and holes are not the surface).
 //! The residual's minimum (an equiangular fit through the three samples around it) added to
 //! `S` at the centre is the new disparity. The window's mean of the residual is then the
 //! mean of `d − S`, small and smooth wherever `S` follows the surface, so neither the
@@ -107,17 +108,19 @@ pub fn refine_following(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> F
         let cost = &mut costs[k * rw * rh..(k + 1) * rw * rh];
         for y in 0..rh {
             let (s, l, r) = (&smooth[y * rw..(y + 1) * rw], &lpf[y * rw..(y + 1) * rw], &rpf[y * cw..(y + 1) * cw]);
+            let own = &d[y * rw..(y + 1) * rw];
             let out = &mut cost[y * rw..(y + 1) * rw];
             for x in 0..rw {
                 // The right image at x − S − δ, linearly between its two pixels, clamped to the
-                // span; where the map was never near (S is NaN) no difference is counted.
+                // span. Only matched pixels count: the window's background or holes are not
+                // the surface (and where the map was never near, S is NaN).
                 let xr = (rx0 + x) as f32 - s[x] - shift;
                 let near = !xr.is_nan();
                 let xr = if near { xr.max(first).min(last + 0.999) } else { first };
                 let i = (xr - first) as usize;
                 let f = xr - first - i as f32;
                 let v = r[i] + f * (r[i + 1] - r[i]);
-                out[x] = if near { (l[x] - v).abs() } else { 0.0 };
+                out[x] = if near && !own[x].is_nan() { (l[x] - v).abs() } else { 0.0 };
             }
         }
         box_sum(cost, &mut tmp, rw, rh, half);
