@@ -233,14 +233,19 @@ fn a_simulated_turn_replays_into_poses_model_and_axis() {
     let median = reg["gt_model_distance_mm"]["median"].as_f64().unwrap();
     assert!(median < 2.0, "model median {median:.2} mm from the surface: {reg}");
 
-    // mesh.ply: the fused surface, closed (the unseen base capped and reported), nearer the
-    // true surface than the merged model, and covering what the views saw.
+    // mesh.ply: the fused surface, closed (the unseen base capped and reported), near the
+    // true surface, and covering what the views saw.
     let mesh = &reg["mesh"];
     assert_eq!((mesh["boundary_edges"].as_u64(), mesh["non_manifold_edges"].as_u64()), (Some(0), Some(0)), "{mesh}");
     assert!(mesh["holes_filled"].as_u64().unwrap() >= 1 && mesh["fill_area_mm2"].as_f64().unwrap() > 0.0, "{mesh}");
     let mesh_median = mesh["gt_distance_mm"]["median"].as_f64().unwrap();
     let own = reg["gt_view_distance_mm"]["median"].as_f64().unwrap();
-    assert!(mesh_median < own, "mesh {mesh_median} mm, views {own} mm from the surface: {mesh}");
+    // The views here are sampled 1.23 mm apart, coarser than the 1 mm voxel. Since the
+    // views' sub-pixel values follow the surface (stereo::follow), their own median (0.39 mm)
+    // is below what the fused surface reaches at this sampling (0.43–0.49 mm); before, the
+    // views read 0.61 mm and the mesh 0.57 (docs/matcher.md, "The window that follows the
+    // surface").
+    assert!(mesh_median < 1.3 * own && mesh_median < 0.55, "mesh {mesh_median} mm, views {own} mm from the surface: {mesh}");
     assert!(mesh["gt_completeness"]["share"].as_f64().unwrap() > 0.9, "{mesh}");
     let read = spinscan::io::ply::read_ply(&out.join("mesh.ply")).unwrap();
     assert_eq!(read.triangles.len() as u64, mesh["triangles"].as_u64().unwrap());

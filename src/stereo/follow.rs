@@ -212,18 +212,25 @@ fn prefilter(img: &[u8], w: usize, h: usize, y0: usize, y1: usize, x0: usize, x1
 /// Replaces `a` (`w × h`) by its sums over the (2r + 1)² square around each pixel, the part
 /// of it inside the image; `tmp` is scratch of the same size.
 fn box_sum(a: &mut [f32], tmp: &mut [f32], w: usize, h: usize, r: usize) {
-    // Along the rows, a running sum.
+    // Along the rows: the square's 2r + 1 columns added one shifted row at a time, so that
+    // it vectorises (a running sum waits on each add); the ends clipped to the row.
     for y in 0..h {
         let (row, out) = (&a[y * w..(y + 1) * w], &mut tmp[y * w..(y + 1) * w]);
-        let mut s: f32 = row[..(r + 1).min(w)].iter().sum();
-        for x in 0..w {
-            out[x] = s;
-            if x + r + 1 < w {
-                s += row[x + r + 1];
+        if w <= 2 * r {
+            for (x, o) in out.iter_mut().enumerate() {
+                *o = row[x.saturating_sub(r)..(x + r + 1).min(w)].iter().sum();
             }
-            if x >= r {
-                s -= row[x - r];
+            continue;
+        }
+        let inner = &mut out[r..w - r];
+        inner.copy_from_slice(&row[..w - 2 * r]);
+        for k in 1..=2 * r {
+            for (o, v) in inner.iter_mut().zip(&row[k..k + w - 2 * r]) {
+                *o += v;
             }
+        }
+        for x in (0..r).chain(w - r..w) {
+            out[x] = row[x.saturating_sub(r)..(x + r + 1).min(w)].iter().sum();
         }
     }
     // Down the columns, whole rows at a time (so that it vectorises).
