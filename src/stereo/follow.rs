@@ -50,7 +50,7 @@ const MAX_MOVE_PX: f32 = 1.0;
 /// refinement's interpolated samples keep more of the gradients' size).
 const CAP: f32 = 62.0;
 
-/// Pixels the refinement moved and kept.
+/// What the refinement looked at, and what it moved.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct FollowStats {
     /// Matched pixels with at least half their window matched (the ones looked at).
@@ -62,6 +62,26 @@ pub struct FollowStats {
 /// Refines `disp` in place (see the module's documentation). `left`, `right`: the rectified
 /// grey images the map was matched on, `disp.width × disp.height` each.
 pub fn refine_following(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> FollowStats {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2 (checked just above).
+        return unsafe { refine_avx2(left, right, disp) };
+    }
+    refine(left, right, disp)
+}
+
+/// [`refine_following`] compiled for AVX2: its passes over the region in eight lanes instead
+/// of the baseline's four, the samples' lookups by gathers; the same operations in the same
+/// order (no fused multiply-add), so the same disparities.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn refine_avx2(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> FollowStats {
+    refine(left, right, disp)
+}
+
+/// The body of [`refine_following`].
+#[inline(always)]
+fn refine(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> FollowStats {
     let (w, h) = (disp.width, disp.height);
     assert!(left.len() == w * h && right.len() == w * h, "images of the map's size");
     let half = FOLLOW_BLOCK / 2;
@@ -178,6 +198,7 @@ fn bounds(v: &[f32], w: usize, h: usize) -> Option<(usize, usize, usize, usize)>
 
 /// The x-Sobel of `img` (`w` wide, `h` high) over rows `y0..y1` and columns `x0..x1`,
 /// clipped to ±[`CAP`]; borders replicated.
+#[inline(always)]
 fn prefilter(img: &[u8], w: usize, h: usize, y0: usize, y1: usize, x0: usize, x1: usize) -> Vec<f32> {
     let mut out = vec![0f32; (y1 - y0) * (x1 - x0)];
     let cap = CAP as i16;
@@ -211,6 +232,7 @@ fn prefilter(img: &[u8], w: usize, h: usize, y0: usize, y1: usize, x0: usize, x1
 
 /// Replaces `a` (`w × h`) by its sums over the (2r + 1)² square around each pixel, the part
 /// of it inside the image; `tmp` is scratch of the same size.
+#[inline(always)]
 fn box_sum(a: &mut [f32], tmp: &mut [f32], w: usize, h: usize, r: usize) {
     // Along the rows: the square's 2r + 1 columns added one shifted row at a time, so that
     // it vectorises (a running sum waits on each add); the ends clipped to the row.
