@@ -242,9 +242,9 @@ fn a_simulated_turn_replays_into_poses_model_and_axis() {
     let own = reg["gt_view_distance_mm"]["median"].as_f64().unwrap();
     // The views here are sampled 1.23 mm apart, coarser than the 1 mm voxel. Since the
     // views' sub-pixel values follow the surface (stereo::follow), their own median (0.39 mm)
-    // is below what the fused surface reaches at this sampling (0.43–0.49 mm); before, the
-    // views read 0.61 mm and the mesh 0.57 (docs/matcher.md, "The window that follows the
-    // surface").
+    // is below what the fused surface reaches at this sampling (0.49 mm here; 0.43 mm by
+    // `spinscan replay` of the same render, whose views read 0.61 mm and mesh 0.57 mm with
+    // `--no-follow-surface`; docs/matcher.md, "The window that follows the surface").
     assert!(mesh_median < 1.3 * own && mesh_median < 0.55, "mesh {mesh_median} mm, views {own} mm from the surface: {mesh}");
     assert!(mesh["gt_completeness"]["share"].as_f64().unwrap() > 0.9, "{mesh}");
     let read = spinscan::io::ply::read_ply(&out.join("mesh.ply")).unwrap();
