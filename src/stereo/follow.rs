@@ -137,9 +137,12 @@ fn refine(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> FollowStats {
                 let xr = (rx0 + x) as f32 - s[x] - shift;
                 let near = !xr.is_nan();
                 let xr = if near { xr.max(first).min(last + 0.999) } else { first };
-                let i = (xr - first) as usize;
+                // SAFETY: `xr − first` is finite and within 0 … cw − 1 (clamped above), so it
+                // fits an i32; the cast needs no saturation, and vectorises.
+                let i = unsafe { (xr - first).to_int_unchecked::<i32>() } as usize;
                 let f = xr - first - i as f32;
-                let v = r[i] + f * (r[i + 1] - r[i]);
+                let pair = &r[i..i + 2];
+                let v = pair[0] + f * (pair[1] - pair[0]);
                 out[x] = if near && !own[x].is_nan() { (l[x] - v).abs() } else { 0.0 };
             }
         }
