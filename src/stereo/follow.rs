@@ -22,7 +22,8 @@
 //! value, as do those whose residual's minimum lies at an end of the shifts searched,
 //! and those the refinement would move by more than [`MAX_MOVE_PX`].
 
-use super::disparity::DisparityMap;
+use super::disparity::{DisparityMap, GrayView};
+use super::matcher::xsobel_rows;
 
 /// Side of the warped window, pixels.
 pub const FOLLOW_BLOCK: usize = 11;
@@ -48,7 +49,7 @@ const MAX_MOVE_PX: f32 = 1.0;
 
 /// The x-Sobel prefilter's clip, grey levels (twice the matcher's default cap: the
 /// refinement's interpolated samples keep more of the gradients' size).
-const CAP: f32 = 62.0;
+const CAP: u8 = 62;
 
 /// What the refinement looked at, and what it moved.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -199,36 +200,16 @@ fn bounds(v: &[f32], w: usize, h: usize) -> Option<(usize, usize, usize, usize)>
     (y0 != usize::MAX).then_some((x0, x1, y0, y1))
 }
 
-/// The x-Sobel of `img` (`w` wide, `h` high) over rows `y0..y1` and columns `x0..x1`,
-/// clipped to ±[`CAP`]; borders replicated.
+/// The matcher's x-Sobel prefilter of `img` (`w` wide, `h` high; clipped to ±[`CAP`]) over
+/// rows `y0..y1` and columns `x0..x1`, as signed values.
 #[inline(always)]
 fn prefilter(img: &[u8], w: usize, h: usize, y0: usize, y1: usize, x0: usize, x1: usize) -> Vec<f32> {
-    let mut out = vec![0f32; (y1 - y0) * (x1 - x0)];
-    let cap = CAP as i16;
-    for (y, dst) in (y0..y1).zip(out.chunks_exact_mut(x1 - x0)) {
-        let [up, mid, down] = [y.saturating_sub(1), y, (y + 1).min(h - 1)].map(|r| &img[r * w..(r + 1) * w]);
-        let g = |x: usize| {
-            let (a, b) = (x.saturating_sub(1), (x + 1).min(w - 1));
-            ((up[b] as i16 - up[a] as i16) + 2 * (mid[b] as i16 - mid[a] as i16) + (down[b] as i16 - down[a] as i16)).clamp(-cap, cap) as f32
-        };
-        // The interior without the borders' checks, so that it vectorises.
-        let (lo, hi) = (x0.max(1), x1.min(w - 1).max(x0.max(1)));
-        for x in x0..lo {
-            dst[x - x0] = g(x);
-        }
-        for ((((o, (u0, u1)), (m0, m1)), (d0, d1)), _) in dst[lo - x0..hi - x0]
-            .iter_mut()
-            .zip(up[lo - 1..hi - 1].iter().zip(&up[lo + 1..hi + 1]))
-            .zip(mid[lo - 1..hi - 1].iter().zip(&mid[lo + 1..hi + 1]))
-            .zip(down[lo - 1..hi - 1].iter().zip(&down[lo + 1..hi + 1]))
-            .zip(lo..hi)
-        {
-            let g = (*u1 as i16 - *u0 as i16) + 2 * (*m1 as i16 - *m0 as i16) + (*d1 as i16 - *d0 as i16);
-            *o = g.clamp(-cap, cap) as f32;
-        }
-        for x in hi..x1 {
-            dst[x - x0] = g(x);
-        }
+    let mut buf = Vec::new();
+    let view = GrayView::new(w, h, img).expect("an image of the map's size");
+    let rows = xsobel_rows(view, CAP, &mut buf);
+    let mut out = Vec::with_capacity((y1 - y0) * (x1 - x0));
+    for y in y0..y1 {
+        out.extend(rows[y * w + x0..y * w + x1].iter().map(|&v| v as f32 - CAP as f32));
     }
     out
 }
@@ -346,6 +327,20 @@ mod tests {
             .collect()
     }
 
+    /// A dome towards the camera over the ellipse of centre `c` and semi-axes `r`: `rim` px
+    /// of disparity at its edge, `rim + rise` at its top; NaN outside.
+    fn dome(c: (f64, f64), r: (f64, f64), rim: f64, rise: f64) -> impl Fn(f64, f64) -> f64 {
+        move |x, y| {
+            let q = ((x - c.0) / r.0).powi(2) + ((y - c.1) / r.1).powi(2);
+            if q < 1.0 { rim + rise * (1.0 - q).sqrt() } else { f64::NAN }
+        }
+    }
+
+    /// `disp` at every pixel of a `w × h` map.
+    fn sampled(w: usize, h: usize, disp: &dyn Fn(f64, f64) -> f64) -> Vec<f32> {
+        (0..w * h).map(|i| disp((i % w) as f64, (i / w) as f64) as f32).collect()
+    }
+
     fn median(mut v: Vec<f32>) -> f32 {
         v.sort_by(|a, b| a.total_cmp(b));
         v[v.len() / 2]
@@ -355,12 +350,9 @@ mod tests {
     fn a_bulge_is_no_longer_flattened_by_the_window() {
         // A dome towards the camera: 16 px of disparity at its rim, 26 at its top.
         let (w, h) = (160, 120);
-        let dome = |x: f64, y: f64| {
-            let q = ((x - 80.0) / 55.0).powi(2) + ((y - 60.0) / 45.0).powi(2);
-            if q < 1.0 { 16.0 + 10.0 * (1.0 - q).sqrt() } else { f64::NAN }
-        };
+        let dome = dome((80.0, 60.0), (55.0, 45.0), 16.0, 10.0);
         let (left, right) = pair(w, h, &dome);
-        let truth: Vec<f32> = (0..w * h).map(|i| dome((i % w) as f64, (i / w) as f64) as f32).collect();
+        let truth = sampled(w, h, &dome);
         // The matcher's map: the window's mean (11 px, the prefilter's Sobel around a 9 px block).
         let matched = window_mean(&truth, w, h, 11);
         let mut map = DisparityMap::new(w, h);
@@ -427,12 +419,9 @@ mod tests {
     #[test]
     fn the_avx2_copy_gives_the_portable_map() {
         let (w, h) = (100, 70);
-        let dome = |x: f64, y: f64| {
-            let q = ((x - 50.0) / 40.0).powi(2) + ((y - 35.0) / 30.0).powi(2);
-            if q < 1.0 { 12.0 + 8.0 * (1.0 - q).sqrt() } else { f64::NAN }
-        };
+        let dome = dome((50.0, 35.0), (40.0, 30.0), 12.0, 8.0);
         let (left, right) = pair(w, h, &dome);
-        let truth: Vec<f32> = (0..w * h).map(|i| dome((i % w) as f64, (i / w) as f64) as f32).collect();
+        let truth = sampled(w, h, &dome);
         let mut portable = DisparityMap::new(w, h);
         portable.values_mut().copy_from_slice(&window_mean(&truth, w, h, 11));
         let mut chosen = portable.clone();

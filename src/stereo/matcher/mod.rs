@@ -453,6 +453,14 @@ fn round_half_away_within(d: f32) -> i32 {
     t + (frac >= 0.5) as i32 - (frac <= -0.5) as i32
 }
 
+/// [`prefilter_xsobel`] without padding, for the stages after the match
+/// (`stereo::follow`): `img`'s rows, clipped to ±cap and offset by cap, one byte a pixel;
+/// `buf` holds them.
+pub(in crate::stereo) fn xsobel_rows<'a>(img: GrayView, cap: u8, buf: &'a mut Vec<u8>) -> &'a [u8] {
+    prefilter_xsobel(img, cap, (0, 0), false, buf);
+    &buf[PF_SLACK..PF_SLACK + img.width * img.height]
+}
+
 /// OpenCV BM's x-Sobel prefilter, clipped to ±cap and offset by cap, written with
 /// `pad = (left, right)` columns of replicated padding; `reversed` stores each padded row back
 /// to front so that increasing disparity walks forward in memory. The rows start
