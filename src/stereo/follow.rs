@@ -341,6 +341,14 @@ mod tests {
         (0..w * h).map(|i| disp((i % w) as f64, (i / w) as f64) as f32).collect()
     }
 
+    /// The map a block matcher gives of `truth`: the window's mean (11 px, the prefilter's
+    /// Sobel around a 9 px block).
+    fn as_matched(truth: &[f32], w: usize, h: usize) -> DisparityMap {
+        let mut map = DisparityMap::new(w, h);
+        map.values_mut().copy_from_slice(&window_mean(truth, w, h, 11));
+        map
+    }
+
     fn median(mut v: Vec<f32>) -> f32 {
         v.sort_by(|a, b| a.total_cmp(b));
         v[v.len() / 2]
@@ -353,10 +361,8 @@ mod tests {
         let dome = dome((80.0, 60.0), (55.0, 45.0), 16.0, 10.0);
         let (left, right) = pair(w, h, &dome);
         let truth = sampled(w, h, &dome);
-        // The matcher's map: the window's mean (11 px, the prefilter's Sobel around a 9 px block).
-        let matched = window_mean(&truth, w, h, 11);
-        let mut map = DisparityMap::new(w, h);
-        map.values_mut().copy_from_slice(&matched);
+        let mut map = as_matched(&truth, w, h);
+        let matched = map.values().to_vec();
         let stats = refine_following(&left, &right, &mut map);
         // Away from the rim, where the dome is a smooth surface.
         let inner: Vec<usize> = (0..w * h).filter(|&i| dome((i % w) as f64, (i / w) as f64) > 22.0).collect();
@@ -422,8 +428,7 @@ mod tests {
         let dome = dome((50.0, 35.0), (40.0, 30.0), 12.0, 8.0);
         let (left, right) = pair(w, h, &dome);
         let truth = sampled(w, h, &dome);
-        let mut portable = DisparityMap::new(w, h);
-        portable.values_mut().copy_from_slice(&window_mean(&truth, w, h, 11));
+        let mut portable = as_matched(&truth, w, h);
         let mut chosen = portable.clone();
         let a = refine(&left, &right, &mut portable);
         let b = refine_following(&left, &right, &mut chosen);
