@@ -53,6 +53,11 @@ fn cases() -> Vec<Case> {
     out
 }
 
+/// Repeats per case: 15, or `RUNS=N` in the environment.
+fn runs() -> usize {
+    std::env::var("RUNS").ok().and_then(|s| s.parse().ok()).unwrap_or(15)
+}
+
 fn time(runs: usize, mut f: impl FnMut()) -> (f64, f64) {
     f();
     let mut t: Vec<f64> = (0..runs)
@@ -102,7 +107,7 @@ fn run(m: &mut StereoMatcher, (lv, rv): (GrayView, GrayView), iv: &DisparityInte
     }
     let mut stats = Default::default();
     let mut out = DisparityMap::new(lv.width, lv.height);
-    let (min, med) = time(std::env::var("RUNS").ok().and_then(|s| s.parse().ok()).unwrap_or(15), || stats = m.compute(lv, rv, iv, &mut out).unwrap());
+    let (min, med) = time(runs(), || stats = m.compute(lv, rv, iv, &mut out).unwrap());
     println!("{name:<34} {min:>9.2} {med:>9.2} {:>10.1}", stats.mean_search_px());
 }
 
@@ -117,7 +122,7 @@ fn segmentation(filter: Option<&str>) {
         if filter.is_some_and(|f| !name.contains(f)) {
             continue;
         }
-        let (min, med) = time(std::env::var("RUNS").ok().and_then(|s| s.parse().ok()).unwrap_or(15), || drop(key.segment(rgb, pair.width, pair.height, None).unwrap()));
+        let (min, med) = time(runs(), || drop(key.segment(rgb, pair.width, pair.height, None).unwrap()));
         println!("{name:<34} {min:>9.2} {med:>9.2}");
     }
     // The silhouette's rim found (3 px, `--rim-px 3`), as each frame of such a scan pays it
@@ -125,7 +130,7 @@ fn segmentation(filter: Option<&str>) {
     let name = "segment rim";
     if filter.is_none_or(|f| name.contains(f)) {
         let mask = key.segment(&pair.left_rgb, pair.width, pair.height, None).unwrap();
-        let (min, med) = time(std::env::var("RUNS").ok().and_then(|s| s.parse().ok()).unwrap_or(15), || drop(spinscan::segment::inside_rim(&mask, pair.width, pair.height, 3)));
+        let (min, med) = time(runs(), || drop(spinscan::segment::inside_rim(&mask, pair.width, pair.height, 3)));
         println!("{name:<34} {min:>9.2} {med:>9.2}");
     }
     // The right image scaled to the left's contrast (0.7 × the gain), as each frame of a scan
@@ -134,7 +139,7 @@ fn segmentation(filter: Option<&str>) {
     if filter.is_none_or(|f| name.contains(f)) {
         let dark: Vec<u8> = spinscan::io::rgb_to_gray(&pair.right_rgb).iter().map(|&v| (v as f64 * 0.7) as u8).collect();
         let mut r = dark.clone();
-        let (min, med) = time(std::env::var("RUNS").ok().and_then(|s| s.parse().ok()).unwrap_or(15), || {
+        let (min, med) = time(runs(), || {
             r.copy_from_slice(&dark);
             spinscan::stereo::gain::scale_contrast(&mut r, 1.0 / 0.7);
         });
@@ -182,6 +187,20 @@ fn main() {
                 run(&mut m, pair, &per_tile(&around(&out, 7), mask), &format!("{} object tile ±7px t{threads}", case.name), filter.as_deref());
                 let one = DisparityIntervals::within(w, h, Some(mask), mid, mid);
                 run(&mut m, pair, &one, &format!("{} object one disparity t{threads}", case.name), filter.as_deref());
+                // The window that follows the surface, run on the object's full-range map as
+                // each view of a scan pays it after matching (one thread; each run starts
+                // from a copy of the map, about 0.1 ms of it).
+                let name = format!("{} follow surface", case.name);
+                if threads == 1 && filter.as_deref().is_none_or(|f| name.contains(f)) {
+                    m.compute(pair.0, pair.1, &fg, &mut out).unwrap();
+                    let mut map = out.clone();
+                    let mut stats = Default::default();
+                    let (min, med) = time(runs(), || {
+                        map = out.clone();
+                        stats = spinscan::stereo::follow::refine_following(&case.left, &case.right, &mut map);
+                    });
+                    println!("{name:<34} {min:>9.2} {med:>9.2} {:>10}", format!("{} px", stats.looked));
+                }
             }
         }
     }

@@ -68,21 +68,22 @@ pub fn refine_following(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> F
         // SAFETY: the CPU has AVX2 (checked just above).
         return unsafe { refine_avx2(left, right, disp) };
     }
-    refine(left, right, disp)
+    refine(left, right, disp, false)
 }
 
 /// [`refine_following`] compiled for AVX2: its passes over the region in eight lanes instead
-/// of the baseline's four, the samples' lookups by gathers; the same operations in the same
-/// order (no fused multiply-add), so the same disparities.
+/// of the baseline's four, the residual costs by [`avx2::costs_row`]; the same operations in
+/// the same order (no fused multiply-add), so the same disparities.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn refine_avx2(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> FollowStats {
-    refine(left, right, disp)
+    refine(left, right, disp, true)
 }
 
-/// The body of [`refine_following`].
+/// The body of [`refine_following`]; `simd`: the CPU has AVX2 (the residual costs in eight
+/// lanes).
 #[inline(always)]
-fn refine(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> FollowStats {
+fn refine(left: &[u8], right: &[u8], disp: &mut DisparityMap, simd: bool) -> FollowStats {
     let (w, h) = (disp.width, disp.height);
     assert!(left.len() == w * h && right.len() == w * h, "images of the map's size");
     let half = FOLLOW_BLOCK / 2;
@@ -115,7 +116,8 @@ fn refine(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> FollowStats {
     let least = (FOLLOW_BLOCK * FOLLOW_BLOCK) as f32 * MIN_MATCHED_SHARE - 0.5;
     // The prefiltered images: the left over the region, the right over the region's rows
     // and the columns its shifted windows reach.
-    let (dlo, dhi) = d.iter().filter(|v| !v.is_nan()).fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    // (Comparisons with NaN are false: the unmatched pixels leave both as they are.)
+    let (dlo, dhi) = d.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| (if v < a { v } else { a }, if v > b { v } else { b }));
     let c0 = ((rx0 as f32 - dhi - 3.0).floor().max(0.0) as usize).min(w - 2);
     let c1 = ((rx1 as f32 - dlo + 3.0).ceil().max(0.0) as usize).clamp(c0 + 2, w);
     let lpf = prefilter(left, w, h, ry0, ry1, rx0, rx1);
@@ -123,79 +125,199 @@ fn refine(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> FollowStats {
     let cw = c1 - c0;
     // The columns a shifted sample may fall between: the span's pixels, as offsets into it.
     let (first, last) = (c0 as f32, (c1 - 2) as f32);
-    // Per shift, each pixel's summed absolute difference over its warped window.
+    // Per shift, each pixel's absolute difference with the right image at its warped
+    // position, then summed over its window.
     let mut costs = vec![0f32; SHIFTS.len() * rw * rh];
-    for (k, &shift) in SHIFTS.iter().enumerate() {
-        let cost = &mut costs[k * rw * rh..(k + 1) * rw * rh];
+    {
+        let mut planes: Vec<&mut [f32]> = costs.chunks_mut(rw * rh).collect();
         for y in 0..rh {
-            let (s, l, r) = (&smooth[y * rw..(y + 1) * rw], &lpf[y * rw..(y + 1) * rw], &rpf[y * cw..(y + 1) * cw]);
-            let own = &d[y * rw..(y + 1) * rw];
-            let out = &mut cost[y * rw..(y + 1) * rw];
-            for x in 0..rw {
-                // The right image at x − S − δ, linearly between its two pixels, clamped to the
-                // span. Only matched pixels count: the window's background or holes are not
-                // the surface (and where the map was never near, S is NaN).
-                let xr = (rx0 + x) as f32 - s[x] - shift;
-                let near = !xr.is_nan();
-                let xr = if near { xr.max(first).min(last + 0.999) } else { first };
-                // SAFETY: `xr − first` is finite and within 0 … cw − 1 (clamped above), so it
-                // fits an i32; the cast needs no saturation, and vectorises.
-                let i = unsafe { (xr - first).to_int_unchecked::<i32>() } as usize;
-                let f = xr - first - i as f32;
-                let pair = &r[i..i + 2];
-                let v = pair[0] + f * (pair[1] - pair[0]);
-                out[x] = if near && !own[x].is_nan() { (l[x] - v).abs() } else { 0.0 };
+            let row = y * rw..(y + 1) * rw;
+            let mut out: [&mut [f32]; 5] = std::array::from_fn(|_| &mut [][..]);
+            for (o, p) in out.iter_mut().zip(planes.iter_mut()) {
+                *o = &mut p[row.clone()];
             }
+            let input = CostRow { x0: rx0, smooth: &smooth[row.clone()], left: &lpf[row.clone()], own: &d[row.clone()], right: &rpf[y * cw..(y + 1) * cw], first, last };
+            #[cfg(target_arch = "x86_64")]
+            let done = if simd {
+                // SAFETY: `simd` is only set by `refine_avx2`, on a CPU with AVX2.
+                unsafe { avx2::costs_row(&input, &mut out) }
+            } else {
+                0
+            };
+            #[cfg(not(target_arch = "x86_64"))]
+            let done = 0;
+            costs_row(&input, &mut out, done);
         }
+    }
+    for cost in costs.chunks_mut(rw * rh) {
         box_sum(cost, &mut tmp, rw, rh, half);
     }
     let mut stats = FollowStats::default();
     let vals = disp.values_mut();
     for y in 0..rh {
-        for x in 0..rw {
-            let j = y * rw + x;
-            if d[j].is_nan() || count[j] < least {
-                continue;
-            }
-            stats.looked += 1;
-            let c: [f32; 5] = std::array::from_fn(|k| costs[k * rw * rh + j]);
-            let best = (0..SHIFTS.len()).fold(0, |b, k| if c[k] < c[b] { k } else { b });
-            if best == 0 || best == SHIFTS.len() - 1 {
-                continue;
-            }
-            let step = SHIFTS[1] - SHIFTS[0];
-            let new = smooth[j] + SHIFTS[best] + step * equiangular(c[best - 1], c[best], c[best + 1]);
-            // Across a depth edge the smoothed map lies between the two sides, and the
-            // window's residual measures neither: such a pixel keeps its own value.
-            if (new - d[j]).abs() <= MAX_MOVE_PX {
-                vals[region(y).start + x] = new;
-                stats.refined += 1;
-            }
-        }
+        let row = y * rw..(y + 1) * rw;
+        let cost: [&[f32]; 5] = std::array::from_fn(|k| &costs[k * rw * rh..][row.clone()]);
+        let (looked, refined) = fold_row(cost, &smooth[row.clone()], &d[row.clone()], &count[row.clone()], least, &mut vals[region(y)]);
+        stats.looked += looked;
+        stats.refined += refined;
     }
     stats
 }
 
+/// One row's new values, written to `out` (the map's row over the region; `own` the same
+/// values): at each matched pixel with at least `least` of its window matched, the least of
+/// its five summed `cost`s, fitted between its neighbours and added to `smooth`, where that
+/// least is not at an end of the shifts and moves the pixel by at most [`MAX_MOVE_PX`].
+/// Returns the pixels looked at and those given a new value. Branch-free, so that it
+/// vectorises.
+#[inline(always)]
+fn fold_row(cost: [&[f32]; 5], smooth: &[f32], own: &[f32], count: &[f32], least: f32, out: &mut [f32]) -> (usize, usize) {
+    let n = out.len();
+    let (cost, smooth, own, count) = (cost.map(|c| &c[..n]), &smooth[..n], &own[..n], &count[..n]);
+    let step = SHIFTS[1] - SHIFTS[0];
+    let (mut looked, mut refined) = (0u32, 0u32);
+    for x in 0..n {
+        let c: [f32; 5] = std::array::from_fn(|k| cost[k][x]);
+        // The first least cost (its shift), and the costs either side of it.
+        let (mut shift, mut least_cost, mut before, mut after) = (SHIFTS[0], c[0], c[0], c[1]);
+        for k in 1..5 {
+            let lower = c[k] < least_cost;
+            shift = if lower { SHIFTS[k] } else { shift };
+            least_cost = if lower { c[k] } else { least_cost };
+            before = if lower { c[k - 1] } else { before };
+            after = if lower { c[(k + 1).min(4)] } else { after };
+        }
+        let inside = shift != SHIFTS[0] && shift != SHIFTS[4];
+        let look = !own[x].is_nan() && count[x] >= least;
+        let new = smooth[x] + shift + step * equiangular(before, least_cost, after);
+        // Across a depth edge the smoothed map lies between the two sides, and the
+        // window's residual measures neither: such a pixel keeps its own value.
+        let take = look && inside && (new - own[x]).abs() <= MAX_MOVE_PX;
+        out[x] = if take { new } else { own[x] };
+        looked += look as u32;
+        refined += take as u32;
+    }
+    (looked as usize, refined as usize)
+}
+
 /// The equiangular (V-shaped) fit's offset from the middle of three costs whose middle is
 /// the least, in steps: within ±0.5.
+#[inline(always)]
 fn equiangular(c0: f32, c1: f32, c2: f32) -> f32 {
     let rise = (c0 - c1).max(c2 - c1);
+    let offset = (0.5 * (c0 - c2) / rise).clamp(-0.5, 0.5);
     if rise > 0.0 {
-        (0.5 * (c0 - c2) / rise).clamp(-0.5, 0.5)
+        offset
     } else {
         0.0
     }
 }
 
+/// One row of the region, as the residual costs read it.
+struct CostRow<'a> {
+    /// The image column of the row's first pixel.
+    x0: usize,
+    /// The smoothed map, the left image's prefiltered values, and the map itself (NaN:
+    /// unmatched), over the region's columns.
+    smooth: &'a [f32],
+    left: &'a [f32],
+    own: &'a [f32],
+    /// The right image's prefiltered values over the columns the shifted windows reach,
+    /// `first` the image column of its first; `last` that of the last a sample may start at
+    /// (its second pixel is the one after).
+    right: &'a [f32],
+    first: f32,
+    last: f32,
+}
+
+/// Each pixel's absolute difference with the right image at `x − S − δ`, for every shift δ
+/// of [`SHIFTS`] (`out[k]` the row for the k-th), from pixel `from` on: the right image
+/// linearly between its two pixels, clamped to its span. Only matched pixels count (0
+/// elsewhere): the window's background or holes are not the surface (and where the map was
+/// never near, S is NaN).
+#[inline(always)]
+fn costs_row(row: &CostRow, out: &mut [&mut [f32]; 5], from: usize) {
+    for x in from..row.smooth.len() {
+        for (k, &shift) in SHIFTS.iter().enumerate() {
+            let xr = (row.x0 + x) as f32 - row.smooth[x] - shift;
+            let near = !xr.is_nan();
+            let xr = if near { xr.max(row.first).min(row.last + 0.999) } else { row.first };
+            // SAFETY: `xr − first` is finite and within 0 … the span's length − 1 (clamped
+            // above), so it fits an i32.
+            let i = unsafe { (xr - row.first).to_int_unchecked::<i32>() } as usize;
+            let f = xr - row.first - i as f32;
+            let pair = &row.right[i..i + 2];
+            let v = pair[0] + f * (pair[1] - pair[0]);
+            out[k][x] = if near && !row.own[x].is_nan() { (row.left[x] - v).abs() } else { 0.0 };
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use std::arch::x86_64::*;
+
+    use super::{CostRow, SHIFTS};
+
+    /// [`super::costs_row`] eight pixels at a time, the right image's two samples by
+    /// gathers; the same operations in the same order, so the same costs. Returns the
+    /// first pixel it left to the portable loop (the last few of the row).
+    ///
+    /// SAFETY: the CPU has AVX2; `out`'s rows are as long as `row.smooth`, and so are
+    /// `row.left` and `row.own`.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn costs_row(row: &CostRow, out: &mut [&mut [f32]; 5]) -> usize {
+        let n = row.smooth.len();
+        assert!(row.left.len() == n && row.own.len() == n && out.iter().all(|o| o.len() == n) && row.right.len() >= 2);
+        let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+        let first = _mm256_set1_ps(row.first);
+        let high = _mm256_set1_ps(row.last + 0.999);
+        // The last index a pair of samples may start at: the clamp keeps every index there
+        // already; this keeps the gathers inside the row whatever the rounding.
+        let top = _mm256_set1_epi32(row.right.len() as i32 - 2);
+        let sign = _mm256_set1_ps(-0.0);
+        let right = row.right.as_ptr();
+        let mut x = 0;
+        while x + 8 <= n {
+            let s = _mm256_loadu_ps(row.smooth.as_ptr().add(x));
+            let l = _mm256_loadu_ps(row.left.as_ptr().add(x));
+            let own = _mm256_loadu_ps(row.own.as_ptr().add(x));
+            let at = _mm256_sub_ps(_mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32((row.x0 + x) as i32), lane)), s);
+            let matched = _mm256_cmp_ps::<_CMP_ORD_Q>(own, own);
+            for (k, &shift) in SHIFTS.iter().enumerate() {
+                let xr = _mm256_sub_ps(at, _mm256_set1_ps(shift));
+                let near = _mm256_cmp_ps::<_CMP_ORD_Q>(xr, xr);
+                let xr = _mm256_blendv_ps(first, _mm256_min_ps(_mm256_max_ps(xr, first), high), near);
+                let t = _mm256_sub_ps(xr, first);
+                let i = _mm256_cvttps_epi32(t);
+                let f = _mm256_sub_ps(t, _mm256_cvtepi32_ps(i));
+                let i = _mm256_min_epi32(i, top);
+                let a = _mm256_i32gather_ps::<4>(right, i);
+                let b = _mm256_i32gather_ps::<4>(right.add(1), i);
+                let v = _mm256_add_ps(a, _mm256_mul_ps(f, _mm256_sub_ps(b, a)));
+                let diff = _mm256_andnot_ps(sign, _mm256_sub_ps(l, v));
+                _mm256_storeu_ps(out[k].as_mut_ptr().add(x), _mm256_and_ps(diff, _mm256_and_ps(near, matched)));
+            }
+            x += 8;
+        }
+        x
+    }
+}
+
 /// The box of the matched pixels: first and last column and row.
 fn bounds(v: &[f32], w: usize, h: usize) -> Option<(usize, usize, usize, usize)> {
+    // Whether a run of pixels holds a matched one: a branch-free test, so that it
+    // vectorises (most rows of a scan are background throughout).
+    let any = |run: &[f32]| run.iter().fold(false, |a, d| a | !d.is_nan());
+    const RUN: usize = 16;
     let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
     for y in 0..h {
         let row = &v[y * w..(y + 1) * w];
-        if let Some(first) = row.iter().position(|d| !d.is_nan()) {
-            let last = row.iter().rposition(|d| !d.is_nan()).unwrap_or(first);
-            (x0, x1, y0, y1) = (x0.min(first), x1.max(last), y0.min(y), y);
-        }
+        let Some(start) = row.chunks(RUN).position(any) else { continue };
+        let first = start * RUN + row[start * RUN..].iter().position(|d| !d.is_nan()).unwrap_or(0);
+        let end = row.len() - row.rchunks(RUN).position(any).unwrap_or(0) * RUN;
+        let last = row[..end].iter().rposition(|d| !d.is_nan()).unwrap_or(first);
+        (x0, x1, y0, y1) = (x0.min(first), x1.max(last), y0.min(y), y);
     }
     (y0 != usize::MAX).then_some((x0, x1, y0, y1))
 }
@@ -430,11 +552,52 @@ mod tests {
         let truth = sampled(w, h, &dome);
         let mut portable = as_matched(&truth, w, h);
         let mut chosen = portable.clone();
-        let a = refine(&left, &right, &mut portable);
+        let a = refine(&left, &right, &mut portable, false);
         let b = refine_following(&left, &right, &mut chosen);
         assert_eq!(a, b);
         assert!(a.refined > 1000, "{a:?}");
         assert!(portable.values().iter().zip(chosen.values()).all(|(p, c)| p.to_bits() == c.to_bits()), "the two builds' maps differ");
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn the_avx2_costs_are_the_portable_ones_at_the_span_ends_too() {
+        if !std::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        // Rows whose warped positions fall before, inside and past the right span (clamped),
+        // with unmatched pixels and a map never near (NaN), and a length not a multiple of 8.
+        let mut seed = 0x2545_f491_4f6c_dd1d_u64;
+        let mut rnd = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 40) as f32 / (1u64 << 24) as f32
+        };
+        for n in [8, 37, 64] {
+            let smooth: Vec<f32> = (0..n).map(|i| if i % 11 == 3 { f32::NAN } else { -30.0 + 80.0 * rnd() }).collect();
+            let own: Vec<f32> = (0..n).map(|i| if i % 7 == 2 { f32::NAN } else { 1.0 }).collect();
+            let left: Vec<f32> = (0..n).map(|_| 124.0 * rnd() - 62.0).collect();
+            let right: Vec<f32> = (0..24).map(|_| 124.0 * rnd() - 62.0).collect();
+            let row = CostRow { x0: 5, smooth: &smooth, left: &left, own: &own, right: &right, first: 3.0, last: 25.0 };
+            let (mut a, mut b) = (vec![vec![0f32; n]; 5], vec![vec![0f32; n]; 5]);
+            let mut portable: [&mut [f32]; 5] = std::array::from_fn(|_| &mut [][..]);
+            for (o, r) in portable.iter_mut().zip(a.iter_mut()) {
+                *o = r;
+            }
+            costs_row(&row, &mut portable, 0);
+            let mut simd: [&mut [f32]; 5] = std::array::from_fn(|_| &mut [][..]);
+            for (o, r) in simd.iter_mut().zip(b.iter_mut()) {
+                *o = r;
+            }
+            // SAFETY: the CPU has AVX2 (checked above); the rows are `n` long.
+            let done = unsafe { avx2::costs_row(&row, &mut simd) };
+            costs_row(&row, &mut simd, done);
+            assert_eq!(done, n / 8 * 8);
+            for k in 0..5 {
+                assert!(a[k].iter().zip(&b[k]).all(|(p, q)| p.to_bits() == q.to_bits()), "shift {k}, {n} px: {:?} against {:?}", a[k], b[k]);
+            }
+        }
     }
 
     #[test]
