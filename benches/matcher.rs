@@ -125,6 +125,22 @@ fn segmentation(filter: Option<&str>) {
         let (min, med) = time(runs(), || drop(key.segment(rgb, pair.width, pair.height, None).unwrap()));
         println!("{name:<34} {min:>9.2} {med:>9.2}");
     }
+    // Rectification of a realistic rig's raw pair (its lens distortion and small
+    // rotations), as each frame of a scan pays it: the left image in colour and grey, the
+    // right in grey.
+    let name = "rectify realistic pair";
+    if filter.is_none_or(|f| name.contains(f)) {
+        let scene = hw_sim::SceneConfig::realistic(hw_sim::Mesh::builtin("egg", 100_000).unwrap());
+        let calib = spinscan::hw::sim::calib_of(&scene.rig);
+        let raw = hw_sim::Renderer::new(scene).unwrap().render(30.0, 0);
+        let size = (raw.width as u32, raw.height as u32);
+        let maps = spinscan::stereo::Rectification::compute_keeping_views(&calib, size).unwrap().maps(&calib);
+        let (min, med) = time(runs(), || {
+            drop(maps.0.remap_rgb_gray(&raw.left_rgb, size.0, size.1));
+            drop(maps.1.remap_gray(&raw.right_rgb, size.0, size.1));
+        });
+        println!("{name:<34} {min:>9.2} {med:>9.2}");
+    }
     // The silhouette's rim found (3 px, `--rim-px 3`), as each frame of such a scan pays it
     // after matching.
     let name = "segment rim";

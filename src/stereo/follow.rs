@@ -260,7 +260,7 @@ mod avx2 {
     use super::{CostRow, SHIFTS};
 
     /// [`super::costs_row`] eight pixels at a time, the right image's two samples by
-    /// gathers; the same operations in the same order, so the same costs. Returns the
+    /// [`pairs`]; the same operations in the same order, so the same costs. Returns the
     /// first pixel it left to the portable loop (the last few of the row).
     ///
     /// SAFETY: the CPU has AVX2; `out`'s rows are as long as `row.smooth`, and so are
@@ -292,8 +292,7 @@ mod avx2 {
                 let i = _mm256_cvttps_epi32(t);
                 let f = _mm256_sub_ps(t, _mm256_cvtepi32_ps(i));
                 let i = _mm256_min_epi32(i, top);
-                let a = _mm256_i32gather_ps::<4>(right, i);
-                let b = _mm256_i32gather_ps::<4>(right.add(1), i);
+                let (a, b) = pairs(right, i);
                 let v = _mm256_add_ps(a, _mm256_mul_ps(f, _mm256_sub_ps(b, a)));
                 let diff = _mm256_andnot_ps(sign, _mm256_sub_ps(l, v));
                 _mm256_storeu_ps(out[k].as_mut_ptr().add(x), _mm256_and_ps(diff, _mm256_and_ps(near, matched)));
@@ -301,6 +300,24 @@ mod avx2 {
             x += 8;
         }
         x
+    }
+
+    /// The values at the eight indices `i` of `right` and the ones after them: one 64-bit
+    /// load a pixel, put into lanes (gather instructions were slower on AMD's cores, as in
+    /// `stereo::remap`).
+    ///
+    /// SAFETY: every index and the one after it lie in the slice `right` starts.
+    #[inline(always)]
+    unsafe fn pairs(right: *const f32, i: __m256i) -> (__m256, __m256) {
+        let mut o = [0i32; 8];
+        _mm256_storeu_si256(o.as_mut_ptr() as *mut __m256i, i);
+        let at = |k: usize| (right.add(o[k] as usize) as *const i64).read_unaligned();
+        let lo = _mm256_castsi256_ps(_mm256_setr_epi64x(at(0), at(1), at(2), at(3)));
+        let hi = _mm256_castsi256_ps(_mm256_setr_epi64x(at(4), at(5), at(6), at(7)));
+        // Lane by lane the shuffles give pixels 0, 1, 4, 5 | 2, 3, 6, 7; the permute puts
+        // the 64-bit halves back in order.
+        let order = |v: __m256| _mm256_castsi256_ps(_mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_castps_si256(v)));
+        (order(_mm256_shuffle_ps::<0b10_00_10_00>(lo, hi)), order(_mm256_shuffle_ps::<0b11_01_11_01>(lo, hi)))
     }
 }
 

@@ -227,10 +227,12 @@ mod avx2 {
     use super::RemapTable;
 
     /// [`RemapTable::fixed`] eight output pixels at a time: the four neighbours' bytes by
-    /// gathers of 32 bits (one reads `C` channels and the next pixel's first), each
-    /// channel's row pair weighted by one `madd`, the rows blended in 32 bits. Returns the
-    /// first pixel it left to the portable loop (the last few, whose stores would run past
-    /// the end). A group of eight whose gathers could read past `src` goes pixel by pixel.
+    /// plain loads put into lanes (one 64-bit load a row and pixel in colour; gather
+    /// instructions were 2.4 × slower on AMD's cores, `cargo bench --bench matcher --
+    /// rectify`), each channel's row pair weighted by one `madd`, the rows blended in 32
+    /// bits. Returns the first pixel it left to the portable loop (the last few, whose
+    /// stores would run past the end). A group of eight whose loads could read past `src`
+    /// goes pixel by pixel.
     ///
     /// SAFETY: the CPU has AVX2; `src` holds `C` bytes per output pixel (the table's
     /// `width × height`); `out` and `gray`, when given, hold `C` and 1 bytes per output pixel.
@@ -238,14 +240,15 @@ mod avx2 {
     pub(super) unsafe fn fixed<const C: usize>(t: &RemapTable, src: &[u8], mut out: Option<&mut [u8]>, mut gray: Option<&mut [u8]>) -> usize {
         let n = t.idx.len();
         let stride = t.width as usize * C;
-        // The last top-left index whose four 32-bit reads (at o, o + C, o + stride,
-        // o + stride + C) stay inside `src`.
-        let Some(last_read) = src.len().checked_sub(stride + C + 4) else { return 0 };
+        // The last top-left index whose reads stay inside `src`: with C = 3, 64 bits at o
+        // and at o + stride ([`taps64`]); with C = 1, 32 bits there ([`taps32`]).
+        let reach = if C == 3 { 8 } else { 4 };
+        let Some(last_read) = src.len().checked_sub(stride + reach) else { return 0 };
         let limit = _mm256_set1_epi32((last_read / C).min(i32::MAX as usize) as i32);
         // Stores write 16 bytes (C = 3: at 3i and 3i + 12) or 8: stop where they would run
         // past the end.
         let end = n.saturating_sub(8 + 2) / 8 * 8;
-        let base = src.as_ptr() as *const i32;
+        let bytes = src.as_ptr();
         let k256 = _mm256_set1_epi32(256);
         let lo16 = _mm256_set1_epi32(0xFFFF);
         let byte = _mm256_set1_epi32(0xFF);
@@ -273,12 +276,16 @@ mod avx2 {
             // 16-bit pairs (256 − fx, fx): one `madd` weighs a row's two neighbours.
             let hw = _mm256_or_si256(_mm256_sub_epi32(k256, fx), _mm256_slli_epi32(fx, 16));
             let off = if C == 3 { _mm256_add_epi32(iv, _mm256_slli_epi32(iv, 1)) } else { iv };
-            let top0 = _mm256_i32gather_epi32::<1>(base, off);
-            let bot0 = _mm256_i32gather_epi32::<1>(base.byte_add(stride), off);
-            let (top1, bot1) = if C == 3 {
-                (_mm256_i32gather_epi32::<1>(base.byte_add(3), off), _mm256_i32gather_epi32::<1>(base.byte_add(stride + 3), off))
+            let mut o = [0i32; 8];
+            _mm256_storeu_si256(o.as_mut_ptr() as *mut __m256i, off);
+            let (top0, top1, bot0, bot1) = if C == 3 {
+                let (t0, t1) = taps64(bytes, &o);
+                let (b0, b1) = taps64(bytes.add(stride), &o);
+                (t0, t1, b0, b1)
             } else {
-                (_mm256_srli_epi32(top0, 8), _mm256_srli_epi32(bot0, 8))
+                let top0 = taps32(bytes, &o);
+                let bot0 = taps32(bytes.add(stride), &o);
+                (top0, _mm256_srli_epi32(top0, 8), bot0, _mm256_srli_epi32(bot0, 8))
             };
             // Channel c of both neighbours of a row as the 16-bit pair (left, right).
             let pair = |a: __m256i, b: __m256i, c: i32| -> __m256i {
@@ -332,6 +339,29 @@ mod avx2 {
             i += 8;
         }
         i
+    }
+
+    /// The 32 bits at each of the eight byte offsets `o` from `base`, by plain loads.
+    #[inline(always)]
+    unsafe fn taps32(base: *const u8, o: &[i32; 8]) -> __m256i {
+        let at = |k: usize| (base.add(o[k] as usize) as *const i32).read_unaligned();
+        _mm256_setr_epi32(at(0), at(1), at(2), at(3), at(4), at(5), at(6), at(7))
+    }
+
+    /// The 32 bits at each of the eight byte offsets `o` from `base`, and the 32 bits three
+    /// bytes further: one 64-bit load a pixel.
+    #[inline(always)]
+    unsafe fn taps64(base: *const u8, o: &[i32; 8]) -> (__m256i, __m256i) {
+        let at = |k: usize| (base.add(o[k] as usize) as *const i64).read_unaligned();
+        let a = _mm256_setr_epi64x(at(0), at(1), at(2), at(3));
+        let b = _mm256_setr_epi64x(at(4), at(5), at(6), at(7));
+        // The low 32 bits of each 64, in pixel order: the shuffle takes them lane by lane
+        // (0, 1, 4, 5 | 2, 3, 6, 7), the permute puts the 64-bit halves back in order.
+        let low = |a: __m256i, b: __m256i| {
+            let v = _mm256_castps_si256(_mm256_shuffle_ps::<0b10_00_10_00>(_mm256_castsi256_ps(a), _mm256_castsi256_ps(b)));
+            _mm256_permute4x64_epi64::<0b11_01_10_00>(v)
+        };
+        (low(a, b), low(_mm256_srli_epi64::<24>(a), _mm256_srli_epi64::<24>(b)))
     }
 
     #[inline(always)]
