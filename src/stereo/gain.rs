@@ -124,9 +124,13 @@ pub fn scale_contrast(img: &mut [u8], gain: f64) -> u8 {
 /// it from its neighbours along the paths). Returns how many were dropped.
 pub fn drop_clipped(disparity: &mut DisparityMap, left: &[u8], right: &[u8], right_clip: u8) -> usize {
     let (w, h) = (disparity.width, disparity.height);
-    let mut dropped = 0;
+    let (mut dropped, mut runs) = (0, Vec::new());
     for y in 0..h {
-        for x in 0..w {
+        // Runs of unmatched pixels (most of a scan's rows) are passed over a run at a time.
+        let row = &disparity.values()[y * w..(y + 1) * w];
+        runs.clear();
+        runs.extend(row.chunks(16).enumerate().filter(|(_, run)| run.iter().fold(false, |a, d| a | d.is_finite())).map(|(k, _)| k * 16));
+        for x in runs.iter().flat_map(|&x0| x0..(x0 + 16).min(w)) {
             let Some(d) = disparity.get(x, y) else { continue };
             let xr = (x as f32 - d).round();
             let right_white = (0.0..w as f32).contains(&xr) && right[y * w + xr as usize] >= right_clip;
