@@ -303,8 +303,8 @@ mod avx2 {
     }
 
     /// The values at the eight indices `i` of `right` and the ones after them: one 64-bit
-    /// load a pixel, put into lanes (gather instructions were slower on AMD's cores, as in
-    /// `stereo::remap`).
+    /// load a pixel, put into lanes (as `stereo::remap` does: fewer loads than two gathers,
+    /// which are slow on some cores).
     ///
     /// SAFETY: every index and the one after it lie in the slice `right` starts.
     #[inline(always)]

@@ -227,12 +227,12 @@ mod avx2 {
     use super::RemapTable;
 
     /// [`RemapTable::fixed`] eight output pixels at a time: the four neighbours' bytes by
-    /// plain loads put into lanes (one 64-bit load a row and pixel in colour; gather
-    /// instructions were 2.4 × slower on AMD's cores, `cargo bench --bench matcher --
-    /// rectify`), each channel's row pair weighted by one `madd`, the rows blended in 32
-    /// bits. Returns the first pixel it left to the portable loop (the last few, whose
-    /// stores would run past the end). A group of eight whose loads could read past `src`
-    /// goes pixel by pixel.
+    /// plain loads put into lanes (one 64-bit load a row and pixel in colour; with gather
+    /// instructions a realistic pair took 1.28 ms instead of 1.10 on this AMD machine, `cargo
+    /// bench --bench matcher -- rectify`), each channel's row pair weighted by one `madd`, the
+    /// rows blended in 32 bits. Returns the first pixel it left to the portable loop (the last
+    /// few, whose stores would run past the end). A group of eight whose loads could read past
+    /// `src` goes pixel by pixel.
     ///
     /// SAFETY: the CPU has AVX2; `src` holds `C` bytes per output pixel (the table's
     /// `width × height`); `out` and `gray`, when given, hold `C` and 1 bytes per output pixel.
