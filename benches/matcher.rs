@@ -141,6 +141,21 @@ fn segmentation(filter: Option<&str>) {
         });
         println!("{name:<34} {min:>9.2} {med:>9.2}");
     }
+    // A whole view's own work in the matcher thread (the live pipeline's per-view stages
+    // but the assistant's plan): rectify and segment a realistic raw pair, match the object
+    // over the full range with `bm`, drop clipped matches, refine the map (the window that
+    // follows the surface), triangulate.
+    let name = "view realistic pair";
+    if filter.is_none_or(|f| name.contains(f)) {
+        let scene = hw_sim::SceneConfig::realistic(hw_sim::Mesh::builtin("egg", 100_000).unwrap());
+        let calib = spinscan::hw::sim::calib_of(&scene.rig);
+        let raw = hw_sim::Renderer::new(scene).unwrap().render(30.0, 0);
+        let opts = spinscan::pipeline::PipelineOptions { matching: MatchParams { num_disparities: 128, ..MatchParams::default() }, ..Default::default() };
+        let mut pipe = spinscan::pipeline::Pipeline::new(&calib, (raw.width as u32, raw.height as u32), opts).unwrap();
+        let mut points = 0;
+        let (min, med) = time(runs(), || points = pipe.process_rgb(&raw.left_rgb, &raw.right_rgb, true).unwrap().cloud.points.len());
+        println!("{name:<34} {min:>9.2} {med:>9.2} {:>10}", format!("{points} pt"));
+    }
     // The silhouette's rim found (3 px, `--rim-px 3`), as each frame of such a scan pays it
     // after matching.
     let name = "segment rim";
