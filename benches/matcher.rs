@@ -2,7 +2,9 @@
 //! intervals, per pixel and per tile; both methods, `bm` and `sgm`, each with its defaults)
 //! on the Middlebury pairs in `../shared/data` when present, and on a simulated pair always;
 //! then the segmentation of the simulated pair (`-- segment`: its blue screen, and the same
-//! frame in grey, keyed as a plain backdrop).
+//! frame in grey, keyed as a plain backdrop), and a view's other passes: the rectification of
+//! a realistic raw pair (`-- rectify`), the window that follows the surface on the simulated
+//! object's map (`-- follow`), and a whole view's own work in the matcher thread (`-- view`).
 //! Prints min and median milliseconds per case over repeated runs (15, or `RUNS=N` in the
 //! environment: more for a profiler); `-- sgm` runs the semi-global cases alone.
 //!
