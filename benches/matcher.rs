@@ -113,6 +113,14 @@ fn run(m: &mut StereoMatcher, (lv, rv): (GrayView, GrayView), iv: &DisparityInte
     println!("{name:<34} {min:>9.2} {med:>9.2} {:>10.1}", stats.mean_search_px());
 }
 
+/// The simulated egg's raw pair on the realistic rig (distortion, misalignment), and the
+/// rig's calibration.
+fn realistic_raw() -> (spinscan::calib::StereoCalib, hw_sim::RenderedPair) {
+    let scene = hw_sim::SceneConfig::realistic(hw_sim::Mesh::builtin("egg", 100_000).unwrap());
+    let calib = spinscan::hw::sim::calib_of(&scene.rig);
+    (calib, hw_sim::Renderer::new(scene).unwrap().render(30.0, 0))
+}
+
 /// Times the segmentation of a simulated frame: the chroma key on its blue screen, and the
 /// plain backdrop's texture key on the same frame in grey (no coloured screen to find).
 fn segmentation(filter: Option<&str>) {
@@ -132,9 +140,7 @@ fn segmentation(filter: Option<&str>) {
     // right in grey.
     let name = "rectify realistic pair";
     if filter.is_none_or(|f| name.contains(f)) {
-        let scene = hw_sim::SceneConfig::realistic(hw_sim::Mesh::builtin("egg", 100_000).unwrap());
-        let calib = spinscan::hw::sim::calib_of(&scene.rig);
-        let raw = hw_sim::Renderer::new(scene).unwrap().render(30.0, 0);
+        let (calib, raw) = realistic_raw();
         let size = (raw.width as u32, raw.height as u32);
         let maps = spinscan::stereo::Rectification::compute_keeping_views(&calib, size).unwrap().maps(&calib);
         let (min, med) = time(runs(), || {
@@ -149,9 +155,7 @@ fn segmentation(filter: Option<&str>) {
     // follows the surface), triangulate.
     let name = "view realistic pair";
     if filter.is_none_or(|f| name.contains(f)) {
-        let scene = hw_sim::SceneConfig::realistic(hw_sim::Mesh::builtin("egg", 100_000).unwrap());
-        let calib = spinscan::hw::sim::calib_of(&scene.rig);
-        let raw = hw_sim::Renderer::new(scene).unwrap().render(30.0, 0);
+        let (calib, raw) = realistic_raw();
         let opts = spinscan::pipeline::PipelineOptions { matching: MatchParams { num_disparities: 128, ..MatchParams::default() }, ..Default::default() };
         let mut pipe = spinscan::pipeline::Pipeline::new(&calib, (raw.width as u32, raw.height as u32), opts).unwrap();
         let mut points = 0;
