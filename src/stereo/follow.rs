@@ -273,7 +273,7 @@ mod avx2 {
         let first = _mm256_set1_ps(row.first);
         let high = _mm256_set1_ps(row.last + 0.999);
         // The last index a pair of samples may start at: the clamp keeps every index there
-        // already; this keeps the gathers inside the row whatever the rounding.
+        // already; this keeps the loads inside the row whatever the rounding.
         let top = _mm256_set1_epi32(row.right.len() as i32 - 2);
         let sign = _mm256_set1_ps(-0.0);
         let right = row.right.as_ptr();

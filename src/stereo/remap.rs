@@ -342,6 +342,8 @@ mod avx2 {
     }
 
     /// The 32 bits at each of the eight byte offsets `o` from `base`, by plain loads.
+    ///
+    /// SAFETY: each offset and the 4 bytes from it lie inside the buffer `base` points into.
     #[inline(always)]
     unsafe fn taps32(base: *const u8, o: &[i32; 8]) -> __m256i {
         let at = |k: usize| (base.add(o[k] as usize) as *const i32).read_unaligned();
@@ -350,6 +352,8 @@ mod avx2 {
 
     /// The 32 bits at each of the eight byte offsets `o` from `base`, and the 32 bits three
     /// bytes further: one 64-bit load a pixel.
+    ///
+    /// SAFETY: each offset and the 8 bytes from it lie inside the buffer `base` points into.
     #[inline(always)]
     unsafe fn taps64(base: *const u8, o: &[i32; 8]) -> (__m256i, __m256i) {
         let at = |k: usize| (base.add(o[k] as usize) as *const i64).read_unaligned();
