@@ -133,7 +133,7 @@ impl SpeckleFilter {
 fn bits<const AVX2: bool>(a: &[f32], b: &[f32], out: &mut [u64], within: Option<f32>) {
     let test = |x: f32, y: f32| match within {
         Some(range) => (x - y).abs() <= range,
-        None => x - x == 0.0,
+        None => x.is_finite(),
     };
     out.fill(0);
     for (word, (ca, cb)) in out.iter_mut().zip(a.chunks(64).zip(b.chunks(64))) {
