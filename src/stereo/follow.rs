@@ -22,7 +22,7 @@
 //! value, as do those whose residual's minimum lies at an end of the shifts searched,
 //! and those the refinement would move by more than [`MAX_MOVE_PX`].
 
-use super::disparity::{DisparityMap, GrayView};
+use super::disparity::{searched_span, DisparityMap, GrayView};
 use super::matcher::xsobel_rows;
 
 /// Side of the warped window, pixels.
@@ -323,17 +323,11 @@ mod avx2 {
 
 /// The box of the matched pixels: first and last column and row.
 fn bounds(v: &[f32], w: usize, h: usize) -> Option<(usize, usize, usize, usize)> {
-    // Whether a run of pixels holds a matched one: a branch-free test, so that it
-    // vectorises (most rows of a scan are background throughout).
-    let any = |run: &[f32]| run.iter().fold(false, |a, d| a | !d.is_nan());
-    const RUN: usize = 16;
     let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
     for y in 0..h {
         let row = &v[y * w..(y + 1) * w];
-        let Some(start) = row.chunks(RUN).position(any) else { continue };
-        let first = start * RUN + row[start * RUN..].iter().position(|d| !d.is_nan()).unwrap_or(0);
-        let end = row.len() - row.rchunks(RUN).position(any).unwrap_or(0) * RUN;
-        let last = row[..end].iter().rposition(|d| !d.is_nan()).unwrap_or(first);
+        // (`d <= d` fails for NaN alone: the row's first and last matched pixels.)
+        let Some((first, last)) = searched_span(row, row) else { continue };
         (x0, x1, y0, y1) = (x0.min(first), x1.max(last), y0.min(y), y);
     }
     (y0 != usize::MAX).then_some((x0, x1, y0, y1))

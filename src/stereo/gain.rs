@@ -16,7 +16,7 @@
 //! alike cameras measured from 0.94 to 1.20 that way over the simulated lab's recordings
 //! (the strongest tenth of each image's gradients).
 
-use super::disparity::{DisparityMap, GrayView};
+use super::disparity::{searched_span, DisparityMap, GrayView};
 
 /// Contrast ratios within `1 / TOLERANCE … TOLERANCE` are left as they are: a small difference
 /// is not worth scaling for (the independent renderer's cameras, 7 % apart, match as well
@@ -124,13 +124,12 @@ pub fn scale_contrast(img: &mut [u8], gain: f64) -> u8 {
 /// it from its neighbours along the paths). Returns how many were dropped.
 pub fn drop_clipped(disparity: &mut DisparityMap, left: &[u8], right: &[u8], right_clip: u8) -> usize {
     let (w, h) = (disparity.width, disparity.height);
-    let (mut dropped, mut runs) = (0, Vec::new());
+    let mut dropped = 0;
     for y in 0..h {
-        // Runs of unmatched pixels (most of a scan's rows) are passed over a run at a time.
+        // Only from the row's first match to its last (most of a scan's rows are background).
         let row = &disparity.values()[y * w..(y + 1) * w];
-        runs.clear();
-        runs.extend(row.chunks(16).enumerate().filter(|(_, run)| run.iter().fold(false, |a, d| a | d.is_finite())).map(|(k, _)| k * 16));
-        for x in runs.iter().flat_map(|&x0| x0..(x0 + 16).min(w)) {
+        let Some((first, last)) = searched_span(row, row) else { continue };
+        for x in first..=last {
             let Some(d) = disparity.get(x, y) else { continue };
             let xr = (x as f32 - d).round();
             let right_white = (0.0..w as f32).contains(&xr) && right[y * w + xr as usize] >= right_clip;

@@ -1,6 +1,6 @@
 //! Disparity → 3D points with `Q`, expressed in the LEFT raw (unrectified) camera frame.
 
-use super::disparity::DisparityMap;
+use super::disparity::{searched_span, DisparityMap};
 use super::rectify::Rectification;
 use crate::cloud::PointCloud;
 
@@ -20,11 +20,9 @@ pub fn triangulate(disp: &DisparityMap, rect: &Rectification, colors: &[u8], inn
     let w = disp.width;
     for y in 0..disp.height {
         let row = &disp.values()[y * w..(y + 1) * w];
-        // Runs of unmatched pixels (most of a scan's rows) are passed over a run at a time:
-        // a branch-free test that vectorises.
-        let matched = |run: &[f32]| run.iter().fold(false, |a, d| a | d.is_finite());
-        let runs = row.chunks(RUN).enumerate().filter(|(_, run)| matched(run));
-        for x in runs.flat_map(|(k, run)| (k * RUN..k * RUN + run.len()).filter(|&x| row[x].is_finite())) {
+        // Only from the row's first match to its last (most of a scan's rows are background).
+        let Some((first, last)) = searched_span(row, row) else { continue };
+        for x in (first..=last).filter(|&x| row[x].is_finite()) {
             let Some(p) = point_of(&q, &left_from_rect, x as f64, y as f64, row[x] as f64) else { continue };
             let i = y * w + x;
             let (point, color) = ([p[0] as f32, p[1] as f32, p[2] as f32], [colors[3 * i], colors[3 * i + 1], colors[3 * i + 2]]);
@@ -58,9 +56,6 @@ fn point_of(q: &[[f64; 4]; 4], left_from_rect: &[[f64; 3]; 3], x: f64, y: f64, d
     let m = left_from_rect;
     Some(std::array::from_fn(|i| m[0][i] * r[0] + m[1][i] * r[1] + m[2][i] * r[2]))
 }
-
-/// Pixels of a row tested at once for a match.
-const RUN: usize = 16;
 
 #[cfg(test)]
 mod tests {
