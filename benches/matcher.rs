@@ -225,8 +225,8 @@ fn main() {
                 let one = DisparityIntervals::within(w, h, Some(mask), mid, mid);
                 run(&mut m, pair, &one, &format!("{} object one disparity t{threads}", case.name), filter.as_deref());
                 // The window that follows the surface, run on the object's full-range map as
-                // each view of a scan pays it after matching (one thread; each run starts
-                // from a copy of the map, about 0.1 ms of it).
+                // each view of a scan pays it after matching, with the object's mask (one
+                // thread; each run starts from a copy of the map, about 0.1 ms of it).
                 let name = format!("{} follow surface", case.name);
                 if threads == 1 && filter.as_deref().is_none_or(|f| name.contains(f)) {
                     m.compute(pair.0, pair.1, &fg, &mut out).unwrap();
@@ -234,7 +234,7 @@ fn main() {
                     let mut stats = Default::default();
                     let (min, med) = time(runs(), || {
                         map = out.clone();
-                        stats = spinscan::stereo::follow::refine_following(&case.left, &case.right, &mut map);
+                        stats = spinscan::stereo::follow::refine_following(&case.left, &case.right, Some(mask), &mut map);
                     });
                     println!("{name:<34} {min:>9.2} {med:>9.2} {:>10}", format!("{} px", stats.looked));
                 }

@@ -449,7 +449,8 @@ impl Pipeline {
         let unrefined = self.follow_surface.then(|| {
             let own = m.disparity.clone();
             let t0 = Instant::now();
-            followed = crate::stereo::follow::refine_following(&frame.left_gray, &frame.right_gray, &mut m.disparity);
+            // The silhouette's edge lends the windows no samples (stereo::follow::SILHOUETTE_PX).
+            followed = crate::stereo::follow::refine_following(&frame.left_gray, &frame.right_gray, frame.mask.as_deref(), &mut m.disparity);
             follow_ms = t0.elapsed().as_secs_f64() * 1e3;
             own
         });

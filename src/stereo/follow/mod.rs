@@ -12,6 +12,14 @@
 //! map itself: each pixel q of the window is compared with the right image at
 //! `x_q − S(q) − δ`, `S` the map smoothed, for a few residual shifts δ shared by the window
 //! (its matched pixels only: the background and holes are not the surface).
+//!
+//! `S` is a plane fitted to the map's matched pixels around each pixel, not their mean: a
+//! mean taken near the silhouette or a hole reaches into one side only and lags the surface
+//! by its slope times that offset, where the surface turns away fastest. And where the
+//! object's silhouette is known, the pixels within [`SILHOUETTE_PX`] of it lend the windows
+//! no samples: their prefiltered values hold the edge against the background, which the
+//! right camera sees on another part of the surface (docs/matcher.md, "The window near the
+//! silhouette").
 //! The residual's minimum (an equiangular fit through the three samples around it) added to
 //! `S` at the centre is the new disparity. The window's mean of the residual is then the
 //! mean of `d − S`, small and smooth wherever `S` follows the surface, so neither the
@@ -22,15 +30,32 @@
 //! value, as do those whose residual's minimum lies at an end of the shifts searched,
 //! and those the refinement would move by more than [`MAX_MOVE_PX`].
 
+mod plane;
+
 use super::disparity::{searched_span, DisparityMap, GrayView};
 use super::matcher::xsobel_rows;
+use plane::plane_fit;
 
 /// Side of the warped window, pixels.
 pub const FOLLOW_BLOCK: usize = 11;
 
-/// Radius of the box the map is smoothed with (three passes: nearly a Gaussian of
-/// σ ≈ 3.5 px), pixels.
-pub const FOLLOW_SMOOTH_RADIUS: usize = 3;
+/// Half-side of the square over which the map is fitted by a plane at each pixel (σ ≈ 3.7 px,
+/// the width of the three box passes whose mean it replaced), pixels. Measured over 15
+/// recordings (docs/matcher.md, "The window near the silhouette"): 5 and 7 were within 2 %
+/// of it on the models, 4 and 10 further.
+pub const FOLLOW_FIT_RADIUS: usize = 6;
+
+/// How far inside the object's silhouette a pixel must lie for the windows to compare it,
+/// pixels (a square neighbourhood, as [`crate::segment::inside_rim`] erodes): the x-Sobel
+/// prefilter, the right image's interpolation and the rendering's or the optics' blur carry
+/// the silhouette's edge that far in. Measured (docs/matcher.md): 2 and 4 gave models 1–3 %
+/// further than 3.
+pub const SILHOUETTE_PX: usize = 3;
+
+/// The least spread of a fitted square's matched pixels along x and along y (their variance,
+/// px²) for a plane to be fitted there; where they lie nearly on a line, the plane's tilt
+/// across it is not measured and their mean is taken instead.
+const MIN_SPREAD_PX2: f64 = 1.0;
 
 /// The least share of a pixel's window that must be matched for it to be refined: where
 /// less is, the smoothed map under the window is mostly extrapolated. Measured on realistic
@@ -61,14 +86,18 @@ pub struct FollowStats {
 }
 
 /// Refines `disp` in place (see the module's documentation). `left`, `right`: the rectified
-/// grey images the map was matched on, `disp.width × disp.height` each.
-pub fn refine_following(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> FollowStats {
+/// grey images the map was matched on, `disp.width × disp.height` each. `object`: where the
+/// object's silhouette is known, its mask of the same size (255 the object, 0 the
+/// background, as `segment` gives it): the windows compare only the pixels at least
+/// [`SILHOUETTE_PX`] inside it, though every matched pixel is refined. `None`: every matched
+/// pixel is compared.
+pub fn refine_following(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: &mut DisparityMap) -> FollowStats {
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has AVX2 (checked just above).
-        return unsafe { refine_avx2(left, right, disp) };
+        return unsafe { refine_avx2(left, right, object, disp) };
     }
-    refine(left, right, disp, false)
+    refine(left, right, object, disp, false)
 }
 
 /// [`refine_following`] compiled for AVX2: its passes over the region in eight lanes instead
@@ -76,16 +105,17 @@ pub fn refine_following(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> F
 /// the same order (no fused multiply-add), so the same disparities.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn refine_avx2(left: &[u8], right: &[u8], disp: &mut DisparityMap) -> FollowStats {
-    refine(left, right, disp, true)
+unsafe fn refine_avx2(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: &mut DisparityMap) -> FollowStats {
+    refine(left, right, object, disp, true)
 }
 
 /// The body of [`refine_following`]; `simd`: the CPU has AVX2 (the residual costs in eight
 /// lanes).
 #[inline(always)]
-fn refine(left: &[u8], right: &[u8], disp: &mut DisparityMap, simd: bool) -> FollowStats {
+fn refine(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: &mut DisparityMap, simd: bool) -> FollowStats {
     let (w, h) = (disp.width, disp.height);
     assert!(left.len() == w * h && right.len() == w * h, "images of the map's size");
+    assert!(object.is_none_or(|m| m.len() == w * h), "a silhouette of the map's size");
     let half = FOLLOW_BLOCK / 2;
     let Some((x0, x1, y0, y1)) = bounds(disp.values(), w, h) else { return FollowStats::default() };
     // The region worked on: the matched pixels' box and a window's half around it.
@@ -96,23 +126,27 @@ fn refine(left: &[u8], right: &[u8], disp: &mut DisparityMap, simd: bool) -> Fol
         return FollowStats::default();
     }
     let region = |y: usize| (y + ry0) * w + rx0..(y + ry0) * w + rx1;
-    // The map over the region (NaN unmatched), its validity, and the smoothed map.
+    // The map over the region (NaN unmatched), and the plane fitted around each pixel.
     let mut d = Vec::with_capacity(rw * rh);
     for y in 0..rh {
         d.extend_from_slice(&disp.values()[region(y)]);
     }
-    let valid: Vec<f32> = d.iter().map(|v| if v.is_nan() { 0.0 } else { 1.0 }).collect();
-    let mut num: Vec<f32> = d.iter().map(|v| if v.is_nan() { 0.0 } else { *v }).collect();
-    let mut den = valid.clone();
-    let mut tmp = vec![0f32; rw * rh];
-    for _ in 0..3 {
-        box_sum(&mut num, &mut tmp, rw, rh, FOLLOW_SMOOTH_RADIUS);
-        box_sum(&mut den, &mut tmp, rw, rh, FOLLOW_SMOOTH_RADIUS);
-    }
-    let smooth: Vec<f32> = num.iter().zip(&den).map(|(&n, &c)| if c > 0.0 { n / c } else { f32::NAN }).collect();
+    let smooth = plane_fit(&d, rw, rh, FOLLOW_FIT_RADIUS, MIN_SPREAD_PX2);
     // A pixel is looked at where at least MIN_MATCHED_SHARE of its window is matched.
-    let mut count = valid;
+    let mut count: Vec<f32> = d.iter().map(|v| if v.is_nan() { 0.0 } else { 1.0 }).collect();
+    let mut tmp = vec![0f32; rw * rh];
     box_sum(&mut count, &mut tmp, rw, rh, half);
+    // The pixels the windows compare: the matched ones, less the silhouette's edge (the
+    // object's mask eroded over the region only; an object that the region's edge cuts keeps
+    // its pixels there, as it goes on beyond).
+    let sampled: Vec<f32> = match object {
+        Some(m) => {
+            let crop: Vec<u8> = (0..rh).flat_map(|y| &m[region(y)]).copied().collect();
+            let inside = crate::segment::inside_rim(&crop, rw, rh, SILHOUETTE_PX);
+            d.iter().zip(&inside).map(|(&v, &k)| if k != 0 { v } else { f32::NAN }).collect()
+        }
+        None => d.clone(),
+    };
     let least = (FOLLOW_BLOCK * FOLLOW_BLOCK) as f32 * MIN_MATCHED_SHARE - 0.5;
     // The prefiltered images: the left over the region, the right over the region's rows
     // and the columns its shifted windows reach.
@@ -136,7 +170,7 @@ fn refine(left: &[u8], right: &[u8], disp: &mut DisparityMap, simd: bool) -> Fol
             for (o, p) in out.iter_mut().zip(planes.iter_mut()) {
                 *o = &mut p[row.clone()];
             }
-            let input = CostRow { x0: rx0, smooth: &smooth[row.clone()], left: &lpf[row.clone()], own: &d[row.clone()], right: &rpf[y * cw..(y + 1) * cw], first, last };
+            let input = CostRow { x0: rx0, smooth: &smooth[row.clone()], left: &lpf[row.clone()], sampled: &sampled[row.clone()], right: &rpf[y * cw..(y + 1) * cw], first, last };
             #[cfg(target_arch = "x86_64")]
             let done = if simd {
                 // SAFETY: `simd` is only set by `refine_avx2`, on a CPU with AVX2.
@@ -217,11 +251,12 @@ fn equiangular(c0: f32, c1: f32, c2: f32) -> f32 {
 struct CostRow<'a> {
     /// The image column of the row's first pixel.
     x0: usize,
-    /// The smoothed map, the left image's prefiltered values, and the map itself (NaN:
-    /// unmatched), over the region's columns.
+    /// The smoothed map, the left image's prefiltered values, and the map at the pixels the
+    /// windows compare (NaN elsewhere: unmatched, or at the silhouette's edge), over the
+    /// region's columns.
     smooth: &'a [f32],
     left: &'a [f32],
-    own: &'a [f32],
+    sampled: &'a [f32],
     /// The right image's prefiltered values over the columns the shifted windows reach,
     /// `first` the image column of its first; `last` that of the last a sample may start at
     /// (its second pixel is the one after).
@@ -232,9 +267,9 @@ struct CostRow<'a> {
 
 /// Each pixel's absolute difference with the right image at `x − S − δ`, for every shift δ
 /// of [`SHIFTS`] (`out[k]` the row for the k-th), from pixel `from` on: the right image
-/// linearly between its two pixels, clamped to its span. Only matched pixels count (0
-/// elsewhere): the window's background or holes are not the surface (and where the map was
-/// never near, S is NaN).
+/// linearly between its two pixels, clamped to its span. Only the sampled pixels count (0
+/// elsewhere): the window's background or holes are not the surface, nor is the
+/// silhouette's edge (and where the map is unmatched, S is NaN).
 #[inline(always)]
 fn costs_row(row: &CostRow, out: &mut [&mut [f32]; 5], from: usize) {
     for x in from..row.smooth.len() {
@@ -248,7 +283,7 @@ fn costs_row(row: &CostRow, out: &mut [&mut [f32]; 5], from: usize) {
             let f = xr - row.first - i as f32;
             let pair = &row.right[i..i + 2];
             let v = pair[0] + f * (pair[1] - pair[0]);
-            out[k][x] = if near && !row.own[x].is_nan() { (row.left[x] - v).abs() } else { 0.0 };
+            out[k][x] = if near && !row.sampled[x].is_nan() { (row.left[x] - v).abs() } else { 0.0 };
         }
     }
 }
@@ -264,11 +299,11 @@ mod avx2 {
     /// first pixel it left to the portable loop (the last few of the row).
     ///
     /// SAFETY: the CPU has AVX2; `out`'s rows are as long as `row.smooth`, and so are
-    /// `row.left` and `row.own`.
+    /// `row.left` and `row.sampled`.
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn costs_row(row: &CostRow, out: &mut [&mut [f32]; 5]) -> usize {
         let n = row.smooth.len();
-        assert!(row.left.len() == n && row.own.len() == n && out.iter().all(|o| o.len() == n) && row.right.len() >= 2);
+        assert!(row.left.len() == n && row.sampled.len() == n && out.iter().all(|o| o.len() == n) && row.right.len() >= 2);
         let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
         let first = _mm256_set1_ps(row.first);
         let high = _mm256_set1_ps(row.last + 0.999);
@@ -281,9 +316,9 @@ mod avx2 {
         while x + 8 <= n {
             let s = _mm256_loadu_ps(row.smooth.as_ptr().add(x));
             let l = _mm256_loadu_ps(row.left.as_ptr().add(x));
-            let own = _mm256_loadu_ps(row.own.as_ptr().add(x));
+            let sampled = _mm256_loadu_ps(row.sampled.as_ptr().add(x));
             let at = _mm256_sub_ps(_mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32((row.x0 + x) as i32), lane)), s);
-            let matched = _mm256_cmp_ps::<_CMP_ORD_Q>(own, own);
+            let matched = _mm256_cmp_ps::<_CMP_ORD_Q>(sampled, sampled);
             for (k, &shift) in SHIFTS.iter().enumerate() {
                 let xr = _mm256_sub_ps(at, _mm256_set1_ps(shift));
                 let near = _mm256_cmp_ps::<_CMP_ORD_Q>(xr, xr);
@@ -407,8 +442,13 @@ mod tests {
     /// A rectified pair of the texture painted on a surface whose disparity is `disp(x, y)`
     /// (NaN: the background, a flat grey on both images), `w × h`.
     fn pair(w: usize, h: usize, disp: &dyn Fn(f64, f64) -> f64) -> (Vec<u8>, Vec<u8>) {
-        let mut left = vec![100u8; w * h];
-        let mut right = vec![100u8; w * h];
+        pair_on(w, h, disp, 100)
+    }
+
+    /// [`pair`] with the background a flat `grey`.
+    fn pair_on(w: usize, h: usize, disp: &dyn Fn(f64, f64) -> f64, grey: u8) -> (Vec<u8>, Vec<u8>) {
+        let mut left = vec![grey; w * h];
+        let mut right = vec![grey; w * h];
         for y in 0..h {
             for x in 0..w {
                 let (xf, yf) = (x as f64, y as f64);
@@ -496,7 +536,7 @@ mod tests {
         let truth = sampled(w, h, &dome);
         let mut map = as_matched(&truth, w, h);
         let matched = map.values().to_vec();
-        let stats = refine_following(&left, &right, &mut map);
+        let stats = refine_following(&left, &right, None, &mut map);
         // Away from the rim, where the dome is a smooth surface.
         let inner: Vec<usize> = (0..w * h).filter(|&i| dome((i % w) as f64, (i / w) as f64) > 22.0).collect();
         let err = |m: &[f32]| inner.iter().map(|&i| m[i] - truth[i]).collect::<Vec<f32>>();
@@ -512,6 +552,31 @@ mod tests {
     }
 
     #[test]
+    fn the_silhouettes_edge_lends_the_windows_no_samples() {
+        // A dome against a dark backdrop: its silhouette is a strong edge in both images,
+        // but the right camera sees the surface turn away at another place than the left.
+        let (w, h) = (160, 120);
+        let dome = dome((80.0, 60.0), (55.0, 45.0), 16.0, 10.0);
+        let (left, right) = pair_on(w, h, &dome, 10);
+        let truth = sampled(w, h, &dome);
+        let matched = as_matched(&truth, w, h);
+        let object: Vec<u8> = truth.iter().map(|v| if v.is_nan() { 0 } else { 255 }).collect();
+        let inside = crate::segment::inside_rim(&object, w, h, SILHOUETTE_PX);
+        // The band between 3 and 8 px inside the silhouette (the refinement's region leaves
+        // a margin of 5 px around the dome, all backdrop).
+        let far = crate::segment::inside_rim(&object, w, h, 8);
+        let band: Vec<usize> = (0..w * h).filter(|&i| inside[i] != 0 && far[i] == 0).collect();
+        let err = |m: &DisparityMap| median(band.iter().map(|&i| (m.values()[i] - truth[i]).abs()).collect());
+        let (mut with_edge, mut without_edge) = (matched.clone(), matched.clone());
+        refine_following(&left, &right, None, &mut with_edge);
+        refine_following(&left, &right, Some(&object), &mut without_edge);
+        let (before, edge, no_edge) = (err(&matched), err(&with_edge), err(&without_edge));
+        // Measured: 0.170 px as matched, 0.115 refined with the edge, 0.073 without it.
+        assert!(no_edge < 0.75 * edge, "median |error| near the silhouette: {edge} with its edge, {no_edge} without");
+        assert!(no_edge < 0.5 * before, "median |error| near the silhouette: {before} → {no_edge}");
+    }
+
+    #[test]
     fn a_rig_with_negative_disparities_is_refined_alike() {
         // The right camera left of the left one: d = x_left − x_right < 0 (docs: "Disparity
         // sign"). A slanted plane, given to the refinement 0.4 px off.
@@ -524,7 +589,7 @@ mod tests {
                 map.values_mut()[y * w + x] = plane(x as f64, y as f64) as f32 + 0.4;
             }
         }
-        let stats = refine_following(&left, &right, &mut map);
+        let stats = refine_following(&left, &right, None, &mut map);
         assert!(stats.refined > 3000, "{stats:?}");
         let err: Vec<f32> = (20..60).flat_map(|y| (50..100).map(move |x| (x, y))).map(|(x, y)| (map.values()[y * w + x] - plane(x as f64, y as f64) as f32).abs()).collect();
         assert!(median(err.clone()) < 0.05, "median error {} px after 0.4 px", median(err));
@@ -546,7 +611,7 @@ mod tests {
             }
         }
         let before = map.values().to_vec();
-        refine_following(&left, &right, &mut map);
+        refine_following(&left, &right, None, &mut map);
         for &i in &lone {
             assert_eq!(map.values()[i], before[i], "a lone pixel (seq {i}) keeps its value");
         }
@@ -563,8 +628,8 @@ mod tests {
         let truth = sampled(w, h, &dome);
         let mut portable = as_matched(&truth, w, h);
         let mut chosen = portable.clone();
-        let a = refine(&left, &right, &mut portable, false);
-        let b = refine_following(&left, &right, &mut chosen);
+        let a = refine(&left, &right, None, &mut portable, false);
+        let b = refine_following(&left, &right, None, &mut chosen);
         assert_eq!(a, b);
         assert!(a.refined > 1000, "{a:?}");
         assert!(portable.values().iter().zip(chosen.values()).all(|(p, c)| p.to_bits() == c.to_bits()), "the two builds' maps differ");
@@ -590,7 +655,7 @@ mod tests {
             let own: Vec<f32> = (0..n).map(|i| if i % 7 == 2 { f32::NAN } else { 1.0 }).collect();
             let left: Vec<f32> = (0..n).map(|_| 124.0 * rnd() - 62.0).collect();
             let right: Vec<f32> = (0..24).map(|_| 124.0 * rnd() - 62.0).collect();
-            let row = CostRow { x0: 5, smooth: &smooth, left: &left, own: &own, right: &right, first: 3.0, last: 25.0 };
+            let row = CostRow { x0: 5, smooth: &smooth, left: &left, sampled: &own, right: &right, first: 3.0, last: 25.0 };
             let (mut a, mut b) = (vec![vec![0f32; n]; 5], vec![vec![0f32; n]; 5]);
             let mut portable: [&mut [f32]; 5] = std::array::from_fn(|_| &mut [][..]);
             for (o, r) in portable.iter_mut().zip(a.iter_mut()) {
@@ -616,7 +681,7 @@ mod tests {
         let (w, h) = (40, 30);
         let img = vec![90u8; w * h];
         let mut map = DisparityMap::new(w, h);
-        assert_eq!(refine_following(&img, &img, &mut map), FollowStats::default());
+        assert_eq!(refine_following(&img, &img, None, &mut map), FollowStats::default());
         assert!(map.values().iter().all(|v| v.is_nan()));
     }
 
