@@ -140,14 +140,16 @@ fn square_sums(a: &[f64], runs: &mut [Vec<f64>; 3], r: usize, out: &mut [f64]) {
 /// mean where the pixels do not spread in both directions.
 #[inline(always)]
 fn fitted(s: &[f64; PRODUCTS], pu: f64, pv: f64, min_spread: f64) -> f64 {
-    let n = s[0];
-    let (ub, vb, eb) = (s[1] / n, s[2] / n, s[6] / n);
-    let (suu, svv, suv) = (s[3] / n - ub * ub, s[4] / n - vb * vb, s[5] / n - ub * vb);
-    let (sue, sve) = (s[7] / n - ub * eb, s[8] / n - vb * eb);
+    // (Two divisions a pixel, not seven: the means and the slopes by reciprocals.)
+    let per = 1.0 / s[0];
+    let (ub, vb, eb) = (s[1] * per, s[2] * per, s[6] * per);
+    let (suu, svv, suv) = (s[3] * per - ub * ub, s[4] * per - vb * vb, s[5] * per - ub * vb);
+    let (sue, sve) = (s[7] * per - ub * eb, s[8] * per - vb * eb);
     let det = suu * svv - suv * suv;
     // A correlation of x and y under √0.75 leaves the tilt measured both ways.
     let tilted = suu >= min_spread && svv >= min_spread && det >= 0.25 * suu * svv;
-    let (bx, by) = ((svv * sue - suv * sve) / det, (suu * sve - suv * sue) / det);
+    let inv = 1.0 / det;
+    let (bx, by) = ((svv * sue - suv * sve) * inv, (suu * sve - suv * sue) * inv);
     // (A select, not a branch: the pixels of a row are fitted in vector lanes.)
     if tilted {
         eb + bx * (pu - ub) + by * (pv - vb)
@@ -204,6 +206,19 @@ mod tests {
         let mean = (0..=y + 6).map(|yy| 10.0 + 0.5 * yy as f64).sum::<f64>() / (y + 7) as f64;
         assert!((fit[y * w + 12] as f64 - mean).abs() < 1e-4, "{} against {mean}", fit[y * w + 12]);
         assert!(fit.iter().enumerate().all(|(i, f)| f.is_nan() == (i % w != 12)));
+    }
+
+    #[test]
+    fn a_map_narrower_than_the_square_is_fitted_over_what_there_is() {
+        // 5 × 4 pixels against a 13-pixel square: every sum is clipped to the map.
+        let (w, h) = (5, 4);
+        let plane = |x: f64, y: f64| 7.0 - 0.5 * x + 0.25 * y;
+        let d = map(w, h, plane, |x, y| (x + y) % 3 != 0);
+        let fit = plane_fit(&d, w, h, 6, 1.0);
+        for (i, (&f, &v)) in fit.iter().zip(&d).enumerate() {
+            assert_eq!(f.is_nan(), v.is_nan(), "fitted exactly where matched, at {i}");
+            assert!(v.is_nan() || (f - v).abs() < 1e-4, "at {i}: {f} against {v}");
+        }
     }
 
     #[test]

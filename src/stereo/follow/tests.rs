@@ -146,6 +146,19 @@ fn the_silhouettes_edge_lends_the_windows_no_samples() {
 }
 
 #[test]
+fn a_mask_without_the_object_leaves_the_map_as_it_was() {
+    // No pixel is inside the silhouette: the windows have nothing to compare.
+    let (w, h) = (100, 70);
+    let dome = dome((50.0, 35.0), (40.0, 30.0), 12.0, 8.0);
+    let (left, right) = pair(w, h, &dome);
+    let mut map = as_matched(&sampled(w, h, &dome), w, h);
+    let matched = map.values().to_vec();
+    let stats = refine_following(&left, &right, Some(&vec![0u8; w * h]), &mut map);
+    assert_eq!(stats.refined, 0, "{stats:?}");
+    assert!(map.values().iter().zip(&matched).all(|(a, b)| a.to_bits() == b.to_bits()));
+}
+
+#[test]
 fn a_rig_with_negative_disparities_is_refined_alike() {
     // The right camera left of the left one: d = x_left − x_right < 0 (docs: "Disparity
     // sign"). A slanted plane, given to the refinement 0.4 px off.
