@@ -12,6 +12,11 @@
 //! map itself: each pixel q of the window is compared with the right image at
 //! `x_q − S(q) − δ`, `S` the map smoothed, for a few residual shifts δ shared by the window
 //! (its matched pixels only: the background and holes are not the surface).
+//! The residual's minimum (an equiangular fit through the three samples around it) added to
+//! `S` at the centre is the new disparity. The window's mean of the residual is then the
+//! mean of `d − S`, small and smooth wherever `S` follows the surface, so neither the
+//! curvature nor the texture's weighting biases it (docs/matcher.md, "The window that
+//! follows the surface").
 //!
 //! `S` is a plane fitted to the map's matched pixels around each pixel, not their mean: a
 //! mean taken near the silhouette or a hole reaches into one side only and lags the surface
@@ -20,11 +25,6 @@
 //! no samples: their prefiltered values hold the edge against the background, which the
 //! right camera sees on another part of the surface (docs/matcher.md, "The window near the
 //! silhouette").
-//! The residual's minimum (an equiangular fit through the three samples around it) added to
-//! `S` at the centre is the new disparity. The window's mean of the residual is then the
-//! mean of `d − S`, small and smooth wherever `S` follows the surface, so neither the
-//! curvature nor the texture's weighting biases it (docs/matcher.md, "The window that
-//! follows the surface").
 //!
 //! Pixels with less than half their window matched (at the edge of large holes) keep their
 //! value, as do those whose residual's minimum lies at an end of the shifts searched,
