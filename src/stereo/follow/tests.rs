@@ -140,7 +140,7 @@ fn the_silhouettes_edge_lends_the_windows_no_samples() {
     refine_following(&left, &right, None, &mut with_edge);
     refine_following(&left, &right, Some(&object), &mut without_edge);
     let (before, edge, no_edge) = (err(&matched), err(&with_edge), err(&without_edge));
-    // Measured: 0.170 px as matched, 0.115 refined with the edge, 0.073 without it.
+    // Measured: 0.170 px as matched, 0.130 refined with the edge, 0.076 without it.
     assert!(no_edge < 0.75 * edge, "median |error| near the silhouette: {edge} with its edge, {no_edge} without");
     assert!(no_edge < 0.5 * before, "median |error| near the silhouette: {before} → {no_edge}");
 }
