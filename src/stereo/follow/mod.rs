@@ -32,6 +32,8 @@
 
 mod plane;
 
+use std::borrow::Cow;
+
 use super::disparity::{searched_span, DisparityMap, GrayView};
 use super::matcher::xsobel_rows;
 use plane::plane_fit;
@@ -142,13 +144,13 @@ fn refine(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: &mut Disparity
     // The pixels the windows compare: the matched ones, less the silhouette's edge (the
     // object's mask eroded over the region only; an object that the region's edge cuts keeps
     // its pixels there, as it goes on beyond).
-    let sampled: Vec<f32> = match object {
+    let sampled: Cow<[f32]> = match object {
         Some(m) => {
             let crop: Vec<u8> = (0..rh).flat_map(|y| &m[region(y)]).copied().collect();
             let inside = crate::segment::inside_rim(&crop, rw, rh, SILHOUETTE_PX);
-            d.iter().zip(&inside).map(|(&v, &k)| if k != 0 { v } else { f32::NAN }).collect()
+            Cow::Owned(d.iter().zip(&inside).map(|(&v, &k)| if k != 0 { v } else { f32::NAN }).collect())
         }
-        None => d.clone(),
+        None => Cow::Borrowed(&d),
     };
     let least = (FOLLOW_BLOCK * FOLLOW_BLOCK) as f32 * MIN_MATCHED_SHARE - 0.5;
     // The prefiltered images: the left over the region, the right over the region's rows
