@@ -13,7 +13,7 @@ use std::ops::Range;
 use nalgebra::{Matrix3, Vector3};
 
 use super::motion;
-use super::region::{ceil, floor, for_each_set, round_row, MaskRows, Region};
+use super::region::{ceil, floor, for_each_set, prefetch_row, round_row, MaskRows, Region, PREFETCH_ROWS};
 use super::{Assistant, Plan};
 use crate::stereo::DisparityIntervals;
 
@@ -75,6 +75,9 @@ impl Assistant {
             let base = a_m * Vector3::new(0.0, v, 1.0);
             let row = y * w + region.x0..y * w + region.x1;
             let n = row.len();
+            // The previous frame's map and mask have long left the cache.
+            prefetch_row(prev_d, w, region.xs(), y + PREFETCH_ROWS, region.y1);
+            prev_masks.prefetch(y + PREFETCH_ROWS, region.y1);
             let (d_row, rho_row) = (&prev_d[row.clone()], &mut rho[row.clone()]);
             let (lo_row, hi_row, un_row) = (&mut lo[row.clone()], &mut hi[row.clone()], &mut union_needed[row.clone()]);
             let (m_row, pm_row) = (masks.row(y), prev_masks.row(y));

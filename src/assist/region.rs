@@ -190,6 +190,29 @@ impl Region {
     }
 }
 
+/// How many rows ahead a pass over a region asks for the rows of a map it reads.
+pub(super) const PREFETCH_ROWS: usize = 4;
+
+/// Asks for row `y` of a `w`-wide map (columns `xs`) to be brought into the cache ahead of
+/// its use, where `y < y_end`. A region's rows are short, too short for the hardware to see
+/// a stream in them, and the maps of the previous frame have long left the cache by the
+/// time the next frame is planned: without it the plan's passes over them wait on memory.
+#[inline(always)]
+pub(super) fn prefetch_row<T>(map: &[T], w: usize, xs: std::ops::Range<usize>, y: usize, y_end: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if y < y_end {
+        let row = &map[y * w + xs.start..y * w + xs.end];
+        let bytes = std::mem::size_of_val(row);
+        let start = row.as_ptr() as *const i8;
+        for k in (0..bytes).step_by(64) {
+            // SAFETY: a prefetch reads nothing and cannot fault; the address lies inside `row`.
+            unsafe { std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(start.add(k)) };
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (map, w, xs, y, y_end);
+}
+
 /// The rows of a `w`-wide foreground mask inside a region; without a mask every pixel is
 /// foreground (a row of ones stands in).
 pub(super) struct MaskRows<'a> {
@@ -202,6 +225,14 @@ pub(super) struct MaskRows<'a> {
 impl<'a> MaskRows<'a> {
     pub(super) fn new(mask: Option<&'a [u8]>, w: usize, region: &Region) -> MaskRows<'a> {
         MaskRows { ones: if mask.is_some() { Vec::new() } else { vec![1; region.x1 - region.x0] }, mask, w, xs: region.xs() }
+    }
+
+    /// Asks for row `y` of the mask (the region's columns) to be brought into the cache
+    /// ([`prefetch_row`]).
+    pub(super) fn prefetch(&self, y: usize, y_end: usize) {
+        if let Some(m) = self.mask {
+            prefetch_row(m, self.w, self.xs.clone(), y, y_end);
+        }
     }
 
     /// Row `y` of the mask, the region's columns only.

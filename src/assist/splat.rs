@@ -2,7 +2,7 @@
 //! point moved, projected and splatted with its uncertainty into per-pixel `lo`/`hi` (or
 //! straight into the tiles). The paper's rule is in paper.rs.
 
-use super::region::MaskRows;
+use super::region::{prefetch_row, MaskRows, PREFETCH_ROWS};
 use super::tiles::{self, TileBounds};
 use super::{Assistant, Plan};
 
@@ -108,6 +108,7 @@ impl Assistant {
         let avx2 = tiled && std::is_x86_feature_detected!("avx2");
         let tiles = &mut self.tiles;
         for y in region.ys() {
+            prefetch_row(prev_d, w, region.xs(), y + PREFETCH_ROWS, region.y1);
             let v = (y as f32 - cy) * ify;
             let base = rot.column(1) * v + rot.column(2);
             let base = [base.x, base.y, base.z];

@@ -24,7 +24,7 @@
 //! 0.3–0.5 about a plane); `bm`'s uniqueness test and left–right check then reject more
 //! (docs/assisted-matching.md, "Seventeenth pass"). Flat tiles are planes of zero slope.
 
-use super::region::{interval, MaskRows, Region};
+use super::region::{interval, prefetch_row, MaskRows, Region, PREFETCH_ROWS};
 use super::{AssistMode, AssistModeError, Plan};
 use crate::stereo::{DisparityIntervals, DisparityMap, BAND_TILE};
 
@@ -153,6 +153,7 @@ impl TileBounds {
                 c.fill(0.0);
             }
             for y in ys {
+                prefetch_row(values, w, region.xs(), y + PREFETCH_ROWS, region.y1);
                 let fy = (y - ty * TH) as f32;
                 let row = &values[y * w + region.x0..y * w + region.x1];
                 let (row, cn, cy, cd, cyy, cyd) = (&row[..n], &mut cn[..n], &mut cy[..n], &mut cd[..n], &mut cyy[..n], &mut cyd[..n]);
