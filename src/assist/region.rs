@@ -199,18 +199,10 @@ pub(super) const PREFETCH_ROWS: usize = 4;
 /// time the next frame is planned: without it the plan's passes over them wait on memory.
 #[inline(always)]
 pub(super) fn prefetch_row<T>(map: &[T], w: usize, xs: std::ops::Range<usize>, y: usize, y_end: usize) {
-    #[cfg(target_arch = "x86_64")]
     if y < y_end {
         let row = &map[y * w + xs.start..y * w + xs.end];
-        let bytes = std::mem::size_of_val(row);
-        let start = row.as_ptr() as *const i8;
-        for k in (0..bytes).step_by(64) {
-            // SAFETY: a prefetch reads nothing and cannot fault; the address lies inside `row`.
-            unsafe { std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(start.add(k)) };
-        }
+        crate::stereo::kernels::prefetch(row.as_ptr(), std::mem::size_of_val(row));
     }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (map, w, xs, y, y_end);
 }
 
 /// The rows of a `w`-wide foreground mask inside a region; without a mask every pixel is

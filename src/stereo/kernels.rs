@@ -6,6 +6,22 @@
 //! `for k in 0..len` loop would instead be vectorised with unrolling that only pays off from
 //! 64 elements on, leaving the common 16…60-disparity runs to scalar code.
 
+/// Asks for the 64-byte lines of `bytes` bytes from `at` ahead of their use. Any address
+/// will do: a prefetch is only a hint, nothing is read (a no-op off x86_64).
+#[inline(always)]
+pub fn prefetch<T>(at: *const T, bytes: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let at = at as *const i8;
+        for line in (0..bytes).step_by(64) {
+            // SAFETY: a prefetch of any address is only a hint; nothing is read.
+            unsafe { std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(at.wrapping_add(line)) };
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (at, bytes);
+}
+
 /// Elements per chunk: 16 × u16 is one AVX2 register.
 pub const LANES: usize = 16;
 

@@ -5,7 +5,7 @@ mod buffer;
 pub mod disparity;
 pub mod follow;
 pub mod gain;
-mod kernels;
+pub(crate) mod kernels;
 pub mod matcher;
 pub mod params;
 pub mod rectify;

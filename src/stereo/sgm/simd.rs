@@ -492,16 +492,7 @@ unsafe fn costs_impl<const VPOPCNT: bool>(run: super::census::Run, start: usize,
 /// no faster on a 450 × 384 pair at 128 disparities).
 pub(super) const AHEAD: isize = 8;
 
-/// Asks for the 64-byte lines of `bytes` bytes from `at` ahead of their use. Any address
-/// will do: a prefetch is only a hint, nothing is read.
-#[inline(always)]
-pub(super) fn prefetch<T>(at: *const T, bytes: usize) {
-    let at = at as *const i8;
-    for line in (0..bytes).step_by(64) {
-        // SAFETY: a prefetch of any address is only a hint; nothing is read.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(at.wrapping_add(line)) };
-    }
-}
+pub(super) use crate::stereo::kernels::prefetch;
 
 /// One path's previous values of a run's pixels, and where its new values go.
 pub(super) struct RunRows {
