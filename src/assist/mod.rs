@@ -510,9 +510,9 @@ impl Assistant {
         let masks = MaskRows::new(mask, w, &region);
         let xs = region.xs();
         for y in region.ys() {
-            let (out_lo, out_hi) = iv.row_mut(y);
+            let (out_lo, out_hi) = iv.row_cols_mut(y, xs.clone());
             let row = y * w + xs.start..y * w + xs.end;
-            if round_row(masks.row(y), &none, &lo[row.clone()], &hi[row], &mut out_lo[xs.clone()], &mut out_hi[xs.clone()], &mut hole_row, self.range) {
+            if round_row(masks.row(y), &none, &lo[row.clone()], &hi[row], out_lo, out_hi, &mut hole_row, self.range) {
                 for_each_set(&hole_row, |k| holes.push((xs.start + k, y)));
             }
         }

@@ -112,8 +112,8 @@ impl Assistant {
             union_count += unions as usize;
             if let Some(out) = out.as_mut() {
                 // Case 1's intervals; the union pixels are written once gathered.
-                let (out_lo, out_hi) = out.iv.row_mut(y);
-                if round_row(m_row, un_row, lo_row, hi_row, &mut out_lo[region.xs()], &mut out_hi[region.xs()], &mut hole_row[..n], range) {
+                let (out_lo, out_hi) = out.iv.row_cols_mut(y, region.xs());
+                if round_row(m_row, un_row, lo_row, hi_row, out_lo, out_hi, &mut hole_row[..n], range) {
                     for_each_set(&hole_row[..n], |k| out.holes.push((region.x0 + k, y)));
                 }
             }

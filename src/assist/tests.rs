@@ -403,6 +403,17 @@ fn a_recycled_interval_buffer_gives_the_plan_a_new_one_gives() {
             let (a, b) = (recycling.plan(k, Some(&mask), &scene.poses(0..k)), fresh.plan(k, Some(&mask), &scene.poses(0..k)));
             assert!(a.assisted(), "{mode:?} frame {k}");
             assert!(a.intervals == b.intervals, "{mode:?} {granularity:?} frame {k}");
+            // Each plan records where it searches (the matcher's crop is found inside it), and
+            // the record holds every searched pixel, recycled buffer or not.
+            for plan in [&a, &b] {
+                let (xs, ys) = plan.intervals.searched_rect().expect("a plan records where it searches");
+                assert!(xs.len() < w && ys.len() < h, "{mode:?} {granularity:?} frame {k}: {xs:?} × {ys:?}");
+                for y in 0..h {
+                    for x in 0..w {
+                        assert!(plan.intervals.get(x, y).is_none() || (xs.contains(&x) && ys.contains(&y)), "{mode:?} {granularity:?} frame {k}: ({x}, {y}) outside {xs:?} × {ys:?}");
+                    }
+                }
+            }
             assert!(recycling.accept(k, &a, &part, Some(&mask), &stats(0.9)).is_none());
             assert!(fresh.accept(k, &b, &part, Some(&mask), &stats(0.9)).is_none());
             recycling.recycle(a);

@@ -389,9 +389,9 @@ impl TileBounds {
                 }
             }
             for y in ys {
-                let (out_lo, out_hi) = iv.row_mut(y);
+                let (out_lo, out_hi) = iv.row_cols_mut(y, region.xs());
                 let fy = y as f32;
-                let pixels = masks.row(y).iter().zip(&mut out_lo[region.xs()]).zip(&mut out_hi[region.xs()]);
+                let pixels = masks.row(y).iter().zip(out_lo.iter_mut()).zip(out_hi.iter_mut());
                 for (((&m, l), u), ((&a, &b), &gy)) in pixels.zip(row_a.iter().zip(&row_b).zip(&row_gy)) {
                     // Rounded outwards inside the range (a band is never empty there; flat
                     // bands are in whole disparities already).

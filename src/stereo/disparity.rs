@@ -21,20 +21,33 @@ impl<'a> GrayView<'a> {
 
 /// The disparity interval to search at each left pixel, in disparity units
 /// (`d = x_left − x_right`).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct DisparityIntervals {
     pub(in crate::stereo) width: usize,
     pub(in crate::stereo) height: usize,
     // Invariant: a pixel with lo > hi searches nothing.
     pub(in crate::stereo) lo: Vec<i16>,
     pub(in crate::stereo) hi: Vec<i16>,
+    /// Columns and rows outside which no pixel searches anything, as far as the writers
+    /// kept track (`None`: anywhere). Every method below keeps it true; the matcher reads it
+    /// to find its crop without scanning the whole map (`Crop::of`, which checks it against
+    /// a whole scan in debug builds). Code inside `stereo` that writes `lo`/`hi` directly
+    /// sets it to `None`.
+    pub(in crate::stereo) searched: Option<(Range<usize>, Range<usize>)>,
+}
+
+/// Equal intervals, whatever each one's record of where they lie.
+impl PartialEq for DisparityIntervals {
+    fn eq(&self, other: &Self) -> bool {
+        (self.width, self.height) == (other.width, other.height) && self.lo == other.lo && self.hi == other.hi
+    }
 }
 
 impl DisparityIntervals {
     /// Every pixel searches `min_d ..= max_d`.
     pub fn full(width: usize, height: usize, min_d: i32, max_d: i32) -> Self {
         let n = width * height;
-        DisparityIntervals { width, height, lo: vec![min_d as i16; n], hi: vec![max_d as i16; n] }
+        DisparityIntervals { width, height, lo: vec![min_d as i16; n], hi: vec![max_d as i16; n], searched: None }
     }
 
     /// Pixels where `mask` is non-zero (every pixel without a mask) search `min_d ..= max_d`.
@@ -48,7 +61,7 @@ impl DisparityIntervals {
     /// No pixel searches anything.
     pub fn empty(width: usize, height: usize) -> Self {
         let n = width * height;
-        DisparityIntervals { width, height, lo: vec![1; n], hi: vec![0; n] }
+        DisparityIntervals { width, height, lo: vec![1; n], hi: vec![0; n], searched: Some((0..0, 0..0)) }
     }
 
     /// Pixels where `mask` is non-zero search `min_d ..= max_d`, the others nothing.
@@ -61,7 +74,7 @@ impl DisparityIntervals {
         let mut hi: Vec<i16> = m.iter().map(|&m| if m != 0 { max_d as i16 } else { 0 }).collect();
         lo.resize(n, min_d as i16);
         hi.resize(n, max_d as i16);
-        DisparityIntervals { width, height, lo, hi }
+        DisparityIntervals { width, height, lo, hi, searched: None }
     }
 
     pub fn width(&self) -> usize {
@@ -81,21 +94,58 @@ impl DisparityIntervals {
         };
         self.lo[i] = lo;
         self.hi[i] = hi;
+        if lo <= hi {
+            self.extend_searched(x..x + 1, y..y + 1);
+        }
     }
 
     /// No pixel of the rectangle `xs × ys` searches anything.
     pub fn clear_rect(&mut self, xs: Range<usize>, ys: Range<usize>) {
-        for y in ys {
+        for y in ys.clone() {
             self.lo[y * self.width + xs.start..y * self.width + xs.end].fill(1);
             self.hi[y * self.width + xs.start..y * self.width + xs.end].fill(0);
+        }
+        // A rectangle that holds every searched pixel leaves none.
+        if let Some((sx, sy)) = &self.searched {
+            let inside = |a: &Range<usize>, b: &Range<usize>| a.is_empty() || (b.start <= a.start && a.end <= b.end);
+            if sx.is_empty() || sy.is_empty() || (inside(sx, &xs) && inside(sy, &ys)) {
+                self.searched = Some((0..0, 0..0));
+            }
         }
     }
 
     /// The bounds of row `y`, to fill in place (`lo > hi`: not searched; values are
     /// disparities).
     pub fn row_mut(&mut self, y: usize) -> (&mut [i16], &mut [i16]) {
+        self.row_cols_mut(y, 0..self.width)
+    }
+
+    /// The bounds of columns `xs` of row `y`, to fill in place: what [`Self::row_mut`] gives,
+    /// for a writer that searches no pixel outside `xs` (the matcher then reads fewer columns
+    /// to find where the searched pixels lie).
+    pub fn row_cols_mut(&mut self, y: usize, xs: Range<usize>) -> (&mut [i16], &mut [i16]) {
         let w = self.width;
-        (&mut self.lo[y * w..(y + 1) * w], &mut self.hi[y * w..(y + 1) * w])
+        self.extend_searched(xs.clone(), y..y + 1);
+        (&mut self.lo[y * w + xs.start..y * w + xs.end], &mut self.hi[y * w + xs.start..y * w + xs.end])
+    }
+
+    /// Widens the record of where the searched pixels lie to hold `xs × ys`.
+    fn extend_searched(&mut self, xs: Range<usize>, ys: Range<usize>) {
+        if let Some((sx, sy)) = self.searched.take() {
+            self.searched = Some(if sx.is_empty() || sy.is_empty() {
+                (xs, ys)
+            } else if xs.is_empty() || ys.is_empty() {
+                (sx, sy)
+            } else {
+                (sx.start.min(xs.start)..sx.end.max(xs.end), sy.start.min(ys.start)..sy.end.max(ys.end))
+            });
+        }
+    }
+
+    /// Columns and rows outside which no pixel searches anything, as the writers recorded
+    /// them (`None`: not recorded, anywhere).
+    pub fn searched_rect(&self) -> Option<(Range<usize>, Range<usize>)> {
+        self.searched.clone()
     }
 
     /// The interval of one pixel, `None` if it is not searched.
@@ -255,5 +305,57 @@ impl MatchStats {
         } else {
             self.evaluated as f64 / self.searched as f64
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Random writes through every method that writes: after each, every searched pixel
+    /// lies inside the recorded rectangle. (It fails when a writer does not widen it, or when
+    /// a clear empties it while a searched pixel is left outside the cleared rectangle.)
+    #[test]
+    fn the_record_of_where_searched_pixels_lie_holds_them_all() {
+        let mut rand = crate::testing::xorshift(0x5EA2_C4ED);
+        let mut below = |n: usize| (rand() % n as u64) as usize;
+        let (w, h) = (23, 17);
+        let mut iv = DisparityIntervals::empty(w, h);
+        let mut narrowed = 0;
+        for step in 0..4000 {
+            let (x, y) = (below(w), below(h));
+            let xs = x..x + 1 + below(w - x);
+            let ys = y..y + 1 + below(h - y);
+            match below(6) {
+                0 => iv.set(x, y, Some((3, 9))),
+                1 => iv.set(x, y, None),
+                2 => iv.clear_rect(xs, ys),
+                3 => {
+                    let k = below(xs.len());
+                    let (lo, hi) = iv.row_cols_mut(y, xs);
+                    (lo[k], hi[k]) = (1, 5);
+                }
+                4 => {
+                    let (lo, hi) = iv.row_mut(y);
+                    (lo[x], hi[x]) = (2, 2);
+                }
+                _ => iv.clear_rect(0..w, 0..h),
+            }
+            let (sx, sy) = iv.searched.clone().expect("the writers keep the record");
+            narrowed += (sx.len() < w || sy.len() < h) as usize;
+            for yy in 0..h {
+                for xx in 0..w {
+                    if iv.get(xx, yy).is_some() {
+                        assert!(sx.contains(&xx) && sy.contains(&yy), "step {step}: ({xx}, {yy}) searched outside {sx:?} × {sy:?}");
+                    }
+                }
+            }
+        }
+        assert!(narrowed > 1000, "the record narrows the search ({narrowed})");
+        // Equal intervals are equal whatever their records.
+        let mut a = DisparityIntervals::empty(4, 3);
+        a.row_mut(1).0.fill(0);
+        a.clear_rect(0..4, 1..2);
+        assert_eq!(a, DisparityIntervals::empty(4, 3));
     }
 }

@@ -41,13 +41,15 @@
 
 use std::ops::Range;
 
-use super::disparity::{searched_span, DisparityIntervals, DisparityMap, GrayView, MatchStats};
+use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
 use super::kernels;
 use super::params::{Method, ValidMatchParams};
 use super::speckle::SpeckleFilter;
+use crop::Crop;
 use rows::{column_bands, left_right_check, row_intervals, select_row, texture_row, tile_bands, update_column_sums, update_texture};
 use scratch::{Geometry, StripeInput, StripeScratch, TileSums, PF_SLACK, TILE_H, TILE_W};
 
+mod crop;
 mod refine;
 mod rows;
 mod scratch;
@@ -116,61 +118,6 @@ pub struct StereoMatcher {
     seeds: Vec<seed::SeedScratch>,
     /// Whether matches at an end of the range are dropped ([`StereoMatcher::drop_range_edges`]).
     drop_range_edges: bool,
-}
-
-/// The rectangle of a call that matters: the searched pixels' rows and columns, with the
-/// rows of their windows, and the columns of their windows and of every right pixel their
-/// intervals reach (plus one column for the prefilter's gradient), clipped to the image.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct Crop {
-    x0: usize,
-    y0: usize,
-    w: usize,
-    h: usize,
-    /// Disparities from the lowest searched to the highest, within the range: no pixel's
-    /// interval is wider (what lets a narrow call skip the seed's test, `seed.rs`).
-    span: usize,
-}
-
-impl Crop {
-    fn of(iv: &DisparityIntervals, p: &ValidMatchParams) -> Option<Crop> {
-        let (w, h) = (iv.width, iv.height);
-        let (dmin, dmax) = (p.min_disparity, p.max_disparity());
-        let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0usize, usize::MAX, 0usize);
-        let (mut dlo, mut dhi) = (i32::MAX, i32::MIN);
-        for y in 0..h {
-            let (lo, hi) = (&iv.lo[y * w..][..w], &iv.hi[y * w..][..w]);
-            let Some((first, last)) = searched_span(lo, hi) else { continue };
-            (x0, x1, y0, y1) = (x0.min(first), x1.max(last), y0.min(y), y1.max(y));
-            // Branch-free, so that it vectorises.
-            let (mut a_min, mut b_max) = (i16::MAX, i16::MIN);
-            for (&a, &b) in lo[first..=last].iter().zip(&hi[first..=last]) {
-                let ok = a <= b;
-                a_min = a_min.min(if ok { a } else { i16::MAX });
-                b_max = b_max.max(if ok { b } else { i16::MIN });
-            }
-            dlo = dlo.min(a_min as i32);
-            dhi = dhi.max(b_max as i32);
-        }
-        if x0 > x1 {
-            return None;
-        }
-        let (dlo, dhi) = (dlo.clamp(dmin, dmax), dhi.clamp(dmin, dmax));
-        let span = (dhi - dlo + 1).max(0) as usize;
-        let m = p.reach() as i64 + 1;
-        let left = (x0 as i64 - m - dhi.max(0) as i64).max(0) as usize;
-        let right = ((x1 as i64 + m - dlo.min(0) as i64) as usize).min(w - 1);
-        let top = y0.saturating_sub(m as usize);
-        // Started on a tile boundary, so that the narrow-band path's tiles are the image's
-        // (a few more columns and rows of prefilter; the results are the same).
-        let (left, top) = (left / TILE_W * TILE_W, top / TILE_H * TILE_H);
-        let bottom = (y1 + m as usize).min(h - 1);
-        // Too narrow a crop to hold a window: match the whole image.
-        if right - left + 1 < 2 {
-            return Some(Crop { x0: 0, y0: 0, w, h, span });
-        }
-        Some(Crop { x0: left, y0: top, w: right - left + 1, h: bottom - top + 1, span })
-    }
 }
 
 impl StereoMatcher {
@@ -261,6 +208,7 @@ impl StereoMatcher {
         civ.height = crop.h;
         civ.lo.clear();
         civ.hi.clear();
+        civ.searched = None;
         for y in crop.y0..crop.y0 + crop.h {
             civ.lo.extend_from_slice(&intervals.lo[y * w + crop.x0..][..crop.w]);
             civ.hi.extend_from_slice(&intervals.hi[y * w + crop.x0..][..crop.w]);
@@ -414,7 +362,7 @@ fn sgm_stripes(params: &ValidMatchParams, sgms: &mut Vec<super::sgm::Sgm>, left:
                     .spawn_scoped(scope, move || {
                         let n = ext.len();
                         let (l, r) = (&left.data[ext.start * w..ext.end * w], &right.data[ext.start * w..ext.end * w]);
-                        let iv = DisparityIntervals { width: w, height: n, lo: intervals.lo[ext.start * w..ext.end * w].to_vec(), hi: intervals.hi[ext.start * w..ext.end * w].to_vec() };
+                        let iv = DisparityIntervals { width: w, height: n, lo: intervals.lo[ext.start * w..ext.end * w].to_vec(), hi: intervals.hi[ext.start * w..ext.end * w].to_vec(), searched: None };
                         let mut part = DisparityMap::new(w, n);
                         let keep = rows.start - ext.start..rows.end - ext.start;
                         let stats = sgm.compute(params, GrayView { width: w, height: n, data: l }, GrayView { width: w, height: n, data: r }, &levels, shift, &iv, keep, &mut part);

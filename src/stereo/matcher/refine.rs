@@ -133,6 +133,7 @@ impl StereoMatcher {
         let mut s = std::mem::take(&mut self.refine);
         let iv = &mut s.intervals;
         (iv.width, iv.height) = (w, h);
+        iv.searched = None;
         iv.lo.resize(w * h, 0);
         iv.hi.resize(w * h, 0);
         // Branch-free, so that it vectorises; unmatched pixels search nothing. The value is

@@ -125,6 +125,7 @@ fn halve(img: GrayView, out: &mut Vec<u8>) -> (usize, usize) {
 fn halve_intervals(iv: &DisparityIntervals, (cw, ch): (usize, usize), range: (i32, i32), out: &mut DisparityIntervals) {
     let w = iv.width;
     (out.width, out.height) = (cw, ch);
+    out.searched = None;
     // (Every element is written below.)
     out.lo.resize(cw * ch, 0);
     out.hi.resize(cw * ch, 0);
@@ -180,6 +181,7 @@ fn cut_to_bands(intervals: &DisparityIntervals, half: &DisparityIntervals, map: 
     let (w, h) = (intervals.width, intervals.height);
     let (cw, ch) = (half.width, half.height);
     (out.width, out.height) = (w, h);
+    out.searched = None;
     // (Every element is written below.)
     out.lo.resize(w * h, 0);
     out.hi.resize(w * h, 0);
@@ -236,6 +238,7 @@ mod tests {
 
     fn intervals(w: usize, h: usize, v: &[Option<(i16, i16)>]) -> DisparityIntervals {
         let mut iv = DisparityIntervals::empty(w, h);
+        iv.searched = None;
         for (i, b) in v.iter().enumerate() {
             if let Some((lo, hi)) = *b {
                 (iv.lo[i], iv.hi[i]) = (lo, hi);

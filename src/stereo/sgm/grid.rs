@@ -58,6 +58,7 @@ mod tests {
 
     fn intervals(w: usize, h: usize, at: impl Fn(usize, usize) -> Option<(i16, i16)>) -> DisparityIntervals {
         let mut iv = DisparityIntervals::empty(w, h);
+        iv.searched = None;
         for y in 0..h {
             for x in 0..w {
                 if let Some((lo, hi)) = at(x, y) {

@@ -127,6 +127,7 @@ fn the_blended_sub_pixel_value_beats_the_correlation_alone() {
 /// holes and slots that held another band two rows up.
 fn wide_patches(w: usize, h: usize) -> DisparityIntervals {
     let mut wide = DisparityIntervals::empty(w, h);
+    wide.searched = None;
     for y in 0..h {
         for x in 0..w {
             if (x + 3 * y) % 41 != 0 {
@@ -188,6 +189,7 @@ fn the_portable_build_gives_the_same_map() {
     // bands of one to eight blocks of disparities, band changes and holes between them.
     let full = DisparityIntervals::full(w, h, 0, 39);
     let mut patches = DisparityIntervals::empty(w, h);
+    patches.searched = None;
     for y in 0..h {
         for x in 0..w {
             let k = ((x / 7) * 31 + (y / 3) * 17) % 23;
@@ -209,6 +211,7 @@ fn the_portable_build_gives_the_same_map() {
     let truth = |x: usize, y: usize| 14.0 + ((x / 20 + y / 10) % 3) as f32 * 1.5;
     let (l, r) = pair(w, h, truth);
     let mut moved = DisparityIntervals::empty(w, h);
+    moved.searched = None;
     for y in 0..h {
         for x in 0..w {
             let t = truth(x, y) as i16;
@@ -231,6 +234,7 @@ fn narrow_intervals_are_searched_and_nothing_else() {
     let (l, r) = pair(w, h, truth);
     let p = params(64);
     let mut iv = DisparityIntervals::empty(w, h);
+    iv.searched = None;
     for y in 0..h {
         for x in 0..w {
             // A hole in the middle searches nothing; elsewhere ±3 around the truth.
@@ -284,6 +288,7 @@ fn intervals_across_a_multiple_of_16_take_one_block_on_a_moved_grid() {
     let (l, r) = pair(w, h, truth);
     let p = params(64);
     let mut iv = DisparityIntervals::empty(w, h);
+    iv.searched = None;
     iv.lo.fill(28);
     iv.hi.fill(35);
     assert_eq!(grid::shift(&iv, p.min_disparity, p.max_disparity()), 4);
