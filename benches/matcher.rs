@@ -170,6 +170,14 @@ fn segmentation(filter: Option<&str>) {
         let (min, med) = time(runs(), || drop(spinscan::segment::inside_rim(&mask, pair.width, pair.height, 3)));
         println!("{name:<34} {min:>9.2} {med:>9.2}");
     }
+    // How far inside the silhouette each pixel lies (the fusion's rim weights), as each
+    // segmented frame pays it after matching.
+    let name = "segment rim distance";
+    if filter.is_none_or(|f| name.contains(f)) {
+        let mask = key.segment(&pair.left_rgb, pair.width, pair.height, None).unwrap();
+        let (min, med) = time(runs(), || drop(spinscan::segment::rim_distance(&mask, pair.width, pair.height)));
+        println!("{name:<34} {min:>9.2} {med:>9.2}");
+    }
     // The right image scaled to the left's contrast (0.7 × the gain), as each frame of a scan
     // whose cameras differ pays it; the ratio is measured once a scan, on the first frame.
     let name = "contrast scale";

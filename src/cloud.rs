@@ -9,6 +9,11 @@ pub struct PointCloud {
     pub colors: Vec<[u8; 3]>,
     /// One per point when present.
     pub normals: Option<Vec<[f32; 3]>>,
+    /// One per point when present: how far inside the object's silhouette the point's pixel
+    /// lay in the view it was matched in, pixels (a square neighbourhood; capped at 255:
+    /// [`crate::segment::rim_distance`]). The fusion weighs points near the silhouette down
+    /// (`FuseParams::rim_weight_px`). PLY: `property uchar rim_px`.
+    pub rim_px: Option<Vec<u8>>,
 }
 
 impl PointCloud {

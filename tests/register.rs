@@ -34,7 +34,7 @@ fn surface() -> Vec<[f32; 3]> {
 }
 
 fn write_cloud(path: &Path, pts: &[[f32; 3]]) {
-    let cloud = PointCloud { points: pts.to_vec(), colors: vec![[128, 128, 128]; pts.len()], normals: None };
+    let cloud = PointCloud { points: pts.to_vec(), colors: vec![[128, 128, 128]; pts.len()], normals: None, rim_px: None };
     spinscan::io::ply::write_ply(path, &cloud).unwrap();
 }
 

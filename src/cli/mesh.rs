@@ -34,6 +34,13 @@ pub struct MeshArgs {
     /// Remove connected pieces with fewer triangles than this share of the largest.
     #[arg(long, default_value_t = FuseParams::default().min_component_share)]
     pub min_component_share: f64,
+    /// Points within this many pixels of the object's silhouette in their view weigh
+    /// (d / (N + 1))² of the others, d their distance (views written before this was
+    /// recorded weigh alike): face-on views decide the surface where they see it, and
+    /// the mesh comes closer to it (docs/meshing.md, "The rim weighed down"). 0 weighs every
+    /// point alike.
+    #[arg(long, value_name = "N", default_value_t = FuseParams::default().rim_weight_px)]
+    pub rim_weight_px: f64,
     /// Memory the fused field may take, MiB; past it the surface that needs more is left
     /// out and a warning says so.
     #[arg(long, default_value_t = FuseParams::default().max_field_mib)]
@@ -44,7 +51,7 @@ pub struct MeshArgs {
 }
 
 pub fn cmd_mesh(a: MeshArgs) -> Result<(), Failure> {
-    let params = FuseParams { voxel_mm: a.voxel_mm, truncation_voxels: a.truncation_voxels, fill: !a.no_fill, min_component_share: a.min_component_share, max_field_mib: a.max_field_mib, fit_to_sampling: !a.exact_voxel, ..FuseParams::default() };
+    let params = FuseParams { voxel_mm: a.voxel_mm, truncation_voxels: a.truncation_voxels, fill: !a.no_fill, min_component_share: a.min_component_share, max_field_mib: a.max_field_mib, fit_to_sampling: !a.exact_voxel, rim_weight_px: a.rim_weight_px, ..FuseParams::default() };
     let result = mesh_results(&a.results, params, &a.output, |done, total| progress::show(format!("mesh: fused {done}/{total} views")));
     progress::finish();
     let (_, about) = result.map_err(|e| match e {

@@ -28,6 +28,15 @@ fn usable(p: &[f32; 3]) -> bool {
     p[2] > 0.0 && p.iter().all(|v| v.is_finite())
 }
 
+/// A point's share of weight at `d` pixels inside the silhouette: `(d · scale)²` up to 1,
+/// `scale` = 1 / (`rim_weight_px` + 1). A point on the silhouette itself (0: a mask that let
+/// a background pixel's match through) weighs as one at half a pixel, never nothing.
+#[inline]
+fn rim_weight(d: u8, scale: f32) -> f32 {
+    let s = (d as f32).max(0.5) * scale;
+    (s * s).min(1.0)
+}
+
 /// Voxels per block side.
 pub(crate) const SIDE: i32 = 8;
 const VOXELS: usize = (SIDE * SIDE * SIDE) as usize;
@@ -58,6 +67,15 @@ pub struct FuseParams {
     /// crossed, and the mesh is holes, or from a few views nothing (a low camera
     /// resolution, a large object). False keeps `voxel_mm` exactly.
     pub fit_to_sampling: bool,
+    /// Points whose pixel lay within this many pixels of the object's silhouette in their
+    /// view ([`crate::cloud::PointCloud::rim_px`]) weigh `(d / (rim_weight_px + 1))²` of the
+    /// others, `d` their distance: matched by windows that reach across the outline, and
+    /// seen at grazing angles, they are a view's least accurate, and where another view sees
+    /// the same surface face-on it decides it. Where no view sees a part but near its
+    /// silhouette, those points still make it (only the weights' ratios count). 0 weighs
+    /// every point alike, as clouds without the distances are (docs/meshing.md, "The rim
+    /// weighed down").
+    pub rim_weight_px: f64,
 }
 
 /// The voxel, in point spacings (median nearest-neighbour distance of the first view), that
@@ -79,7 +97,7 @@ pub const FIT_ABOVE_VOXELS: f64 = 1.5;
 
 impl Default for FuseParams {
     fn default() -> Self {
-        FuseParams { voxel_mm: 1.0, truncation_voxels: 4.0, fill: true, min_component_share: 0.05, depth_ref_mm: 500.0, max_field_mib: 1024.0, fit_to_sampling: true }
+        FuseParams { voxel_mm: 1.0, truncation_voxels: 4.0, fill: true, min_component_share: 0.05, depth_ref_mm: 500.0, max_field_mib: 1024.0, fit_to_sampling: true, rim_weight_px: 10.0 }
     }
 }
 
@@ -96,6 +114,8 @@ pub enum FuseParamsError {
     DepthRef(f64),
     #[error("field memory budget {0} MiB: expected at least 1 MiB")]
     Budget(f64),
+    #[error("rim weight width {0} px: expected 0 (off) to 254 pixels")]
+    RimWeight(f64),
 }
 
 impl FuseParams {
@@ -114,6 +134,9 @@ impl FuseParams {
         }
         if !(self.max_field_mib >= 1.0) {
             return Err(FuseParamsError::Budget(self.max_field_mib));
+        }
+        if !(0.0..=254.0).contains(&self.rim_weight_px) {
+            return Err(FuseParamsError::RimWeight(self.rim_weight_px));
         }
         Ok(())
     }
@@ -156,6 +179,9 @@ pub struct Tsdf {
     points: usize,
     /// Voxel updates refused because the budget was spent.
     refused: u64,
+    /// Points weighed down for lying near their view's silhouette
+    /// ([`FuseParams::rim_weight_px`]).
+    rim_weighed: usize,
     /// The first view's point spacing, mm, once a view with points came (the voxel is
     /// fitted to it then, [`FuseParams::fit_to_sampling`]).
     spacing: Option<f64>,
@@ -168,7 +194,7 @@ impl Tsdf {
         let voxel = params.voxel_mm as f32;
         let trunc = (params.truncation_voxels * params.voxel_mm) as f32;
         let max_blocks = (params.max_field_mib * 1024.0 * 1024.0 / std::mem::size_of::<Block>() as f64) as usize;
-        Ok(Tsdf { params, voxel, trunc, index: HashMap::default(), blocks: Vec::new(), max_blocks, views: 0, points: 0, refused: 0, spacing: None })
+        Ok(Tsdf { params, voxel, trunc, index: HashMap::default(), blocks: Vec::new(), max_blocks, views: 0, points: 0, refused: 0, rim_weighed: 0, spacing: None })
     }
 
     pub fn params(&self) -> &FuseParams {
@@ -190,6 +216,12 @@ impl Tsdf {
         self.refused
     }
 
+    /// Points integrated so far with less than full weight for lying within
+    /// [`FuseParams::rim_weight_px`] of their view's silhouette.
+    pub fn rim_weighed_points(&self) -> usize {
+        self.rim_weighed
+    }
+
     /// Bytes held by the blocks and their index.
     pub fn memory_bytes(&self) -> usize {
         self.blocks.capacity() * std::mem::size_of::<Block>() + self.index.capacity() * (std::mem::size_of::<[i32; 3]>() + 4 + 8)
@@ -198,7 +230,8 @@ impl Tsdf {
     /// Integrates one view: `cloud` in the view's own camera frame (camera centre at the
     /// origin, +Z forward), placed by `world_from_view`. Each point updates the voxels its
     /// viewing ray crosses within the truncation band: signed distance along the ray,
-    /// weight (depth_ref / Z)⁴, colour.
+    /// weight (depth_ref / Z)⁴ — times the rim's weight near the silhouette
+    /// ([`FuseParams::rim_weight_px`]) where the cloud carries its points' distances —, colour.
     pub fn integrate(&mut self, cloud: &PointCloud, world_from_view: &Isometry3<f64>) {
         // (Only while the field is empty: every voxel has one size.)
         if self.spacing.is_none() && self.blocks.is_empty() {
@@ -209,6 +242,12 @@ impl Tsdf {
         let (voxel, inv_voxel, trunc) = (self.voxel, 1.0 / self.voxel, self.trunc);
         let steps = (trunc * inv_voxel).ceil() as i32;
         let depth_ref = self.params.depth_ref_mm as f32;
+        let rim = cloud.rim_px.as_deref().filter(|r| r.len() == cloud.len() && self.params.rim_weight_px > 0.0);
+        let rim_scale = 1.0 / (self.params.rim_weight_px as f32 + 1.0);
+        if let Some(r) = rim {
+            let width = self.params.rim_weight_px;
+            self.rim_weighed += r.iter().zip(&cloud.points).filter(|&(&d, p)| usable(p) && (d as f64) <= width).count();
+        }
         // The block of the last voxel touched: consecutive samples of a ray mostly share it.
         let mut last: Option<([i32; 3], usize)> = None;
         // The points of the view that land in one voxel are merged first (weighted mean
@@ -237,7 +276,7 @@ impl Tsdf {
             let (mut w, mut pv, mut rgb) = (0f32, nalgebra::Vector3::zeros(), [0f32; 3]);
             for &(_, i) in &order[k..k + run] {
                 let p = &cloud.points[i as usize];
-                let wi = (depth_ref / p[2]).powi(4);
+                let wi = (depth_ref / p[2]).powi(4) * rim.map_or(1.0, |r| rim_weight(r[i as usize], rim_scale));
                 w += wi;
                 pv += nalgebra::Vector3::new(p[0], p[1], p[2]) * wi;
                 let c = cloud.colors.get(i as usize).map_or([200.0; 3], |c| [c[0] as f32, c[1] as f32, c[2] as f32]);

@@ -439,7 +439,7 @@ impl<'a> PreparedRender<'a> {
         let (axis_point, axis_dir) = scene.axis_in_left_camera();
         let mesh = &scene.object;
         let gt_mesh = crate::cloud::Mesh {
-            cloud: crate::cloud::PointCloud { points: mesh.vertices.clone(), colors: vec![[200, 180, 150]; mesh.vertices.len()], normals: None },
+            cloud: crate::cloud::PointCloud { points: mesh.vertices.clone(), colors: vec![[200, 180, 150]; mesh.vertices.len()], normals: None, rim_px: None },
             triangles: mesh.triangles.clone(),
         };
         let renderer = hw_sim::Renderer::new(scene)?;

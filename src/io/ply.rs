@@ -1,6 +1,6 @@
 //! PLY reading (ASCII and binary, any numeric property type, CRLF headers, extra elements,
 //! faces) and writing (binary little-endian `x y z` float, `red green blue` uchar, optional
-//! normals — what Open3D and MeshLab read).
+//! normals and `rim_px` uchar — what Open3D and MeshLab read; they pass over `rim_px`).
 
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
@@ -190,6 +190,8 @@ pub fn read_ply_from(mut reader: impl BufRead, path: &Path) -> Result<Mesh, PlyE
         (Some(a), Some(b), Some(c)) => Some([a, b, c]),
         _ => None,
     };
+    // How far inside the silhouette each point's pixel lay (spinscan's views).
+    let rim = find("rim_px");
 
     let mut body = Vec::new();
     reader.read_to_end(&mut body).map_err(io)?;
@@ -197,6 +199,9 @@ pub fn read_ply_from(mut reader: impl BufRead, path: &Path) -> Result<Mesh, PlyE
     let mut mesh = Mesh::default();
     if normals.is_some() {
         mesh.cloud.normals = Some(Vec::new());
+    }
+    if rim.is_some() {
+        mesh.cloud.rim_px = Some(Vec::new());
     }
     let mut values: Vec<f64> = Vec::new();
     let mut list: Vec<f64> = Vec::new();
@@ -239,6 +244,10 @@ pub fn read_ply_from(mut reader: impl BufRead, path: &Path) -> Result<Mesh, PlyE
                 }
                 if let (Some([a, b, c]), Some(n)) = (normals, mesh.cloud.normals.as_mut()) {
                     n.push([values[a] as f32, values[b] as f32, values[c] as f32]);
+                }
+                if let (Some(i), Some(r)) = (rim, mesh.cloud.rim_px.as_mut()) {
+                    // (NaN, of a float property, reads as 0: on the silhouette.)
+                    r.push(values[i].round().clamp(0.0, 255.0) as u8);
                 }
             } else if el.name == "face" && list.len() >= 3 {
                 let nv = mesh.cloud.points.len() as f64;
@@ -309,8 +318,9 @@ impl<'a> Source<'a> {
     }
 }
 
-/// Writes a binary little-endian PLY: `x y z` float, `red green blue` uchar, and
-/// `nx ny nz` float when the cloud has normals.
+/// Writes a binary little-endian PLY: `x y z` float, `nx ny nz` float when the cloud has
+/// normals, `red green blue` uchar, and `rim_px` uchar when it has them (a view's points:
+/// how far inside the silhouette their pixels lay, [`PointCloud::rim_px`]).
 pub fn write_ply(path: &Path, cloud: &PointCloud) -> Result<(), PlyError> {
     write_ply_with_faces(path, cloud, &[])
 }
@@ -325,12 +335,16 @@ fn write_ply_with_faces(path: &Path, cloud: &PointCloud, triangles: &[[u32; 3]])
     let io = |source| PlyError::Io { path: path.to_path_buf(), source };
     let mut out = Vec::with_capacity(64 * 4 + cloud.len() * 27);
     let with_normals = cloud.normals.as_ref().is_some_and(|n| n.len() == cloud.len());
+    let rim = cloud.rim_px.as_ref().filter(|r| r.len() == cloud.len());
     write!(out, "ply\nformat binary_little_endian 1.0\ncomment written by spinscan {}\nelement vertex {}\n", env!("CARGO_PKG_VERSION"), cloud.len()).unwrap();
     out.extend_from_slice(b"property float x\nproperty float y\nproperty float z\n");
     if with_normals {
         out.extend_from_slice(b"property float nx\nproperty float ny\nproperty float nz\n");
     }
     out.extend_from_slice(b"property uchar red\nproperty uchar green\nproperty uchar blue\n");
+    if rim.is_some() {
+        out.extend_from_slice(b"property uchar rim_px\n");
+    }
     if !triangles.is_empty() {
         write!(out, "element face {}\nproperty list uchar int vertex_indices\n", triangles.len()).unwrap();
     }
@@ -345,6 +359,9 @@ fn write_ply_with_faces(path: &Path, cloud: &PointCloud, triangles: &[[u32; 3]])
             }
         }
         out.extend_from_slice(&cloud.colors.get(i).copied().unwrap_or([200, 200, 200]));
+        if let Some(r) = rim {
+            out.push(r[i]);
+        }
     }
     for t in triangles {
         out.push(3);
@@ -369,6 +386,7 @@ mod tests {
             points: vec![[1.0, 2.0, 3.0], [-4.5, 0.25, 1e3]],
             colors: vec![[1, 2, 3], [250, 128, 0]],
             normals: Some(vec![[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
+            rim_px: Some(vec![3, 255]),
         };
         let p = tmp("rt.ply");
         write_ply(&p, &cloud).unwrap();
@@ -380,7 +398,7 @@ mod tests {
     #[test]
     fn mesh_round_trip() {
         let mesh = Mesh {
-            cloud: PointCloud { points: vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], colors: vec![[9, 9, 9]; 3], normals: None },
+            cloud: PointCloud { points: vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], colors: vec![[9, 9, 9]; 3], normals: None, rim_px: None },
             triangles: vec![[0, 1, 2]],
         };
         let p = tmp("mesh.ply");

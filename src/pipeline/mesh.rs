@@ -88,6 +88,8 @@ pub(crate) fn mesh_json(tsdf: &Tsdf, stats: &MeshStats, extract_ms: f64) -> Valu
     about["view_spacing_mm"] = json!(tsdf.spacing_mm());
     about["voxel_fitted"] = json!(fitted);
     about["truncation_voxels"] = json!(p.truncation_voxels);
+    about["rim_weight_px"] = json!(p.rim_weight_px);
+    about["rim_weighed_points"] = json!(tsdf.rim_weighed_points());
     about["filled"] = json!(p.fill);
     about["blocks"] = json!(tsdf.blocks());
     about["field_mib"] = json!(tsdf.memory_bytes() as f64 / (1024.0 * 1024.0));

@@ -439,9 +439,10 @@ impl Pipeline {
     pub fn finish_view(&self, frame: Prepared, mut m: AssistedMatch) -> View {
         let clipped_px = crate::stereo::gain::drop_clipped(&mut m.disparity, &frame.left_gray, &frame.right_gray, frame.right_clip);
         m.stats.matched -= clipped_px;
-        // The silhouette's rim: registered with, not fused (ChromaKey::rim_px).
-        let px = self.chroma.rim_px;
-        let inner = frame.mask.as_deref().filter(|_| px > 0).map(|mask| crate::segment::inside_rim(mask, m.disparity.width, m.disparity.height, px));
+        // How far inside the silhouette each pixel lies: the fusion weighs the points near it
+        // down (FuseParams::rim_weight_px), and those within ChromaKey::rim_px are registered
+        // with, not fused.
+        let rim = frame.mask.as_deref().map(|mask| crate::segment::rim_distance(mask, m.disparity.width, m.disparity.height));
         // Registration takes the matcher's own map: on the refined one a sphere's ICP slid
         // and a realistic recording's fitted axis moved (docs/matcher.md, "The window that
         // follows the surface").
@@ -454,7 +455,7 @@ impl Pipeline {
             follow_ms = t0.elapsed().as_secs_f64() * 1e3;
             own
         });
-        let (all, inner) = triangulate(&m.disparity, &self.rect, &frame.left_rgb, inner.as_deref());
+        let (all, inner) = triangulate(&m.disparity, &self.rect, &frame.left_rgb, rim.as_deref().map(|d| (d, self.chroma.rim_px)));
         let (cloud, for_registration) = match (inner, &unrefined) {
             (inner, Some(own)) => (inner.unwrap_or(all), Some(triangulate(own, &self.rect, &frame.left_rgb, None).0)),
             (Some(inner), None) => (inner, Some(all)),

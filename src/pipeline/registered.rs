@@ -144,7 +144,7 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
         Some((mesh, stats, _)) if stats.measured_vertices > 0 => {
             let n = stats.measured_vertices;
             let c = &mesh.cloud;
-            (PointCloud { points: c.points[..n].to_vec(), colors: c.colors[..n].to_vec(), normals: c.normals.as_ref().map(|v| v[..n].to_vec()) }, n, "fused surface")
+            (PointCloud { points: c.points[..n].to_vec(), colors: c.colors[..n].to_vec(), normals: c.normals.as_ref().map(|v| v[..n].to_vec()), rim_px: None }, n, "fused surface")
         }
         _ => {
             let (mut cloud, _) = model.to_cloud();

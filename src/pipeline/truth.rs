@@ -134,7 +134,7 @@ mod tests {
     fn recording_with(name: &str, triangles: Vec<[u32; 3]>, poses: &str) -> PathBuf {
         let dir = std::env::temp_dir().join(format!("spinscan-truth-{name}-{}", std::process::id()));
         std::fs::create_dir_all(dir.join("gt")).unwrap();
-        let cloud = PointCloud { points: vec![[-50.0, -50.0, 0.0], [50.0, -50.0, 0.0], [0.0, 50.0, 0.0]], colors: vec![[200; 3]; 3], normals: None };
+        let cloud = PointCloud { points: vec![[-50.0, -50.0, 0.0], [50.0, -50.0, 0.0], [0.0, 50.0, 0.0]], colors: vec![[200; 3]; 3], normals: None, rim_px: None };
         io::ply::write_mesh_ply(&dir.join("gt/mesh.ply"), &Mesh { cloud, triangles }).unwrap();
         std::fs::write(dir.join("gt/poses.jsonl"), poses).unwrap();
         dir

@@ -98,7 +98,7 @@ mod tests {
 
     #[test]
     fn distances_to_a_unit_square() {
-        let mesh = Mesh { cloud: PointCloud { points: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]], colors: vec![], normals: None }, triangles: vec![[0, 1, 2], [0, 2, 3]] };
+        let mesh = Mesh { cloud: PointCloud { points: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]], colors: vec![], normals: None, rim_px: None }, triangles: vec![[0, 1, 2], [0, 2, 3]] };
         let s = Surface::new(&mesh, &Isometry3::translation(0.0, 0.0, 10.0)).unwrap();
         assert!((s.distance(&[0.5, 0.5, 12.0]) - 2.0).abs() < 1e-9);
         assert!((s.distance(&[2.0, 0.5, 10.0]) - 1.0).abs() < 1e-9);

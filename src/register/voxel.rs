@@ -115,7 +115,7 @@ mod tests {
 
     #[test]
     fn repeated_views_do_not_grow_the_model() {
-        let cloud = PointCloud { points: (0..1000).map(|i| [(i % 10) as f32 * 2.0, (i / 10 % 10) as f32 * 2.0, (i / 100) as f32 * 2.0]).collect(), colors: vec![[10, 20, 30]; 1000], normals: None };
+        let cloud = PointCloud { points: (0..1000).map(|i| [(i % 10) as f32 * 2.0, (i / 10 % 10) as f32 * 2.0, (i / 100) as f32 * 2.0]).collect(), colors: vec![[10, 20, 30]; 1000], normals: None, rim_px: None };
         let mut m = VoxelModel::new(1.0);
         m.add(&cloud, &Isometry3::identity());
         let n = m.len();

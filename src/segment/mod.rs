@@ -421,6 +421,61 @@ pub fn inside_rim(mask: &[u8], w: usize, h: usize, px: usize) -> Vec<u8> {
     inner
 }
 
+/// How far inside the object's silhouette each pixel of a mask (255 = object) lies, pixels:
+/// the Chebyshev distance (a square neighbourhood, as [`inside_rim`] erodes) to the nearest
+/// background pixel inside the image, capped at 255; 0 on the background. So a pixel
+/// survives `inside_rim(mask, w, h, k)` exactly where its distance is over `k`. The image's
+/// edge is not a silhouette: an object cut by it is measured from its background only (all
+/// 255 without any). The fusion weighs a view's points by it (`FuseParams::rim_weight_px`).
+///
+/// Two passes of the 8-neighbour chamfer with unit steps (exact for this distance), over the
+/// mask's bounding box and the ring of background around it, where that ring is inside
+/// the image; everything outside is background or beyond the image.
+pub fn rim_distance(mask: &[u8], w: usize, h: usize) -> Vec<u8> {
+    let mut d = vec![0u8; w * h];
+    // The bounding box of the object, grown by the ring of background around it.
+    let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
+    for (y, row) in mask.chunks_exact(w.max(1)).enumerate().take(h) {
+        if let (Some(a), Some(b)) = (row.iter().position(|&v| v != 0), row.iter().rposition(|&v| v != 0)) {
+            (x0, x1, y0, y1) = (x0.min(a), x1.max(b), y0.min(y), y1.max(y));
+        }
+    }
+    if x0 > x1 {
+        return d;
+    }
+    let (x0, x1, y0, y1) = (x0.saturating_sub(1), (x1 + 1).min(w - 1), y0.saturating_sub(1), (y1 + 1).min(h - 1));
+    for y in y0..=y1 {
+        for x in x0..=x1 {
+            d[y * w + x] = if mask[y * w + x] != 0 { u8::MAX } else { 0 };
+        }
+    }
+    // A neighbour beyond the box is beyond the image (never background) or background in
+    // the box's ring, which is nearer: only the box's pixels are read.
+    let (xs, ys) = (x0 as isize..=x1 as isize, y0 as isize..=y1 as isize);
+    let at = |d: &[u8], x: isize, y: isize| if xs.contains(&x) && ys.contains(&y) { d[y as usize * w + x as usize] } else { u8::MAX };
+    for y in y0..=y1 {
+        for x in x0..=x1 {
+            let (xi, yi) = (x as isize, y as isize);
+            let i = y * w + x;
+            if d[i] != 0 {
+                let m = at(&d, xi - 1, yi).min(at(&d, xi - 1, yi - 1)).min(at(&d, xi, yi - 1)).min(at(&d, xi + 1, yi - 1));
+                d[i] = d[i].min(m.saturating_add(1));
+            }
+        }
+    }
+    for y in (y0..=y1).rev() {
+        for x in (x0..=x1).rev() {
+            let (xi, yi) = (x as isize, y as isize);
+            let i = y * w + x;
+            if d[i] != 0 {
+                let m = at(&d, xi + 1, yi).min(at(&d, xi + 1, yi + 1)).min(at(&d, xi, yi + 1)).min(at(&d, xi - 1, yi + 1));
+                d[i] = d[i].min(m.saturating_add(1));
+            }
+        }
+    }
+    d
+}
+
 /// Square dilation (`dilate = true`) or erosion of a 0/255 mask, separable: the OR (AND) of
 /// the 2·radius + 1 pixels along each row, then down each column. Only pixels inside the image
 /// count, so an object touching the border is not eaten by the erosion. Each step combines

@@ -303,3 +303,50 @@ fn the_rim_is_the_silhouette_s_not_the_image_edge_s() {
     assert!((0..h).all(|y| !kept(&inner, 32, y)), "a bar 5 px wide goes at 3");
     assert_eq!(inside_rim(&mask, w, h, 0), mask);
 }
+
+/// The distance map is the erosion's: a pixel survives `inside_rim(k)` exactly where its
+/// distance is over `k`, on random blobs that touch every edge of the image and on the
+/// block and bar above; an image of object alone is all 255, and the background 0.
+#[test]
+fn the_rim_distance_is_what_the_erosions_leave() {
+    let (w, h) = (53, 41);
+    let mut seed = 0x2545_f491_4f6c_dd1d_u64;
+    let mut rnd = move |n: usize| {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed >> 33) as usize % n
+    };
+    for round in 0..40 {
+        let mut mask = vec![0u8; w * h];
+        for _ in 0..1 + round % 6 {
+            let (cx, cy, r) = (rnd(w) as isize, rnd(h) as isize, 2 + rnd(14) as isize);
+            for y in 0..h as isize {
+                for x in 0..w as isize {
+                    if (x - cx).pow(2) + 2 * (y - cy).pow(2) <= r * r {
+                        mask[y as usize * w + x as usize] = 255;
+                    }
+                }
+            }
+        }
+        let d = rim_distance(&mask, w, h);
+        for (i, (&m, &v)) in mask.iter().zip(&d).enumerate() {
+            assert_eq!(m == 0, v == 0, "round {round}: pixel {i} is background exactly where its distance is 0");
+        }
+        for k in 0..12 {
+            let inner = inside_rim(&mask, w, h, k);
+            for (i, (&e, &v)) in inner.iter().zip(&d).enumerate() {
+                assert_eq!(e != 0, v as usize > k, "round {round}, erosion {k}: pixel {i} (distance {v})");
+            }
+        }
+    }
+    assert!(rim_distance(&vec![255u8; w * h], w, h).iter().all(|&v| v == 255), "no silhouette: nothing is near one");
+    assert!(rim_distance(&vec![0u8; w * h], w, h).iter().all(|&v| v == 0));
+    // A block cut by the image's left edge: measured from its other three sides only.
+    let mut mask = vec![0u8; w * h];
+    for y in 5..25 {
+        mask[y * w..y * w + 20].fill(255);
+    }
+    let d = rim_distance(&mask, w, h);
+    assert_eq!((d[15 * w], d[15 * w + 19], d[5 * w + 3], d[15 * w + 10]), (10, 1, 1, 10));
+}

@@ -7,10 +7,19 @@ use crate::cloud::PointCloud;
 /// Triangulates every pixel with a disparity. `colors` is the rectified left image as
 /// interleaved RGB (same size as the map). Points are in millimetres in the left raw camera
 /// frame (`left_from_rectleft = R1ᵀ`); pixels whose point falls behind the camera are skipped.
-/// With `inner` (one byte per pixel), also the cloud of the pixels where it is not 0 (the
-/// view less the silhouette's rim: [`crate::segment::inside_rim`]). Both in pixel order.
-pub fn triangulate(disp: &DisparityMap, rect: &Rectification, colors: &[u8], inner: Option<&[u8]>) -> (PointCloud, Option<PointCloud>) {
-    let (mut cloud, mut kept) = (PointCloud::default(), inner.map(|_| PointCloud::default()));
+/// With `rim` — each pixel's distance inside the object's silhouette
+/// ([`crate::segment::rim_distance`]) and a width `cut` — every point carries its pixel's
+/// distance ([`PointCloud::rim_px`]), and where `cut` is over 0 there is also the cloud of the
+/// pixels more than `cut` inside (the view less the silhouette's rim, as
+/// [`crate::segment::inside_rim`] leaves it). Both in pixel order.
+pub fn triangulate(disp: &DisparityMap, rect: &Rectification, colors: &[u8], rim: Option<(&[u8], usize)>) -> (PointCloud, Option<PointCloud>) {
+    let (mut cloud, mut kept) = (PointCloud::default(), rim.filter(|r| r.1 > 0).map(|_| PointCloud::default()));
+    if rim.is_some() {
+        cloud.rim_px = Some(Vec::new());
+        if let Some(k) = kept.as_mut() {
+            k.rim_px = Some(Vec::new());
+        }
+    }
     let left_from_rect: [[f64; 3]; 3] = rect.r1.transpose().into();
     let q: [[f64; 4]; 4] = rect.q.into();
     // One pass to count, so that the clouds grow once.
@@ -28,10 +37,12 @@ pub fn triangulate(disp: &DisparityMap, rect: &Rectification, colors: &[u8], inn
             let (point, color) = ([p[0] as f32, p[1] as f32, p[2] as f32], [colors[3 * i], colors[3 * i + 1], colors[3 * i + 2]]);
             cloud.points.push(point);
             cloud.colors.push(color);
-            if let (Some(kept), Some(inner)) = (kept.as_mut(), inner) {
-                if inner[i] != 0 {
+            if let Some((dist, cut)) = rim {
+                cloud.rim_px.as_mut().unwrap().push(dist[i]);
+                if let Some(kept) = kept.as_mut().filter(|_| dist[i] as usize > cut) {
                     kept.points.push(point);
                     kept.colors.push(color);
+                    kept.rim_px.as_mut().unwrap().push(dist[i]);
                 }
             }
         }

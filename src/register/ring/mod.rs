@@ -644,7 +644,7 @@ impl Registrar {
             }
         }
         for (k, pts) in &block {
-            let cloud = PointCloud { points: pts.clone(), colors: Vec::new(), normals: None };
+            let cloud = PointCloud { points: pts.clone(), colors: Vec::new(), normals: None, rim_px: None };
             self.model.add(&cloud, &self.poses[*k].first_from_view);
         }
         outcome

@@ -22,7 +22,7 @@ fn view(deg: f64, axis: (Vector3<f64>, Vector3<f64>)) -> PointCloud {
             points.push([p.x as f32, p.y as f32, p.z as f32]);
         }
     }
-    PointCloud { colors: vec![[128; 3]; points.len()], points, normals: None }
+    PointCloud { colors: vec![[128; 3]; points.len()], points, normals: None, rim_px: None }
 }
 
 /// A registrar with `params` and ICP's pairs within 8 mm (the synthetic views' steps).
@@ -90,7 +90,7 @@ fn egg_view(deg: f64, axis: (Vector3<f64>, Vector3<f64>)) -> PointCloud {
             }
         }
     }
-    PointCloud { colors: vec![[128; 3]; points.len()], points, normals: None }
+    PointCloud { colors: vec![[128; 3]; points.len()], points, normals: None, rim_px: None }
 }
 
 /// A turntable that reports no angles (`table_deg` null): every step starts from the identity,
@@ -167,7 +167,7 @@ fn vase_view(deg: f64, axis: (Vector3<f64>, Vector3<f64>)) -> PointCloud {
             }
         }
     }
-    PointCloud { colors: vec![[128; 3]; points.len()], points, normals: None }
+    PointCloud { colors: vec![[128; 3]; points.len()], points, normals: None, rim_px: None }
 }
 
 /// A block step onto the model cannot see a vase turn either; once the table's steps about
