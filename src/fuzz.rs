@@ -101,6 +101,7 @@ pub fn ply(data: &[u8]) {
             let n = mesh.cloud.points.len();
             assert!(mesh.cloud.colors.is_empty() || mesh.cloud.colors.len() == n);
             assert!(mesh.cloud.normals.as_ref().is_none_or(|v| v.len() == n));
+            assert!(mesh.cloud.rim_px.as_ref().is_none_or(|v| v.len() == n));
             assert!(mesh.triangles.iter().flatten().all(|&i| (i as usize) < n), "a face refers to a vertex outside 0…{n}");
         }
         Err(e) => names_the_file(&e, "in.ply"),

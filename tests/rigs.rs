@@ -138,6 +138,16 @@ fn the_views_leave_out_the_silhouette_s_rim() {
         let at = |d: &serde_json::Value, q: &str| d[q].as_f64().unwrap();
         assert!(at(dt, "median") <= at(dk, "median") && at(dt, "p95") < 0.9 * at(dk, "p95"), "{dk} → {dt}");
     }
+    // Each point of a view's PLY carries its pixel's distance inside the silhouette, which
+    // the fusion weighs by: none on the background, none inside a trimmed rim, and with the
+    // rim kept, some near the silhouette, weighed down.
+    for (out, least) in [("out-kept", 1u8), ("out-trimmed", 4)] {
+        let cloud = spinscan::io::ply::read_ply(&dir.join(out).join("views").join("000000.ply")).unwrap().cloud;
+        let rim = cloud.rim_px.expect("the view's PLY has rim_px");
+        assert_eq!(rim.len(), cloud.points.len());
+        assert_eq!(rim.iter().min(), Some(&least), "{out}");
+    }
+    assert!(kept["registration"]["mesh"]["rim_weighed_points"].as_u64().unwrap() > 300, "{}", kept["registration"]["mesh"]);
 }
 
 /// A rig whose right camera sits left of the left one (negative disparities, as on the XIMEA
