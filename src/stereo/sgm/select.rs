@@ -282,17 +282,21 @@ impl Sgm {
         let (win_best, win_k, win_rival) = (&mut self.win_best[..w], &mut self.win_k[..w], &mut self.win_rival[..w]);
         let mut x = span.start;
         while x < span.end {
-            // Sixteen pixels of one-block bands at once, in the vector lanes (their sums lie
-            // one after the other). (The first pixel's band is tested alone first: at full
-            // range it is wider.)
+            // Sixteen pixels of one-block or of two-block bands at once, in the vector lanes
+            // (their sums lie one after the other). (The first pixel's band is tested alone
+            // first: at full range it is wider.)
             #[cfg(target_arch = "x86_64")]
-            if AVX2 && x + LANES <= span.end && band_m[x] as usize == LANES && band_m[x..x + LANES].iter().all(|&m| m as usize == LANES) {
+            if AVX2 && x + LANES <= span.end && matches!(band_m[x] as usize / LANES, 1 | 2) && band_m[x..x + LANES].iter().all(|&m| m == band_m[x]) {
                 let jlo: [u16; LANES] = std::array::from_fn(|i| lo_row[x + i] - band_a[x + i]);
                 let jhi: [u16; LANES] = std::array::from_fn(|i| hi_row[x + i] - band_a[x + i]);
+                let m = band_m[x] as usize;
                 // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the
-                // sixteen bands are one block each, so their sums are LANES · LANES in a row,
-                // and each interval lies inside its block.
-                let (best, at, rival) = unsafe { super::simd::select_blocks(&sum[off_row[x]..][..LANES * LANES], &jlo, &jhi, uniq > 0) };
+                // sixteen bands are `m` sums each (one or two blocks), so their sums are
+                // LANES · m in a row, and each interval lies inside its band.
+                let (best, at, rival) = unsafe {
+                    let s = &sum[off_row[x]..][..LANES * m];
+                    if m == LANES { super::simd::select_blocks::<1>(s, &jlo, &jhi, uniq > 0) } else { super::simd::select_blocks::<2>(s, &jlo, &jhi, uniq > 0) }
+                };
                 win_best[x..x + LANES].copy_from_slice(&best);
                 win_rival[x..x + LANES].copy_from_slice(&rival);
                 for i in 0..LANES {
@@ -419,18 +423,23 @@ mod tests {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") {
             let mut next = crate::testing::xorshift(0x2545_f491_4f6c_dd1d);
-            for case in 0..500 {
+            for case in 0..1000 {
+                // One-block bands, then two-block ones.
+                let m = (1 + case % 2) * LANES;
                 // Few distinct values, so that ties and equal rivals are common.
-                let s: Vec<u16> = (0..LANES * LANES).map(|_| (next() % 5) as u16 * 100 + 40).collect();
-                let jlo: [u16; LANES] = std::array::from_fn(|_| (next() % LANES as u64) as u16);
-                let jhi: [u16; LANES] = std::array::from_fn(|i| jlo[i] + (next() % (LANES as u64 - jlo[i] as u64)) as u16);
+                let s: Vec<u16> = (0..LANES * m).map(|_| (next() % 5) as u16 * 100 + 40).collect();
+                let jlo: [u16; LANES] = std::array::from_fn(|_| (next() % m as u64) as u16);
+                let jhi: [u16; LANES] = std::array::from_fn(|i| jlo[i] + (next() % (m as u64 - jlo[i] as u64)) as u16);
                 for rival in [true, false] {
-                    // SAFETY: the CPU has AVX2 (checked above); 16 × 16 sums, intervals inside a block.
-                    let (best, at, second) = unsafe { crate::stereo::sgm::simd::select_blocks(&s, &jlo, &jhi, rival) };
+                    // SAFETY: the CPU has AVX2 (checked above); 16 bands of `m` sums, the
+                    // intervals inside them.
+                    let (best, at, second) = unsafe {
+                        if m == LANES { crate::stereo::sgm::simd::select_blocks::<1>(&s, &jlo, &jhi, rival) } else { crate::stereo::sgm::simd::select_blocks::<2>(&s, &jlo, &jhi, rival) }
+                    };
                     for i in 0..LANES {
                         let a = 3 * LANES;
-                        let want = select::<true>(&s[i * LANES..][..LANES], a, a + jlo[i] as usize, a + jhi[i] as usize, rival);
-                        assert_eq!((best[i], a + at[i] as usize, second[i]), want, "case {case}, pixel {i}, rival {rival}");
+                        let want = select::<true>(&s[i * m..][..m], a, a + jlo[i] as usize, a + jhi[i] as usize, rival);
+                        assert_eq!((best[i], a + at[i] as usize, second[i]), want, "case {case}, {m} sums a pixel, pixel {i}, rival {rival}");
                     }
                 }
             }

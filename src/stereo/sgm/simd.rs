@@ -236,28 +236,24 @@ pub(super) unsafe fn select_block(s: &[u16], a: usize, lo: usize, hi: usize, riv
     (best, a + j as usize, hmin(_mm256_or_si256(vm, near)))
 }
 
-/// [`select_block`] for sixteen consecutive pixels with one-block bands, their sums one
-/// after the other (`s`: pixel i's [`LANES`] sums at `LANES · i`), the pixels in the lanes:
-/// per pixel the smallest sum over block indices `jlo[i] ..= jhi[i]`, the first index holding
-/// it and, with `rival`, the smallest sum outside that index ± 1 (else `u16::MAX`) — what
-/// `select_block` gives each pixel. The sums are transposed in registers (disparity `j` of
-/// every pixel in one vector), and the minimum, its index and the rival are vertical
-/// operations: no horizontal minimum and no chain of dependent steps per pixel.
+/// [`select_block`] for sixteen consecutive pixels whose bands are `B` blocks each, their
+/// sums one after the other (`s`: pixel i's `B · LANES` sums at `B · LANES · i`), the pixels
+/// in the lanes: per pixel the smallest sum over indices `jlo[i] ..= jhi[i]` of its band, the
+/// first index holding it and, with `rival`, the smallest sum outside that index ± 1 (else
+/// `u16::MAX`) — what `select_block` gives each pixel for one block, and the scalar
+/// selection for more. Each block's sums are transposed in registers (disparity `j` of every
+/// pixel in one vector), and the minimum, its index and the rival are vertical operations:
+/// no horizontal minimum and no chain of dependent steps per pixel.
 ///
 /// # Safety
-/// The CPU supports AVX2; `s` holds `LANES · LANES` sums; `jlo[i] ≤ jhi[i] < LANES`.
+/// The CPU supports AVX2; `s` holds `B · LANES · LANES` sums; `jlo[i] ≤ jhi[i] < B · LANES`.
 #[target_feature(enable = "avx2")]
 #[inline]
-pub(super) unsafe fn select_blocks(s: &[u16], jlo: &[u16; LANES], jhi: &[u16; LANES], rival: bool) -> ([u16; LANES], [u16; LANES], [u16; LANES]) {
-    assert!(s.len() == LANES * LANES);
+pub(super) unsafe fn select_blocks<const B: usize>(s: &[u16], jlo: &[u16; LANES], jhi: &[u16; LANES], rival: bool) -> ([u16; LANES], [u16; LANES], [u16; LANES]) {
+    assert!(s.len() == B * LANES * LANES);
     let ones = _mm256_set1_epi16(-1);
-    // SAFETY: LANES u16 at each of the 16 rows, asserted above.
-    let row = |i: usize| unsafe { _mm256_loadu_si256(s.as_ptr().add(i * LANES) as *const __m256i) };
-    // Rows i and i + 8 side by side, low halves (indices 0–7) and high halves (8–15); an
-    // 8 × 8 transpose inside each 128-bit lane then gives index j of rows 0–7 in the low lane
-    // and of rows 8–15 in the high lane: disparity j of all sixteen pixels.
-    let low: [__m256i; 8] = std::array::from_fn(|i| _mm256_permute2x128_si256::<0x20>(row(i), row(i + 8)));
-    let high: [__m256i; 8] = std::array::from_fn(|i| _mm256_permute2x128_si256::<0x31>(row(i), row(i + 8)));
+    // SAFETY: LANES u16 of block `b` of pixel `i`, inside `s` (asserted above).
+    let row = |b: usize, i: usize| unsafe { _mm256_loadu_si256(s.as_ptr().add((i * B + b) * LANES) as *const __m256i) };
     let transpose = |x: [__m256i; 8]| -> [__m256i; 8] {
         let a: [__m256i; 8] = std::array::from_fn(|k| {
             let (p, q) = (x[k / 2 * 2], x[k / 2 * 2 + 1]);
@@ -274,8 +270,14 @@ pub(super) unsafe fn select_blocks(s: &[u16], jlo: &[u16; LANES], jhi: &[u16; LA
             if j % 2 == 0 { _mm256_unpacklo_epi64(p, q) } else { _mm256_unpackhi_epi64(p, q) }
         })
     };
-    let (v_low, v_high) = (transpose(low), transpose(high));
-    let v = |j: usize| if j < 8 { v_low[j] } else { v_high[j - 8] };
+    // Per block: rows i and i + 8 side by side, low halves (indices 0–7) and high halves
+    // (8–15); an 8 × 8 transpose inside each 128-bit lane then gives index j of rows 0–7 in
+    // the low lane and of rows 8–15 in the high lane: disparity j of all sixteen pixels.
+    let v: [[__m256i; LANES]; B] = std::array::from_fn(|b| {
+        let low = transpose(std::array::from_fn(|i| _mm256_permute2x128_si256::<0x20>(row(b, i), row(b, i + 8))));
+        let high = transpose(std::array::from_fn(|i| _mm256_permute2x128_si256::<0x31>(row(b, i), row(b, i + 8))));
+        std::array::from_fn(|j| if j < 8 { low[j] } else { high[j - 8] })
+    });
     // SAFETY: arrays of LANES u16.
     let (lo_m1, hi_p1) = unsafe {
         let (l, h) = (_mm256_loadu_si256(jlo.as_ptr() as *const __m256i), _mm256_loadu_si256(jhi.as_ptr() as *const __m256i));
@@ -286,10 +288,10 @@ pub(super) unsafe fn select_blocks(s: &[u16], jlo: &[u16; LANES], jhi: &[u16; LA
     let inside = |j: usize| {
         let jv = _mm256_set1_epi16(j as i16);
         let keep = _mm256_and_si256(_mm256_cmpgt_epi16(jv, lo_m1), _mm256_cmpgt_epi16(hi_p1, jv));
-        _mm256_or_si256(v(j), _mm256_andnot_si256(keep, ones))
+        _mm256_or_si256(v[j / LANES][j % LANES], _mm256_andnot_si256(keep, ones))
     };
     let (mut best, mut at) = (ones, _mm256_setzero_si256());
-    for j in 0..LANES {
+    for j in 0..B * LANES {
         let vj = inside(j);
         // Strictly below the best so far (max(v, best) = v means v ≥ best): the first
         // index of the minimum is kept.
@@ -300,7 +302,7 @@ pub(super) unsafe fn select_blocks(s: &[u16], jlo: &[u16; LANES], jhi: &[u16; LA
     let mut second = ones;
     if rival {
         let (near_lo, near_hi) = (_mm256_sub_epi16(at, _mm256_set1_epi16(2)), _mm256_add_epi16(at, _mm256_set1_epi16(2)));
-        for j in 0..LANES {
+        for j in 0..B * LANES {
             let jv = _mm256_set1_epi16(j as i16);
             let near = _mm256_and_si256(_mm256_cmpgt_epi16(jv, near_lo), _mm256_cmpgt_epi16(near_hi, jv));
             second = _mm256_min_epu16(second, _mm256_or_si256(inside(j), near));
