@@ -128,32 +128,10 @@ impl Region {
         r.unwrap_or_default()
     }
 
-    /// The bounding box of the non-zero bytes of a row-major `w`-wide mask.
+    /// The bounding box of the non-zero bytes of a row-major `w`-wide mask
+    /// ([`crate::segment::mask_bounds`]).
     fn mask_bbox(mask: &[u8], w: usize) -> Option<Region> {
-        let mut r: Option<Region> = None;
-        for (y, row) in mask.chunks_exact(w).enumerate() {
-            // Whole-row test first, eight bytes at a time: most rows hold none.
-            let (words, rest) = row.split_at(w / 8 * 8);
-            let any = words.chunks_exact(8).fold(0u64, |a, c| a | u64::from_le_bytes(c.try_into().expect("8 bytes"))) | rest.iter().fold(0u64, |a, &v| a | v as u64);
-            if any == 0 {
-                continue;
-            }
-            // From each end, eight bytes at a time to the first word holding a set byte.
-            let first = match row.chunks_exact(8).position(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")) != 0) {
-                Some(c) => c * 8 + row[c * 8..].iter().position(|&v| v != 0).expect("one in the word"),
-                None => row.len() / 8 * 8 + rest.iter().position(|&v| v != 0).expect("one in the rest"),
-            };
-            let last = match rest.iter().rposition(|&v| v != 0) {
-                Some(k) => row.len() / 8 * 8 + k,
-                None => {
-                    let c = words.rchunks_exact(8).position(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")) != 0).expect("one in the words");
-                    let end = words.len() - c * 8;
-                    words[..end].iter().rposition(|&v| v != 0).expect("one in the word")
-                }
-            } + 1;
-            r = Some(Region::extended(r, first..last, y));
-        }
-        r
+        crate::segment::mask_bounds(mask, w).map(|(xs, ys)| Region { x0: xs.start, x1: xs.end, y0: ys.start, y1: ys.end })
     }
 
     /// A bounding box built row by row, top to bottom: `r` grown to hold `xs` of row `y`.

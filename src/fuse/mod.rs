@@ -244,10 +244,6 @@ impl Tsdf {
         let depth_ref = self.params.depth_ref_mm as f32;
         let rim = cloud.rim_px.as_deref().filter(|r| r.len() == cloud.len() && self.params.rim_weight_px > 0.0);
         let rim_scale = 1.0 / (self.params.rim_weight_px as f32 + 1.0);
-        if let Some(r) = rim {
-            let width = self.params.rim_weight_px;
-            self.rim_weighed += r.iter().zip(&cloud.points).filter(|&(&d, p)| usable(p) && (d as f64) <= width).count();
-        }
         // The block of the last voxel touched: consecutive samples of a ray mostly share it.
         let mut last: Option<([i32; 3], usize)> = None;
         // The points of the view that land in one voxel are merged first (weighted mean
@@ -276,7 +272,9 @@ impl Tsdf {
             let (mut w, mut pv, mut rgb) = (0f32, nalgebra::Vector3::zeros(), [0f32; 3]);
             for &(_, i) in &order[k..k + run] {
                 let p = &cloud.points[i as usize];
-                let wi = (depth_ref / p[2]).powi(4) * rim.map_or(1.0, |r| rim_weight(r[i as usize], rim_scale));
+                let wr = rim.map_or(1.0, |r| rim_weight(r[i as usize], rim_scale));
+                self.rim_weighed += (wr < 1.0) as usize;
+                let wi = (depth_ref / p[2]).powi(4) * wr;
                 w += wi;
                 pv += nalgebra::Vector3::new(p[0], p[1], p[2]) * wi;
                 let c = cloud.colors.get(i as usize).map_or([200.0; 3], |c| [c[0] as f32, c[1] as f32, c[2] as f32]);

@@ -421,6 +421,39 @@ pub fn inside_rim(mask: &[u8], w: usize, h: usize, px: usize) -> Vec<u8> {
     inner
 }
 
+/// The bounding box of the non-zero bytes of a row-major `w`-wide mask: its columns and rows
+/// (half-open), `None` where every byte is 0.
+pub fn mask_bounds(mask: &[u8], w: usize) -> Option<(std::ops::Range<usize>, std::ops::Range<usize>)> {
+    let mut r: Option<(std::ops::Range<usize>, std::ops::Range<usize>)> = None;
+    for (y, row) in mask.chunks_exact(w).enumerate() {
+        // Whole-row test first, eight bytes at a time: most rows hold none.
+        let (words, rest) = row.split_at(w / 8 * 8);
+        let any = words.chunks_exact(8).fold(0u64, |a, c| a | u64::from_le_bytes(c.try_into().expect("8 bytes"))) | rest.iter().fold(0u64, |a, &v| a | v as u64);
+        if any == 0 {
+            continue;
+        }
+        // From each end, eight bytes at a time to the first word holding a set byte.
+        let first = match row.chunks_exact(8).position(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")) != 0) {
+            Some(c) => c * 8 + row[c * 8..].iter().position(|&v| v != 0).expect("one in the word"),
+            None => row.len() / 8 * 8 + rest.iter().position(|&v| v != 0).expect("one in the rest"),
+        };
+        let last = match rest.iter().rposition(|&v| v != 0) {
+            Some(k) => row.len() / 8 * 8 + k,
+            None => {
+                let c = words.rchunks_exact(8).position(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")) != 0).expect("one in the words");
+                let end = words.len() - c * 8;
+                words[..end].iter().rposition(|&v| v != 0).expect("one in the word")
+            }
+        } + 1;
+        // Grown row by row, top to bottom.
+        r = Some(match r {
+            None => (first..last, y..y + 1),
+            Some((xs, ys)) => (xs.start.min(first)..xs.end.max(last), ys.start..y + 1),
+        });
+    }
+    r
+}
+
 /// How far inside the object's silhouette each pixel of a mask (255 = object) lies, pixels:
 /// the Chebyshev distance (a square neighbourhood, as [`inside_rim`] erodes) to the nearest
 /// background pixel inside the image, capped at 255; 0 on the background. So a pixel
@@ -435,16 +468,8 @@ pub fn inside_rim(mask: &[u8], w: usize, h: usize, px: usize) -> Vec<u8> {
 pub fn rim_distance(mask: &[u8], w: usize, h: usize) -> Vec<u8> {
     let mut d = vec![0u8; w * h];
     // The bounding box of the object, grown by the ring of background around it.
-    let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
-    for (y, row) in mask.chunks_exact(w.max(1)).enumerate().take(h) {
-        if let (Some(a), Some(b)) = (row.iter().position(|&v| v != 0), row.iter().rposition(|&v| v != 0)) {
-            (x0, x1, y0, y1) = (x0.min(a), x1.max(b), y0.min(y), y1.max(y));
-        }
-    }
-    if x0 > x1 {
-        return d;
-    }
-    let (x0, x1, y0, y1) = (x0.saturating_sub(1), (x1 + 1).min(w - 1), y0.saturating_sub(1), (y1 + 1).min(h - 1));
+    let Some((xs, ys)) = mask_bounds(&mask[..w * h], w.max(1)) else { return d };
+    let (x0, x1, y0, y1) = (xs.start.saturating_sub(1), xs.end.min(w - 1), ys.start.saturating_sub(1), ys.end.min(h - 1));
     // The box in a buffer with a frame of 255 around it: a neighbour beyond the box is
     // beyond the image (never background) or background of the box's ring, which is nearer.
     let (bw, bh) = (x1 - x0 + 1, y1 - y0 + 1);
