@@ -9,13 +9,20 @@ timed over integrate + extract_triangle_mesh only. Same voxel size (mm), same tr
 same thread count (OMP_NUM_THREADS, set before Open3D loads; spinscan's fusion runs on one
 thread).
 
-    ../.venv-peers/bin/python bench/tsdf_open3d.py RESULTS_DIR --calib REC/calib.yaml \
-        [--voxel-mm 1] [--truncation-voxels 4] [--threads 1] [--spinscan target/release/spinscan]
+    bash bench/setup-open3d.sh          # ../.venv-open3d: Open3D 0.19.0 (see below)
+    ../.venv-open3d/bin/python bench/tsdf_open3d.py RESULTS_DIR --calib REC/calib.yaml \
+        [--voxel-mm 1] [--truncation-voxels 4] [--threads 1] [--spinscan target/release/spinscan] \
+        [--save-open3d OPEN3D.ply]
+
+Open3D 0.20.0's pip wheel (the one ../shared/bench/setup.sh installs) returns an empty
+ScalableTSDFVolume on the lab's machines; 0.19.0's integrates. Run with 0.20.0, the script
+falls back to a dense UniformTSDFVolume over the object and says so in "volume".
 """
 import argparse
 import json
 import os
 import re
+import resource
 import subprocess
 import sys
 import tempfile
@@ -41,11 +48,8 @@ def main():
     ap.add_argument("--truncation-voxels", type=float, default=4.0)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--spinscan", default="target/release/spinscan")
+    ap.add_argument("--save-open3d", metavar="PLY", help="write Open3D's mesh here, to compare the two surfaces")
     a = ap.parse_args()
-    os.environ["OMP_NUM_THREADS"] = str(a.threads)
-    import numpy as np
-    import open3d as o3d
-
     m1, w, h = read_m1(a.calib)
     fx, cx, fy, cy = m1[0], m1[2], m1[4], m1[5]
     poses = [json.loads(l) for l in open(os.path.join(a.results, "poses.jsonl")) if l.strip()]
@@ -55,6 +59,12 @@ def main():
         out = subprocess.run([a.spinscan, "mesh", a.results, "-o", os.path.join(tmp, "m.ply"), "--voxel-mm", str(a.voxel_mm),
                               "--truncation-voxels", str(a.truncation_voxels)], capture_output=True, text=True, check=True)
     ours = json.loads(out.stdout.strip().splitlines()[-1])
+    # The largest resident set of the children so far: `spinscan mesh`'s, reading included
+    # (run before NumPy and Open3D load, whose pages a forked child would count as its own).
+    ours_rss_mib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    os.environ["OMP_NUM_THREADS"] = str(a.threads)
+    import numpy as np
+    import open3d as o3d
     ours_s = (ours["fuse_ms"] + ours["extract_ms"]) / 1e3
 
     # Open3D's images, made outside its timing.
@@ -94,9 +104,9 @@ def main():
     integrate_s, extract_s, mesh = run(integration.ScalableTSDFVolume(voxel_length=a.voxel_mm, sdf_trunc=trunc, color_type=integration.TSDFVolumeColorType.RGB8))
     if len(mesh.vertices) == 0:
         # Open3D 0.20.0's pip wheel returns an empty ScalableTSDFVolume (and VoxelBlockGrid)
-        # on this lab's machines, even for a synthetic slanted plane: the dense
-        # UniformTSDFVolume over spinscan's mesh's bounding box (plus the band) stands in, and
-        # the output says so.
+        # on this lab's machines, even for a synthetic slanted plane (0.19.0's does not:
+        # bench/setup-open3d.sh): the dense UniformTSDFVolume over spinscan's mesh's
+        # bounding box (plus the band) stands in, and the output says so.
         ours_mesh = o3d.io.read_triangle_mesh(os.path.join(a.results, "mesh.ply"))
         lo, hi = ours_mesh.get_min_bound() - 2 * trunc, ours_mesh.get_max_bound() + 2 * trunc
         length = float((hi - lo).max())
@@ -105,10 +115,13 @@ def main():
         integrate_s, extract_s, mesh = run(integration.UniformTSDFVolume(length=res * a.voxel_mm, resolution=res, sdf_trunc=trunc,
                                                                           color_type=integration.TSDFVolumeColorType.RGB8, origin=lo.reshape(3, 1)))
     theirs_s = integrate_s + extract_s
+    if a.save_open3d:
+        o3d.io.write_triangle_mesh(a.save_open3d, mesh)
     print(json.dumps({
         "views": len(poses), "voxel_mm": a.voxel_mm, "truncation_voxels": a.truncation_voxels, "threads": a.threads,
         "spinscan": {"fuse_s": ours["fuse_ms"] / 1e3, "extract_s": ours["extract_ms"] / 1e3, "total_s": ours_s,
-                     "vertices": ours["vertices"], "triangles": ours["triangles"], "boundary_edges": ours["boundary_edges"]},
+                     "vertices": ours["vertices"], "triangles": ours["triangles"], "boundary_edges": ours["boundary_edges"],
+                     "peak_rss_mib": ours_rss_mib},
         "open3d": {"version": o3d.__version__, "volume": volume, "integrate_s": integrate_s, "extract_s": extract_s, "total_s": theirs_s,
                    "vertices": len(mesh.vertices), "triangles": len(mesh.triangles)},
         "ratio_spinscan_to_open3d": ours_s / theirs_s,
