@@ -6,8 +6,7 @@ timed by its own fuse_ms + extract_ms, PLY reading excluded); Open3D gets one de
 colour image per view, made by projecting that view's points with the left camera matrix of
 the recording's calib.yaml (M1, no distortion: the points are already undistorted), and is
 timed over integrate + extract_triangle_mesh only. Same voxel size (mm), same truncation,
-same thread count (OMP_NUM_THREADS, set before Open3D loads; spinscan's fusion runs on one
-thread).
+same thread count (OMP_NUM_THREADS, set before Open3D loads; `spinscan mesh --threads`).
 
     bash bench/setup-open3d.sh          # ../.venv-open3d: Open3D 0.19.0 (see below)
     ../.venv-open3d/bin/python bench/tsdf_open3d.py RESULTS_DIR --calib REC/calib.yaml \
@@ -57,7 +56,8 @@ def main():
     # spinscan, timed by itself.
     with tempfile.TemporaryDirectory() as tmp:
         out = subprocess.run([a.spinscan, "mesh", a.results, "-o", os.path.join(tmp, "m.ply"), "--voxel-mm", str(a.voxel_mm),
-                              "--truncation-voxels", str(a.truncation_voxels)], capture_output=True, text=True, check=True)
+                              "--truncation-voxels", str(a.truncation_voxels), "--threads", str(a.threads)],
+                             capture_output=True, text=True, check=True)
     ours = json.loads(out.stdout.strip().splitlines()[-1])
     # The largest resident set of the children so far: `spinscan mesh`'s, reading included
     # (run before NumPy and Open3D load, whose pages a forked child would count as its own).

@@ -45,6 +45,10 @@ pub struct MeshArgs {
     /// out and a warning says so.
     #[arg(long, default_value_t = FuseParams::default().max_field_mib)]
     pub max_field_mib: f64,
+    /// Threads the fusion runs on (0: one per core). The mesh is the same whatever the
+    /// count.
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
     /// Also write the mesh's figures (counts, holes filled, times) as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -52,7 +56,7 @@ pub struct MeshArgs {
 
 pub fn cmd_mesh(a: MeshArgs) -> Result<(), Failure> {
     let params = FuseParams { voxel_mm: a.voxel_mm, truncation_voxels: a.truncation_voxels, fill: !a.no_fill, min_component_share: a.min_component_share, max_field_mib: a.max_field_mib, fit_to_sampling: !a.exact_voxel, rim_weight_px: a.rim_weight_px, ..FuseParams::default() };
-    let result = mesh_results(&a.results, params, &a.output, |done, total| progress::show(format!("mesh: fused {done}/{total} views")));
+    let result = mesh_results(&a.results, params, a.threads, &a.output, |done, total| progress::show(format!("mesh: fused {done}/{total} views")));
     progress::finish();
     let (_, about) = result.map_err(|e| match e {
         MeshError::Write(_) => output(e),

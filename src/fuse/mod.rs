@@ -9,11 +9,10 @@
 //! extracted whenever it is asked for ([`Tsdf::mesh`]). The field is additive: integrating
 //! the views again with refined poses into a fresh field is how a refinement is applied.
 
+mod integrate;
 mod mesh;
 
 use std::collections::HashMap;
-
-use nalgebra::Isometry3;
 
 use crate::cloud::PointCloud;
 use crate::register::voxel::VoxelHasher;
@@ -171,7 +170,7 @@ pub struct Tsdf {
     params: FuseParams,
     voxel: f32,
     trunc: f32,
-    index: HashMap<[i32; 3], u32, std::hash::BuildHasherDefault<VoxelHasher>>,
+    index: BlockIndex,
     blocks: Vec<Block>,
     /// Blocks the memory budget allows.
     max_blocks: usize,
@@ -185,6 +184,13 @@ pub struct Tsdf {
     /// The first view's point spacing, mm, once a view with points came (the voxel is
     /// fitted to it then, [`FuseParams::fit_to_sampling`]).
     spacing: Option<f64>,
+    /// Parts a view's integration is split into, run on the current rayon pool (1: all on
+    /// the calling thread); the field is the same for any count (`integrate.rs`).
+    threads: usize,
+    /// The parts' buffers, kept from view to view.
+    parts: Vec<integrate::Part>,
+    /// The sort's scratch, kept from view to view.
+    sort_buffer: Vec<(u64, u32)>,
 }
 
 impl Tsdf {
@@ -194,7 +200,14 @@ impl Tsdf {
         let voxel = params.voxel_mm as f32;
         let trunc = (params.truncation_voxels * params.voxel_mm) as f32;
         let max_blocks = (params.max_field_mib * 1024.0 * 1024.0 / std::mem::size_of::<Block>() as f64) as usize;
-        Ok(Tsdf { params, voxel, trunc, index: HashMap::default(), blocks: Vec::new(), max_blocks, views: 0, points: 0, refused: 0, rim_weighed: 0, spacing: None })
+        Ok(Tsdf { params, voxel, trunc, index: HashMap::default(), blocks: Vec::new(), max_blocks, views: 0, points: 0, refused: 0, rim_weighed: 0, spacing: None, threads: 1, parts: Vec::new(), sort_buffer: Vec::new() })
+    }
+
+    /// Splits each view's integration into `threads` parts run on the current rayon pool
+    /// (0: as many as the pool has threads; 1, the default: the calling thread alone). The
+    /// field, and so the mesh, is the same bit for bit whatever the count.
+    pub fn set_threads(&mut self, threads: usize) {
+        self.threads = if threads == 0 { rayon::current_num_threads() } else { threads };
     }
 
     pub fn params(&self) -> &FuseParams {
@@ -227,104 +240,6 @@ impl Tsdf {
         self.blocks.capacity() * std::mem::size_of::<Block>() + self.index.capacity() * (std::mem::size_of::<[i32; 3]>() + 4 + 8)
     }
 
-    /// Integrates one view: `cloud` in the view's own camera frame (camera centre at the
-    /// origin, +Z forward), placed by `world_from_view`. Each point updates the voxels its
-    /// viewing ray crosses within the truncation band: signed distance along the ray,
-    /// weight (depth_ref / Z)⁴ — times the rim's weight near the silhouette
-    /// ([`FuseParams::rim_weight_px`]) where the cloud carries its points' distances —, colour.
-    pub fn integrate(&mut self, cloud: &PointCloud, world_from_view: &Isometry3<f64>) {
-        // (Only while the field is empty: every voxel has one size.)
-        if self.spacing.is_none() && self.blocks.is_empty() {
-            self.fit_voxel(cloud);
-        }
-        let rot = world_from_view.rotation.to_rotation_matrix().into_inner().cast::<f32>();
-        let t = world_from_view.translation.vector.cast::<f32>();
-        let (voxel, inv_voxel, trunc) = (self.voxel, 1.0 / self.voxel, self.trunc);
-        let steps = (trunc * inv_voxel).ceil() as i32;
-        let depth_ref = self.params.depth_ref_mm as f32;
-        let rim = cloud.rim_px.as_deref().filter(|r| r.len() == cloud.len() && self.params.rim_weight_px > 0.0);
-        let rim_scale = 1.0 / (self.params.rim_weight_px as f32 + 1.0);
-        // The block of the last voxel touched: consecutive samples of a ray mostly share it.
-        let mut last: Option<([i32; 3], usize)> = None;
-        // The points of the view that land in one voxel are merged first (weighted mean
-        // position and colour, summed weight) and cast as one ray, as Voxblox's merged
-        // integrator does: at the lab's sampling several points fall in each surface voxel,
-        // and their rays would update the same voxels alike. Sorted by block, then voxel, the
-        // rays come block by block, while the block and its neighbours are in cache.
-        let mut order: Vec<(u64, u32)> = cloud
-            .points
-            .iter()
-            .enumerate()
-            .filter(|(_, p)| usable(p))
-            .map(|(i, p)| {
-                let q = rot * nalgebra::Vector3::new(p[0], p[1], p[2]) + t;
-                // The block's coordinates (18 bits each), then the voxel inside the block.
-                let g = grid_index(&q, inv_voxel);
-                let b = block_key(g).map(|v| ((v as i64 + (1 << 17)) as u64) & ((1 << 18) - 1));
-                (b[2] << 45 | b[1] << 27 | b[0] << 9 | local(g) as u64, i as u32)
-            })
-            .collect();
-        order.sort_unstable_by_key(|e| e.0);
-        let used = order.len();
-        let mut k = 0;
-        while k < order.len() {
-            let run = order[k..].iter().take_while(|e| e.0 == order[k].0).count();
-            let (mut w, mut pv, mut rgb) = (0f32, nalgebra::Vector3::zeros(), [0f32; 3]);
-            for &(_, i) in &order[k..k + run] {
-                let p = &cloud.points[i as usize];
-                let wr = rim.map_or(1.0, |r| rim_weight(r[i as usize], rim_scale));
-                self.rim_weighed += (wr < 1.0) as usize;
-                let wi = (depth_ref / p[2]).powi(4) * wr;
-                w += wi;
-                pv += nalgebra::Vector3::new(p[0], p[1], p[2]) * wi;
-                let c = cloud.colors.get(i as usize).map_or([200.0; 3], |c| [c[0] as f32, c[1] as f32, c[2] as f32]);
-                for j in 0..3 {
-                    rgb[j] += c[j] * wi;
-                }
-            }
-            k += run;
-            let pv = pv / w;
-            let rgb = rgb.map(|c| c / w);
-            let len = pv.norm();
-            // The point and its ray in the world.
-            let pw = rot * pv + t;
-            let dir = rot * (pv / len);
-            for s in -steps..=steps {
-                let q = pw + dir * (s as f32 * voxel);
-                let g = grid_index(&q, inv_voxel);
-                let centre = nalgebra::Vector3::from(voxel_centre(g, voxel));
-                // Distance from the voxel to the surface along the ray: positive in front.
-                let sdf = (pw - centre).dot(&dir);
-                if sdf < -trunc {
-                    continue;
-                }
-                let sdf = sdf.min(trunc);
-                let key = block_key(g);
-                let b = match last {
-                    Some((k, b)) if k == key => b,
-                    _ => match self.block_of(key) {
-                        Some(b) => {
-                            last = Some((key, b));
-                            b
-                        }
-                        None => {
-                            self.refused += 1;
-                            continue;
-                        }
-                    },
-                };
-                let v = &mut self.blocks[b].voxels[local(g)];
-                v.sdf += sdf * w;
-                v.weight += w;
-                for c in 0..3 {
-                    v.rgb[c] += rgb[c] * w;
-                }
-            }
-        }
-        self.views += 1;
-        self.points += used;
-    }
-
     /// Measures the first view's point spacing (it needs [`MIN_FIT_POINTS`] valid points;
     /// with fewer, the next view's, as long as nothing was fused yet) and, with
     /// `fit_to_sampling`, grows the voxel and the truncation band to [`SAMPLING_VOXELS`]
@@ -348,25 +263,6 @@ impl Tsdf {
     /// The first view's point spacing, mm (None before a view with points came).
     pub fn spacing_mm(&self) -> Option<f64> {
         self.spacing
-    }
-
-    /// The index of block `key`, allocated (unseen) when new; None when it is new and the
-    /// memory budget is spent.
-    fn block_of(&mut self, key: [i32; 3]) -> Option<usize> {
-        if let Some(&b) = self.index.get(&key) {
-            return Some(b as usize);
-        }
-        if self.blocks.len() >= self.max_blocks {
-            return None;
-        }
-        if self.blocks.len() == self.blocks.capacity() {
-            // Doubling, but never past the budget.
-            let extra = self.blocks.capacity().max(16).min(self.max_blocks - self.blocks.len());
-            self.blocks.reserve_exact(extra);
-        }
-        self.index.insert(key, self.blocks.len() as u32);
-        self.blocks.push(Block { voxels: [Sums::default(); VOXELS] });
-        Some(self.blocks.len() - 1)
     }
 
     /// The averages of block `key`'s voxels, and of the first layer of voxels past its high
@@ -417,6 +313,28 @@ impl Tsdf {
     pub fn mesh(&self) -> (SurfaceMesh, MeshStats) {
         mesh::extract(self)
     }
+}
+
+/// The blocks' index.
+type BlockIndex = HashMap<[i32; 3], u32, std::hash::BuildHasherDefault<VoxelHasher>>;
+
+/// The index of block `key` in `blocks`, allocated (unseen) when new; None when it is new
+/// and the memory budget (`max_blocks`) is spent.
+fn block_of(index: &mut BlockIndex, blocks: &mut Vec<Block>, max_blocks: usize, key: [i32; 3]) -> Option<usize> {
+    if let Some(&b) = index.get(&key) {
+        return Some(b as usize);
+    }
+    if blocks.len() >= max_blocks {
+        return None;
+    }
+    if blocks.len() == blocks.capacity() {
+        // Doubling, but never past the budget.
+        let extra = blocks.capacity().max(16).min(max_blocks - blocks.len());
+        blocks.reserve_exact(extra);
+    }
+    index.insert(key, blocks.len() as u32);
+    blocks.push(Block { voxels: [Sums::default(); VOXELS] });
+    Some(blocks.len() - 1)
 }
 
 /// `x.floor() as i32` without a libm call (the baseline x86-64 target has no rounding

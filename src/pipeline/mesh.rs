@@ -20,6 +20,8 @@ pub enum MeshError {
     Params(#[from] crate::fuse::FuseParamsError),
     #[error("{0}")]
     Write(#[from] io::mesh::MeshWriteError),
+    #[error("cannot start the fusion's threads: {0}")]
+    Threads(String),
 }
 
 /// The views of `poses.jsonl` as `(seq, first_from_view)`, in file order.
@@ -43,13 +45,16 @@ pub fn read_poses(path: &Path) -> Result<Vec<(u64, nalgebra::Isometry3<f64>)>, M
     Ok(poses)
 }
 
-/// Fuses the views of results folder `dir` and writes the mesh to `out` (.ply, .obj or
-/// .stl); `progress(done, total)` after every view. Returns the mesh and its figures.
-pub fn mesh_results(dir: &Path, params: FuseParams, out: &Path, mut progress: impl FnMut(usize, usize)) -> Result<(Mesh, Value), MeshError> {
+/// Fuses the views of results folder `dir` on `threads` threads (0: one per core) and
+/// writes the mesh to `out` (.ply, .obj or .stl); `progress(done, total)` after every view.
+/// Returns the mesh and its figures.
+pub fn mesh_results(dir: &Path, params: FuseParams, threads: usize, out: &Path, mut progress: impl FnMut(usize, usize)) -> Result<(Mesh, Value), MeshError> {
     // Checked before the work: an output name that cannot be written fails now.
     io::mesh::MeshFormat::of(out)?;
     let poses = read_poses(&dir.join("poses.jsonl"))?;
     let mut tsdf = Tsdf::new(params)?;
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).thread_name(|i| format!("fuse-{i}")).build().map_err(|e| MeshError::Threads(e.to_string()))?;
+    tsdf.set_threads(pool.current_num_threads());
     let (mut read_ms, mut fuse_ms) = (0.0, 0.0);
     for (k, (seq, pose)) in poses.iter().enumerate() {
         let t = Instant::now();
@@ -57,7 +62,7 @@ pub fn mesh_results(dir: &Path, params: FuseParams, out: &Path, mut progress: im
         let view = io::ply::read_ply(&path).map_err(|e| MeshError::Input { path: path.clone(), what: format!("cannot read the view: {e}") })?;
         read_ms += t.elapsed().as_secs_f64() * 1e3;
         let t = Instant::now();
-        tsdf.integrate(&view.cloud, pose);
+        pool.install(|| tsdf.integrate(&view.cloud, pose));
         fuse_ms += t.elapsed().as_secs_f64() * 1e3;
         progress(k + 1, poses.len());
     }
@@ -68,6 +73,7 @@ pub fn mesh_results(dir: &Path, params: FuseParams, out: &Path, mut progress: im
     let mut about = mesh_json(&tsdf, &stats, extract_ms);
     about["read_ms"] = json!(read_ms);
     about["fuse_ms"] = json!(fuse_ms);
+    about["threads"] = json!(pool.current_num_threads());
     about["file"] = json!(out.display().to_string());
     Ok((mesh, about))
 }

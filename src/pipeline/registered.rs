@@ -112,6 +112,11 @@ pub fn finish_registration(reg: &mut Registrar, results: &mut ResultsWriter, opt
     let mut own = Vec::new();
     // The fused surface, integrated as the views are read (docs/meshing.md).
     let mut tsdf = opts.mesh.clone().map(Tsdf::new).transpose().map_err(|e| ResultsError::Mesh(format!("settings: {e}")))?;
+    // The views come after the last match: the fusion may take every thread of the pool it
+    // runs on (the daemon's registration pool, below the matchers' priority).
+    if let Some(t) = tsdf.as_mut() {
+        t.set_threads(0);
+    }
     let fuse_start = Instant::now();
     // The views' points placed by their true poses: samples of the visible true surface.
     let mut seen = Vec::new();
