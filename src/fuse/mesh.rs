@@ -1,6 +1,6 @@
 //! The zero level set of the fused field as a triangle mesh, then its clean-up.
 //!
-//! Extraction is marching tetrahedra: each cube of eight voxel centres is cut into the six
+//! Extraction is marching tetrahedra (`march.rs`): each cube of eight voxel centres is cut into the six
 //! tetrahedra of its Kuhn triangulation (all around the diagonal from its low to its high
 //! corner, so that neighbouring cubes cut their shared faces alike), and each tetrahedron
 //! whose corners change sign gets one triangle or two. A vertex lies on a grid edge and is
@@ -17,14 +17,14 @@
 
 use std::collections::HashMap;
 
-use super::{near_index, voxel_centre, Tsdf, Voxel, SIDE};
+use super::Tsdf;
 use crate::cloud::{Mesh, PointCloud};
 use crate::disjoint::root;
 use crate::register::voxel::VoxelHasher;
 
 /// A hash map with a fast multiplicative hash (keys are grid and vertex indices, not chosen
 /// by anyone).
-type FastMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<VoxelHasher>>;
+pub(super) type FastMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<VoxelHasher>>;
 
 /// The mesh type the fusion returns: vertices with colours and normals, triangles.
 pub type SurfaceMesh = Mesh;
@@ -55,99 +55,15 @@ pub struct MeshStats {
     pub measured_vertices: usize,
 }
 
-/// Corners of a cube of voxel centres, from its low corner.
-const CORNERS: [[i32; 3]; 8] = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]];
-/// The six tetrahedra of the Kuhn triangulation: every path from corner 0 to corner 6
-/// along the three axes, in each order.
-const TETRAS: [[usize; 4]; 6] = [[0, 1, 2, 6], [0, 3, 2, 6], [0, 3, 7, 6], [0, 4, 7, 6], [0, 4, 5, 6], [0, 1, 5, 6]];
-
-/// A grid index packed into one integer (21 bits a coordinate, offset to be positive).
-fn pack(g: [i32; 3]) -> u64 {
-    const OFF: i64 = 1 << 20;
-    let f = |v: i32| ((v as i64 + OFF) as u64) & ((1 << 21) - 1);
-    f(g[0]) << 42 | f(g[1]) << 21 | f(g[2])
-}
-
-#[derive(Default)]
-struct Builder {
-    points: Vec<[f32; 3]>,
-    colors: Vec<[f32; 3]>,
-    /// The vertex on each grid edge cut, by the edge's two packed ends (low, high).
-    on_edge: FastMap<(u64, u64), u32>,
-    triangles: Vec<[u32; 3]>,
-}
-
-impl Builder {
-    /// The vertex where the field crosses zero between two corners.
-    fn vertex(&mut self, (ia, pa, va): (u64, [f32; 3], Voxel), (ib, pb, vb): (u64, [f32; 3], Voxel)) -> u32 {
-        let key = if ia < ib { (ia, ib) } else { (ib, ia) };
-        if let Some(&v) = self.on_edge.get(&key) {
-            return v;
-        }
-        // Kept off the corners, so that no two vertices coincide and no triangle is
-        // degenerate (a move of at most 1 % of a voxel).
-        let t = (va.sdf / (va.sdf - vb.sdf)).clamp(0.01, 0.99);
-        let lerp = |a: [f32; 3], b: [f32; 3]| [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), a[2] + t * (b[2] - a[2])];
-        let v = self.points.len() as u32;
-        self.points.push(lerp(pa, pb));
-        self.colors.push(lerp(va.rgb, vb.rgb));
-        self.on_edge.insert(key, v);
-        v
-    }
-
-    /// A triangle, wound so that its normal points along `out` (inside to outside).
-    fn triangle(&mut self, mut v: [u32; 3], out: [f32; 3]) {
-        let (a, b, c) = (self.points[v[0] as usize], self.points[v[1] as usize], self.points[v[2] as usize]);
-        let n = cross(sub(b, a), sub(c, a));
-        if dot(n, out) < 0.0 {
-            v.swap(1, 2);
-        }
-        self.triangles.push(v);
-    }
-
-    /// The triangles of one tetrahedron (corners: packed index, position, voxel).
-    fn tetra(&mut self, c: [(u64, [f32; 3], Voxel); 4]) {
-        let (inside, outside): (Vec<usize>, Vec<usize>) = (0..4).partition(|&i| c[i].2.sdf < 0.0);
-        let mean = |ix: &[usize]| {
-            let mut m = [0f32; 3];
-            for &i in ix {
-                for k in 0..3 {
-                    m[k] += c[i].1[k] / ix.len() as f32;
-                }
-            }
-            m
-        };
-        match inside.len() {
-            1 | 3 => {
-                // One corner alone on its side: one triangle across its three edges.
-                let single = inside.len() == 1;
-                let (alone, rest) = if single { (inside[0], &outside) } else { (outside[0], &inside) };
-                let v = [self.vertex(c[alone], c[rest[0]]), self.vertex(c[alone], c[rest[1]]), self.vertex(c[alone], c[rest[2]])];
-                let out = if single { sub(mean(rest), c[alone].1) } else { sub(c[alone].1, mean(rest)) };
-                self.triangle(v, out);
-            }
-            2 => {
-                // Two and two: a quad round the four cut edges, as two triangles.
-                let (a, b, p, q) = (inside[0], inside[1], outside[0], outside[1]);
-                let v = [self.vertex(c[a], c[p]), self.vertex(c[a], c[q]), self.vertex(c[b], c[q]), self.vertex(c[b], c[p])];
-                let out = sub(mean(&outside), mean(&inside));
-                self.triangle([v[0], v[1], v[2]], out);
-                self.triangle([v[0], v[2], v[3]], out);
-            }
-            _ => {}
-        }
-    }
-}
-
-fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+pub(super) fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
-fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+pub(super) fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }
 
-fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+pub(super) fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
@@ -157,40 +73,12 @@ fn norm(a: [f32; 3]) -> f32 {
 
 /// The mesh of the field's zero level set, cleaned (module docs).
 pub(super) fn extract(tsdf: &Tsdf) -> (Mesh, MeshStats) {
-    let voxel = tsdf.voxel_mm();
-    let mut b = Builder::default();
-    let mut near = Vec::new();
-    for key in tsdf.block_keys() {
-        tsdf.neighbourhood(key, &mut near);
-        let origin = [key[0] * SIDE, key[1] * SIDE, key[2] * SIDE];
-        for z in 0..SIDE {
-            for y in 0..SIDE {
-                'cube: for x in 0..SIDE {
-                    let mut corners = [(0u64, [0f32; 3], Voxel { sdf: 0.0, rgb: [0.0; 3] }); 8];
-                    let (mut neg, mut pos) = (false, false);
-                    for (c, off) in CORNERS.iter().enumerate() {
-                        let (lx, ly, lz) = (x + off[0], y + off[1], z + off[2]);
-                        let Some(v) = near[near_index([lx, ly, lz])] else { continue 'cube };
-                        neg |= v.sdf < 0.0;
-                        pos |= v.sdf >= 0.0;
-                        let g = [origin[0] + lx, origin[1] + ly, origin[2] + lz];
-                        corners[c] = (pack(g), voxel_centre(g, voxel), v);
-                    }
-                    if !(neg && pos) {
-                        continue;
-                    }
-                    for t in TETRAS {
-                        b.tetra([corners[t[0]], corners[t[1]], corners[t[2]], corners[t[3]]]);
-                    }
-                }
-            }
-        }
-    }
-    clean(b.points, b.colors, b.triangles, tsdf.params.fill, tsdf.params.min_component_share)
+    let (points, colors, triangles) = super::march::surface(tsdf);
+    clean(points, colors, triangles, tsdf.params.fill, tsdf.params.min_component_share, tsdf.threads > 1)
 }
 
 /// Fragments removed, holes capped, normals computed (module docs).
-fn clean(points: Vec<[f32; 3]>, colors: Vec<[f32; 3]>, triangles: Vec<[u32; 3]>, fill: bool, share: f64) -> (Mesh, MeshStats) {
+fn clean(points: Vec<[f32; 3]>, colors: Vec<[f32; 3]>, triangles: Vec<[u32; 3]>, fill: bool, share: f64, parallel: bool) -> (Mesh, MeshStats) {
     let mut stats = MeshStats::default();
     // Connected pieces, by shared vertices.
     let mut parent: Vec<u32> = (0..points.len() as u32).collect();
@@ -230,10 +118,10 @@ fn clean(points: Vec<[f32; 3]>, colors: Vec<[f32; 3]>, triangles: Vec<[u32; 3]>,
     }
     stats.measured_vertices = pts.len();
     if fill {
-        fill_holes(&mut pts, &mut cols, &mut tris, &mut stats);
+        fill_holes(&mut pts, &mut cols, &mut tris, &mut stats, parallel);
     }
     stats.pinched_vertices_split = split_pinched(&mut pts, &mut cols, &mut tris);
-    let (boundary, non_manifold) = edge_counts(&tris);
+    let (boundary, non_manifold) = edge_counts(&tris, parallel);
     stats.boundary_edges = boundary.len();
     stats.non_manifold_edges = non_manifold;
     // Area-weighted vertex normals (the cross product's length is twice the area).
@@ -336,25 +224,72 @@ fn split_pinched(pts: &mut Vec<[f32; 3]>, cols: &mut Vec<[f32; 3]>, tris: &mut [
 }
 
 /// The directed boundary half-edges (each edge of one triangle, as that triangle winds it),
-/// and the number of edges of more than two triangles.
-fn edge_counts(tris: &[[u32; 3]]) -> (Vec<(u32, u32)>, usize) {
-    let mut count: FastMap<(u32, u32), (u32, (u32, u32))> = FastMap::with_capacity_and_hasher(tris.len() * 3 / 2, Default::default());
-    for t in tris {
-        for k in 0..3 {
-            let (a, b) = (t[k], t[(k + 1) % 3]);
-            let e = count.entry((a.min(b), a.max(b))).or_insert((0, (a, b)));
-            e.0 += 1;
+/// sorted, and the number of edges of more than two triangles. Each edge is counted at its
+/// lower vertex, among the triangles round it (in runs of vertices on the current rayon
+/// pool's threads with `parallel`; the same answer either way).
+fn edge_counts(tris: &[[u32; 3]], parallel: bool) -> (Vec<(u32, u32)>, usize) {
+    use rayon::prelude::*;
+    let n = tris.iter().flatten().max().map_or(0, |&v| v as usize + 1);
+    // The triangles round each vertex: `round[start[v]..start[v + 1]]`.
+    let mut start = vec![0u32; n + 1];
+    for &v in tris.iter().flatten() {
+        start[v as usize + 1] += 1;
+    }
+    for v in 0..n {
+        start[v + 1] += start[v];
+    }
+    let mut round = vec![0u32; start[n] as usize];
+    let mut fill = start.clone();
+    for (i, t) in tris.iter().enumerate() {
+        for &v in t {
+            round[fill[v as usize] as usize] = i as u32;
+            fill[v as usize] += 1;
         }
     }
-    let mut boundary: Vec<(u32, u32)> = count.values().filter(|(n, _)| *n == 1).map(|&(_, d)| d).collect();
+    // Per run of vertices: its boundary half-edges and its edges of more than two triangles.
+    let count = |vs: std::ops::Range<usize>| {
+        let (mut boundary, mut over, mut near) = (Vec::new(), 0, Vec::new());
+        for v in vs {
+            // The half-edges through v to a higher vertex w: (w, as wound).
+            near.clear();
+            for &i in &round[start[v] as usize..start[v + 1] as usize] {
+                let t = tris[i as usize];
+                let k = t.iter().position(|&x| x as usize == v).expect("the triangle holds the vertex");
+                let (next, prev) = (t[(k + 1) % 3], t[(k + 2) % 3]);
+                if next as usize > v {
+                    near.push((next, (v as u32, next)));
+                }
+                if prev as usize > v {
+                    near.push((prev, (prev, v as u32)));
+                }
+            }
+            near.sort_unstable_by_key(|e| e.0);
+            for group in near.chunk_by(|a, b| a.0 == b.0) {
+                match group.len() {
+                    1 => boundary.push(group[0].1),
+                    2 => {}
+                    _ => over += 1,
+                }
+            }
+        }
+        (boundary, over)
+    };
+    const RUN: usize = 4096;
+    let runs: Vec<(Vec<(u32, u32)>, usize)> = if parallel {
+        (0..n.div_ceil(RUN)).into_par_iter().map(|r| count(r * RUN..((r + 1) * RUN).min(n))).collect()
+    } else {
+        vec![count(0..n)]
+    };
+    let over = runs.iter().map(|r| r.1).sum();
+    let mut boundary: Vec<(u32, u32)> = runs.into_iter().flat_map(|r| r.0).collect();
     boundary.sort_unstable();
-    (boundary, count.values().filter(|(n, _)| *n > 2).count())
+    (boundary, over)
 }
 
 /// Closes every boundary loop with a cap (module docs); a loop whose walk cannot close is
 /// left open and counted.
-fn fill_holes(pts: &mut Vec<[f32; 3]>, cols: &mut Vec<[f32; 3]>, tris: &mut Vec<[u32; 3]>, stats: &mut MeshStats) {
-    let (boundary, _) = edge_counts(tris);
+fn fill_holes(pts: &mut Vec<[f32; 3]>, cols: &mut Vec<[f32; 3]>, tris: &mut Vec<[u32; 3]>, stats: &mut MeshStats, parallel: bool) {
+    let (boundary, _) = edge_counts(tris, parallel);
     // A triangle winds a → b along a boundary edge; the hole runs b → a.
     let mut out: HashMap<u32, Vec<u32>> = HashMap::new();
     for &(a, b) in &boundary {
@@ -586,7 +521,7 @@ mod tests {
         let pts = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.5], [-1.0, -1.0, 0.5], [0.0, -1.0, 0.5]];
         let tris = vec![[0, 1, 2], [0, 2, 3], [0, 4, 5], [0, 5, 6]];
         let cols = vec![[0.0; 3]; pts.len()];
-        let (mesh, stats) = clean(pts, cols, tris, false, 0.0);
+        let (mesh, stats) = clean(pts, cols, tris, false, 0.0, false);
         assert_eq!(stats.pinched_vertices_split, 1);
         assert_eq!(mesh.cloud.len(), 8);
         assert_eq!(fans_per_vertex(&mesh).into_iter().max(), Some(1));

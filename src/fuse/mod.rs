@@ -10,6 +10,7 @@
 //! the views again with refined poses into a fresh field is how a refinement is applied.
 
 mod integrate;
+mod march;
 mod mesh;
 
 use std::collections::HashMap;

@@ -67,7 +67,7 @@ pub fn mesh_results(dir: &Path, params: FuseParams, threads: usize, out: &Path, 
         progress(k + 1, poses.len());
     }
     let t = Instant::now();
-    let (mesh, stats) = tsdf.mesh();
+    let (mesh, stats) = pool.install(|| tsdf.mesh());
     let extract_ms = t.elapsed().as_secs_f64() * 1e3;
     io::mesh::write_mesh(out, &mesh)?;
     let mut about = mesh_json(&tsdf, &stats, extract_ms);
