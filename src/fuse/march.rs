@@ -8,8 +8,7 @@
 //! The blocks are cut into runs, meshed on [`Tsdf`]'s threads and merged in order: the same
 //! mesh, bit for bit, as one run of them all.
 
-use super::mesh::{cross, dot, sub, FastMap};
-use super::{near_index, voxel_centre, Tsdf, Voxel, SIDE};
+use super::{cross, dot, near_index, sub, voxel_centre, FastMap, Tsdf, Voxel, SIDE};
 
 /// The seen surface's vertices (positions, colours) and triangles, wound inside to outside.
 pub(super) fn surface(tsdf: &Tsdf) -> (Vec<[f32; 3]>, Vec<[f32; 3]>, Vec<[u32; 3]>) {

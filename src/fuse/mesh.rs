@@ -17,14 +17,10 @@
 
 use std::collections::HashMap;
 
-use super::Tsdf;
+use super::{cross, norm, sub, FastMap, Tsdf};
 use crate::cloud::{Mesh, PointCloud};
 use crate::disjoint::root;
-use crate::register::voxel::VoxelHasher;
 
-/// A hash map with a fast multiplicative hash (keys are grid and vertex indices, not chosen
-/// by anyone).
-pub(super) type FastMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<VoxelHasher>>;
 
 /// The mesh type the fusion returns: vertices with colours and normals, triangles.
 pub type SurfaceMesh = Mesh;
@@ -53,22 +49,6 @@ pub struct MeshStats {
     /// The first this many vertices are on the fused (seen) surface; the rest are the caps'
     /// centres and the copies made by splitting.
     pub measured_vertices: usize,
-}
-
-pub(super) fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-pub(super) fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-}
-
-pub(super) fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn norm(a: [f32; 3]) -> f32 {
-    dot(a, a).sqrt()
 }
 
 /// The mesh of the field's zero level set, cleaned (module docs).

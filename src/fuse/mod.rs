@@ -317,7 +317,7 @@ impl Tsdf {
 }
 
 /// The blocks' index.
-type BlockIndex = HashMap<[i32; 3], u32, std::hash::BuildHasherDefault<VoxelHasher>>;
+type BlockIndex = FastMap<[i32; 3], u32>;
 
 /// The index of block `key` in `blocks`, allocated (unseen) when new; None when it is new
 /// and the memory budget (`max_blocks`) is spent.
@@ -336,6 +336,26 @@ fn block_of(index: &mut BlockIndex, blocks: &mut Vec<Block>, max_blocks: usize, 
     index.insert(key, blocks.len() as u32);
     blocks.push(Block { voxels: [Sums::default(); VOXELS] });
     Some(blocks.len() - 1)
+}
+
+/// A hash map with a fast multiplicative hash (keys are grid and vertex indices, not chosen
+/// by anyone).
+type FastMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<VoxelHasher>>;
+
+fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn norm(a: [f32; 3]) -> f32 {
+    dot(a, a).sqrt()
 }
 
 /// `x.floor() as i32` without a libm call (the baseline x86-64 target has no rounding
