@@ -225,14 +225,16 @@ fn demo_records_and_replays_a_scan_on_the_simulated_lab() {
         assert!(dir.join(f).is_file(), "{f} missing");
     }
     // The fused mesh re-meshed into each format, and each read back by a reader that is not
-    // spinscan's writer: every file holds the same triangles.
+    // spinscan's writer: every file holds the same triangles — fused on one thread, on three
+    // or on one per core as the replay fused it.
     let mesh = spinscan::io::ply::read_ply(&dir.join("results/mesh.ply")).unwrap();
     assert!(mesh.triangles.len() > 1000 && mesh.cloud.normals.is_some(), "{} triangles", mesh.triangles.len());
-    for ext in ["ply", "obj", "stl"] {
+    for (ext, threads) in [("ply", "1"), ("obj", "3"), ("stl", "0")] {
         let out = dir.join(format!("again.{ext}"));
-        let o = spinscan(&["mesh", dir.join("results").to_str().unwrap(), "-o", out.to_str().unwrap()]);
+        let o = spinscan(&["mesh", dir.join("results").to_str().unwrap(), "-o", out.to_str().unwrap(), "--threads", threads]);
         assert!(o.status.success(), "{}", stderr(&o));
         let about = json_line(&o);
+        assert!(threads == "0" || about["threads"].as_u64() == threads.parse().ok(), "{about}");
         assert_eq!((about["triangles"].as_u64(), about["boundary_edges"].as_u64(), about["non_manifold_edges"].as_u64()), (Some(mesh.triangles.len() as u64), Some(0), Some(0)), "{about}");
         let bytes = std::fs::read(&out).unwrap();
         match ext {
@@ -257,6 +259,8 @@ fn demo_records_and_replays_a_scan_on_the_simulated_lab() {
     }
     let o = spinscan(&["mesh", dir.join("results").to_str().unwrap(), "-o", dir.join("again.xyz").to_str().unwrap()]);
     assert!(!o.status.success() && stderr(&o).contains("expected a name ending in .ply, .obj or .stl"), "{}", stderr(&o));
+    let o = spinscan(&["mesh", dir.join("results").to_str().unwrap(), "-o", dir.join("again.ply").to_str().unwrap(), "--threads", "5000"]);
+    assert!(!o.status.success() && stderr(&o).contains("5000 threads asked for; expected 0 (one per core) … 1024"), "{}", stderr(&o));
     // The views are registered: three poses, and a model near the true surface.
     assert_eq!(std::fs::read_to_string(dir.join("results/poses.jsonl")).unwrap().lines().count(), 3);
     assert!(j["registration"]["gt_model_distance_mm"]["median"].as_f64().unwrap() < 2.0, "{j}");

@@ -20,7 +20,7 @@ pub enum MeshError {
     Params(#[from] crate::fuse::FuseParamsError),
     #[error("{0}")]
     Write(#[from] io::mesh::MeshWriteError),
-    #[error("cannot start the fusion's threads: {0}")]
+    #[error("fusion threads: {0}")]
     Threads(String),
 }
 
@@ -45,6 +45,9 @@ pub fn read_poses(path: &Path) -> Result<Vec<(u64, nalgebra::Isometry3<f64>)>, M
     Ok(poses)
 }
 
+/// The most threads [`mesh_results`] takes (as the matcher's `threads`).
+pub const MAX_THREADS: usize = 1024;
+
 /// Fuses the views of results folder `dir` on `threads` threads (0: one per core) and
 /// writes the mesh to `out` (.ply, .obj or .stl); `progress(done, total)` after every view.
 /// Returns the mesh and its figures.
@@ -53,7 +56,10 @@ pub fn mesh_results(dir: &Path, params: FuseParams, threads: usize, out: &Path, 
     io::mesh::MeshFormat::of(out)?;
     let poses = read_poses(&dir.join("poses.jsonl"))?;
     let mut tsdf = Tsdf::new(params)?;
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).thread_name(|i| format!("fuse-{i}")).build().map_err(|e| MeshError::Threads(e.to_string()))?;
+    if threads > MAX_THREADS {
+        return Err(MeshError::Threads(format!("{threads} threads asked for; expected 0 (one per core) … {MAX_THREADS}")));
+    }
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).thread_name(|i| format!("fuse-{i}")).build().map_err(|e| MeshError::Threads(format!("cannot start them: {e}")))?;
     tsdf.set_threads(pool.current_num_threads());
     let (mut read_ms, mut fuse_ms) = (0.0, 0.0);
     for (k, (seq, pose)) in poses.iter().enumerate() {
