@@ -29,14 +29,31 @@ import time
 
 
 def read_m1(path):
-    text = open(path).read()
+    try:
+        text = open(path).read()
+    except OSError as e:
+        sys.exit(f"{path}: cannot read the calibration ({e.strerror}); expected a recording's calib.yaml")
     m = re.search(r"M1:.*?data:\s*\[([^\]]*)\]", text, re.S)
     if not m:
         sys.exit(f"{path}: no M1 matrix (expected an OpenCV FileStorage calib.yaml)")
     v = [float(x) for x in m.group(1).replace("\n", " ").split(",")]
-    w = int(re.search(r"image_width:\s*(\d+)", text).group(1))
-    h = int(re.search(r"image_height:\s*(\d+)", text).group(1))
-    return v, w, h
+    # The image size, where the file gives it (OpenCV's stereo calibration does; calibrations
+    # written by other tools may not: see `image_size`).
+    w, h = (re.search(rf"{k}:\s*(\d+)", text) for k in ("image_width", "image_height"))
+    return v, (int(w.group(1)) if w else None), (int(h.group(1)) if h else None)
+
+
+def image_size(calib, o3d):
+    """The size of the first left image of the recording that holds `calib`."""
+    folder = os.path.join(os.path.dirname(os.path.abspath(calib)), "left")
+    names = sorted(n for n in os.listdir(folder) if n.lower().endswith((".png", ".jpg", ".jpeg"))) if os.path.isdir(folder) else []
+    if not names:
+        sys.exit(f"{calib}: no image_width/image_height, and no left/ images beside it to take the size from "
+                 "(expected a recording's calib.yaml)")
+    import numpy as np
+    img = o3d.io.read_image(os.path.join(folder, names[0]))
+    h, w = np.asarray(img).shape[:2]
+    return w, h
 
 
 def main():
@@ -65,6 +82,8 @@ def main():
     os.environ["OMP_NUM_THREADS"] = str(a.threads)
     import numpy as np
     import open3d as o3d
+    if w is None or h is None:
+        w, h = image_size(a.calib, o3d)
     ours_s = (ours["fuse_ms"] + ours["extract_ms"]) / 1e3
 
     # Open3D's images, made outside its timing.
