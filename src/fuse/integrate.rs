@@ -117,7 +117,7 @@ impl Tsdf {
         let rim = cloud.rim_px.as_ref().is_some_and(|r| r.len() == cloud.len()) && self.params.rim_weight_px > 0.0;
         let casting = Casting { voxel: self.voxel, trunc: self.trunc, depth_ref: self.params.depth_ref_mm as f32, rim_scale: 1.0 / (self.params.rim_weight_px as f32 + 1.0), use_rim: rim };
         if threads == 1 {
-            let mut sink = Direct { index: &mut self.index, blocks: &mut self.blocks, max_blocks: self.max_blocks, refused: &mut self.refused, rim_weighed: &mut self.rim_weighed, ray: Ray { w: 0.0, rgb: [0.0; 3] }, last: None };
+            let mut sink = Direct { index: &mut self.index, blocks: &mut self.blocks, max_blocks: self.max_blocks, refused: &mut self.refused, rim_weighed: &mut self.rim_weighed, ray: Ray { w: 0.0, rgb: [0.0; 3] }, recent: Recent::default() };
             cast(casting, &order, cloud, &rot, &t, &mut sink);
         } else {
             self.parallel(threads, casting, &order, cloud, &rot, &t);
@@ -148,7 +148,7 @@ impl Tsdf {
             part.updates.iter_mut().for_each(Vec::clear);
             part.new.clear();
             part.rim_weighed = 0;
-            let mut sink = Listing { index, part, owners: threads as u32, last: None };
+            let mut sink = Listing { index, part, owners: threads as u32, recent: Recent::default() };
             cast(casting, &order[w[0]..w[1]], cloud, rot, t, &mut sink);
         });
         // The blocks the view adds, in the order one pass over the updates meets them.
@@ -302,8 +302,9 @@ struct Direct<'a> {
     rim_weighed: &'a mut usize,
     /// The ray being cast (one at a time).
     ray: Ray,
-    /// The block of the last update: consecutive samples of a ray mostly share it.
-    last: Option<([i32; 3], usize)>,
+    /// The blocks of the last updates: a ray's samples mostly share one or two, and the
+    /// next ray (of a neighbouring voxel) the same.
+    recent: Recent<u32>,
 }
 
 impl Sink for Direct<'_> {
@@ -314,11 +315,11 @@ impl Sink for Direct<'_> {
 
     #[inline(always)]
     fn update(&mut self, key: [i32; 3], voxel: u16, sdf: f32, _ray: u32) {
-        let b = match self.last {
-            Some((k, b)) if k == key => b,
-            _ => match block_of(self.index, self.blocks, self.max_blocks, key) {
+        let b = match self.recent.get(key) {
+            Some(b) => b as usize,
+            None => match block_of(self.index, self.blocks, self.max_blocks, key) {
                 Some(b) => {
-                    self.last = Some((key, b));
+                    self.recent.put(key, b as u32);
                     b
                 }
                 None => {
@@ -341,8 +342,8 @@ struct Listing<'a> {
     index: &'a BlockIndex,
     part: &'a mut Part,
     owners: u32,
-    /// The block of the last update, and its owner.
-    last: Option<([i32; 3], u32, u32)>,
+    /// The blocks of the last updates, and their owners (see [`Direct`]).
+    recent: Recent<(u32, u32)>,
 }
 
 impl Sink for Listing<'_> {
@@ -353,13 +354,12 @@ impl Sink for Listing<'_> {
 
     #[inline(always)]
     fn update(&mut self, key: [i32; 3], voxel: u16, sdf: f32, ray: u32) {
-        let (block, owner) = match self.last {
-            Some((k, b, o)) if k == key => (b, o),
-            _ => {
-                let b = self.index.get(&key).copied().unwrap_or(NEW);
-                let o = owner(key, self.owners);
-                self.last = Some((key, b, o));
-                (b, o)
+        let (block, owner) = match self.recent.get(key) {
+            Some(found) => found,
+            None => {
+                let found = (self.index.get(&key).copied().unwrap_or(NEW), owner(key, self.owners));
+                self.recent.put(key, found);
+                found
             }
         };
         let list = &mut self.part.updates[owner as usize];
@@ -371,6 +371,39 @@ impl Sink for Listing<'_> {
 
     fn rim_weighed(&mut self) {
         self.part.rim_weighed += 1;
+    }
+}
+
+/// The last few blocks a sink looked up, by key, with what it found: most updates hit one
+/// of them, and need no lookup in the field's index.
+struct Recent<T> {
+    keys: [[i32; 3]; RECENT],
+    found: [T; RECENT],
+    /// The slot the next new key takes (round robin).
+    next: usize,
+}
+
+/// Blocks a [`Recent`] remembers.
+const RECENT: usize = 4;
+
+impl<T: Copy + Default> Default for Recent<T> {
+    fn default() -> Self {
+        // No block has these coordinates: the keys' are far inside i32.
+        Recent { keys: [[i32::MIN; 3]; RECENT], found: [T::default(); RECENT], next: 0 }
+    }
+}
+
+impl<T: Copy> Recent<T> {
+    #[inline(always)]
+    fn get(&self, key: [i32; 3]) -> Option<T> {
+        (0..RECENT).find(|&i| self.keys[i] == key).map(|i| self.found[i])
+    }
+
+    #[inline(always)]
+    fn put(&mut self, key: [i32; 3], found: T) {
+        self.keys[self.next] = key;
+        self.found[self.next] = found;
+        self.next = (self.next + 1) % RECENT;
     }
 }
 
