@@ -75,7 +75,18 @@ impl Builder {
 
     /// The triangles of one tetrahedron (corners: packed index, position, voxel).
     fn tetra(&mut self, c: [(u64, [f32; 3], Voxel); 4]) {
-        let (inside, outside): (Vec<usize>, Vec<usize>) = (0..4).partition(|&i| c[i].2.sdf < 0.0);
+        // The corners inside (negative) and outside, each in order, without an allocation.
+        let (mut ins, mut outs, mut n_in, mut n_out) = ([0usize; 4], [0usize; 4], 0, 0);
+        for (i, corner) in c.iter().enumerate() {
+            if corner.2.sdf < 0.0 {
+                ins[n_in] = i;
+                n_in += 1;
+            } else {
+                outs[n_out] = i;
+                n_out += 1;
+            }
+        }
+        let (inside, outside) = (&ins[..n_in], &outs[..n_out]);
         let mean = |ix: &[usize]| {
             let mut m = [0f32; 3];
             for &i in ix {
@@ -89,7 +100,7 @@ impl Builder {
             1 | 3 => {
                 // One corner alone on its side: one triangle across its three edges.
                 let single = inside.len() == 1;
-                let (alone, rest) = if single { (inside[0], &outside) } else { (outside[0], &inside) };
+                let (alone, rest) = if single { (inside[0], outside) } else { (outside[0], inside) };
                 let v = [self.vertex(c[alone], c[rest[0]]), self.vertex(c[alone], c[rest[1]]), self.vertex(c[alone], c[rest[2]])];
                 let out = if single { sub(mean(rest), c[alone].1) } else { sub(c[alone].1, mean(rest)) };
                 self.triangle(v, out);
@@ -98,7 +109,7 @@ impl Builder {
                 // Two and two: a quad round the four cut edges, as two triangles.
                 let (a, b, p, q) = (inside[0], inside[1], outside[0], outside[1]);
                 let v = [self.vertex(c[a], c[p]), self.vertex(c[a], c[q]), self.vertex(c[b], c[q]), self.vertex(c[b], c[p])];
-                let out = sub(mean(&outside), mean(&inside));
+                let out = sub(mean(outside), mean(inside));
                 self.triangle([v[0], v[1], v[2]], out);
                 self.triangle([v[0], v[2], v[3]], out);
             }

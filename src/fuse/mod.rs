@@ -359,12 +359,19 @@ fn norm(a: [f32; 3]) -> f32 {
 }
 
 /// `x.floor() as i32` without a libm call (the baseline x86-64 target has no rounding
-/// instruction); exact for the grid indices here, far inside i32.
+/// instruction) nor the cast's checks for NaN and overflow: `x` is first held within
+/// ±[`GRID_LIMIT`] (NaN goes to its low end), where the truncating conversion is exact and
+/// defined. Exact for the grid indices here, far inside that.
 #[inline(always)]
 fn floor_i32(x: f32) -> i32 {
-    let t = x as i32;
+    let x = x.max(-GRID_LIMIT).min(GRID_LIMIT);
+    // SAFETY: x is finite and within ±2³⁰, inside i32 (just clamped; NaN fails `max`).
+    let t: i32 = unsafe { x.to_int_unchecked() };
     t - ((t as f32) > x) as i32
 }
+
+/// Voxels from the origin past which a grid index is held (2³⁰; a key keeps 2²⁰ anyway).
+const GRID_LIMIT: f32 = (1u32 << 30) as f32;
 
 /// The grid index of the voxel holding world point `q`.
 #[inline(always)]
