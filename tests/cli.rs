@@ -261,6 +261,17 @@ fn demo_records_and_replays_a_scan_on_the_simulated_lab() {
     assert!(!o.status.success() && stderr(&o).contains("expected a name ending in .ply, .obj or .stl"), "{}", stderr(&o));
     let o = spinscan(&["mesh", dir.join("results").to_str().unwrap(), "-o", dir.join("again.ply").to_str().unwrap(), "--threads", "5000"]);
     assert!(!o.status.success() && stderr(&o).contains("5000 threads asked for; expected 0 (one per core) … 1024"), "{}", stderr(&o));
+    // A view cut short (its views read a pool's worth at a time): the error names it.
+    let bad = dir.join("bad");
+    std::fs::create_dir_all(bad.join("views")).unwrap();
+    std::fs::copy(dir.join("results/poses.jsonl"), bad.join("poses.jsonl")).unwrap();
+    for seq in 0..3 {
+        let name = format!("views/{seq:06}.ply");
+        let bytes = std::fs::read(dir.join("results").join(&name)).unwrap();
+        std::fs::write(bad.join(&name), if seq == 1 { &bytes[..bytes.len() / 2] } else { &bytes[..] }).unwrap();
+    }
+    let o = spinscan(&["mesh", bad.to_str().unwrap(), "-o", dir.join("bad.ply").to_str().unwrap(), "--threads", "3"]);
+    assert!(!o.status.success() && stderr(&o).contains("000001.ply") && stderr(&o).contains("cannot read the view"), "{}", stderr(&o));
     // The views are registered: three poses, and a model near the true surface.
     assert_eq!(std::fs::read_to_string(dir.join("results/poses.jsonl")).unwrap().lines().count(), 3);
     assert!(j["registration"]["gt_model_distance_mm"]["median"].as_f64().unwrap() < 2.0, "{j}");

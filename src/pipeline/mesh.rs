@@ -61,16 +61,28 @@ pub fn mesh_results(dir: &Path, params: FuseParams, threads: usize, out: &Path, 
     }
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).thread_name(|i| format!("fuse-{i}")).build().map_err(|e| MeshError::Threads(format!("cannot start them: {e}")))?;
     tsdf.set_threads(pool.current_num_threads());
-    let (mut read_ms, mut fuse_ms) = (0.0, 0.0);
-    for (k, (seq, pose)) in poses.iter().enumerate() {
-        let t = Instant::now();
+    let (mut read_ms, mut fuse_ms, mut done) = (0.0, 0.0, 0);
+    // The views are read a pool's worth at a time, in parallel (a view's PLY takes about as
+    // long to read as to fuse), and fused in order; an unreadable one stops the work at it.
+    let read = |seq: &u64| {
         let path = dir.join("views").join(format!("{seq:06}.ply"));
-        let view = io::ply::read_ply(&path).map_err(|e| MeshError::Input { path: path.clone(), what: format!("cannot read the view: {e}") })?;
-        read_ms += t.elapsed().as_secs_f64() * 1e3;
+        io::ply::read_ply(&path).map_err(|e| MeshError::Input { path: path.clone(), what: format!("cannot read the view: {e}") })
+    };
+    for chunk in poses.chunks(pool.current_num_threads()) {
         let t = Instant::now();
-        pool.install(|| tsdf.integrate(&view.cloud, pose));
-        fuse_ms += t.elapsed().as_secs_f64() * 1e3;
-        progress(k + 1, poses.len());
+        let views: Vec<_> = pool.install(|| {
+            use rayon::prelude::*;
+            chunk.par_iter().map(|(seq, _)| read(seq)).collect()
+        });
+        read_ms += t.elapsed().as_secs_f64() * 1e3;
+        for (view, (_, pose)) in views.into_iter().zip(chunk) {
+            let view = view?;
+            let t = Instant::now();
+            pool.install(|| tsdf.integrate(&view.cloud, pose));
+            fuse_ms += t.elapsed().as_secs_f64() * 1e3;
+            done += 1;
+            progress(done, poses.len());
+        }
     }
     let t = Instant::now();
     let (mesh, stats) = pool.install(|| tsdf.mesh());
