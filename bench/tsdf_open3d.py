@@ -68,14 +68,17 @@ def main():
     a = ap.parse_args()
     m1, w, h = read_m1(a.calib)
     fx, cx, fy, cy = m1[0], m1[2], m1[4], m1[5]
-    poses = [json.loads(l) for l in open(os.path.join(a.results, "poses.jsonl")) if l.strip()]
 
     # spinscan, timed by itself.
     with tempfile.TemporaryDirectory() as tmp:
         out = subprocess.run([a.spinscan, "mesh", a.results, "-o", os.path.join(tmp, "m.ply"), "--voxel-mm", str(a.voxel_mm),
                               "--truncation-voxels", str(a.truncation_voxels), "--threads", str(a.threads)],
-                             capture_output=True, text=True, check=True)
+                             capture_output=True, text=True)
+    if out.returncode != 0:
+        sys.exit(f"{a.spinscan} mesh {a.results} failed (exit {out.returncode}):\n{out.stderr.strip()}")
     ours = json.loads(out.stdout.strip().splitlines()[-1])
+    # (Read after spinscan, which says what is wrong with a folder that is not a scan's results.)
+    poses = [json.loads(l) for l in open(os.path.join(a.results, "poses.jsonl")) if l.strip()]
     # The largest resident set of the children so far: `spinscan mesh`'s, reading included
     # (run before NumPy and Open3D load, whose pages a forked child would count as its own).
     ours_rss_mib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
