@@ -36,6 +36,10 @@ const NEW: u32 = u32::MAX - 1;
 /// A block the memory budget did not allow: the update is left out (and counted).
 const REFUSED: u32 = u32::MAX;
 
+/// The sort key of a point that is not fused (no usable point's key has its top bit set:
+/// the block's z takes 18 bits from bit 45).
+const UNUSABLE: u64 = u64::MAX;
+
 /// A merged ray's weight and weighted-mean colour.
 #[derive(Clone, Copy)]
 struct Ray {
@@ -108,7 +112,11 @@ impl Tsdf {
             (b[2] << 45 | b[1] << 27 | b[0] << 9 | local(g) as u64, i as u32)
         };
         let mut order: Vec<(u64, u32)> = if threads > 1 {
-            cloud.points.par_iter().enumerate().filter(|(_, p)| usable(p)).map(key).collect()
+            // Every point keyed in parallel (an indexed collect, which splits well), the
+            // unusable ones marked and dropped after, in order.
+            let mut all: Vec<(u64, u32)> = cloud.points.par_iter().enumerate().map(|(i, p)| if usable(p) { key((i, p)) } else { (UNUSABLE, i as u32) }).collect();
+            all.retain(|e| e.0 != UNUSABLE);
+            all
         } else {
             cloud.points.iter().enumerate().filter(|(_, p)| usable(p)).map(key).collect()
         };
