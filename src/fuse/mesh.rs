@@ -132,24 +132,7 @@ fn clean(points: Vec<[f32; 3]>, colors: Vec<[f32; 3]>, triangles: Vec<[u32; 3]>,
 /// through the vertex are in the same fan.
 fn split_pinched(pts: &mut Vec<[f32; 3]>, cols: &mut Vec<[f32; 3]>, tris: &mut [[u32; 3]]) -> usize {
     let n = pts.len();
-    // The triangles round each vertex.
-    let mut start = vec![0usize; n + 1];
-    for t in tris.iter() {
-        for &v in t {
-            start[v as usize + 1] += 1;
-        }
-    }
-    for v in 0..n {
-        start[v + 1] += start[v];
-    }
-    let mut next = start.clone();
-    let mut around = vec![0u32; start[n]];
-    for (k, t) in tris.iter().enumerate() {
-        for &v in t {
-            around[next[v as usize]] = k as u32;
-            next[v as usize] += 1;
-        }
-    }
+    let (start, around) = triangles_round(tris, n);
     let mut split = 0;
     let (mut parent, mut seen): (Vec<u32>, Vec<(u32, u32)>) = (Vec::new(), Vec::new());
     for v in 0..n {
@@ -203,6 +186,27 @@ fn split_pinched(pts: &mut Vec<[f32; 3]>, cols: &mut Vec<[f32; 3]>, tris: &mut [
     split
 }
 
+/// The triangles round each of `n` vertices (every index in `tris` below `n`): vertex v's
+/// are `around[start[v]..start[v + 1]]`, in the order of `tris`.
+fn triangles_round(tris: &[[u32; 3]], n: usize) -> (Vec<usize>, Vec<u32>) {
+    let mut start = vec![0usize; n + 1];
+    for &v in tris.iter().flatten() {
+        start[v as usize + 1] += 1;
+    }
+    for v in 0..n {
+        start[v + 1] += start[v];
+    }
+    let mut next = start.clone();
+    let mut around = vec![0u32; start[n]];
+    for (k, t) in tris.iter().enumerate() {
+        for &v in t {
+            around[next[v as usize]] = k as u32;
+            next[v as usize] += 1;
+        }
+    }
+    (start, around)
+}
+
 /// The directed boundary half-edges (each edge of one triangle, as that triangle winds it),
 /// sorted, and the number of edges of more than two triangles. Each edge is counted at its
 /// lower vertex, among the triangles round it (in runs of vertices on the current rayon
@@ -210,29 +214,14 @@ fn split_pinched(pts: &mut Vec<[f32; 3]>, cols: &mut Vec<[f32; 3]>, tris: &mut [
 fn edge_counts(tris: &[[u32; 3]], parallel: bool) -> (Vec<(u32, u32)>, usize) {
     use rayon::prelude::*;
     let n = tris.iter().flatten().max().map_or(0, |&v| v as usize + 1);
-    // The triangles round each vertex: `round[start[v]..start[v + 1]]`.
-    let mut start = vec![0u32; n + 1];
-    for &v in tris.iter().flatten() {
-        start[v as usize + 1] += 1;
-    }
-    for v in 0..n {
-        start[v + 1] += start[v];
-    }
-    let mut round = vec![0u32; start[n] as usize];
-    let mut fill = start.clone();
-    for (i, t) in tris.iter().enumerate() {
-        for &v in t {
-            round[fill[v as usize] as usize] = i as u32;
-            fill[v as usize] += 1;
-        }
-    }
+    let (start, round) = triangles_round(tris, n);
     // Per run of vertices: its boundary half-edges and its edges of more than two triangles.
     let count = |vs: std::ops::Range<usize>| {
         let (mut boundary, mut over, mut near) = (Vec::new(), 0, Vec::new());
         for v in vs {
             // The half-edges through v to a higher vertex w: (w, as wound).
             near.clear();
-            for &i in &round[start[v] as usize..start[v + 1] as usize] {
+            for &i in &round[start[v]..start[v + 1]] {
                 let t = tris[i as usize];
                 let k = t.iter().position(|&x| x as usize == v).expect("the triangle holds the vertex");
                 let (next, prev) = (t[(k + 1) % 3], t[(k + 2) % 3]);
