@@ -119,6 +119,18 @@ fn table1_runs_every_row_for_each_listed_method() {
     assert_eq!(rows[0]["ratio_to_none"].as_f64(), Some(1.0));
     assert_eq!(rows[3]["ratio_to_none"].as_f64(), Some(1.0));
     let bad2 = |i: usize| rows[i]["bad2"].as_f64().unwrap();
+    // And every row against bm's full range too: time and bad2, in the JSON and printed for
+    // the other matcher's rows.
+    let median = |i: usize| rows[i]["median_ms"].as_f64().unwrap();
+    for i in 0..6 {
+        let (time, b) = (rows[i]["ratio_to_bm_none"].as_f64().unwrap(), rows[i]["bad2_ratio_to_bm_none"].as_f64());
+        assert!((time - median(i) / median(0)).abs() < 1e-12, "row {i}: {time}");
+        // (No ratio of bad2 to a perfect row.)
+        let want = (bad2(0) > 0.0).then(|| bad2(i) / bad2(0));
+        assert!(b.zip(want).map_or(b.is_none() && want.is_none(), |(b, want)| (b - want).abs() < 1e-12), "row {i}: {b:?} against {want:?}");
+    }
+    assert!(stdout.contains("against the row without assistance of bm (time, bad2):"), "{stdout}");
+    assert!(stdout.lines().any(|l| l.starts_with("sgm predicted") && l.trim_end().ends_with('×') && l.matches('×').count() == 2), "{stdout}");
     // Both matchers find this textured torus (bad2 under 1 % each when this was written).
     assert!(bad2(0) < 2.0 && bad2(3) < 2.0, "bm {} and sgm {} without assistance", bad2(0), bad2(3));
     for i in 4..6 {

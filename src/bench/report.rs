@@ -33,6 +33,9 @@ impl Table1 {
             "rows": self.rows.iter().map(|r| {
                 let mut j = r.to_json();
                 j["ratio_to_none"] = json!(self.none_ms(r.method).map(|n| r.median_ms() / n));
+                let (time, bad2) = self.against_bm_none(r);
+                j["ratio_to_bm_none"] = json!(time);
+                j["bad2_ratio_to_bm_none"] = json!(bad2);
                 j
             }).collect::<Vec<_>>(),
         })
@@ -48,6 +51,18 @@ impl Table1 {
     /// The no-assistance row's median of a matcher: what its rows' ratios are taken against.
     fn none_ms(&self, method: Method) -> Option<f64> {
         self.rows.iter().find(|r| r.mode == AssistMode::None && r.method == method).map(Row::median_ms)
+    }
+
+    /// A row's median time and bad2 as ratios to the correlation matcher's row without
+    /// assistance (a full-range `bm` search: what other methods' rows are measured against),
+    /// where the table has that row (and, for bad2, ground truth).
+    fn against_bm_none(&self, r: &Row) -> (Option<f64>, Option<f64>) {
+        let Some(bm) = self.rows.iter().find(|b| b.mode == AssistMode::None && b.method == Method::Bm) else { return (None, None) };
+        let bad2 = match (r.bad2(), bm.bad2()) {
+            (Some(a), Some(b)) if b > 0.0 => Some(a / b),
+            _ => None,
+        };
+        (Some(r.median_ms() / bm.median_ms()), bad2)
     }
 
     /// The paper's table (a column per frame, up to `max_cols` frames) and the accuracy table.
@@ -100,6 +115,15 @@ impl Table1 {
                 opt(median(&r.ns_per_pair), 3),
                 r.full_range.len(),
             );
+        }
+        // Another matcher's rows against the correlation's full range, where both ran.
+        let others: Vec<&Row> = self.rows.iter().filter(|r| r.method != Method::Bm).collect();
+        if !others.is_empty() && self.rows.iter().any(|r| r.mode == AssistMode::None && r.method == Method::Bm) {
+            let _ = writeln!(s, "\nagainst the row without assistance of bm (time, bad2):");
+            for r in others {
+                let (time, bad2) = self.against_bm_none(r);
+                let _ = writeln!(s, "{:<16}{:>8} ×{:>8} ×", row_label(r), opt(time, 3), opt(bad2, 2));
+            }
         }
         match self.gt_disparity_source() {
             Some("rendered") => {
