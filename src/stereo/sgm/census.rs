@@ -14,7 +14,7 @@
 //! call's intervals say correspond ([`level_map_from_prior`]), else over the whole images
 //! ([`level_map`]).
 
-use crate::stereo::disparity::{DisparityIntervals, GrayView};
+use crate::stereo::disparity::{searched_span, DisparityIntervals, GrayView};
 
 /// Census window width and height (odd). 7 × 5 − 1 = 34 bits, in a `u64` per pixel: chosen
 /// by measurement on the Middlebury pairs (docs/matcher.md) — 9 × 7 was best alone, 7 × 5
@@ -189,7 +189,9 @@ pub(in crate::stereo) fn level_map_from_prior(left: GrayView, right: GrayView, i
     for (y, (lo, hi)) in intervals.lo.chunks_exact(w).zip(intervals.hi.chunks_exact(w)).enumerate().step_by(PRIOR_ROW_STEP) {
         let (lrow, rrow) = (&left.data[y * w..][..w], &right.data[y * w..][..w]);
         let (mut rn, mut rl, mut rl2, mut rr, mut rr2) = (0u64, 0u64, 0u64, 0u64, 0u64);
-        for (x, (&a, &b)) in lo.iter().zip(hi).enumerate() {
+        // Only from the row's first searched pixel to its last: no other pixel is one.
+        let Some((first, last)) = searched_span(lo, hi) else { continue };
+        for (x, (&a, &b)) in lo.iter().zip(hi).enumerate().take(last + 1).skip(first) {
             let (a, b) = (a as i32, b as i32);
             let xr = x as i32 - ((a + b) >> 1);
             let inner = x >= PRIOR_INNER && x + PRIOR_INNER < w && lo[x - PRIOR_INNER] <= hi[x - PRIOR_INNER] && lo[x + PRIOR_INNER] <= hi[x + PRIOR_INNER];
