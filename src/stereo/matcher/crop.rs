@@ -82,8 +82,8 @@ fn searched_extremes(lo: &[i16], hi: &[i16]) -> (i16, i16) {
         // 150 × 210 px object (0.007 ms this way).
         // SAFETY: SSE2 is part of x86-64; each load reads 8 values at k < n − 7 of both slices.
         unsafe {
-            let (mut a, mut b) = (_mm_set1_epi16(i16::MAX), _mm_set1_epi16(i16::MIN));
             let (max, min) = (_mm_set1_epi16(i16::MAX), _mm_set1_epi16(i16::MIN));
+            let (mut a, mut b) = (max, min);
             let mut k = 0;
             while k + 8 <= n {
                 let l = _mm_loadu_si128(lo.as_ptr().add(k).cast());
