@@ -249,6 +249,9 @@ impl DisparityMap {
     }
 }
 
+/// Rows of a matcher call of which one times its left–right check ([`MatchStats::lr_check_ns`]).
+pub(in crate::stereo) const LR_TIMED_EVERY: usize = 8;
+
 /// What one matching call did.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct MatchStats {
@@ -260,7 +263,9 @@ pub struct MatchStats {
     pub evaluated: u64,
     /// Wall time of the prefilter (a fixed cost per pixel of the image), ns.
     pub prefilter_ns: u64,
-    /// Time spent in the left–right check, summed over the worker threads, ns.
+    /// Time spent in the left–right check, summed over the worker threads, ns: timed on
+    /// every [`LR_TIMED_EVERY`]-th row and scaled by it (two clock reads a row cost ≈ 56 ns:
+    /// on every row, about 3 % of a narrow `bm` call).
     pub lr_check_ns: u64,
     /// Pixels that reached the left–right check with a match, and those that passed it.
     pub lr_candidates: usize,
