@@ -373,14 +373,22 @@ pub(super) unsafe fn tile_check(p: &ValidMatchParams, g: Geometry, s: &StripeScr
         candidates += (keep_bits & inside).count_ones() as usize;
         passed += (pass_bits & inside).count_ones() as usize;
         let mut vals = [0f32; 16];
+        // Sixteen pixels all inside the span (most) are stored straight into the row; the
+        // span's ends go through `vals` (a copy of a length known only here is a call).
+        let whole = lo == 0 && hi == 16;
+        let dst = if whole { out[x..x + 16].as_mut_ptr() } else { vals.as_mut_ptr() };
         for i in 0..2 {
             let half = |v: __m256i| if i == 0 { _mm256_castsi256_si128(v) } else { _mm256_extracti128_si256::<1>(v) };
             let d = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_cvtepu16_epi32(half(k)), _mm256_set1_epi32(dmin)));
             let v = _mm256_add_ps(d, _mm256_loadu_ps(s.win_frac.as_ptr().add(x + 8 * i)));
             let m = _mm256_castsi256_ps(_mm256_cvtepi16_epi32(half(pass)));
-            _mm256_storeu_ps(vals.as_mut_ptr().add(8 * i), _mm256_blendv_ps(nan, v, m));
+            // SAFETY: `dst` holds sixteen floats (the row's x .. x + 16, checked by the
+            // slice above, or `vals`).
+            _mm256_storeu_ps(dst.add(8 * i), _mm256_blendv_ps(nan, v, m));
         }
-        out[x + lo..x + hi].copy_from_slice(&vals[lo..hi]);
+        if !whole {
+            out[x + lo..x + hi].copy_from_slice(&vals[lo..hi]);
+        }
         x += 16;
     }
     (candidates, passed)
