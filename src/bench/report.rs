@@ -48,16 +48,21 @@ impl Table1 {
         crate::pipeline::truth::sources_name(self.gt_disparity.iter().flatten().copied())
     }
 
+    /// A matcher's row without assistance, if the table has one.
+    fn none_row(&self, method: Method) -> Option<&Row> {
+        self.rows.iter().find(|r| r.mode == AssistMode::None && r.method == method)
+    }
+
     /// The no-assistance row's median of a matcher: what its rows' ratios are taken against.
     fn none_ms(&self, method: Method) -> Option<f64> {
-        self.rows.iter().find(|r| r.mode == AssistMode::None && r.method == method).map(Row::median_ms)
+        self.none_row(method).map(Row::median_ms)
     }
 
     /// A row's median time and bad2 as ratios to the correlation matcher's row without
     /// assistance (a full-range `bm` search: what other methods' rows are measured against),
     /// where the table has that row (and, for bad2, ground truth).
     fn against_bm_none(&self, r: &Row) -> (Option<f64>, Option<f64>) {
-        let Some(bm) = self.rows.iter().find(|b| b.mode == AssistMode::None && b.method == Method::Bm) else { return (None, None) };
+        let Some(bm) = self.none_row(Method::Bm) else { return (None, None) };
         let bad2 = match (r.bad2(), bm.bad2()) {
             (Some(a), Some(b)) if b > 0.0 => Some(a / b),
             _ => None,
@@ -118,7 +123,7 @@ impl Table1 {
         }
         // Another matcher's rows against the correlation's full range, where both ran.
         let others: Vec<&Row> = self.rows.iter().filter(|r| r.method != Method::Bm).collect();
-        if !others.is_empty() && self.rows.iter().any(|r| r.mode == AssistMode::None && r.method == Method::Bm) {
+        if !others.is_empty() && self.none_row(Method::Bm).is_some() {
             let _ = writeln!(s, "\nagainst the row without assistance of bm (time, bad2):");
             for r in others {
                 let (time, bad2) = self.against_bm_none(r);
