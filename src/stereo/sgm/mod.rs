@@ -379,10 +379,11 @@ impl Sgm {
         // Pass one writes every cost and sum before anything reads them: no clearing. Folded,
         // the costs of the row being stepped only; in one pass, the costs and sums of one row.
         let (costs, sums) = if single { (row_max, row_max) } else { (if folded { row_max } else { total }, total) };
-        // (One more sum: the selection's gathers read each sum as the low half of 32 bits.)
-        let refused = |_| VolumeRefused { width: w, height: h, disparities: n, bytes: costs as u64 + 2 * (sums as u64 + 1) };
+        // (`LANES` more sums: the selection reads two blocks from a one-block band, and its
+        // gathers each sum as the low half of 32 bits.)
+        let refused = |_| VolumeRefused { width: w, height: h, disparities: n, bytes: costs as u64 + 2 * (sums + LANES) as u64 };
         super::buffer::resize_for_overwrite(&mut self.cost, costs).map_err(refused)?;
-        super::buffer::resize_for_overwrite(&mut self.sum, sums + 1).map_err(refused)?;
+        super::buffer::resize_for_overwrite(&mut self.sum, sums + LANES).map_err(refused)?;
         self.fresh.clear();
         self.fresh.resize(n + 2, UNREACHED);
         self.right_best.resize(w, 0);

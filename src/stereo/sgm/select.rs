@@ -31,13 +31,9 @@ fn min_and_position<const AVX2: bool>(s: &[u16], a: usize, lo: usize, hi: usize)
 
 /// The smallest sum over `lo ..= hi`, the first disparity index holding it and, with
 /// `rival`, the smallest sum outside that index and its two neighbours (else `u16::MAX`).
+/// (Bands of one or two blocks take [`super::simd::select_pixel`] on AVX2.)
 #[inline(always)]
 fn select<const AVX2: bool>(s: &[u16], a: usize, lo: usize, hi: usize, rival: bool) -> (u16, usize, u16) {
-    #[cfg(target_arch = "x86_64")]
-    if AVX2 && s.len() == LANES {
-        // SAFETY: as in `min_of`; the interval lies inside the pixel's band.
-        return unsafe { super::simd::select_block(s, a, lo, hi, rival) };
-    }
     let (best, bk) = min_and_position::<AVX2>(s, a, lo, hi);
     let second = if rival { min_of::<AVX2>(s, a, lo, hi, (bk.saturating_sub(1), bk + 1)) } else { u16::MAX };
     (best, bk, second)
@@ -207,7 +203,7 @@ unsafe fn fit_avx2(r: FitRows, span: std::ops::Range<usize>, dmin: i32, sum: &[u
         let at = _mm256_sub_epi32(_mm256_add_epi32(rel, k), a);
         // SAFETY: where `fit`, lo < k < hi inside the band (a ≤ lo, hi < a + m), so both
         // reads — 32 bits from the sums at k − 1 and at k + 1 — end at most one value past
-        // the pixel's band: inside `sum`, which has one value of slack past the last band.
+        // the pixel's band: inside `sum`, which has values of slack past the last band.
         // The other lanes are not read.
         let p = unsafe { sum.as_ptr().add(base) as *const i32 };
         let (s0, s2) = unsafe { (_mm256_mask_i32gather_epi32::<2>(zero, p, _mm256_sub_epi32(at, one), fit), _mm256_mask_i32gather_epi32::<2>(zero, p, _mm256_add_epi32(at, one), fit)) };
@@ -280,38 +276,24 @@ impl Sgm {
         let (sum, right_best) = (&self.sum[..], &mut self.right_best[..w]);
         // Each searched pixel's smallest sum, its disparity index and its rival.
         let (win_best, win_k, win_rival) = (&mut self.win_best[..w], &mut self.win_k[..w], &mut self.win_rival[..w]);
-        let mut x = span.start;
-        while x < span.end {
-            // Sixteen pixels of one-block or of two-block bands at once, in the vector lanes
-            // (their sums lie one after the other). (The first pixel's band is tested alone
-            // first: at full range it is wider.)
-            #[cfg(target_arch = "x86_64")]
-            if AVX2 && x + LANES <= span.end && matches!(band_m[x] as usize / LANES, 1 | 2) && band_m[x..x + LANES].iter().all(|&m| m == band_m[x]) {
-                let jlo: [u16; LANES] = std::array::from_fn(|i| lo_row[x + i] - band_a[x + i]);
-                let jhi: [u16; LANES] = std::array::from_fn(|i| hi_row[x + i] - band_a[x + i]);
-                let m = band_m[x] as usize;
-                // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the
-                // sixteen bands are `m` sums each (one or two blocks), so their sums are
-                // LANES · m in a row, and each interval lies inside its band.
-                let (best, at, rival) = unsafe {
-                    let s = &sum[off_row[x]..][..LANES * m];
-                    if m == LANES { super::simd::select_blocks::<1>(s, &jlo, &jhi, uniq > 0) } else { super::simd::select_blocks::<2>(s, &jlo, &jhi, uniq > 0) }
-                };
-                win_best[x..x + LANES].copy_from_slice(&best);
-                win_rival[x..x + LANES].copy_from_slice(&rival);
-                for i in 0..LANES {
-                    win_k[x + i] = band_a[x + i] + at[i];
-                }
-                x += LANES;
+        for x in span.clone() {
+            let m = band_m[x] as usize;
+            if m == 0 {
                 continue;
             }
-            let m = band_m[x] as usize;
-            if m > 0 {
-                let (a, lo, hi) = (band_a[x] as usize, lo_row[x] as usize, hi_row[x] as usize);
-                let (best, bk, rival) = select::<AVX2>(&sum[off_row[x]..][..m], a, lo, hi, uniq > 0);
-                (win_best[x], win_k[x], win_rival[x]) = (best, bk as u16, rival);
+            let (a, lo, hi) = (band_a[x] as usize, lo_row[x] as usize, hi_row[x] as usize);
+            // One or two blocks in registers, a pixel at a time (two blocks read: the sums
+            // have `LANES` values of slack past the last band).
+            #[cfg(target_arch = "x86_64")]
+            if AVX2 && m <= 2 * LANES {
+                // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU; the
+                // interval lies inside the band, at most two blocks.
+                let (best, j, rival) = unsafe { super::simd::select_pixel(&sum[off_row[x]..][..2 * LANES], lo - a, hi - a, uniq > 0) };
+                (win_best[x], win_k[x], win_rival[x]) = (best, (a + j) as u16, rival);
+                continue;
             }
-            x += 1;
+            let (best, bk, rival) = select::<AVX2>(&sum[off_row[x]..][..m], a, lo, hi, uniq > 0);
+            (win_best[x], win_k[x], win_rival[x]) = (best, bk as u16, rival);
         }
         // Without the uniqueness test, the winners' disparities and fits eight at a time,
         // then their splats one by one (two may land on one right pixel); the rest of the
@@ -394,8 +376,8 @@ impl Sgm {
 mod tests {
     use super::*;
 
-    /// The selection in registers — one block (`select_block`) or several (`min_at` and the
-    /// masked minimum) — is the portable one: bands of one to eight blocks, intervals anywhere
+    /// The selection in registers over any number of blocks (`min_at` and the masked
+    /// minimum) is the portable one: bands of one to eight blocks, intervals anywhere
     /// in them, many ties and equal rivals, within and across blocks.
     #[test]
     fn selection_in_registers_is_the_portable_one() {
@@ -419,31 +401,33 @@ mod tests {
         }
     }
 
+    /// A pixel of one or two blocks selected in registers (`select_pixel`, which reads two
+    /// blocks either way) is the portable selection over its own band: intervals anywhere in
+    /// it, many ties and equal rivals, and the next pixel's sums after a one-block band.
     #[test]
-    fn sixteen_pixels_in_the_lanes_select_as_one_at_a_time() {
+    fn a_pixel_in_registers_selects_as_the_portable_selection() {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") {
             let mut next = crate::testing::xorshift(0x2545_f491_4f6c_dd1d);
-            for case in 0..1000 {
-                // One-block bands, then two-block ones.
+            for case in 0..4000 {
                 let m = (1 + case % 2) * LANES;
-                // Few distinct values, so that ties and equal rivals are common.
-                let s: Vec<u16> = (0..LANES * m).map(|_| (next() % 5) as u16 * 100 + 40).collect();
-                let jlo: [u16; LANES] = std::array::from_fn(|_| (next() % m as u64) as u16);
-                let jhi: [u16; LANES] = std::array::from_fn(|i| jlo[i] + (next() % (m as u64 - jlo[i] as u64)) as u16);
+                // Few distinct values, so that ties and equal rivals are common; past a
+                // one-block band, smaller ones (that must not win).
+                let s: Vec<u16> = (0..2 * LANES).map(|i| if i < m { (next() % 5) as u16 * 100 + 40 } else { (next() % 40) as u16 }).collect();
+                let a = (next() % 4) as usize * LANES;
+                let jlo = (next() % m as u64) as usize;
+                let jhi = jlo + (next() % (m - jlo) as u64) as usize;
                 for rival in [true, false] {
-                    // SAFETY: the CPU has AVX2 (checked above); 16 bands of `m` sums, the
-                    // intervals inside them.
-                    let (best, at, second) = unsafe {
-                        if m == LANES { crate::stereo::sgm::simd::select_blocks::<1>(&s, &jlo, &jhi, rival) } else { crate::stereo::sgm::simd::select_blocks::<2>(&s, &jlo, &jhi, rival) }
-                    };
-                    for i in 0..LANES {
-                        let a = 3 * LANES;
-                        let want = select::<true>(&s[i * m..][..m], a, a + jlo[i] as usize, a + jhi[i] as usize, rival);
-                        assert_eq!((best[i], a + at[i] as usize, second[i]), want, "case {case}, {m} sums a pixel, pixel {i}, rival {rival}");
-                    }
+                    let best = masked_min(&s[..m], a, a + jlo, a + jhi, (1, 0));
+                    let bk = first_at(&s[..m], a, a + jlo, a + jhi, best);
+                    let second = if rival { masked_min(&s[..m], a, a + jlo, a + jhi, (bk.saturating_sub(1), bk + 1)) } else { u16::MAX };
+                    // SAFETY: the CPU has AVX2 (checked above); two blocks, the interval
+                    // inside the band.
+                    let (got_best, j, got_second) = unsafe { crate::stereo::sgm::simd::select_pixel(&s, jlo, jhi, rival) };
+                    assert_eq!((got_best, a + j, got_second), (best, bk, second), "case {case}: {m} disparities from {a}, lanes {jlo} ..= {jhi}, rival {rival}: {s:?}");
                 }
             }
         }
     }
 }
+

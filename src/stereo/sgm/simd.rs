@@ -206,115 +206,44 @@ pub(super) unsafe fn min_at(s: &[u16], a: usize, lo: usize, hi: usize) -> (u16, 
     (best, first as usize)
 }
 
-/// The selection of a pixel whose band is one block (`s`: its [`LANES`] sums, from disparity
-/// index `a`), in registers: the smallest sum over `lo ..= hi`, the first index holding it,
-/// and (with `rival`) the smallest sum outside the winner and its two neighbours — what
-/// [`min_at`] and [`masked_min`] give, to the bit, without their loops over blocks.
+/// The selection of a pixel whose band is one block or two, in registers: over `s`, the two
+/// blocks from the band's first disparity index, the smallest sum over lanes `jlo ..= jhi`,
+/// the first lane holding it, and (with `rival`) the smallest sum outside that lane and its
+/// two neighbours (else `u16::MAX`) — what [`min_at`] and [`masked_min`] give, to the bit,
+/// without their loops over blocks. Two blocks are read whatever the band: past a one-block
+/// band they hold the next pixel's sums or the volume's slack, which the interval leaves out.
+///
+/// One pixel at a time, its lanes reduced by `phminposuw`: no group of pixels to gather
+/// first, so neighbours of different widths take it alike. Sixteen pixels transposed in
+/// registers (the minimum and its lane then vertical operations, the selection of the
+/// eighth session) took 2.8 ns a pixel against this 1.7 on two-block bands (docs/matcher.md,
+/// "The winner a pixel at a time").
 ///
 /// # Safety
-/// The CPU supports AVX2; `s` holds [`LANES`] sums; `a ≤ lo ≤ hi < a + LANES`.
+/// The CPU supports AVX2; `s` holds `2 · LANES` sums; `jlo ≤ jhi < 2 · LANES`.
 #[target_feature(enable = "avx2")]
 #[inline]
-pub(super) unsafe fn select_block(s: &[u16], a: usize, lo: usize, hi: usize, rival: bool) -> (u16, usize, u16) {
-    assert!(s.len() == LANES && a <= lo && lo <= hi && hi < a + LANES);
+pub(super) unsafe fn select_pixel(s: &[u16], jlo: usize, jhi: usize, rival: bool) -> (u16, usize, u16) {
+    assert!(s.len() == 2 * LANES && jlo <= jhi && jhi < 2 * LANES);
     let ones = _mm256_set1_epi16(-1);
-    let lanes = _mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-    // SAFETY: a block of LANES u16, asserted above.
-    let v = unsafe { _mm256_loadu_si256(s.as_ptr() as *const __m256i) };
-    // Lane j is index a + j: inside the interval where lo − a ≤ j ≤ hi − a.
-    let (jlo, jhi) = ((lo - a) as i16, (hi - a) as i16);
-    let keep = _mm256_and_si256(_mm256_cmpgt_epi16(lanes, _mm256_set1_epi16(jlo - 1)), _mm256_cmpgt_epi16(_mm256_set1_epi16(jhi + 1), lanes));
-    // Outside: 0xFFFF, above every sum (at most 8 · (134 + 2000)).
-    let vm = _mm256_or_si256(v, _mm256_andnot_si256(keep, ones));
-    let best = hmin(vm);
-    let holds = _mm256_movemask_epi8(_mm256_cmpeq_epi16(vm, _mm256_set1_epi16(best as i16))) as u32;
-    let j = (holds.trailing_zeros() / 2) as i16;
-    if !rival {
-        return (best, a + j as usize, u16::MAX);
-    }
-    let near = _mm256_and_si256(_mm256_cmpgt_epi16(lanes, _mm256_set1_epi16(j - 2)), _mm256_cmpgt_epi16(_mm256_set1_epi16(j + 2), lanes));
-    (best, a + j as usize, hmin(_mm256_or_si256(vm, near)))
-}
-
-/// [`select_block`] for sixteen consecutive pixels whose bands are `B` blocks each, their
-/// sums one after the other (`s`: pixel i's `B · LANES` sums at `B · LANES · i`), the pixels
-/// in the lanes: per pixel the smallest sum over indices `jlo[i] ..= jhi[i]` of its band, the
-/// first index holding it and, with `rival`, the smallest sum outside that index ± 1 (else
-/// `u16::MAX`) — what `select_block` gives each pixel for one block, and the scalar
-/// selection for more. Each block's sums are transposed in registers (disparity `j` of every
-/// pixel in one vector), and the minimum, its index and the rival are vertical operations:
-/// no horizontal minimum and no chain of dependent steps per pixel.
-///
-/// # Safety
-/// The CPU supports AVX2; `s` holds `B · LANES · LANES` sums; `jlo[i] ≤ jhi[i] < B · LANES`.
-#[target_feature(enable = "avx2")]
-#[inline]
-pub(super) unsafe fn select_blocks<const B: usize>(s: &[u16], jlo: &[u16; LANES], jhi: &[u16; LANES], rival: bool) -> ([u16; LANES], [u16; LANES], [u16; LANES]) {
-    assert!(s.len() == B * LANES * LANES);
-    let ones = _mm256_set1_epi16(-1);
-    // SAFETY: LANES u16 of block `b` of pixel `i`, inside `s` (asserted above).
-    let row = |b: usize, i: usize| unsafe { _mm256_loadu_si256(s.as_ptr().add((i * B + b) * LANES) as *const __m256i) };
-    let transpose = |x: [__m256i; 8]| -> [__m256i; 8] {
-        let a: [__m256i; 8] = std::array::from_fn(|k| {
-            let (p, q) = (x[k / 2 * 2], x[k / 2 * 2 + 1]);
-            if k % 2 == 0 { _mm256_unpacklo_epi16(p, q) } else { _mm256_unpackhi_epi16(p, q) }
-        });
-        // b[0..4] from a0/a2 and a1/a3 (rows 0–3), b[4..8] from a4/a6 and a5/a7 (rows 4–7).
-        let b: [__m256i; 8] = std::array::from_fn(|k| {
-            let base = k / 4 * 4;
-            let (p, q) = (a[base + k % 4 / 2], a[base + 2 + k % 4 / 2]);
-            if k % 2 == 0 { _mm256_unpacklo_epi32(p, q) } else { _mm256_unpackhi_epi32(p, q) }
-        });
-        std::array::from_fn(|j| {
-            let (p, q) = (b[j / 2], b[4 + j / 2]);
-            if j % 2 == 0 { _mm256_unpacklo_epi64(p, q) } else { _mm256_unpackhi_epi64(p, q) }
-        })
-    };
-    // Per block: rows i and i + 8 side by side, low halves (indices 0–7) and high halves
-    // (8–15); an 8 × 8 transpose inside each 128-bit lane then gives index j of rows 0–7 in
-    // the low lane and of rows 8–15 in the high lane: disparity j of all sixteen pixels.
-    let v: [[__m256i; LANES]; B] = std::array::from_fn(|b| {
-        let low = transpose(std::array::from_fn(|i| _mm256_permute2x128_si256::<0x20>(row(b, i), row(b, i + 8))));
-        let high = transpose(std::array::from_fn(|i| _mm256_permute2x128_si256::<0x31>(row(b, i), row(b, i + 8))));
-        std::array::from_fn(|j| if j < 8 { low[j] } else { high[j - 8] })
+    let lanes = [_mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15), _mm256_setr_epi16(16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26, 27, 28, 29, 30, 31)];
+    let between = |l: __m256i, lo: i16, hi: i16| _mm256_and_si256(_mm256_cmpgt_epi16(l, _mm256_set1_epi16(lo - 1)), _mm256_cmpgt_epi16(_mm256_set1_epi16(hi + 1), l));
+    // Outside the interval: 0xFFFF, above every sum (at most 8 · (134 + 2000)).
+    let v: [__m256i; 2] = std::array::from_fn(|b| {
+        // SAFETY: block b of the two that `s` holds (asserted above).
+        let v = unsafe { _mm256_loadu_si256(s.as_ptr().add(b * LANES) as *const __m256i) };
+        _mm256_or_si256(v, _mm256_andnot_si256(between(lanes[b], jlo as i16, jhi as i16), ones))
     });
-    // SAFETY: arrays of LANES u16.
-    let (lo_m1, hi_p1) = unsafe {
-        let (l, h) = (_mm256_loadu_si256(jlo.as_ptr() as *const __m256i), _mm256_loadu_si256(jhi.as_ptr() as *const __m256i));
-        (_mm256_sub_epi16(l, _mm256_set1_epi16(1)), _mm256_add_epi16(h, _mm256_set1_epi16(1)))
-    };
-    // Index j's sums, 0xFFFF (above every sum, at most 8 · (134 + 2000)) outside the pixel's
-    // interval.
-    let inside = |j: usize| {
-        let jv = _mm256_set1_epi16(j as i16);
-        let keep = _mm256_and_si256(_mm256_cmpgt_epi16(jv, lo_m1), _mm256_cmpgt_epi16(hi_p1, jv));
-        _mm256_or_si256(v[j / LANES][j % LANES], _mm256_andnot_si256(keep, ones))
-    };
-    let (mut best, mut at) = (ones, _mm256_setzero_si256());
-    for j in 0..B * LANES {
-        let vj = inside(j);
-        // Strictly below the best so far (max(v, best) = v means v ≥ best): the first
-        // index of the minimum is kept.
-        let below = _mm256_andnot_si256(_mm256_cmpeq_epi16(_mm256_max_epu16(vj, best), vj), ones);
-        best = _mm256_min_epu16(best, vj);
-        at = _mm256_blendv_epi8(at, _mm256_set1_epi16(j as i16), below);
+    let best = hmin(_mm256_min_epu16(v[0], v[1]));
+    // Two bits per lane, the second block's above the first's: the first lane holding the
+    // minimum is the lowest set bit.
+    let at = |b: usize| _mm256_movemask_epi8(_mm256_cmpeq_epi16(v[b], _mm256_set1_epi16(best as i16))) as u32 as u64;
+    let j = ((at(1) << 32 | at(0)).trailing_zeros() / 2) as usize;
+    if !rival {
+        return (best, j, u16::MAX);
     }
-    let mut second = ones;
-    if rival {
-        let (near_lo, near_hi) = (_mm256_sub_epi16(at, _mm256_set1_epi16(2)), _mm256_add_epi16(at, _mm256_set1_epi16(2)));
-        for j in 0..B * LANES {
-            let jv = _mm256_set1_epi16(j as i16);
-            let near = _mm256_and_si256(_mm256_cmpgt_epi16(jv, near_lo), _mm256_cmpgt_epi16(near_hi, jv));
-            second = _mm256_min_epu16(second, _mm256_or_si256(inside(j), near));
-        }
-    }
-    let out = |v: __m256i| {
-        let mut a = [0u16; LANES];
-        // SAFETY: an array of LANES u16.
-        unsafe { _mm256_storeu_si256(a.as_mut_ptr() as *mut __m256i, v) };
-        a
-    };
-    (out(best), out(at), out(second))
+    let near = |b: usize| _mm256_or_si256(v[b], between(lanes[b], j as i16 - 1, j as i16 + 1));
+    (best, j, hmin(_mm256_min_epu16(near(0), near(1))))
 }
 
 /// The census window's neighbours in comparison order (row-major, the centre left out), as
