@@ -226,14 +226,12 @@ pub(super) unsafe fn min_at(s: &[u16], a: usize, lo: usize, hi: usize) -> (u16, 
 pub(super) unsafe fn select_pixel(s: &[u16], jlo: usize, jhi: usize, rival: bool) -> (u16, usize, u16) {
     assert!(s.len() == 2 * LANES && jlo <= jhi && jhi < 2 * LANES);
     let ones = _mm256_set1_epi16(-1);
-    let lanes = [_mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15), _mm256_setr_epi16(16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26, 27, 28, 29, 30, 31)];
-    let between = |l: __m256i, lo: i16, hi: i16| _mm256_and_si256(_mm256_cmpgt_epi16(l, _mm256_set1_epi16(lo - 1)), _mm256_cmpgt_epi16(_mm256_set1_epi16(hi + 1), l));
-    // Outside the interval: 0xFFFF, above every sum (at most 8 · (134 + 2000)).
-    let v: [__m256i; 2] = std::array::from_fn(|b| {
-        // SAFETY: block b of the two that `s` holds (asserted above).
-        let v = unsafe { _mm256_loadu_si256(s.as_ptr().add(b * LANES) as *const __m256i) };
-        _mm256_or_si256(v, _mm256_andnot_si256(between(lanes[b], jlo as i16, jhi as i16), ones))
-    });
+    // SAFETY: block b of the two that `s` holds (asserted above).
+    let raw: [__m256i; 2] = std::array::from_fn(|b| unsafe { _mm256_loadu_si256(s.as_ptr().add(b * LANES) as *const __m256i) });
+    // Block b's sums, 0xFFFF (above every sum, at most 8 · (134 + 2000)) outside the interval
+    // and `skip` (`(1, 0)`: nothing skipped).
+    let masked = |b: usize, skip: (usize, usize)| _mm256_or_si256(raw[b], _mm256_andnot_si256(inside(b * LANES, jlo, jhi, skip), ones));
+    let v = [masked(0, (1, 0)), masked(1, (1, 0))];
     let best = hmin(_mm256_min_epu16(v[0], v[1]));
     // Two bits per lane, the second block's above the first's: the first lane holding the
     // minimum is the lowest set bit.
@@ -242,8 +240,8 @@ pub(super) unsafe fn select_pixel(s: &[u16], jlo: usize, jhi: usize, rival: bool
     if !rival {
         return (best, j, u16::MAX);
     }
-    let near = |b: usize| _mm256_or_si256(v[b], between(lanes[b], j as i16 - 1, j as i16 + 1));
-    (best, j, hmin(_mm256_min_epu16(near(0), near(1))))
+    let skip = (j.saturating_sub(1), j + 1);
+    (best, j, hmin(_mm256_min_epu16(masked(0, skip), masked(1, skip))))
 }
 
 /// The census window's neighbours in comparison order (row-major, the centre left out), as
