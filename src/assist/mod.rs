@@ -484,13 +484,16 @@ impl Assistant {
         iv
     }
 
-    /// A cleared full-size interval buffer: the one handed back by `recycle` (only its old
-    /// region holds intervals) or a new one.
+    /// A full-size interval buffer that searches nothing outside this plan's region, for a
+    /// caller that then writes every pixel of the region: the one handed back by `recycle`
+    /// (only its old region holds intervals, and only the part of that outside this region
+    /// is cleared: consecutive regions mostly overlap) or a new one.
     fn spare_intervals(&mut self) -> DisparityIntervals {
         let (w, h) = self.size;
+        let region = self.region;
         match self.spare.take() {
             Some((mut iv, old)) if (iv.width(), iv.height()) == (w, h) => {
-                iv.clear_rect(old.xs(), old.ys());
+                iv.clear_rect_but(old.xs(), old.ys(), region.xs(), region.ys());
                 iv
             }
             _ => DisparityIntervals::empty(w, h),

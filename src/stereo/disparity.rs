@@ -114,6 +114,40 @@ impl DisparityIntervals {
         }
     }
 
+    /// No pixel of `xs × ys` outside `keep_xs × keep_ys` searches anything; the pixels
+    /// inside that are left as they are, for a writer about to set every one of them (as
+    /// [`DisparityIntervals::clear_rect`] followed by those writes, without clearing the
+    /// rectangle that is written anyway). Where the record of the searched pixels lay inside
+    /// `xs × ys`, it shrinks to its part inside `keep_xs × keep_ys`.
+    pub fn clear_rect_but(&mut self, xs: Range<usize>, ys: Range<usize>, keep_xs: Range<usize>, keep_ys: Range<usize>) {
+        let w = self.width;
+        // The kept columns inside `xs` (empty where no column is kept: each row of `ys` is
+        // then cleared whole).
+        let kx = keep_xs.start.clamp(xs.start, xs.end)..keep_xs.end.clamp(xs.start, xs.end);
+        let mut clear = |y: usize, cols: Range<usize>| {
+            if !cols.is_empty() {
+                self.lo[y * w + cols.start..y * w + cols.end].fill(1);
+                self.hi[y * w + cols.start..y * w + cols.end].fill(0);
+            }
+        };
+        for y in ys.clone() {
+            if keep_ys.contains(&y) && !kx.is_empty() {
+                clear(y, xs.start..kx.start);
+                clear(y, kx.end..xs.end);
+            } else {
+                clear(y, xs.clone());
+            }
+        }
+        if let Some((sx, sy)) = &self.searched {
+            let inside = |a: &Range<usize>, b: &Range<usize>| a.is_empty() || (b.start <= a.start && a.end <= b.end);
+            if sx.is_empty() || sy.is_empty() || (inside(sx, &xs) && inside(sy, &ys)) {
+                let meet = |a: &Range<usize>, b: &Range<usize>| a.start.max(b.start)..a.end.min(b.end).max(a.start.max(b.start));
+                let (mx, my) = (meet(sx, &keep_xs), meet(sy, &keep_ys));
+                self.searched = Some(if mx.is_empty() || my.is_empty() { (0..0, 0..0) } else { (mx, my) });
+            }
+        }
+    }
+
     /// The bounds of row `y`, to fill in place (`lo > hi`: not searched; values are
     /// disparities).
     pub fn row_mut(&mut self, y: usize) -> (&mut [i16], &mut [i16]) {
@@ -331,7 +365,7 @@ mod tests {
             let (x, y) = (below(w), below(h));
             let xs = x..x + 1 + below(w - x);
             let ys = y..y + 1 + below(h - y);
-            match below(6) {
+            match below(7) {
                 0 => iv.set(x, y, Some((3, 9))),
                 1 => iv.set(x, y, None),
                 2 => iv.clear_rect(xs, ys),
@@ -343,6 +377,20 @@ mod tests {
                 4 => {
                     let (lo, hi) = iv.row_mut(y);
                     (lo[x], hi[x]) = (2, 2);
+                }
+                5 => {
+                    // Cleared around a kept rectangle (which may reach past the cleared one):
+                    // exactly the pixels of `xs × ys` outside it search nothing after.
+                    let (kx, ky) = (below(w), below(h));
+                    let keep = (kx..kx + below(w - kx + 1), ky..ky + below(h - ky + 1));
+                    let before = iv.clone();
+                    iv.clear_rect_but(xs.clone(), ys.clone(), keep.0.clone(), keep.1.clone());
+                    for yy in 0..h {
+                        for xx in 0..w {
+                            let cleared = xs.contains(&xx) && ys.contains(&yy) && !(keep.0.contains(&xx) && keep.1.contains(&yy));
+                            assert_eq!(iv.get(xx, yy), if cleared { None } else { before.get(xx, yy) }, "step {step}: ({xx}, {yy}) around {keep:?}");
+                        }
+                    }
                 }
                 _ => iv.clear_rect(0..w, 0..h),
             }
