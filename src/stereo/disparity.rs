@@ -219,17 +219,64 @@ pub(in crate::stereo) fn searched_span<T: PartialOrd + Copy>(lo: &[T], hi: &[T])
 const SPAN_CHUNK: usize = 32;
 
 /// A disparity map: `d = x_left − x_right` in rectified pixels, sub-pixel.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct DisparityMap {
     pub width: usize,
     pub height: usize,
     // Invariant: NaN where no disparity was found (the PFM convention); read with `get`.
-    pub(in crate::stereo) data: Vec<f32>,
+    data: Vec<f32>,
+    /// Columns and rows outside which every value is NaN, as far as the writers kept track
+    /// (`None`: unknown). `new` and the matcher's writes of its crop ([`DisparityMap::put_rect`])
+    /// keep it; a mutable borrow of the values drops it. The matcher reads it so as not to
+    /// write NaN again where the map holds nothing but NaN (a new map, or the same map's
+    /// last crop).
+    nan_outside: Option<(Range<usize>, Range<usize>)>,
+}
+
+/// Equal maps, whatever each one's record of where its values lie.
+impl PartialEq for DisparityMap {
+    fn eq(&self, other: &Self) -> bool {
+        (self.width, self.height) == (other.width, other.height) && self.data == other.data
+    }
 }
 
 impl DisparityMap {
     pub fn new(width: usize, height: usize) -> Self {
-        DisparityMap { width, height, data: vec![f32::NAN; width * height] }
+        DisparityMap { width, height, data: vec![f32::NAN; width * height], nan_outside: Some((0..0, 0..0)) }
+    }
+
+    /// The rows of `src` (`xs.len()` values each, row-major) written into `xs × ys`, and every
+    /// value outside that rectangle NaN: written only where the record says a value might not
+    /// be NaN already (everywhere without one). The record becomes the rectangle.
+    pub(in crate::stereo) fn put_rect(&mut self, xs: Range<usize>, ys: Range<usize>, src: &[f32]) {
+        let w = self.width;
+        assert!(xs.end <= w && ys.end <= self.height && src.len() == xs.len() * ys.len(), "a {}×{} rectangle at ({}, {}) in a {w}×{} map", xs.len(), ys.len(), xs.start, ys.start, self.height);
+        let (ox, oy) = self.nan_outside.take().unwrap_or((0..w, 0..self.height));
+        let data = &mut self.data;
+        let mut nan = |y: usize, cols: Range<usize>| {
+            if !cols.is_empty() {
+                data[y * w + cols.start..y * w + cols.end].fill(f32::NAN);
+            }
+        };
+        for y in oy {
+            if ys.contains(&y) {
+                nan(y, ox.start..ox.end.min(xs.start));
+                nan(y, ox.start.max(xs.end)..ox.end);
+            } else {
+                nan(y, ox.clone());
+            }
+        }
+        if !xs.is_empty() {
+            for (y, row) in ys.clone().zip(src.chunks_exact(xs.len())) {
+                self.data[y * w + xs.start..y * w + xs.end].copy_from_slice(row);
+            }
+        }
+        self.nan_outside = Some((xs, ys));
+    }
+
+    /// Every value NaN (written only where the record says one might not be).
+    pub(in crate::stereo) fn clear(&mut self) {
+        self.put_rect(0..0, 0..0, &[]);
     }
 
     /// Drops the matches whose best disparity was an end of the range `first ..= last`
@@ -257,7 +304,7 @@ impl DisparityMap {
     /// Builds a map from values where non-finite means "no disparity".
     pub fn from_values(width: usize, height: usize, data: Vec<f32>) -> Self {
         assert_eq!(data.len(), width * height, "disparity map size");
-        DisparityMap { width, height, data }
+        DisparityMap { width, height, data, nan_outside: None }
     }
 
     pub fn get(&self, x: usize, y: usize) -> Option<f32> {
@@ -267,6 +314,10 @@ impl DisparityMap {
 
     pub fn set(&mut self, x: usize, y: usize, d: Option<f32>) {
         self.data[y * self.width + x] = d.unwrap_or(f32::NAN);
+        if let (Some(_), Some((xs, ys))) = (d, self.nan_outside.clone()) {
+            // Widened to hold the pixel (or made the pixel, where it held nothing).
+            self.nan_outside = Some(if xs.is_empty() || ys.is_empty() { (x..x + 1, y..y + 1) } else { (xs.start.min(x)..xs.end.max(x + 1), ys.start.min(y)..ys.end.max(y + 1)) });
+        }
     }
 
     /// Row-major values, NaN where there is no disparity.
@@ -274,7 +325,9 @@ impl DisparityMap {
         &self.data
     }
 
+    /// Row-major values to write in place (the record of where they lie is dropped).
     pub(crate) fn values_mut(&mut self) -> &mut [f32] {
+        self.nan_outside = None;
         &mut self.data
     }
 
@@ -410,5 +463,60 @@ mod tests {
         a.row_mut(1).0.fill(0);
         a.clear_rect(0..4, 1..2);
         assert_eq!(a, DisparityIntervals::empty(4, 3));
+    }
+
+    /// Random writes through every method that writes a map: each leaves the map a plain
+    /// model says it holds (a rectangle put NaN everywhere else, whatever was there), and
+    /// where the map keeps a record, every value outside it is NaN. (It fails when
+    /// `put_rect` trusts a record that `values_mut` or `set` should have dropped or widened.)
+    #[test]
+    fn a_map_is_nan_outside_the_rectangle_it_records() {
+        let mut rand = crate::testing::xorshift(0x0DD_F00D);
+        let mut below = |n: usize| (rand() % n as u64) as usize;
+        let (w, h) = (19, 13);
+        let mut map = DisparityMap::new(w, h);
+        let mut model = vec![f32::NAN; w * h];
+        let mut trusted = 0;
+        for step in 0..3000 {
+            let (x, y) = (below(w), below(h));
+            match below(5) {
+                0 => {
+                    map.set(x, y, Some(step as f32));
+                    model[y * w + x] = step as f32;
+                }
+                1 => {
+                    map.set(x, y, None);
+                    model[y * w + x] = f32::NAN;
+                }
+                2 => {
+                    map.values_mut()[y * w + x] = -(step as f32);
+                    model[y * w + x] = -(step as f32);
+                }
+                3 => {
+                    let (xs, ys) = (x..x + below(w - x + 1), y..y + below(h - y + 1));
+                    let src: Vec<f32> = (0..xs.len() * ys.len()).map(|k| if k % 3 == 0 { f32::NAN } else { k as f32 }).collect();
+                    trusted += map.nan_outside.is_some() as usize;
+                    map.put_rect(xs.clone(), ys.clone(), &src);
+                    for yy in 0..h {
+                        for xx in 0..w {
+                            model[yy * w + xx] = if xs.contains(&xx) && ys.contains(&yy) { src[(yy - ys.start) * xs.len() + xx - xs.start] } else { f32::NAN };
+                        }
+                    }
+                }
+                _ => {
+                    map.clear();
+                    model.fill(f32::NAN);
+                }
+            }
+            assert!(map.values().iter().zip(&model).all(|(a, b)| a.to_bits() == b.to_bits()), "step {step}: the map differs from the model");
+            if let Some((xs, ys)) = &map.nan_outside {
+                for yy in 0..h {
+                    for xx in 0..w {
+                        assert!(map.get(xx, yy).is_none() || (xs.contains(&xx) && ys.contains(&yy)), "step {step}: ({xx}, {yy}) holds a value outside {xs:?} × {ys:?}");
+                    }
+                }
+            }
+        }
+        assert!(trusted > 300, "put_rect read a record ({trusted} times)");
     }
 }

@@ -166,7 +166,7 @@ mod tests {
         let mut map = DisparityMap::new(w, h);
         for y in 0..h {
             for x in d..w {
-                map.data[y * w + x] = d as f32;
+                map.values_mut()[y * w + x] = d as f32;
             }
         }
         (right, map)
@@ -190,7 +190,7 @@ mod tests {
         }
         // Read at the wrong pixels (a disparity off by 5), a gain of 0.7 is not recovered.
         let (right, mut map) = right_view(&left, w, 12, 0.7, 0.0);
-        map.data.iter_mut().for_each(|d| *d += 5.0);
+        map.values_mut().iter_mut().for_each(|d| *d += 5.0);
         assert!(matched_ratio(view(&left), view(&right), &map).is_some_and(|c| (c.ratio * 0.7 - 1.0).abs() > 0.02));
         let few = DisparityMap::new(w, h);
         assert_eq!(matched_ratio(view(&left), view(&right), &few), None);

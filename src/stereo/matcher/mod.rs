@@ -188,7 +188,7 @@ impl StereoMatcher {
         // images' histograms (a call without priors), and a seeded call's half-size matches
         // within a few pixels of the crop's edge.)
         let Some(crop) = Crop::of(intervals, &self.params) else {
-            out.values_mut().fill(f32::NAN);
+            out.clear();
             return Ok(MatchStats::default());
         };
         if crop.x0 == 0 && crop.y0 == 0 && crop.w == w && crop.h == h {
@@ -221,16 +221,9 @@ impl StereoMatcher {
         let rv = GrayView { width: crop.w, height: crop.h, data: &rbuf };
         let stats = self.compute_whole(lv, rv, &civ, crop.span, &mut cout);
         if stats.is_ok() {
-            // The crop's rows copied in, everything around them unmatched.
-            let vals = out.values_mut();
-            vals[..crop.y0 * w].fill(f32::NAN);
-            vals[(crop.y0 + crop.h) * w..].fill(f32::NAN);
-            for (y, src) in cout.values().chunks(crop.w).enumerate() {
-                let row = &mut vals[(crop.y0 + y) * w..][..w];
-                row[..crop.x0].fill(f32::NAN);
-                row[crop.x0..crop.x0 + crop.w].copy_from_slice(src);
-                row[crop.x0 + crop.w..].fill(f32::NAN);
-            }
+            // The crop's rows copied in, everything around them unmatched (a new map, or the
+            // last crop's, is so already outside that crop: `DisparityMap::put_rect`).
+            out.put_rect(crop.x0..crop.x0 + crop.w, crop.y0..crop.y0 + crop.h, cout.values());
         }
         // (The crop's buffers are kept for the next call, whether this one matched or not.)
         (self.crop_left, self.crop_right, self.crop_intervals, self.crop_out) = (lbuf, rbuf, civ, cout);
