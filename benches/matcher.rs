@@ -6,7 +6,10 @@
 //! a realistic raw pair (`-- rectify`), the window that follows the surface on the simulated
 //! object's map (`-- follow`), and a whole view's own work in the matcher thread (`-- view`).
 //! Prints min and median milliseconds per case over repeated runs (15, or `RUNS=N` in the
-//! environment: more for a profiler); `-- sgm` runs the semi-global cases alone.
+//! environment: more for a profiler); `-- sgm` runs the semi-global cases alone. A filter
+//! picks the cases whose name holds it, or, written with a leading `^`, the cases whose name
+//! starts with the rest (`-- '^sim-640x480 object tile'`: the `bm` cases without their `sgm`
+//! namesakes).
 //!
 //! For the side-by-side comparison with OpenCV use `../shared/bench/peer_stereo.py` with
 //! `--eval-cmd "spinscan disparity … --threads 1 --repeat 5 -o {out}"` (see README).
@@ -102,9 +105,18 @@ fn per_tile(iv: &DisparityIntervals, mask: &[u8]) -> DisparityIntervals {
     out
 }
 
+/// Whether the command line's `filter` picks case `name`: it holds the filter, or starts with
+/// what follows a leading `^`.
+fn picks(filter: &str, name: &str) -> bool {
+    match filter.strip_prefix('^') {
+        Some(prefix) => name.starts_with(prefix),
+        None => name.contains(filter),
+    }
+}
+
 /// Times the matcher on one set of intervals and prints a line, unless `filter` leaves it out.
 fn run(m: &mut StereoMatcher, (lv, rv): (GrayView, GrayView), iv: &DisparityIntervals, name: &str, filter: Option<&str>) {
-    if filter.is_some_and(|f| !name.contains(f)) {
+    if filter.is_some_and(|f| !picks(f, name)) {
         return;
     }
     let mut stats = Default::default();
@@ -129,7 +141,7 @@ fn segmentation(filter: Option<&str>) {
     let grey: Vec<u8> = spinscan::io::rgb_to_gray(&pair.left_rgb).iter().flat_map(|&v| [v; 3]).collect();
     let key = spinscan::segment::ChromaKey::default();
     for (name, rgb) in [("segment blue screen", &pair.left_rgb), ("segment grey backdrop", &grey)] {
-        if filter.is_some_and(|f| !name.contains(f)) {
+        if filter.is_some_and(|f| !picks(f, name)) {
             continue;
         }
         let (min, med) = time(runs(), || drop(key.segment(rgb, pair.width, pair.height, None).unwrap()));
@@ -139,7 +151,7 @@ fn segmentation(filter: Option<&str>) {
     // rotations), as each frame of a scan pays it: the left image in colour and grey, the
     // right in grey.
     let name = "rectify realistic pair";
-    if filter.is_none_or(|f| name.contains(f)) {
+    if filter.is_none_or(|f| picks(f, name)) {
         let (calib, raw) = realistic_raw();
         let size = (raw.width as u32, raw.height as u32);
         let maps = spinscan::stereo::Rectification::compute_keeping_views(&calib, size).unwrap().maps(&calib);
@@ -154,7 +166,7 @@ fn segmentation(filter: Option<&str>) {
     // over the full range with `bm`, drop clipped matches, refine the map (the window that
     // follows the surface), triangulate.
     let name = "view realistic pair";
-    if filter.is_none_or(|f| name.contains(f)) {
+    if filter.is_none_or(|f| picks(f, name)) {
         let (calib, raw) = realistic_raw();
         let opts = spinscan::pipeline::PipelineOptions { matching: MatchParams { num_disparities: 128, ..MatchParams::default() }, ..Default::default() };
         let mut pipe = spinscan::pipeline::Pipeline::new(&calib, (raw.width as u32, raw.height as u32), opts).unwrap();
@@ -165,7 +177,7 @@ fn segmentation(filter: Option<&str>) {
     // The silhouette's rim found (3 px, `--rim-px 3`), as each frame of such a scan pays it
     // after matching.
     let name = "segment rim";
-    if filter.is_none_or(|f| name.contains(f)) {
+    if filter.is_none_or(|f| picks(f, name)) {
         let mask = key.segment(&pair.left_rgb, pair.width, pair.height, None).unwrap();
         let (min, med) = time(runs(), || drop(spinscan::segment::inside_rim(&mask, pair.width, pair.height, 3)));
         println!("{name:<34} {min:>9.2} {med:>9.2}");
@@ -173,7 +185,7 @@ fn segmentation(filter: Option<&str>) {
     // How far inside the silhouette each pixel lies (the fusion's rim weights), as each
     // segmented frame pays it after matching.
     let name = "segment rim distance";
-    if filter.is_none_or(|f| name.contains(f)) {
+    if filter.is_none_or(|f| picks(f, name)) {
         let mask = key.segment(&pair.left_rgb, pair.width, pair.height, None).unwrap();
         let (min, med) = time(runs(), || drop(spinscan::segment::rim_distance(&mask, pair.width, pair.height)));
         println!("{name:<34} {min:>9.2} {med:>9.2}");
@@ -181,7 +193,7 @@ fn segmentation(filter: Option<&str>) {
     // The right image scaled to the left's contrast (0.7 × the gain), as each frame of a scan
     // whose cameras differ pays it; the ratio is measured once a scan, on the first frame.
     let name = "contrast scale";
-    if filter.is_none_or(|f| name.contains(f)) {
+    if filter.is_none_or(|f| picks(f, name)) {
         let dark: Vec<u8> = spinscan::io::rgb_to_gray(&pair.right_rgb).iter().map(|&v| (v as f64 * 0.7) as u8).collect();
         let mut r = dark.clone();
         let (min, med) = time(runs(), || {
