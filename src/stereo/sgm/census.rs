@@ -34,24 +34,38 @@ pub(super) const MAX_BITS: usize = CENSUS_W * CENSUS_H - 1;
 /// `planes_of` makes a row's comparisons: [`planes_row`] or a vector copy of it; `rows` is
 /// the caller's buffer for the padded source, reused from call to call.
 #[inline(always)]
-pub(super) fn transform(img: &[u8], w: usize, h: usize, rows: &mut Vec<u8>, planes_of: impl Fn(&[u8], usize, &mut [u8]), mut emit: impl FnMut(usize, [&[u8]; PLANES])) {
+pub(super) fn transform(img: &[u8], w: usize, h: usize, rows: &mut Vec<u8>, planes_of: impl Fn(&[u8], usize, &mut [u8]), emit: impl FnMut(usize, [&[u8]; PLANES])) {
+    transform_cols(img, w, h, 0..w, rows, planes_of, emit);
+}
+
+/// [`transform`] of the columns `cols` of the image alone (non-empty, inside `0..w`): the
+/// planes `emit` receives are `cols.len()` bytes wide, the comparisons of those columns with
+/// their windows as over the whole image (the window reads the pixels beyond `cols` where
+/// the image has them, and is clamped at the image's border as there).
+#[inline(always)]
+pub(super) fn transform_cols(img: &[u8], w: usize, h: usize, cols: std::ops::Range<usize>, rows: &mut Vec<u8>, planes_of: impl Fn(&[u8], usize, &mut [u8]), mut emit: impl FnMut(usize, [&[u8]; PLANES])) {
     let (rx, ry) = (CENSUS_W / 2, CENSUS_H / 2);
-    // The source rows padded left and right by rx replicated pixels, so the inner loop has no
-    // branch, and above and below by ry replicated rows: each output row's window is
-    // `CENSUS_H` consecutive rows of it (the image copied once, not once per window row).
-    // Kept in `rows` between calls; every byte is written below, so it is not cleared.
-    let wp = w + 2 * rx;
+    let cw = cols.len();
+    assert!(cw > 0 && cols.end <= w, "census columns {cols:?} of an image {w} wide");
+    // The source rows' columns `cols` with rx more on each side (replicated where they pass
+    // the image's edge), so the inner loop has no branch, and above and below by ry
+    // replicated rows: each output row's window is `CENSUS_H` consecutive rows of it (the
+    // image copied once, not once per window row). Kept in `rows` between calls; every byte
+    // is written below, so it is not cleared.
+    let wp = cw + 2 * rx;
+    let (left_rep, right_rep) = (rx.saturating_sub(cols.start), (cols.end + rx).saturating_sub(w));
+    let src = cols.start + left_rep - rx..cols.end + rx - right_rep;
     rows.resize(wp * (h + 2 * ry), 0);
     let padded = &mut rows[..wp * (h + 2 * ry)];
     for (j, dst) in padded.chunks_mut(wp).enumerate() {
         let sy = j.saturating_sub(ry).min(h - 1);
-        dst[rx..rx + w].copy_from_slice(&img[sy * w..][..w]);
-        replicate_ends(dst, (rx, rx));
+        dst[left_rep..wp - right_rep].copy_from_slice(&img[sy * w..][src.clone()]);
+        replicate_ends(dst, (left_rep, right_rep));
     }
-    let mut planes = vec![0u8; PLANES * w];
+    let mut planes = vec![0u8; PLANES * cw];
     for y in 0..h {
-        planes_of(&padded[y * wp..][..wp * CENSUS_H], w, &mut planes);
-        emit(y, std::array::from_fn(|k| &planes[k * w..][..w]));
+        planes_of(&padded[y * wp..][..wp * CENSUS_H], cw, &mut planes);
+        emit(y, std::array::from_fn(|k| &planes[k * cw..][..cw]));
     }
 }
 
@@ -122,6 +136,23 @@ pub(super) fn planes_row(padded: &[u8], w: usize, planes: &mut [u8]) {
             t += 1;
         }
     }
+}
+
+/// The words of the columns from the first searched pixel to the last (`spans`: each row's
+/// searched pixels, none where empty) into `out`'s rows, `w` words each (the other columns
+/// are left as they were, nothing where nothing is searched): the left census, which the
+/// costs read at searched pixels alone. A crop's columns left of its searched pixels hold
+/// the right pixels their disparities reach, and need no left words.
+#[inline(always)]
+pub(super) fn transform_spans_into(img: &[u8], w: usize, h: usize, spans: &[std::ops::Range<usize>], rows: &mut Vec<u8>, planes_of: impl Fn(&[u8], usize, &mut [u8]), out: &mut Vec<u64>) {
+    // Every word a search reads is written below: no clearing unless it grows.
+    out.resize(w * h, 0);
+    let Some(cols) = spans.iter().filter(|s| !s.is_empty()).cloned().reduce(|a, b| a.start.min(b.start)..a.end.max(b.end)) else { return };
+    let start = cols.start;
+    transform_cols(img, w, h, cols, rows, planes_of, |y, planes| {
+        let cw = planes[0].len();
+        words_row(planes, (0, 0), &mut out[y * w + start..][..cw]);
+    });
 }
 
 /// [`transform`]'s words into `out`, `w + pad.0 + pad.1` per row.

@@ -349,6 +349,9 @@ impl Sgm {
         #[cfg(not(target_arch = "x86_64"))]
         let folded = false;
         let g = Geo { w, h, n, dmin, pad_l, wr: pad_l + w + pad_r, folded };
+        let mut stats = MatchStats::default();
+        let single = p.sgm_paths == 5;
+        let row_max = self.bands(p, g, shift, intervals, keep.clone(), single, &mut stats);
         let t0 = std::time::Instant::now();
         // The census comparisons: the AVX2 copy where the CPU has it.
         let planes_of = |rows: &[u8], w: usize, planes: &mut [u8]| {
@@ -360,7 +363,8 @@ impl Sgm {
             }
             census::planes_row(rows, w, planes)
         };
-        census::transform_into(left.data, w, h, (0, 0), &mut self.census_rows, planes_of, &mut self.census_l);
+        // (The left words over the searched columns alone: `census::transform_spans_into`.)
+        census::transform_spans_into(left.data, w, h, &self.span, &mut self.census_rows, planes_of, &mut self.census_l);
         // The right words as the costs read them: split on AVX2, whole words otherwise.
         let wr = g.wr;
         if AVX2 {
@@ -372,9 +376,7 @@ impl Sgm {
             census::transform_into(right.data, w, h, (pad_l, pad_r), &mut self.census_rows, planes_of, &mut self.census_r);
         }
         census::pad_rows(right.data, w, h, (pad_l, pad_r), levels, &mut self.levels_r);
-        let mut stats = MatchStats { prefilter_ns: t0.elapsed().as_nanos() as u64, ..MatchStats::default() };
-        let single = p.sgm_paths == 5;
-        let row_max = self.bands(p, g, shift, intervals, keep.clone(), single, &mut stats);
+        stats.prefilter_ns = t0.elapsed().as_nanos() as u64;
         let total = self.off[w * h];
         // Pass one writes every cost and sum before anything reads them: no clearing. Folded,
         // the costs of the row being stepped only; in one pass, the costs and sums of one row.

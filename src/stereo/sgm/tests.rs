@@ -522,3 +522,47 @@ fn one_pass_sums_are_the_five_paths_of_the_recurrence() {
         assert_eq!(got(&fast), want, "AVX2");
     }
 }
+
+/// The left words over the rows' searched columns are the whole image's there — their
+/// windows read the pixels beyond those columns and are clamped at the image's border
+/// as the whole image's are — in the portable comparisons and the AVX2 ones (whose rows
+/// narrower than 32 columns go one by one), and nothing is written outside them. (It
+/// fails when the columns' window is padded by replication inside the image.)
+#[test]
+fn the_searched_columns_census_is_the_whole_images_there() {
+    let (w, h) = (90, 9);
+    let img: Vec<u8> = (0..w * h).map(|i| ((i * 89 + i / w * 37) % 251) as u8).collect();
+    let mut whole = Vec::new();
+    census::transform_into(&img, w, h, (0, 0), &mut Vec::new(), census::planes_row, &mut whole);
+    #[cfg(target_arch = "x86_64")]
+    let avx2 = std::is_x86_feature_detected!("avx2");
+    #[cfg(not(target_arch = "x86_64"))]
+    let avx2 = false;
+    for (first, last) in [(0, 89), (0, 0), (1, 5), (2, 40), (30, 70), (50, 89), (86, 89), (45, 45)] {
+        // The union of the rows' spans: one row from `first`, another to `last`, one
+        // empty.
+        let spans: Vec<std::ops::Range<usize>> = (0..h).map(|y| match y % 3 { 0 => first..first + 1, 1 => last..last + 1, _ => 0..0 }).collect();
+        for vector in [false, true].into_iter().filter(|&v| !v || avx2) {
+            let mut words = vec![u64::MAX; w * h];
+            let planes_of = |rows: &[u8], w: usize, planes: &mut [u8]| {
+                #[cfg(target_arch = "x86_64")]
+                if vector {
+                    // SAFETY: the CPU has AVX2 (checked above); `transform_cols` passes
+                    // the window's rows and five planes of `w`.
+                    return unsafe { simd::planes(rows, w, planes) };
+                }
+                census::planes_row(rows, w, planes)
+            };
+            census::transform_spans_into(&img, w, h, &spans, &mut Vec::new(), planes_of, &mut words);
+            for (i, (&got, &want)) in words.iter().zip(&whole).enumerate() {
+                let x = i % w;
+                let expect = if (first..=last).contains(&x) { want } else { u64::MAX };
+                assert_eq!(got, expect, "columns {first}…{last}, pixel ({x}, {}), AVX2 {vector}", i / w);
+            }
+        }
+    }
+    // Nothing searched: nothing written.
+    let mut words = vec![7u64; w * h];
+    census::transform_spans_into(&img, w, h, &vec![0..0; h], &mut Vec::new(), census::planes_row, &mut words);
+    assert!(words.iter().all(|&v| v == 7));
+}
