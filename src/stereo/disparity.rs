@@ -101,43 +101,21 @@ impl DisparityIntervals {
 
     /// No pixel of the rectangle `xs × ys` searches anything.
     pub fn clear_rect(&mut self, xs: Range<usize>, ys: Range<usize>) {
-        for y in ys.clone() {
-            self.lo[y * self.width + xs.start..y * self.width + xs.end].fill(1);
-            self.hi[y * self.width + xs.start..y * self.width + xs.end].fill(0);
-        }
-        // A rectangle that holds every searched pixel leaves none.
-        if let Some((sx, sy)) = &self.searched {
-            let inside = |a: &Range<usize>, b: &Range<usize>| a.is_empty() || (b.start <= a.start && a.end <= b.end);
-            if sx.is_empty() || sy.is_empty() || (inside(sx, &xs) && inside(sy, &ys)) {
-                self.searched = Some((0..0, 0..0));
-            }
-        }
+        self.clear_rect_but(xs, ys, 0..0, 0..0);
     }
 
     /// No pixel of `xs × ys` outside `keep_xs × keep_ys` searches anything; the pixels
     /// inside that are left as they are, for a writer about to set every one of them (as
     /// [`DisparityIntervals::clear_rect`] followed by those writes, without clearing the
     /// rectangle that is written anyway). Where the record of the searched pixels lay inside
-    /// `xs × ys`, it shrinks to its part inside `keep_xs × keep_ys`.
+    /// `xs × ys`, it shrinks to its part inside `keep_xs × keep_ys` (to none, where nothing
+    /// is kept).
     pub fn clear_rect_but(&mut self, xs: Range<usize>, ys: Range<usize>, keep_xs: Range<usize>, keep_ys: Range<usize>) {
         let w = self.width;
-        // The kept columns inside `xs` (empty where no column is kept: each row of `ys` is
-        // then cleared whole).
-        let kx = keep_xs.start.clamp(xs.start, xs.end)..keep_xs.end.clamp(xs.start, xs.end);
-        let mut clear = |y: usize, cols: Range<usize>| {
-            if !cols.is_empty() {
-                self.lo[y * w + cols.start..y * w + cols.end].fill(1);
-                self.hi[y * w + cols.start..y * w + cols.end].fill(0);
-            }
-        };
-        for y in ys.clone() {
-            if keep_ys.contains(&y) && !kx.is_empty() {
-                clear(y, xs.start..kx.start);
-                clear(y, kx.end..xs.end);
-            } else {
-                clear(y, xs.clone());
-            }
-        }
+        for_each_row_outside(xs.clone(), ys.clone(), keep_xs.clone(), keep_ys.clone(), |y, cols| {
+            self.lo[y * w + cols.start..y * w + cols.end].fill(1);
+            self.hi[y * w + cols.start..y * w + cols.end].fill(0);
+        });
         if let Some((sx, sy)) = &self.searched {
             let inside = |a: &Range<usize>, b: &Range<usize>| a.is_empty() || (b.start <= a.start && a.end <= b.end);
             if sx.is_empty() || sy.is_empty() || (inside(sx, &xs) && inside(sy, &ys)) {
@@ -218,6 +196,21 @@ pub(in crate::stereo) fn searched_span<T: PartialOrd + Copy>(lo: &[T], hi: &[T])
 /// Pixels [`searched_span`] tests at once.
 const SPAN_CHUNK: usize = 32;
 
+/// Each row of the rectangle `xs × ys` with its columns outside `keep_xs × keep_ys` (one
+/// or two non-empty pieces a row, none where the kept rectangle covers it): what
+/// [`DisparityIntervals::clear_rect_but`] clears and [`DisparityMap::put_rect`] makes NaN.
+fn for_each_row_outside(xs: Range<usize>, ys: Range<usize>, keep_xs: Range<usize>, keep_ys: Range<usize>, mut f: impl FnMut(usize, Range<usize>)) {
+    // The kept columns inside `xs` (empty where no column is kept: each row of `ys` is then
+    // whole).
+    let kx = keep_xs.start.clamp(xs.start, xs.end)..keep_xs.end.clamp(xs.start, xs.end);
+    for y in ys {
+        let pieces = if keep_ys.contains(&y) && !kx.is_empty() { [xs.start..kx.start, kx.end..xs.end] } else { [xs.clone(), 0..0] };
+        for cols in pieces.into_iter().filter(|c| !c.is_empty()) {
+            f(y, cols);
+        }
+    }
+}
+
 /// A disparity map: `d = x_left − x_right` in rectified pixels, sub-pixel.
 #[derive(Debug, Clone)]
 pub struct DisparityMap {
@@ -252,20 +245,7 @@ impl DisparityMap {
         let w = self.width;
         assert!(xs.end <= w && ys.end <= self.height && src.len() == xs.len() * ys.len(), "a {}×{} rectangle at ({}, {}) in a {w}×{} map", xs.len(), ys.len(), xs.start, ys.start, self.height);
         let (ox, oy) = self.nan_outside.take().unwrap_or((0..w, 0..self.height));
-        let data = &mut self.data;
-        let mut nan = |y: usize, cols: Range<usize>| {
-            if !cols.is_empty() {
-                data[y * w + cols.start..y * w + cols.end].fill(f32::NAN);
-            }
-        };
-        for y in oy {
-            if ys.contains(&y) {
-                nan(y, ox.start..ox.end.min(xs.start));
-                nan(y, ox.start.max(xs.end)..ox.end);
-            } else {
-                nan(y, ox.clone());
-            }
-        }
+        for_each_row_outside(ox, oy, xs.clone(), ys.clone(), |y, cols| self.data[y * w + cols.start..y * w + cols.end].fill(f32::NAN));
         if !xs.is_empty() {
             for (y, row) in ys.clone().zip(src.chunks_exact(xs.len())) {
                 self.data[y * w + xs.start..y * w + xs.end].copy_from_slice(row);
