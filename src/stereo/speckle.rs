@@ -9,6 +9,8 @@
 //! that links them, the rest of that run's span skipped — instead of the four neighbour
 //! visits and stack traffic of a flood fill, or a branch per pixel.
 
+use std::ops::Range;
+
 use super::disparity::DisparityMap;
 
 /// Reusable buffers of the speckle filter.
@@ -46,25 +48,39 @@ impl SpeckleFilter {
     /// Invalidates every 4-connected region (neighbours differing by at most `range_px`) of at
     /// most `max_size` pixels.
     pub fn apply(&mut self, map: &mut DisparityMap, max_size: usize, range_px: f32) {
+        let (w, h) = (map.width, map.height);
+        self.apply_within(map, 0..w, 0..h, max_size, range_px);
+    }
+
+    /// [`SpeckleFilter::apply`] over a map with no disparity outside columns `xs` and rows
+    /// `ys` (a matcher call's searched pixels): the regions are the same, found without
+    /// visiting the rest.
+    pub fn apply_within(&mut self, map: &mut DisparityMap, xs: Range<usize>, ys: Range<usize>, max_size: usize, range_px: f32) {
+        assert!(xs.end <= map.width && ys.end <= map.height, "columns {xs:?} and rows {ys:?} inside a {}×{} map", map.width, map.height);
+        if xs.is_empty() || ys.is_empty() {
+            return;
+        }
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU has AVX2 (checked just above).
-            return unsafe { self.apply_avx2(map, max_size, range_px) };
+            return unsafe { self.apply_avx2(map, xs, ys, max_size, range_px) };
         }
-        self.apply_impl::<false>(map, max_size, range_px)
+        self.apply_impl::<false>(map, xs, ys, max_size, range_px)
     }
 
-    /// [`SpeckleFilter::apply`] with the row masks built in AVX2 registers.
+    /// [`SpeckleFilter::apply_within`] with the row masks built in AVX2 registers.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    unsafe fn apply_avx2(&mut self, map: &mut DisparityMap, max_size: usize, range_px: f32) {
-        self.apply_impl::<true>(map, max_size, range_px)
+    unsafe fn apply_avx2(&mut self, map: &mut DisparityMap, xs: Range<usize>, ys: Range<usize>, max_size: usize, range_px: f32) {
+        self.apply_impl::<true>(map, xs, ys, max_size, range_px)
     }
 
-    /// The filter; `AVX2`: the CPU has AVX2 (and the caller is compiled for it).
+    /// The filter over columns `xs` and rows `ys` (not empty); `AVX2`: the CPU has AVX2 (and
+    /// the caller is compiled for it). Positions in the runs are counted from `xs.start`.
     #[inline(always)]
-    fn apply_impl<const AVX2: bool>(&mut self, map: &mut DisparityMap, max_size: usize, range_px: f32) {
-        let (w, h) = (map.width, map.height);
+    fn apply_impl<const AVX2: bool>(&mut self, map: &mut DisparityMap, xs: Range<usize>, ys: Range<usize>, max_size: usize, range_px: f32) {
+        let (stride, x0) = (map.width, xs.start);
+        let w = xs.len();
         self.parent.clear();
         self.size.clear();
         self.span.clear();
@@ -78,8 +94,9 @@ impl SpeckleFilter {
             v.resize(words, 0);
         }
         let data = map.values_mut();
-        for y in 0..h {
-            let row = &data[y * w..(y + 1) * w];
+        let row_of = |y: usize| y * stride + x0..y * stride + x0 + w;
+        for y in ys.clone() {
+            let row = &data[row_of(y)];
             // The row's masks, branch-free (they vectorise). A NaN or infinite pixel is not
             // valid and joins nothing: its difference to any pixel is not ≤ range.
             bits::<AVX2>(row, row, &mut self.valid, None);
@@ -100,8 +117,8 @@ impl SpeckleFilter {
             }
             // Join with the runs above, visiting this row's runs only: each run above is
             // joined at the first pixel that links to it, and the rest of its span is skipped.
-            if y > 0 {
-                let (above, here) = data[(y - 1) * w..(y + 1) * w].split_at(w);
+            if y > ys.start {
+                let (above, here) = (&data[row_of(y - 1)], &data[row_of(y)]);
                 bits::<AVX2>(here, above, &mut self.linked, Some(range_px));
                 for run in first_run..self.parent.len() {
                     let (_, x0, x1) = self.span[run];
@@ -119,8 +136,9 @@ impl SpeckleFilter {
         for run in 0..self.parent.len() as u32 {
             let root = self.find(run);
             if self.size[root as usize] as usize <= max_size {
-                let (y, x0, x1) = self.span[run as usize];
-                data[y as usize * w + x0 as usize..=y as usize * w + x1 as usize].fill(f32::NAN);
+                let (y, a, b) = self.span[run as usize];
+                let row = row_of(y as usize);
+                data[row.start + a as usize..=row.start + b as usize].fill(f32::NAN);
             }
         }
     }
@@ -311,8 +329,25 @@ mod tests {
             assert!(got.iter().zip(&expected).all(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())), "{w}×{h}");
             // The portable masks (other CPUs) too.
             let mut portable = DisparityMap::from_values(w, h, vals.clone());
-            SpeckleFilter::default().apply_impl::<false>(&mut portable, max_size, range);
+            SpeckleFilter::default().apply_impl::<false>(&mut portable, 0..w, 0..h, max_size, range);
             assert!(portable.values().iter().zip(&expected).all(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())), "{w}×{h}, portable");
+            // Within a rectangle outside which the map holds no disparity (a matcher call's
+            // searched pixels), on the map and its flood fill cut to it: the same regions.
+            // (It fails when positions inside the rectangle are taken from the map's edge.)
+            let (xs, ys) = (w / 5..w - w / 4, h / 4..h - h / 5);
+            let cut: Vec<f32> = (0..w * h).map(|i| if xs.contains(&(i % w)) && ys.contains(&(i / w)) { vals[i] } else { f32::NAN }).collect();
+            let mut whole = DisparityMap::from_values(w, h, cut.clone());
+            SpeckleFilter::default().apply(&mut whole, max_size, range);
+            for avx2 in [false, true] {
+                let mut within = DisparityMap::from_values(w, h, cut.clone());
+                let mut f = SpeckleFilter::default();
+                if avx2 {
+                    f.apply_within(&mut within, xs.clone(), ys.clone(), max_size, range);
+                } else {
+                    f.apply_impl::<false>(&mut within, xs.clone(), ys.clone(), max_size, range);
+                }
+                assert!(within.values().iter().zip(whole.values()).all(|(a, b)| a.to_bits() == b.to_bits()), "{w}×{h} within {xs:?} × {ys:?}, avx2 {avx2}");
+            }
         }
     }
 }

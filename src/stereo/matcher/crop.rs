@@ -11,7 +11,7 @@ use crate::stereo::params::ValidMatchParams;
 /// The rectangle of a call that matters: the searched pixels' rows and columns, with the
 /// rows of their windows, and the columns of their windows and of every right pixel their
 /// intervals reach (plus one column for the prefilter's gradient), clipped to the image.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub(super) struct Crop {
     pub(super) x0: usize,
     pub(super) y0: usize,
@@ -20,6 +20,23 @@ pub(super) struct Crop {
     /// Disparities from the lowest searched to the highest, within the range: no pixel's
     /// interval is wider (what lets a narrow call skip the seed's test, `seed.rs`).
     pub(super) span: usize,
+    /// The lowest and the highest disparity searched, clamped into the range: where neither
+    /// is an end of the range, no match can lie at one (what lets a call skip
+    /// `DisparityMap::drop_range_ends`).
+    pub(super) reach: (i32, i32),
+    /// The searched pixels' columns and rows in the image (inside the rectangle above):
+    /// outside them a call's map holds no disparity.
+    pub(super) searched: (Range<usize>, Range<usize>),
+}
+
+/// What a call over the whole of its inputs is told of their searched pixels, in its own
+/// coordinates: see [`Crop`]'s fields of the same names.
+#[derive(Debug, Clone, PartialEq)]
+pub(super) struct Searched {
+    pub(super) span: usize,
+    pub(super) reach: (i32, i32),
+    pub(super) xs: Range<usize>,
+    pub(super) ys: Range<usize>,
 }
 
 impl Crop {
@@ -61,11 +78,19 @@ impl Crop {
         // (a few more columns and rows of prefilter; the results are the same).
         let (left, top) = (left / TILE_W * TILE_W, top / TILE_H * TILE_H);
         let bottom = (y1 + m as usize).min(h - 1);
+        let (reach, searched) = ((dlo, dhi), (x0..x1 + 1, y0..y1 + 1));
         // Too narrow a crop to hold a window: match the whole image.
         if right - left + 1 < 2 {
-            return Some(Crop { x0: 0, y0: 0, w, h, span });
+            return Some(Crop { x0: 0, y0: 0, w, h, span, reach, searched });
         }
-        Some(Crop { x0: left, y0: top, w: right - left + 1, h: bottom - top + 1, span })
+        Some(Crop { x0: left, y0: top, w: right - left + 1, h: bottom - top + 1, span, reach, searched })
+    }
+
+    /// The searched pixels as a call sees them whose inputs start at `(x, y)` of the image:
+    /// `(0, 0)` for a call over the whole image, the crop's corner for a call over the crop.
+    pub(super) fn seen_from(&self, (x, y): (usize, usize)) -> Searched {
+        let (xs, ys) = &self.searched;
+        Searched { span: self.span, reach: self.reach, xs: xs.start - x..xs.end - x, ys: ys.start - y..ys.end - y }
     }
 }
 

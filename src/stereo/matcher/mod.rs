@@ -37,7 +37,8 @@
 //!
 //! # Pipeline
 //! prefilter → per row: column sums → window sums + select (winner-take-all, texture,
-//! uniqueness, sub-pixel) → left–right check → speckle filter over the whole map.
+//! uniqueness, sub-pixel) → left–right check → (SGM's refinement) → the drop at the range's
+//! ends, where the search reaches one → speckle filter over the searched pixels' rectangle.
 
 use std::ops::Range;
 
@@ -45,7 +46,7 @@ use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats, L
 use super::kernels;
 use super::params::{Method, ValidMatchParams};
 use super::speckle::SpeckleFilter;
-use crop::Crop;
+use crop::{Crop, Searched};
 use rows::{column_bands, left_right_check, row_intervals, select_row, texture_row, tile_bands, update_column_sums, update_texture};
 use scratch::{Geometry, StripeInput, StripeScratch, TileSums, PF_SLACK, TILE_H, TILE_W};
 
@@ -192,7 +193,7 @@ impl StereoMatcher {
             return Ok(MatchStats::default());
         };
         if crop.x0 == 0 && crop.y0 == 0 && crop.w == w && crop.h == h {
-            return self.compute_whole(left, right, intervals, crop.span, out);
+            return self.compute_whole(left, right, intervals, &crop.seen_from((0, 0)), out);
         }
         let cut = |img: GrayView, buf: &mut Vec<u8>| {
             buf.clear();
@@ -219,7 +220,7 @@ impl StereoMatcher {
         }
         let lv = GrayView { width: crop.w, height: crop.h, data: &lbuf };
         let rv = GrayView { width: crop.w, height: crop.h, data: &rbuf };
-        let stats = self.compute_whole(lv, rv, &civ, crop.span, &mut cout);
+        let stats = self.compute_whole(lv, rv, &civ, &crop.seen_from((crop.x0, crop.y0)), &mut cout);
         if stats.is_ok() {
             // The crop's rows copied in, everything around them unmatched (a new map, or the
             // last crop's, is so already outside that crop: `DisparityMap::put_rect`).
@@ -230,21 +231,26 @@ impl StereoMatcher {
         stats
     }
 
-    /// [`StereoMatcher::compute`] over the whole of checked inputs, whose searched disparities
-    /// span `span`: the method's call (seeded from the half-size pair where wide, `seed.rs`),
-    /// SGM's refinement, the speckle filter.
-    fn compute_whole(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, span: usize, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
+    /// [`StereoMatcher::compute`] over the whole of checked inputs, whose searched pixels
+    /// `searched` describes in their coordinates: the method's call (seeded from the half-size
+    /// pair where wide, `seed.rs`), SGM's refinement, the drop at the range's ends, the speckle
+    /// filter.
+    fn compute_whole(&mut self, left: GrayView, right: GrayView, intervals: &DisparityIntervals, searched: &Searched, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
         let params = self.params.clone();
-        let mut totals = seed::match_level(self, &params, 0, left, right, intervals, span, out)?;
+        let mut totals = seed::match_level(self, &params, 0, left, right, intervals, searched.span, out)?;
         if params.method == Method::Sgm && params.subpixel && params.sgm_refine {
             // A mask (the object segmented from the blue screen) marks a scan's view.
             let masked = intervals.lo.iter().zip(&intervals.hi).any(|(a, b)| a > b);
             self.refine_subpixel(left, right, intervals, out, masked, &mut totals);
         }
-        if self.drop_range_edges {
-            totals.range_edge = out.drop_range_ends(intervals, params.min_disparity, params.max_disparity());
+        // A pass over the map, which only a search that reaches an end of the range needs
+        // (`DisparityMap::drop_range_ends`' test, taken for the call: an assisted call seldom
+        // does).
+        let (first, last) = (params.min_disparity, params.max_disparity());
+        if self.drop_range_edges && ((last != 0 && searched.reach.1 >= last) || (first != 0 && searched.reach.0 <= first)) {
+            totals.range_edge = out.drop_range_ends(intervals, first, last);
         }
-        self.speckle_filter(out, &mut totals);
+        self.speckle_filter(out, searched, &mut totals);
         Ok(totals)
     }
 
@@ -296,15 +302,23 @@ impl StereoMatcher {
         totals
     }
 
-    /// The speckle filter over a finished map, and the count of what is left.
-    fn speckle_filter(&mut self, out: &mut DisparityMap, totals: &mut MatchStats) {
+    /// The speckle filter over a finished map, and the count of what is left: both over the
+    /// rectangle of the call's searched pixels alone, outside which the map holds no
+    /// disparity.
+    fn speckle_filter(&mut self, out: &mut DisparityMap, searched: &Searched, totals: &mut MatchStats) {
         let params = &self.params;
+        let (xs, ys) = (searched.xs.clone(), searched.ys.clone());
+        let w = out.width;
+        debug_assert!(
+            out.values().chunks_exact(w).enumerate().all(|(y, row)| row.iter().enumerate().all(|(x, v)| !v.is_finite() || (xs.contains(&x) && ys.contains(&y)))),
+            "a match outside the searched pixels' rectangle {xs:?} × {ys:?}"
+        );
         if params.speckle_window > 0 {
             let t0 = std::time::Instant::now();
-            self.speckle.apply(out, params.speckle_window as usize, params.speckle_range_px);
+            self.speckle.apply_within(out, xs.clone(), ys.clone(), params.speckle_window as usize, params.speckle_range_px);
             totals.speckle_ns = t0.elapsed().as_nanos() as u64;
         }
-        totals.matched = out.valid_count();
+        totals.matched = ys.map(|y| out.values()[y * w + xs.start..y * w + xs.end].iter().filter(|v| v.is_finite()).count()).sum();
     }
 }
 

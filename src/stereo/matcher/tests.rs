@@ -301,7 +301,7 @@ fn matching_the_crop_gives_what_matching_the_whole_image_gives() {
         let mut cropped = DisparityMap::new(w, h);
         let stats = m.compute(lv, rv, &iv, &mut cropped).unwrap();
         let mut whole = DisparityMap::new(w, h);
-        let whole_stats = m.compute_whole(lv, rv, &iv, crop.span, &mut whole).unwrap();
+        let whole_stats = m.compute_whole(lv, rv, &iv, &crop.seen_from((0, 0)), &mut whole).unwrap();
         assert_eq!((stats.searched, stats.evaluated, stats.matched), (whole_stats.searched, whole_stats.evaluated, whole_stats.matched));
         assert!(same_map(cropped.values(), whole.values()));
         assert!(stats.matched > 2000, "{}", stats.matched);
@@ -323,7 +323,7 @@ fn matching_the_crop_gives_what_matching_the_whole_image_gives() {
     assert!(crop.w < w && crop.h < h && crop.span == 128, "{crop:?}");
     let (mut cropped, mut whole) = (DisparityMap::new(w, h), DisparityMap::new(w, h));
     let stats = m.compute(lv, rv, &iv, &mut cropped).unwrap();
-    let whole_stats = m.compute_whole(lv, rv, &iv, crop.span, &mut whole).unwrap();
+    let whole_stats = m.compute_whole(lv, rv, &iv, &crop.seen_from((0, 0)), &mut whole).unwrap();
     let both = cropped.values().iter().zip(whole.values()).filter(|(a, b)| !a.is_nan() && !b.is_nan());
     let (n, near) = both.fold((0, 0), |(n, k), (a, b)| (n + 1, k + ((a - b).abs() <= 0.5) as usize));
     assert!(n * 100 >= whole_stats.matched * 99 && near * 100 >= n * 99, "{near} of {n} within 0.5 px, {} and {} matched", stats.matched, whole_stats.matched);
@@ -632,10 +632,11 @@ fn a_pixels_texture_is_the_sum_of_its_windows_column_sums() {
 
 /// A pair whose left half lies at disparity 7 and whose right half at `far`, in a smooth
 /// texture (a surface's: the cost falls towards the true disparity from afar), matched over
-/// `first ..= first + 15` with and without `drop_range_edges`. Returns the right half's
-/// matches at the range's end (the one `far` lies beyond), all its matches, the left half's
-/// good matches, and `range_edge`.
-fn range_edge_case(method: Method, first: i32, far: usize, drop: bool) -> (usize, usize, usize, usize) {
+/// `first ..= first + 15` with and without `drop_range_edges` (with `short`, every pixel's
+/// interval stops one short of the range's last end). Returns the right half's matches at the
+/// range's end (the one `far` lies beyond), all its matches, the left half's good matches,
+/// and `range_edge`.
+fn range_edge_case(method: Method, first: i32, far: usize, drop: bool, short: bool) -> (usize, usize, usize, usize) {
     let (w, h) = (128, 48);
     let (rough, _) = shifted_pair(w + 32, h, |_, _| 0);
     let rough = &rough;
@@ -652,7 +653,8 @@ fn range_edge_case(method: Method, first: i32, far: usize, drop: bool) -> (usize
     let p = MatchParams { min_disparity: first, num_disparities: 16, threads: 1, ..MatchParams::for_method(method) }.validate().unwrap();
     let end = if far as i32 > first { p.max_disparity() } else { first } as f32;
     let mut m = StereoMatcher::new(p).drop_range_edges(drop);
-    let iv = m.full_intervals(w, h, None);
+    let last = m.params().max_disparity();
+    let iv = if short { DisparityIntervals::full(w, h, first, last - 1) } else { m.full_intervals(w, h, None) };
     let mut out = DisparityMap::new(w, h);
     let stats = m.compute(GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap(), &iv, &mut out).unwrap();
     let right_half = || (0..h).flat_map(|y| (w / 2 + 24..w - 8).map(move |x| (x, y)));
@@ -670,17 +672,22 @@ fn matches_at_the_range_s_end_are_dropped_where_asked() {
         for (first, far) in [(0, 16), (4, 3)] {
             // Kept (what `disparity` gives, as OpenCV does), they pile up at the end:
             // measured 219 and 192 (`bm`), 1519 and 1513 (`sgm`) of the 1536 pixels.
-            let (at_end, _, good_kept, edge) = range_edge_case(method, first, far, false);
+            let (at_end, _, good_kept, edge) = range_edge_case(method, first, far, false, false);
             assert!(at_end > 150, "{method:?} {first}: {at_end} matches at the range's end without dropping");
             assert_eq!(edge, 0);
-            let (at_end_dropped, _, good, edge) = range_edge_case(method, first, far, true);
+            let (at_end_dropped, _, good, edge) = range_edge_case(method, first, far, true, false);
             assert_eq!(at_end_dropped, 0, "{method:?} {first}");
             assert!(edge >= at_end, "{method:?} {first}: {edge} dropped, {at_end} at the end in the half's middle alone");
             // What lies inside the range keeps its matches.
             assert!(good == good_kept && good > 1500, "{method:?} {first}: {good} against {good_kept}");
         }
+        // A search that reaches the first end but not the last is still checked there (the
+        // call skips the drop only when its search reaches neither end).
+        let (at_first, _, _, _) = range_edge_case(method, 4, 3, false, true);
+        let (dropped_first, _, _, edge) = range_edge_case(method, 4, 3, true, true);
+        assert!(at_first > 150 && dropped_first == 0 && edge >= at_first, "{method:?}: {at_first} at the first end, {dropped_first} left, {edge} dropped");
         // Disparity 0 is not an end to drop at: nothing lies beyond infinity.
-        let (at_zero, matched, _, edge) = range_edge_case(method, 0, 0, true);
+        let (at_zero, matched, _, edge) = range_edge_case(method, 0, 0, true, false);
         assert!(at_zero > 1500 && at_zero == matched, "{method:?}: {at_zero} of {matched} at 0");
         assert_eq!(edge, 0, "{method:?}");
     }
