@@ -332,21 +332,22 @@ mod tests {
             SpeckleFilter::default().apply_impl::<false>(&mut portable, 0..w, 0..h, max_size, range);
             assert!(portable.values().iter().zip(&expected).all(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())), "{w}×{h}, portable");
             // Within a rectangle outside which the map holds no disparity (a matcher call's
-            // searched pixels), on the map and its flood fill cut to it: the same regions.
-            // (It fails when positions inside the rectangle are taken from the map's edge.)
+            // searched pixels), against the filter over the whole of the same map, through
+            // the dispatch and the portable masks: the same regions. (It fails when positions
+            // inside the rectangle are taken from the map's edge.)
             let (xs, ys) = (w / 5..w - w / 4, h / 4..h - h / 5);
             let cut: Vec<f32> = (0..w * h).map(|i| if xs.contains(&(i % w)) && ys.contains(&(i / w)) { vals[i] } else { f32::NAN }).collect();
             let mut whole = DisparityMap::from_values(w, h, cut.clone());
             SpeckleFilter::default().apply(&mut whole, max_size, range);
-            for avx2 in [false, true] {
+            for dispatched in [false, true] {
                 let mut within = DisparityMap::from_values(w, h, cut.clone());
                 let mut f = SpeckleFilter::default();
-                if avx2 {
+                if dispatched {
                     f.apply_within(&mut within, xs.clone(), ys.clone(), max_size, range);
                 } else {
                     f.apply_impl::<false>(&mut within, xs.clone(), ys.clone(), max_size, range);
                 }
-                assert!(within.values().iter().zip(whole.values()).all(|(a, b)| a.to_bits() == b.to_bits()), "{w}×{h} within {xs:?} × {ys:?}, avx2 {avx2}");
+                assert!(within.values().iter().zip(whole.values()).all(|(a, b)| a.to_bits() == b.to_bits()), "{w}×{h} within {xs:?} × {ys:?}, dispatched {dispatched}");
             }
         }
     }
