@@ -196,6 +196,15 @@ pub(in crate::stereo) fn searched_span<T: PartialOrd + Copy>(lo: &[T], hi: &[T])
 /// Pixels [`searched_span`] tests at once.
 const SPAN_CHUNK: usize = 32;
 
+/// Whether a search of disparities `lo ..= hi` reaches the ends of the range `first ..=
+/// last` at which [`DisparityMap::drop_range_ends`] drops matches: `(the first, the last)`.
+/// The last always counts, the first unless it is 0 (nothing lies beyond infinity). Asked of
+/// each pixel there, and of a whole call's lowest and highest disparity to skip the pass.
+#[inline(always)]
+pub(in crate::stereo) fn range_ends_reached(lo: i32, hi: i32, first: i32, last: i32) -> (bool, bool) {
+    (first != 0 && lo <= first, last != 0 && hi >= last)
+}
+
 /// Each row of the rectangle `xs × ys` with its columns outside `keep_xs × keep_ys` (one
 /// or two non-empty pieces a row, none where the kept rectangle covers it): what
 /// [`DisparityIntervals::clear_rect_but`] clears and [`DisparityMap::put_rect`] makes NaN.
@@ -268,11 +277,11 @@ impl DisparityMap {
     /// past the end's half pixel is a winner at the end. Returns how many were dropped.
     pub fn drop_range_ends(&mut self, iv: &DisparityIntervals, first: i32, last: i32) -> usize {
         let (below, above) = (first as f32 + 0.5, last as f32 - 0.5);
-        let (check_first, check_last) = (first != 0, last != 0);
         let mut dropped = 0;
         for ((v, &lo), &hi) in self.data.iter_mut().zip(&iv.lo).zip(&iv.hi) {
-            let at_last = check_last && hi as i32 >= last && *v > above;
-            let at_first = check_first && lo as i32 <= first && *v < below;
+            let (first_end, last_end) = range_ends_reached(lo as i32, hi as i32, first, last);
+            let at_last = last_end && *v > above;
+            let at_first = first_end && *v < below;
             if at_last | at_first {
                 *v = f32::NAN;
                 dropped += 1;

@@ -42,7 +42,7 @@
 
 use std::ops::Range;
 
-use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats, LR_TIMED_EVERY};
+use super::disparity::{range_ends_reached, DisparityIntervals, DisparityMap, GrayView, MatchStats, LR_TIMED_EVERY};
 use super::kernels;
 use super::params::{Method, ValidMatchParams};
 use super::speckle::SpeckleFilter;
@@ -244,10 +244,10 @@ impl StereoMatcher {
             self.refine_subpixel(left, right, intervals, out, masked, &mut totals);
         }
         // A pass over the map, which only a search that reaches an end of the range needs
-        // (`DisparityMap::drop_range_ends`' test, taken for the call: an assisted call seldom
-        // does).
+        // (the drop's own test, asked of the call's extremes: an assisted call seldom does).
         let (first, last) = (params.min_disparity, params.max_disparity());
-        if self.drop_range_edges && ((last != 0 && searched.reach.1 >= last) || (first != 0 && searched.reach.0 <= first)) {
+        let (first_end, last_end) = range_ends_reached(searched.reach.0, searched.reach.1, first, last);
+        if self.drop_range_edges && (first_end || last_end) {
             totals.range_edge = out.drop_range_ends(intervals, first, last);
         }
         self.speckle_filter(out, searched, &mut totals);
