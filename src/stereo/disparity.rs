@@ -321,7 +321,13 @@ impl DisparityMap {
     }
 
     pub fn valid_count(&self) -> usize {
-        self.data.iter().filter(|v| v.is_finite()).count()
+        self.valid_count_within(0..self.width, 0..self.height)
+    }
+
+    /// [`DisparityMap::valid_count`] over columns `xs` and rows `ys` alone.
+    pub(in crate::stereo) fn valid_count_within(&self, xs: Range<usize>, ys: Range<usize>) -> usize {
+        let w = self.width;
+        ys.map(|y| self.data[y * w + xs.start..y * w + xs.end].iter().filter(|v| v.is_finite()).count()).sum()
     }
 }
 

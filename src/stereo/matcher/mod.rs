@@ -318,7 +318,7 @@ impl StereoMatcher {
             self.speckle.apply_within(out, xs.clone(), ys.clone(), params.speckle_window as usize, params.speckle_range_px);
             totals.speckle_ns = t0.elapsed().as_nanos() as u64;
         }
-        totals.matched = ys.map(|y| out.values()[y * w + xs.start..y * w + xs.end].iter().filter(|v| v.is_finite()).count()).sum();
+        totals.matched = out.valid_count_within(xs, ys);
     }
 }
 
