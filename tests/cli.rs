@@ -109,8 +109,8 @@ fn bad_inputs_give_one_clear_line() {
     spinscan::io::write_gray_png(&small, 20, 10, &[0; 200]).unwrap();
     check_bad_input(&["disparity", "--left", l, "--right", small.to_str().unwrap(), "-o", out], "200×150");
 
-    check_bad_input(&["disparity", "--left", l, "--right", r, "--block", "8", "-o", out], "block = 8");
-    check_bad_input(&["disparity", "--left", l, "--right", r, "--max-disparity", "0", "-o", out], "num_disparities = 0");
+    check_bad_input(&["disparity", "--left", l, "--right", r, "--block", "8", "-o", out], "--block 8: must be odd and within 3…31");
+    check_bad_input(&["disparity", "--left", l, "--right", r, "--max-disparity", "0", "-o", out], "--num-disparities 0: must be within 1…1024");
 
     let text = std::fs::read_to_string(dir.join("calib.yaml")).unwrap();
     let broken = dir.join("broken.yaml");
@@ -502,6 +502,49 @@ fn sim_and_replay_reject_bad_input_in_one_line() {
     check_bad_input(&["sim", "render", "--object", "teapot", "-o", out.to_str().unwrap()], "unknown object `teapot`; built-in objects: sphere, egg, vase, torus");
     check_bad_input(&["sim", "render", "--frames", "0", "-o", out.to_str().unwrap()], "--frames must be at least 1");
     check_bad_input(&["replay", dir.join("nothing").to_str().unwrap(), "-o", out.to_str().unwrap()], "is not a recording: it has no frames.jsonl");
+}
+
+/// A matcher flag out of its range is named by the flag before any work starts, and a rig
+/// the pipeline cannot be set up for (its cameras stacked vertically) by what is wrong with
+/// it. Neither is put on a frame, points to results that were never written, or leaves an
+/// output folder behind.
+#[test]
+fn setup_errors_name_the_flag_or_the_rig_and_write_nothing() {
+    let dir = support::temp_dir("cli-setup");
+    let rec = dir.join("rec");
+    let rec_s = rec.to_str().unwrap();
+    let o = spinscan(&["sim", "render", "--object", "sphere", "--triangles", "2000", "--frames", "1", "--size", "160x120", "-o", rec_s]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = dir.join("out");
+    let (out_s, json, fig) = (out.to_str().unwrap(), dir.join("t.json"), dir.join("t.png"));
+    let table1 = |extra: &[&'static str]| -> Vec<String> {
+        let mut a: Vec<String> = ["bench", "table1", rec_s, "--json", json.to_str().unwrap(), "--fig", fig.to_str().unwrap()].map(String::from).to_vec();
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a
+    };
+    let cases: Vec<(Vec<String>, &str)> = vec![
+        (["replay", rec_s, "--method", "sgm", "--p1", "0", "-o", out_s].map(String::from).to_vec(), "--p1 0: must be at least 1 and below p2"),
+        (["replay", rec_s, "--speckle-range=-1", "-o", out_s].map(String::from).to_vec(), "--speckle-range -1: must be a finite number"),
+        (table1(&["--method", "bm,sgm", "--p2", "5000"]), "--p2 5000: must be within p1 + 1 … 2000"),
+        (table1(&["--uniqueness", "200"]), "--uniqueness 200: must be a percentage"),
+    ];
+    for (args, needle) in &cases {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        check_bad_input(&args, needle);
+        assert!(!stderr(&spinscan(&args)).contains("frame seq"), "{args:?}");
+        assert!(!out.exists() && !json.exists() && !fig.exists(), "{args:?} wrote output");
+    }
+    // The baseline turned from x to y: cameras one above the other.
+    let text = std::fs::read_to_string(rec.join("calib.yaml")).unwrap();
+    let t = text.find("T: !!opencv-matrix").expect("calib.yaml has T");
+    let (start, end) = (t + text[t..].find('[').unwrap() + 1, t + text[t..].find(']').unwrap());
+    let v: Vec<&str> = text[start..end].split(',').map(str::trim).collect();
+    std::fs::write(rec.join("calib.yaml"), format!("{}{}, {}, {}{}", &text[..start], v[1], v[0], v[2], &text[end..])).unwrap();
+    let o = spinscan(&["replay", rec_s, "-o", out_s]);
+    assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(err.contains("stacked vertically") && !err.contains("frame seq") && !err.contains("results so far"), "{err}");
+    assert!(!out.exists(), "nothing to write, no folder");
 }
 
 /// `sim render`'s lab options: the rig and the cameras' place change the object's

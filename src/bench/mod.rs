@@ -85,6 +85,9 @@ impl Default for Table1Options {
 pub enum BenchError {
     #[error("{0}")]
     Recording(String),
+    /// A rig's pipeline cannot be set up (parameters, the calibration against the frames).
+    #[error("{0}")]
+    Setup(PipelineError),
     #[error("frame seq {seq}: {source}")]
     Pipeline { seq: u64, source: PipelineError },
     #[error("{0}")]
@@ -304,7 +307,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
     let mut pipes = Vec::new();
     for m in &matchers {
         let o = PipelineOptions { matching: m.clone(), ..opts.pipeline.clone() };
-        pipes.push(Pipeline::new(&rec.calib, rec.image_size, o).map_err(|source| BenchError::Pipeline { seq: 0, source })?);
+        pipes.push(Pipeline::new(&rec.calib, rec.image_size, o).map_err(BenchError::Setup)?);
     }
     let size = (rec.image_size.0 as usize, rec.image_size.1 as usize);
     if let Some(p) = opts.plate.as_ref().filter(|p| p.len() != size.0 * size.1 * 3) {

@@ -161,15 +161,15 @@ pub fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
             methods.push(*m);
         }
     }
-    let matchers: Vec<_> = methods
+    let matchers = methods
         .iter()
         .map(|&m| {
-            let mut p = a.matching.params_for(m, 128);
+            let mut p = a.matching.checked_params_for(m, 128)?;
             // One thread unless asked: steadier timings on a shared machine.
             p.threads = a.matching.threads.unwrap_or(1);
-            p
+            Ok(p)
         })
-        .collect();
+        .collect::<Result<Vec<_>, Failure>>()?;
     let mut granularities = Vec::new();
     for g in &a.assist_granularity {
         let g = Granularity::parse(g).map_err(|e| input(format!("--assist-granularity: {e}")))?;

@@ -192,7 +192,7 @@ impl MatchArgs {
     /// The parameters, with `num_disparities` defaulting to `default_range`; one `--method`.
     pub fn params_with_default(&self, default_range: u32) -> Result<MatchParams, Failure> {
         match self.method.as_slice() {
-            [m] => Ok(self.params_for(*m, default_range)),
+            [m] => self.checked_params_for(*m, default_range),
             _ => Err(input(format!("--method {}: this command runs one matcher (bm or sgm); only `bench table1` takes a list", self.method.iter().map(|m| m.name()).collect::<Vec<_>>().join(",")))),
         }
     }
@@ -201,6 +201,20 @@ impl MatchArgs {
     /// then fit the range to the object (`pipeline::range`).
     pub fn range_unset(&self) -> bool {
         self.num_disparities.is_none() && self.min_disparity.is_none()
+    }
+
+    /// [`MatchArgs::params_for`], checked before any work starts: a value out of range is
+    /// reported by its flag (`--p1 0: must be at least 1 and below p2`), not by the
+    /// matcher's field once a recording is loaded.
+    pub fn checked_params_for(&self, method: Method, default_range: u32) -> Result<MatchParams, Failure> {
+        let p = self.params_for(method, default_range);
+        match p.clone().validate() {
+            Ok(_) => Ok(p),
+            Err(e) => Err(input(match flag_of(e.name) {
+                Some(flag) => format!("{flag} {}: {}", e.value, e.expected),
+                None => e.to_string(),
+            })),
+        }
     }
 
     /// The parameters of matcher `method`: its defaults where a flag is not given.
@@ -228,6 +242,26 @@ impl MatchArgs {
         }
     }
 
+}
+
+/// The flag that sets the matcher parameter `name` ([`spinscan::stereo::ParamError::name`]),
+/// where one does.
+fn flag_of(name: &str) -> Option<&'static str> {
+    Some(match name {
+        "num_disparities" => "--num-disparities",
+        "min_disparity" => "--min-disparity",
+        "block" => "--block",
+        "sgm_refine_block" => "--sgm-refine-block",
+        "sgm_refine_agree" => "--sgm-refine-agree",
+        "uniqueness_ratio" => "--uniqueness",
+        "speckle_range_px" => "--speckle-range",
+        "p1" => "--p1",
+        "p2" => "--p2",
+        "sgm_ad_cap" => "--sgm-ad-cap",
+        "sgm_paths" => "--sgm-paths",
+        "threads" => "--threads",
+        _ => return None,
+    })
 }
 
 /// A raw pair and its calibration (`rectify`, `points`).

@@ -77,7 +77,8 @@ pub fn cmd_replay(a: ReplayArgs) -> Result<(), Failure> {
     });
     progress::finish();
     let summary = summary.map_err(|e| {
-        let why = format!("{e} (results so far are in {}, manifest status `failed`)", a.out.display());
+        // (A run that stopped before writing anything has no results to point to.)
+        let why = if e.wrote_results() { format!("{e} (results so far are in {}, manifest status `failed`)", a.out.display()) } else { e.to_string() };
         if e.is_output() {
             output(why)
         } else {

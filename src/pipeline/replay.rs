@@ -32,8 +32,9 @@ use crate::register::ring::{Registrar, RegistrationParams};
 pub enum ReplayError {
     #[error(transparent)]
     Capture(#[from] CaptureError),
-    #[error("frame seq {seq}: {source}")]
-    Pipeline { seq: u64, source: PipelineError },
+    /// The rig's pipeline cannot be set up (parameters, the calibration against the frames).
+    #[error("{0}")]
+    Setup(PipelineError),
     #[error("frame seq {seq}: {source}")]
     Frame { seq: u64, source: FrameError },
     #[error("frame seq {seq}: {source}")]
@@ -46,13 +47,25 @@ pub enum ReplayError {
     /// A file beside the frames (calibrated axis, ground truth) is unusable.
     #[error("{0}")]
     SideFile(String),
+    /// The run stopped before it wrote anything into its results folder.
+    #[error(transparent)]
+    BeforeResults(Box<ReplayError>),
 }
 
 impl ReplayError {
     /// Whether the run stopped because its results could not be written (not because of
     /// its input).
     pub fn is_output(&self) -> bool {
-        matches!(self, ReplayError::Results(ResultsError::Output { .. }))
+        match self {
+            ReplayError::BeforeResults(e) => e.is_output(),
+            e => matches!(e, ReplayError::Results(ResultsError::Output { .. })),
+        }
+    }
+
+    /// Whether the results folder holds what the run wrote before it stopped (its manifest
+    /// `failed`, with this error as the reason).
+    pub fn wrote_results(&self) -> bool {
+        !matches!(self, ReplayError::BeforeResults(_))
     }
 }
 
@@ -103,14 +116,15 @@ pub struct ReplaySummary {
 /// where the recording has one (`gt/disparity/`, or rendered from `gt/mesh.ply`).
 pub fn run_recording(recording: crate::recording::Recording, out: &Path, opts: &ReplayOptions, progress: &mut dyn FnMut(usize, u64, f64)) -> Result<ReplaySummary, ReplayError> {
     let dir = recording.dir.clone();
+    let before = |e: ReplayError| ReplayError::BeforeResults(Box::new(e));
     let calibrated_axis = match &opts.turntable_axis {
         Some(axis) => Some(axis.clone()),
-        None => TurntableAxis::read_calibrated(&dir).map_err(|e| ReplayError::SideFile(format!("calibrated turntable axis: {e}")))?,
+        None => TurntableAxis::read_calibrated(&dir).map_err(|e| before(ReplayError::SideFile(format!("calibrated turntable axis: {e}"))))?,
     };
     let mut inputs = RegistrationInputs { calibrated_axis, ..Default::default() };
-    let gt = GtDisparities::open(&dir)?;
+    let gt = GtDisparities::open(&dir).map_err(|e| before(e.into()))?;
     if opts.registration.is_some() {
-        inputs.gt_poses = crate::recording::read_gt_cam_from_obj(&dir).map_err(|e| ReplayError::SideFile(format!("ground truth: {e}")))?;
+        inputs.gt_poses = crate::recording::read_gt_cam_from_obj(&dir).map_err(|e| before(ReplayError::SideFile(format!("ground truth: {e}"))))?;
         inputs.gt_mesh = gt.mesh();
     }
     run(&mut crate::hw::replay::ReplaySource::new(recording), out, opts, gt.any().then_some(&gt), &inputs, progress)
@@ -127,17 +141,18 @@ pub fn run(
     progress: &mut dyn FnMut(usize, u64, f64),
 ) -> Result<ReplaySummary, ReplayError> {
     let calib = source.calibration().clone();
-    let first = source.next_frame()?;
+    let before = |e: ReplayError| ReplayError::BeforeResults(Box::new(e));
+    let first = source.next_frame().map_err(|e| before(e.into()))?;
     let Some(first) = first else {
         let w = ResultsWriter::create(out, &source.describe(), 1)?;
         w.finish(None)?;
         return Ok(ReplaySummary { frames: 0, mean_match_ms: 0.0, gt: None, gt_disparity: None, disparity_sign: 1, registration: None });
     };
-    let (w, h, _) = first.left.to_rgb().map_err(|source| ReplayError::Frame { seq: first.seq, source: FrameError::Decode { side: "left", source } })?;
+    let (w, h, _) = first.left.to_rgb().map_err(|source| before(ReplayError::Frame { seq: first.seq, source: FrameError::Decode { side: "left", source } }))?;
     let size = (w as u32, h as u32);
-    let pipe = Pipeline::new(&calib, size, opts.pipeline.clone()).map_err(|source| ReplayError::Pipeline { seq: first.seq, source })?;
+    let pipe = Pipeline::new(&calib, size, opts.pipeline.clone()).map_err(|e| before(ReplayError::Setup(e)))?;
     let plate = opts.plate.as_deref().map(|p| pipe.rectify_plate(p));
-    let fitted = super::range::fit(pipe, &calib, &first, opts.segment, plate.as_ref(), &opts.pipeline).map_err(|source| ReplayError::Frame { seq: first.seq, source })?;
+    let fitted = super::range::fit(pipe, &calib, &first, opts.segment, plate.as_ref(), &opts.pipeline).map_err(|source| before(ReplayError::Frame { seq: first.seq, source }))?;
     let (mut pipe, fit, contrast) = (fitted.pipe, fitted.range, fitted.contrast);
     let mut results = ResultsWriter::create(out, &source.describe(), pipe.rect.disparity_sign)?;
     let store = Arc::new(PoseStore::new());
