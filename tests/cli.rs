@@ -504,7 +504,8 @@ fn sim_and_replay_reject_bad_input_in_one_line() {
     check_bad_input(&["replay", dir.join("nothing").to_str().unwrap(), "-o", out.to_str().unwrap()], "is not a recording: it has no frames.jsonl");
 }
 
-/// A matcher flag out of its range is named by the flag before any work starts, and a rig
+/// A matcher flag out of its range is named by the flag before any work starts (and so is a
+/// figure's frame past the run's last one), and a rig
 /// the pipeline cannot be set up for (its cameras stacked vertically) by what is wrong with
 /// it. Neither is put on a frame, points to results that were never written, or leaves an
 /// output folder behind.
@@ -527,6 +528,8 @@ fn setup_errors_name_the_flag_or_the_rig_and_write_nothing() {
         (["replay", rec_s, "--speckle-range=-1", "-o", out_s].map(String::from).to_vec(), "--speckle-range -1: must be a finite number"),
         (table1(&["--method", "bm,sgm", "--p2", "5000"]), "--p2 5000: must be within p1 + 1 … 2000"),
         (table1(&["--uniqueness", "200"]), "--uniqueness 200: must be a percentage"),
+        // (Checked before any frame is decoded, as the flags are.)
+        (table1(&["--fig-frame", "5"]), "the figure's frame 5 lies past this run's last frame, 1 (ask for 1…1)"),
     ];
     for (args, needle) in &cases {
         let args: Vec<&str> = args.iter().map(String::as_str).collect();

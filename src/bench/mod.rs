@@ -302,6 +302,9 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
     if n == 0 {
         return Err(BenchError::Recording(format!("{}: no frames to run", dir.display())));
     }
+    if let Some(k) = opts.fig_frame.filter(|&k| k >= n) {
+        return Err(BenchError::Recording(format!("the figure's frame {} lies past this run's last frame, {n} (ask for 1…{n})", k + 1)));
+    }
     let matchers = if opts.matchers.is_empty() { vec![opts.pipeline.matching.clone()] } else { opts.matchers.clone() };
     // One pipeline per matcher (they share the rectification and the prepared frames).
     let mut pipes = Vec::new();
@@ -369,6 +372,7 @@ pub fn table1(dir: &Path, opts: &Table1Options, progress: &mut dyn FnMut(&str, u
         }
     }
     let rows: Vec<(usize, (AssistMode, Granularity))> = (0..pipes.len()).flat_map(|k| modes.iter().map(move |&m| (k, m))).collect();
+    // The default shows frame 5, or the last of a shorter run.
     let fig_frame = opts.fig_frame.unwrap_or(4).min(n - 1);
     let calibrated = TurntableAxis::read_calibrated(dir).map_err(|e| BenchError::Recording(format!("calibrated turntable axis: {e}")))?;
     // Every row keeps its own assistant, pose store and registrar; the rows take turns frame

@@ -35,9 +35,10 @@ pub struct Table1Args {
     /// The Fig. 4-style image (left image, then each row's disparity map).
     #[arg(long, default_value = "table1-fig4.png")]
     pub fig: PathBuf,
-    /// Frame shown in the figure (1-based, as in the table).
-    #[arg(long, default_value_t = 5)]
-    pub fig_frame: usize,
+    /// Frame shown in the figure (1-based, as in the table) [default: 5, or the last frame of
+    /// a shorter run].
+    #[arg(long)]
+    pub fig_frame: Option<usize>,
     /// Use at most this many frames.
     #[arg(long)]
     pub frames: Option<usize>,
@@ -152,7 +153,7 @@ pub fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
     if a.repeat == 0 {
         return Err(input("--repeat must be at least 1"));
     }
-    if a.fig_frame == 0 {
+    if a.fig_frame == Some(0) {
         return Err(input("--fig-frame counts from 1"));
     }
     let mut methods = Vec::new();
@@ -195,7 +196,7 @@ pub fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
         lag: a.lag,
         assist: a.assist.params(AssistMode::Predicted)?,
         granularities,
-        fig_frame: Some(a.fig_frame - 1),
+        fig_frame: a.fig_frame.map(|k| k - 1),
         ..Default::default()
     };
     let table = spinscan::bench::table1(&a.recording, &opts, &mut |row, done, total| progress::show(format!("bench table1: {row:<10} {done}/{total}")));
@@ -203,7 +204,7 @@ pub fn cmd_table1(a: Table1Args) -> Result<(), Failure> {
     let table = table.map_err(input)?;
     print!("{}", table.render(a.columns));
     table.write_figure(&a.fig).map_err(output)?;
-    println!("figure: {} (left image of frame {}, then {})", a.fig.display(), opts.fig_frame.unwrap_or(0).min(table.frames.len() - 1) + 1, table.to_json()["fig_tiles"].as_array().map(|t| t[1..].iter().filter_map(|v| v.as_str()).collect::<Vec<_>>().join(", ")).unwrap_or_default());
+    println!("figure: {} (left image of frame {}, then {})", a.fig.display(), table.fig_frame + 1, table.to_json()["fig_tiles"].as_array().map(|t| t[1..].iter().filter_map(|v| v.as_str()).collect::<Vec<_>>().join(", ")).unwrap_or_default());
     if let Some(path) = &a.json {
         io::write_atomic(path, serde_json::to_string_pretty(&table.to_json()).unwrap().as_bytes()).map_err(|e| output(format!("cannot write {}: {e}", path.display())))?;
     }
