@@ -505,10 +505,9 @@ fn sim_and_replay_reject_bad_input_in_one_line() {
 }
 
 /// A matcher flag out of its range is named by the flag before any work starts (and so is a
-/// figure's frame past the run's last one), and a rig
-/// the pipeline cannot be set up for (its cameras stacked vertically) by what is wrong with
-/// it. Neither is put on a frame, points to results that were never written, or leaves an
-/// output folder behind.
+/// figure's frame past the run's last one), and a rig the pipeline cannot be set up for (its
+/// cameras stacked vertically) by what is wrong with it. Neither is put on a frame, points to
+/// results that were never written, or leaves an output folder behind.
 #[test]
 fn setup_errors_name_the_flag_or_the_rig_and_write_nothing() {
     let dir = support::temp_dir("cli-setup");
