@@ -525,6 +525,8 @@ fn setup_errors_name_the_flag_or_the_rig_and_write_nothing() {
     let cases: Vec<(Vec<String>, &str)> = vec![
         (["replay", rec_s, "--method", "sgm", "--p1", "0", "-o", out_s].map(String::from).to_vec(), "--p1 0: must be at least 1 and below p2"),
         (["replay", rec_s, "--speckle-range=-1", "-o", out_s].map(String::from).to_vec(), "--speckle-range -1: must be a finite number"),
+        // (Before the demo renders its recording, or clears an earlier demo's.)
+        (["demo", "--method", "sgm", "--p2", "3000", "-o", out_s].map(String::from).to_vec(), "--p2 3000: must be within p1 + 1 … 2000"),
         (table1(&["--method", "bm,sgm", "--p2", "5000"]), "--p2 5000: must be within p1 + 1 … 2000"),
         (table1(&["--uniqueness", "200"]), "--uniqueness 200: must be a percentage"),
         // (Checked before any frame is decoded, as the flags are.)

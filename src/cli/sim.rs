@@ -246,6 +246,11 @@ fn render_target(a: &SimRenderArgs, target: TargetArg) -> Result<(), Failure> {
 
 pub fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
     let (rec_dir, results_dir) = (a.out.join("recording"), a.out.join("results"));
+    // The replay's options first: a bad flag costs no render, and leaves the previous demo.
+    let replay_opts = ReplayOptions {
+        assist: a.assist.params(!a.reg.no_register)?,
+        ..a.reg.options(PipelineOptions { min_disparity: a.matching.min_disparity, matching: a.matching.params_with_default(128)?, fit_range: a.matching.range_unset(), follow_surface: !a.matching.no_follow_surface, ..Default::default() })?
+    };
     if rec_dir.join("frames.jsonl").exists() {
         std::fs::remove_dir_all(&rec_dir).map_err(|e| output(format!("cannot clear the previous demo in {}: {e}", rec_dir.display())))?;
     }
@@ -262,10 +267,6 @@ pub fn cmd_demo(a: DemoArgs) -> Result<(), Failure> {
     progress::finish();
     let rec = rec.map_err(input)?;
     eprintln!("demo: replaying {} (segment the blue screen, rectify, match, triangulate)…", rec_dir.display());
-    let replay_opts = ReplayOptions {
-        assist: a.assist.params(!a.reg.no_register)?,
-        ..a.reg.options(PipelineOptions { min_disparity: a.matching.min_disparity, matching: a.matching.params_with_default(128)?, fit_range: a.matching.range_unset(), follow_surface: !a.matching.no_follow_surface, ..Default::default() })?
-    };
     let summary = replay::run_recording(rec, &results_dir, &replay_opts, &mut |done, seq, ms| {
         progress::show(format!("demo: replayed {done}/{} (seq {seq}, {ms:.0} ms)", a.frames))
     });
