@@ -121,16 +121,21 @@ pub struct ReplaySummary {
 /// where the recording has one (`gt/disparity/`, or rendered from `gt/mesh.ply`).
 pub fn run_recording(recording: crate::recording::Recording, out: &Path, opts: &ReplayOptions, progress: &mut dyn FnMut(usize, u64, f64)) -> Result<ReplaySummary, ReplayError> {
     let dir = recording.dir.clone();
-    let calibrated_axis = match &opts.turntable_axis {
-        Some(axis) => Some(axis.clone()),
-        None => TurntableAxis::read_calibrated(&dir).map_err(|e| ReplayError::before_results(ReplayError::SideFile(format!("calibrated turntable axis: {e}"))))?,
-    };
-    let mut inputs = RegistrationInputs { calibrated_axis, ..Default::default() };
-    let gt = GtDisparities::open(&dir).map_err(ReplayError::before_results)?;
-    if opts.registration.is_some() {
-        inputs.gt_poses = crate::recording::read_gt_cam_from_obj(&dir).map_err(|e| ReplayError::before_results(ReplayError::SideFile(format!("ground truth: {e}"))))?;
-        inputs.gt_mesh = gt.mesh();
-    }
+    // The files beside the frames, read before anything is written.
+    let (inputs, gt) = (|| -> Result<_, ReplayError> {
+        let calibrated_axis = match &opts.turntable_axis {
+            Some(axis) => Some(axis.clone()),
+            None => TurntableAxis::read_calibrated(&dir).map_err(|e| ReplayError::SideFile(format!("calibrated turntable axis: {e}")))?,
+        };
+        let mut inputs = RegistrationInputs { calibrated_axis, ..Default::default() };
+        let gt = GtDisparities::open(&dir)?;
+        if opts.registration.is_some() {
+            inputs.gt_poses = crate::recording::read_gt_cam_from_obj(&dir).map_err(|e| ReplayError::SideFile(format!("ground truth: {e}")))?;
+            inputs.gt_mesh = gt.mesh();
+        }
+        Ok((inputs, gt))
+    })()
+    .map_err(ReplayError::before_results)?;
     run(&mut crate::hw::replay::ReplaySource::new(recording), out, opts, gt.any().then_some(&gt), &inputs, progress)
 }
 
@@ -145,19 +150,25 @@ pub fn run(
     progress: &mut dyn FnMut(usize, u64, f64),
 ) -> Result<ReplaySummary, ReplayError> {
     let calib = source.calibration().clone();
-    let first = source.next_frame().map_err(ReplayError::before_results)?;
-    let Some(first) = first else {
+    // Everything up to the results folder's creation: an error here has written nothing.
+    let started = (|| -> Result<_, ReplayError> {
+        let Some(first) = source.next_frame()? else {
+            return Ok(None);
+        };
+        let (w, h, _) = first.left.to_rgb().map_err(|source| ReplayError::Frame { seq: first.seq, source: FrameError::Decode { side: "left", source } })?;
+        let pipe = Pipeline::new(&calib, (w as u32, h as u32), opts.pipeline.clone()).map_err(ReplayError::Setup)?;
+        let plate = opts.plate.as_deref().map(|p| pipe.rectify_plate(p));
+        let fitted = super::range::fit(pipe, &calib, &first, opts.segment, plate.as_ref(), &opts.pipeline).map_err(|source| ReplayError::Frame { seq: first.seq, source })?;
+        let results = ResultsWriter::create(out, &source.describe(), fitted.pipe.rect.disparity_sign)?;
+        Ok(Some((first, plate, fitted, results)))
+    })()
+    .map_err(ReplayError::before_results)?;
+    let Some((first, plate, fitted, mut results)) = started else {
         let w = ResultsWriter::create(out, &source.describe(), 1).map_err(ReplayError::before_results)?;
         w.finish(None)?;
         return Ok(ReplaySummary { frames: 0, mean_match_ms: 0.0, gt: None, gt_disparity: None, disparity_sign: 1, registration: None });
     };
-    let (w, h, _) = first.left.to_rgb().map_err(|source| ReplayError::before_results(ReplayError::Frame { seq: first.seq, source: FrameError::Decode { side: "left", source } }))?;
-    let size = (w as u32, h as u32);
-    let pipe = Pipeline::new(&calib, size, opts.pipeline.clone()).map_err(|e| ReplayError::before_results(ReplayError::Setup(e)))?;
-    let plate = opts.plate.as_deref().map(|p| pipe.rectify_plate(p));
-    let fitted = super::range::fit(pipe, &calib, &first, opts.segment, plate.as_ref(), &opts.pipeline).map_err(|source| ReplayError::before_results(ReplayError::Frame { seq: first.seq, source }))?;
     let (mut pipe, fit, contrast) = (fitted.pipe, fitted.range, fitted.contrast);
-    let mut results = ResultsWriter::create(out, &source.describe(), pipe.rect.disparity_sign).map_err(ReplayError::before_results)?;
     let store = Arc::new(PoseStore::new());
     let mut registrar = opts.registration.clone().map(|p| super::registrar(p, inputs.calibrated_axis.as_ref(), Some(&pipe.rect), store.clone()));
     // Assistance needs the registered motion: without registration every frame is full range.
