@@ -18,6 +18,12 @@
 //! curvature nor the texture's weighting biases it (docs/matcher.md, "The window that
 //! follows the surface").
 //!
+//! The prefilter is an x-derivative, and the warp stretches the right image by
+//! `1 − ∂S/∂x` along the row: where the surface slants away from the right camera its
+//! texture is compressed there and its derivative larger by that factor. So each right
+//! sample is scaled by `1 − ∂S/∂x` (the chain rule of `L(x) = R(x − S(x))`) before it is
+//! compared (docs/matcher.md, "The right image's derivative, scaled by the warp").
+//!
 //! `S` is a plane fitted to the map's matched pixels around each pixel, not their mean: a
 //! mean taken near the silhouette or a hole reaches into one side only and lags the surface
 //! by its slope times that offset, where the surface turns away fastest. And where the
@@ -77,9 +83,20 @@ const SHIFTS: [f32; 5] = [-1.0, -0.5, 0.0, 0.5, 1.0];
 /// around did not follow the surface there.
 const MAX_MOVE_PX: f32 = 1.0;
 
+/// The bounds of the warp's stretch `1 − ∂S/∂x` that scales the right image's derivative:
+/// beyond them the surface is seen at a grazing angle by one camera (or folds out of its
+/// view), where a plane fitted across the fold does not measure the stretch.
+const STRETCH_BOUNDS: (f32, f32) = (0.25, 4.0);
+
 /// The x-Sobel prefilter's clip, grey levels (twice the matcher's default cap: the
-/// refinement's interpolated samples keep more of the gradients' size).
+/// refinement's interpolated samples keep more of the gradients' size). The right image's
+/// samples are clipped to it after the warp's stretch has scaled them.
 const CAP: u8 = 62;
+
+/// The right image's prefilter's own clip, grey levels (the widest its bytes hold): its
+/// samples are clipped to [`CAP`] only once scaled by the warp's stretch, so that a gradient
+/// the stretch makes smaller is not one the clip made smaller first.
+const RIGHT_CAP: u8 = 127;
 
 /// What the refinement looked at, and what it moved.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -137,6 +154,10 @@ fn refine(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: &mut Disparity
         d.extend_from_slice(&disp.values()[region(y)]);
     }
     let smooth = plane_fit(&d, rw, rh, FOLLOW_FIT_RADIUS, MIN_SPREAD_PX2);
+    let mut stretch = vec![1f32; rw * rh];
+    for (s, o) in smooth.chunks_exact(rw).zip(stretch.chunks_exact_mut(rw)) {
+        stretch_row(s, o);
+    }
     // A pixel is looked at where at least MIN_MATCHED_SHARE of its window is matched.
     let mut count: Vec<f32> = d.iter().map(|v| if v.is_nan() { 0.0 } else { 1.0 }).collect();
     let mut tmp = vec![0f32; rw * rh];
@@ -159,8 +180,8 @@ fn refine(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: &mut Disparity
     let (dlo, dhi) = d.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| (if v < a { v } else { a }, if v > b { v } else { b }));
     let c0 = ((rx0 as f32 - dhi - 3.0).floor().max(0.0) as usize).min(w - 2);
     let c1 = ((rx1 as f32 - dlo + 3.0).ceil().max(0.0) as usize).clamp(c0 + 2, w);
-    let lpf = prefilter(left, w, h, ry0, ry1, rx0, rx1);
-    let rpf = prefilter(right, w, h, ry0, ry1, c0, c1);
+    let lpf = prefilter(left, (w, h), ry0..ry1, rx0..rx1, CAP);
+    let rpf = prefilter(right, (w, h), ry0..ry1, c0..c1, RIGHT_CAP);
     let cw = c1 - c0;
     // The columns a shifted sample may fall between: the span's pixels, as offsets into it.
     let (first, last) = (c0 as f32, (c1 - 2) as f32);
@@ -175,7 +196,7 @@ fn refine(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: &mut Disparity
             for (o, p) in out.iter_mut().zip(planes.iter_mut()) {
                 *o = &mut p[row.clone()];
             }
-            let input = CostRow { x0: rx0, smooth: &smooth[row.clone()], left: &lpf[row.clone()], sampled: &sampled[row.clone()], right: &rpf[y * cw..(y + 1) * cw], first, last };
+            let input = CostRow { x0: rx0, smooth: &smooth[row.clone()], stretch: &stretch[row.clone()], left: &lpf[row.clone()], sampled: &sampled[row.clone()], right: &rpf[y * cw..(y + 1) * cw], first, last };
             #[cfg(target_arch = "x86_64")]
             let done = if simd {
                 // SAFETY: `simd` is only set by `refine_avx2`, on a CPU with AVX2.
@@ -260,6 +281,9 @@ struct CostRow<'a> {
     /// windows compare (NaN elsewhere: unmatched, or at the silhouette's edge), over the
     /// region's columns.
     smooth: &'a [f32],
+    /// The warp's stretch along the row, `1 − ∂S/∂x` (within [`STRETCH_BOUNDS`]; 1 where
+    /// `S` is NaN), which scales the right image's derivative.
+    stretch: &'a [f32],
     left: &'a [f32],
     sampled: &'a [f32],
     /// The right image's prefiltered values over the columns the shifted windows reach,
@@ -272,7 +296,8 @@ struct CostRow<'a> {
 
 /// Each pixel's absolute difference with the right image at `x − S − δ`, for every shift δ
 /// of [`SHIFTS`] (`out[k]` the row for the k-th), from pixel `from` on: the right image
-/// linearly between its two pixels, clamped to its span. Only the sampled pixels count (0
+/// linearly between its two pixels, clamped to its span, times the warp's stretch (the
+/// right image's derivative as the left sees it). Only the sampled pixels count (0
 /// elsewhere): the window's background or holes are not the surface, nor is the
 /// silhouette's edge (and where the map is unmatched, S is NaN).
 #[inline(always)]
@@ -287,7 +312,7 @@ fn costs_row(row: &CostRow, out: &mut [&mut [f32]; 5], from: usize) {
             let i = unsafe { (xr - row.first).to_int_unchecked::<i32>() } as usize;
             let f = xr - row.first - i as f32;
             let pair = &row.right[i..i + 2];
-            let v = pair[0] + f * (pair[1] - pair[0]);
+            let v = ((pair[0] + f * (pair[1] - pair[0])) * row.stretch[x]).max(-(CAP as f32)).min(CAP as f32);
             out[k][x] = if near && !row.sampled[x].is_nan() { (row.left[x] - v).abs() } else { 0.0 };
         }
     }
@@ -297,18 +322,18 @@ fn costs_row(row: &CostRow, out: &mut [&mut [f32]; 5], from: usize) {
 mod avx2 {
     use std::arch::x86_64::*;
 
-    use super::{CostRow, SHIFTS};
+    use super::{CostRow, CAP, SHIFTS};
 
     /// [`super::costs_row`] eight pixels at a time, the right image's two samples by
     /// [`pairs`]; the same operations in the same order, so the same costs. Returns the
     /// first pixel it left to the portable loop (the last few of the row).
     ///
     /// SAFETY: the CPU has AVX2; `out`'s rows are as long as `row.smooth`, and so are
-    /// `row.left` and `row.sampled`.
+    /// `row.stretch`, `row.left` and `row.sampled`.
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn costs_row(row: &CostRow, out: &mut [&mut [f32]; 5]) -> usize {
         let n = row.smooth.len();
-        assert!(row.left.len() == n && row.sampled.len() == n && out.iter().all(|o| o.len() == n) && row.right.len() >= 2);
+        assert!(row.left.len() == n && row.sampled.len() == n && row.stretch.len() == n && out.iter().all(|o| o.len() == n) && row.right.len() >= 2);
         let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
         let first = _mm256_set1_ps(row.first);
         let high = _mm256_set1_ps(row.last + 0.999);
@@ -316,11 +341,13 @@ mod avx2 {
         // already; this keeps the loads inside the row whatever the rounding.
         let top = _mm256_set1_epi32(row.right.len() as i32 - 2);
         let sign = _mm256_set1_ps(-0.0);
+        let (clip_lo, clip_hi) = (_mm256_set1_ps(-(CAP as f32)), _mm256_set1_ps(CAP as f32));
         let right = row.right.as_ptr();
         let mut x = 0;
         while x + 8 <= n {
             let s = _mm256_loadu_ps(row.smooth.as_ptr().add(x));
             let l = _mm256_loadu_ps(row.left.as_ptr().add(x));
+            let stretch = _mm256_loadu_ps(row.stretch.as_ptr().add(x));
             let sampled = _mm256_loadu_ps(row.sampled.as_ptr().add(x));
             let at = _mm256_sub_ps(_mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32((row.x0 + x) as i32), lane)), s);
             let matched = _mm256_cmp_ps::<_CMP_ORD_Q>(sampled, sampled);
@@ -333,7 +360,8 @@ mod avx2 {
                 let f = _mm256_sub_ps(t, _mm256_cvtepi32_ps(i));
                 let i = _mm256_min_epi32(i, top);
                 let (a, b) = pairs(right, i);
-                let v = _mm256_add_ps(a, _mm256_mul_ps(f, _mm256_sub_ps(b, a)));
+                let v = _mm256_mul_ps(_mm256_add_ps(a, _mm256_mul_ps(f, _mm256_sub_ps(b, a))), stretch);
+                let v = _mm256_min_ps(_mm256_max_ps(v, clip_lo), clip_hi);
                 let diff = _mm256_andnot_ps(sign, _mm256_sub_ps(l, v));
                 _mm256_storeu_ps(out[k].as_mut_ptr().add(x), _mm256_and_ps(diff, _mm256_and_ps(near, matched)));
             }
@@ -361,6 +389,36 @@ mod avx2 {
     }
 }
 
+/// The warp's stretch `1 − ∂S/∂x` along one row of the smoothed map `S`, into `out` (as
+/// long): its slope by the central difference, one-sided where a neighbour is NaN (the
+/// row's ends included), none where both are; within [`STRETCH_BOUNDS`]; 1 where `S` itself
+/// is NaN. Branch-free inside the row, so that it vectorises.
+fn stretch_row(s: &[f32], out: &mut [f32]) {
+    let n = s.len();
+    assert_eq!(out.len(), n, "a stretch for each pixel");
+    #[inline(always)]
+    fn one(before: f32, c: f32, after: f32) -> f32 {
+        let slope = match (before.is_nan(), after.is_nan()) {
+            (false, false) => 0.5 * (after - before),
+            (true, false) => after - c,
+            (false, true) => c - before,
+            (true, true) => 0.0,
+        };
+        if c.is_nan() { 1.0 } else { (1.0 - slope).max(STRETCH_BOUNDS.0).min(STRETCH_BOUNDS.1) }
+    }
+    if n == 0 {
+        return;
+    }
+    out[0] = one(f32::NAN, s[0], s.get(1).copied().unwrap_or(f32::NAN));
+    if n == 1 {
+        return;
+    }
+    for (o, w) in out[1..n - 1].iter_mut().zip(s.windows(3)) {
+        *o = one(w[0], w[1], w[2]);
+    }
+    out[n - 1] = one(s[n - 2], s[n - 1], f32::NAN);
+}
+
 /// The box of the matched pixels: first and last column and row.
 fn bounds(v: &[f32], w: usize, h: usize) -> Option<(usize, usize, usize, usize)> {
     let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
@@ -373,16 +431,16 @@ fn bounds(v: &[f32], w: usize, h: usize) -> Option<(usize, usize, usize, usize)>
     (y0 != usize::MAX).then_some((x0, x1, y0, y1))
 }
 
-/// The matcher's x-Sobel prefilter of `img` (`w` wide, `h` high; clipped to ±[`CAP`]) over
-/// rows `y0..y1` and columns `x0..x1`, as signed values.
+/// The matcher's x-Sobel prefilter of `img` (`w` wide, `h` high; clipped to ±`cap`) over
+/// `rows` and `columns`, as signed values.
 #[inline(always)]
-fn prefilter(img: &[u8], w: usize, h: usize, y0: usize, y1: usize, x0: usize, x1: usize) -> Vec<f32> {
+fn prefilter(img: &[u8], (w, h): (usize, usize), rows: std::ops::Range<usize>, columns: std::ops::Range<usize>, cap: u8) -> Vec<f32> {
     let mut buf = Vec::new();
     let view = GrayView::new(w, h, img).expect("an image of the map's size");
-    let rows = xsobel_rows(view, CAP, &mut buf);
-    let mut out = Vec::with_capacity((y1 - y0) * (x1 - x0));
-    for y in y0..y1 {
-        out.extend(rows[y * w + x0..y * w + x1].iter().map(|&v| v as f32 - CAP as f32));
+    let filtered = xsobel_rows(view, cap, &mut buf);
+    let mut out = Vec::with_capacity(rows.len() * columns.len());
+    for y in rows {
+        out.extend(filtered[y * w + columns.start..y * w + columns.end].iter().map(|&v| v as f32 - cap as f32));
     }
     out
 }
