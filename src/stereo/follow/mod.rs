@@ -18,11 +18,14 @@
 //! curvature nor the texture's weighting biases it (docs/matcher.md, "The window that
 //! follows the surface").
 //!
-//! The prefilter is an x-derivative, and the warp stretches the right image by
-//! `1 − ∂S/∂x` along the row: where the surface slants away from the right camera its
-//! texture is compressed there and its derivative larger by that factor. So each right
-//! sample is scaled by `1 − ∂S/∂x` (the chain rule of `L(x) = R(x − S(x))`) before it is
-//! compared (docs/matcher.md, "The right image's derivative, scaled by the warp").
+//! The windows compare x-derivatives (the matcher's x-Sobel prefilter), and the warp
+//! stretches the right image by `1 − ∂S/∂x` along the row: where the surface slants away from
+//! the right camera its texture is compressed there, and its derivative larger by that factor
+//! and taken over more of the texture. So the right image is warped first and differentiated
+//! after, in the left image's columns and rows. Beside an unmatched pixel, whose warp is not
+//! known, the right image's own prefiltered value at the warped place is taken, scaled by
+//! `1 − ∂S/∂x` (the chain rule of `L(x) = R(x − S(x))`; docs/matcher.md, "The right image's
+//! derivative, taken where the left's is").
 //!
 //! `S` is a plane fitted to the map's matched pixels around each pixel, not their mean: a
 //! mean taken near the silhouette or a hole reaches into one side only and lags the surface
@@ -182,6 +185,7 @@ fn refine(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: &mut Disparity
     let c1 = ((rx1 as f32 - dlo + 3.0).ceil().max(0.0) as usize).clamp(c0 + 2, w);
     let lpf = prefilter(left, (w, h), ry0..ry1, rx0..rx1, CAP);
     let rpf = prefilter(right, (w, h), ry0..ry1, c0..c1, RIGHT_CAP);
+    let raw: Vec<f32> = (ry0..ry1).flat_map(|y| right[y * w + c0..y * w + c1].iter().map(|&v| v as f32)).collect();
     let cw = c1 - c0;
     // The columns a shifted sample may fall between: the span's pixels, as offsets into it.
     let (first, last) = (c0 as f32, (c1 - 2) as f32);
@@ -208,6 +212,27 @@ fn refine(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: &mut Disparity
             let done = 0;
             costs_row(&input, &mut out, done);
         }
+    }
+    // Where a pixel and its eight neighbours are on the surface, the right image is warped
+    // first and differentiated after, in the left image's columns and rows: the prefilter's
+    // own kernel over the same texture as the left's.
+    let mut warped = vec![0f32; rw * rh];
+    for (k, &shift) in SHIFTS.iter().enumerate() {
+        for y in 0..rh {
+            let row = y * rw..(y + 1) * rw;
+            let input = WarpRow { x0: rx0, smooth: &smooth[row.clone()], right: &raw[y * cw..(y + 1) * cw], first, last };
+            #[cfg(target_arch = "x86_64")]
+            let done = if simd {
+                // SAFETY: `simd` is only set by `refine_avx2`, on a CPU with AVX2.
+                unsafe { avx2::warp_row(&input, shift, &mut warped[row.clone()]) }
+            } else {
+                0
+            };
+            #[cfg(not(target_arch = "x86_64"))]
+            let done = 0;
+            warp_row(&input, shift, &mut warped[row], done);
+        }
+        derivative_costs(&warped, &lpf, &sampled, &mut costs[k * rw * rh..(k + 1) * rw * rh], rw);
     }
     for cost in costs.chunks_mut(rw * rh) {
         box_sum(cost, &mut tmp, rw, rh, half);
@@ -318,11 +343,60 @@ fn costs_row(row: &CostRow, out: &mut [&mut [f32]; 5], from: usize) {
     }
 }
 
+/// One row of the region, as the warp reads it: the smoothed map and the right image's
+/// grey levels over the columns the shifted windows reach (as in [`CostRow`]).
+struct WarpRow<'a> {
+    x0: usize,
+    smooth: &'a [f32],
+    right: &'a [f32],
+    first: f32,
+    last: f32,
+}
+
+/// The right image at `x − S − shift` for each pixel of a row from pixel `from` on,
+/// linearly between its two pixels and clamped to its span; NaN where `S` is.
+#[inline(always)]
+fn warp_row(row: &WarpRow, shift: f32, out: &mut [f32], from: usize) {
+    for x in from..row.smooth.len() {
+        let xr = (row.x0 + x) as f32 - row.smooth[x] - shift;
+        let near = !xr.is_nan();
+        let xr = if near { xr.max(row.first).min(row.last + 0.999) } else { row.first };
+        // SAFETY: as in `costs_row`.
+        let i = unsafe { (xr - row.first).to_int_unchecked::<i32>() } as usize;
+        let f = xr - row.first - i as f32;
+        let pair = &row.right[i..i + 2];
+        let v = pair[0] + f * (pair[1] - pair[0]);
+        out[x] = if near { v } else { f32::NAN };
+    }
+}
+
+/// Replaces a shift's costs (`cost`, the region `w` wide) by the absolute difference of the
+/// left image's prefiltered value with the prefilter of the `warped` right image, at every
+/// sampled pixel whose eight neighbours are warped too (the region's edge keeps its costs,
+/// as do pixels beside an unmatched one: there the stretched sample of [`costs_row`]
+/// stands). The prefilter: the x-Sobel, clipped to ±[`CAP`]. Branch-free, so that it
+/// vectorises.
+#[inline(always)]
+fn derivative_costs(warped: &[f32], left: &[f32], sampled: &[f32], cost: &mut [f32], w: usize) {
+    let h = cost.len() / w;
+    let cap = CAP as f32;
+    for y in 1..h.saturating_sub(1) {
+        let (up, mid, down) = (&warped[(y - 1) * w..y * w], &warped[y * w..(y + 1) * w], &warped[(y + 1) * w..(y + 2) * w]);
+        let (l, s, c) = (&left[y * w..(y + 1) * w], &sampled[y * w..(y + 1) * w], &mut cost[y * w..(y + 1) * w]);
+        for x in 1..w.saturating_sub(1) {
+            let g = 2.0 * (mid[x + 1] - mid[x - 1]) + (up[x + 1] - up[x - 1]) + (down[x + 1] - down[x - 1]);
+            let v = g.max(-cap).min(cap);
+            let take = !g.is_nan() && !s[x].is_nan();
+            c[x] = if take { (l[x] - v).abs() } else { c[x] };
+        }
+    }
+}
+
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
     use std::arch::x86_64::*;
 
-    use super::{CostRow, CAP, SHIFTS};
+    use super::{CostRow, WarpRow, CAP, SHIFTS};
 
     /// [`super::costs_row`] eight pixels at a time, the right image's two samples by
     /// [`pairs`]; the same operations in the same order, so the same costs. Returns the
@@ -365,6 +439,41 @@ mod avx2 {
                 let diff = _mm256_andnot_ps(sign, _mm256_sub_ps(l, v));
                 _mm256_storeu_ps(out[k].as_mut_ptr().add(x), _mm256_and_ps(diff, _mm256_and_ps(near, matched)));
             }
+            x += 8;
+        }
+        x
+    }
+
+    /// [`super::warp_row`] eight pixels at a time; the same operations in the same order, so
+    /// the same values. Returns the first pixel it left to the portable loop.
+    ///
+    /// SAFETY: the CPU has AVX2; `out` is as long as `row.smooth`, and `row.right` holds at
+    /// least two values.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn warp_row(row: &WarpRow, shift: f32, out: &mut [f32]) -> usize {
+        let n = row.smooth.len();
+        assert!(out.len() == n && row.right.len() >= 2);
+        let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+        let first = _mm256_set1_ps(row.first);
+        let high = _mm256_set1_ps(row.last + 0.999);
+        let top = _mm256_set1_epi32(row.right.len() as i32 - 2);
+        let nan = _mm256_set1_ps(f32::NAN);
+        let shift = _mm256_set1_ps(shift);
+        let right = row.right.as_ptr();
+        let mut x = 0;
+        while x + 8 <= n {
+            let s = _mm256_loadu_ps(row.smooth.as_ptr().add(x));
+            let at = _mm256_sub_ps(_mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32((row.x0 + x) as i32), lane)), s);
+            let xr = _mm256_sub_ps(at, shift);
+            let near = _mm256_cmp_ps::<_CMP_ORD_Q>(xr, xr);
+            let xr = _mm256_blendv_ps(first, _mm256_min_ps(_mm256_max_ps(xr, first), high), near);
+            let t = _mm256_sub_ps(xr, first);
+            let i = _mm256_cvttps_epi32(t);
+            let f = _mm256_sub_ps(t, _mm256_cvtepi32_ps(i));
+            let i = _mm256_min_epi32(i, top);
+            let (a, b) = pairs(right, i);
+            let v = _mm256_add_ps(a, _mm256_mul_ps(f, _mm256_sub_ps(b, a)));
+            _mm256_storeu_ps(out.as_mut_ptr().add(x), _mm256_blendv_ps(nan, v, near));
             x += 8;
         }
         x
