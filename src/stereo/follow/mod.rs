@@ -330,17 +330,24 @@ fn costs_row(row: &CostRow, out: &mut [&mut [f32]; 5], from: usize) {
     for x in from..row.smooth.len() {
         for (k, &shift) in SHIFTS.iter().enumerate() {
             let xr = (row.x0 + x) as f32 - row.smooth[x] - shift;
-            let near = !xr.is_nan();
-            let xr = if near { xr.max(row.first).min(row.last + 0.999) } else { row.first };
-            // SAFETY: `xr − first` is finite and within 0 … the span's length − 1 (clamped
-            // above), so it fits an i32.
-            let i = unsafe { (xr - row.first).to_int_unchecked::<i32>() } as usize;
-            let f = xr - row.first - i as f32;
-            let pair = &row.right[i..i + 2];
-            let v = ((pair[0] + f * (pair[1] - pair[0])) * row.stretch[x]).max(-(CAP as f32)).min(CAP as f32);
-            out[k][x] = if near && !row.sampled[x].is_nan() { (row.left[x] - v).abs() } else { 0.0 };
+            let v = (right_at(row.right, row.first, row.last, xr) * row.stretch[x]).max(-(CAP as f32)).min(CAP as f32);
+            out[k][x] = if !xr.is_nan() && !row.sampled[x].is_nan() { (row.left[x] - v).abs() } else { 0.0 };
         }
     }
+}
+
+/// A row of the right image (`right`, its first column `first`, `last` the last a pair of
+/// samples may start at) at column `xr`: linearly between its two pixels, `xr` clamped to
+/// the span (the first column where `xr` is NaN).
+#[inline(always)]
+fn right_at(right: &[f32], first: f32, last: f32, xr: f32) -> f32 {
+    let xr = if xr.is_nan() { first } else { xr.max(first).min(last + 0.999) };
+    // SAFETY: `xr − first` is finite and within 0 … the span's length − 1 (clamped above), so
+    // it fits an i32.
+    let i = unsafe { (xr - first).to_int_unchecked::<i32>() } as usize;
+    let f = xr - first - i as f32;
+    let pair = &right[i..i + 2];
+    pair[0] + f * (pair[1] - pair[0])
 }
 
 /// One row of the region, as the warp reads it: the smoothed map and the right image's
@@ -359,14 +366,8 @@ struct WarpRow<'a> {
 fn warp_row(row: &WarpRow, shift: f32, out: &mut [f32], from: usize) {
     for x in from..row.smooth.len() {
         let xr = (row.x0 + x) as f32 - row.smooth[x] - shift;
-        let near = !xr.is_nan();
-        let xr = if near { xr.max(row.first).min(row.last + 0.999) } else { row.first };
-        // SAFETY: as in `costs_row`.
-        let i = unsafe { (xr - row.first).to_int_unchecked::<i32>() } as usize;
-        let f = xr - row.first - i as f32;
-        let pair = &row.right[i..i + 2];
-        let v = pair[0] + f * (pair[1] - pair[0]);
-        out[x] = if near { v } else { f32::NAN };
+        let v = right_at(row.right, row.first, row.last, xr);
+        out[x] = if xr.is_nan() { f32::NAN } else { v };
     }
 }
 
@@ -426,15 +427,8 @@ mod avx2 {
             let at = _mm256_sub_ps(_mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32((row.x0 + x) as i32), lane)), s);
             let matched = _mm256_cmp_ps::<_CMP_ORD_Q>(sampled, sampled);
             for (k, &shift) in SHIFTS.iter().enumerate() {
-                let xr = _mm256_sub_ps(at, _mm256_set1_ps(shift));
-                let near = _mm256_cmp_ps::<_CMP_ORD_Q>(xr, xr);
-                let xr = _mm256_blendv_ps(first, _mm256_min_ps(_mm256_max_ps(xr, first), high), near);
-                let t = _mm256_sub_ps(xr, first);
-                let i = _mm256_cvttps_epi32(t);
-                let f = _mm256_sub_ps(t, _mm256_cvtepi32_ps(i));
-                let i = _mm256_min_epi32(i, top);
-                let (a, b) = pairs(right, i);
-                let v = _mm256_mul_ps(_mm256_add_ps(a, _mm256_mul_ps(f, _mm256_sub_ps(b, a))), stretch);
+                let (v, near) = right_at(right, (first, high, top), _mm256_sub_ps(at, _mm256_set1_ps(shift)));
+                let v = _mm256_mul_ps(v, stretch);
                 let v = _mm256_min_ps(_mm256_max_ps(v, clip_lo), clip_hi);
                 let diff = _mm256_andnot_ps(sign, _mm256_sub_ps(l, v));
                 _mm256_storeu_ps(out[k].as_mut_ptr().add(x), _mm256_and_ps(diff, _mm256_and_ps(near, matched)));
@@ -464,19 +458,28 @@ mod avx2 {
         while x + 8 <= n {
             let s = _mm256_loadu_ps(row.smooth.as_ptr().add(x));
             let at = _mm256_sub_ps(_mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32((row.x0 + x) as i32), lane)), s);
-            let xr = _mm256_sub_ps(at, shift);
-            let near = _mm256_cmp_ps::<_CMP_ORD_Q>(xr, xr);
-            let xr = _mm256_blendv_ps(first, _mm256_min_ps(_mm256_max_ps(xr, first), high), near);
-            let t = _mm256_sub_ps(xr, first);
-            let i = _mm256_cvttps_epi32(t);
-            let f = _mm256_sub_ps(t, _mm256_cvtepi32_ps(i));
-            let i = _mm256_min_epi32(i, top);
-            let (a, b) = pairs(right, i);
-            let v = _mm256_add_ps(a, _mm256_mul_ps(f, _mm256_sub_ps(b, a)));
+            let (v, near) = right_at(right, (first, high, top), _mm256_sub_ps(at, shift));
             _mm256_storeu_ps(out.as_mut_ptr().add(x), _mm256_blendv_ps(nan, v, near));
             x += 8;
         }
         x
+    }
+
+    /// [`super::right_at`] in eight lanes: the right row `right` at the columns `xr`, with
+    /// `(first, high, top)` the span's first column, its last + 0.999 and the last index a
+    /// pair may start at; and the lanes whose `xr` is not NaN.
+    ///
+    /// SAFETY: the CPU has AVX2; `right` holds `top + 2` values.
+    #[inline(always)]
+    unsafe fn right_at(right: *const f32, (first, high, top): (__m256, __m256, __m256i), xr: __m256) -> (__m256, __m256) {
+        let near = _mm256_cmp_ps::<_CMP_ORD_Q>(xr, xr);
+        let xr = _mm256_blendv_ps(first, _mm256_min_ps(_mm256_max_ps(xr, first), high), near);
+        let t = _mm256_sub_ps(xr, first);
+        let i = _mm256_cvttps_epi32(t);
+        let f = _mm256_sub_ps(t, _mm256_cvtepi32_ps(i));
+        let i = _mm256_min_epi32(i, top);
+        let (a, b) = pairs(right, i);
+        (_mm256_add_ps(a, _mm256_mul_ps(f, _mm256_sub_ps(b, a))), near)
     }
 
     /// The values at the eight indices `i` of `right` and the ones after them: one 64-bit
