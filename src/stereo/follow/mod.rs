@@ -126,7 +126,7 @@ pub fn refine_following(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: 
 }
 
 /// [`refine_following`] compiled for AVX2: its passes over the region in eight lanes instead
-/// of the baseline's four, the residual costs by [`avx2::costs_row`]; the same operations in
+/// of the baseline's four, the right rows warped by [`avx2::warp_row`]; the same operations in
 /// the same order (no fused multiply-add), so the same disparities.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
@@ -190,32 +190,12 @@ fn refine(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: &mut Disparity
     // The columns a shifted sample may fall between: the span's pixels, as offsets into it.
     let (first, last) = (c0 as f32, (c1 - 2) as f32);
     // Per shift, each pixel's absolute difference with the right image at its warped
-    // position, then summed over its window.
+    // position, then summed over its window. Where the prefilter's kernel around a pixel is
+    // on the surface, the right image is warped first and differentiated after, in the left
+    // image's columns and rows: the prefilter's own kernel over the same texture as the
+    // left's. Beside an unmatched pixel, and on the region's edge, the right image's
+    // prefiltered value at the warped place, scaled by the stretch.
     let mut costs = vec![0f32; SHIFTS.len() * rw * rh];
-    {
-        let mut planes: Vec<&mut [f32]> = costs.chunks_mut(rw * rh).collect();
-        for y in 0..rh {
-            let row = y * rw..(y + 1) * rw;
-            let mut out: [&mut [f32]; 5] = std::array::from_fn(|_| &mut [][..]);
-            for (o, p) in out.iter_mut().zip(planes.iter_mut()) {
-                *o = &mut p[row.clone()];
-            }
-            let input = CostRow { x0: rx0, smooth: &smooth[row.clone()], stretch: &stretch[row.clone()], left: &lpf[row.clone()], sampled: &sampled[row.clone()], right: &rpf[y * cw..(y + 1) * cw], first, last };
-            #[cfg(target_arch = "x86_64")]
-            let done = if simd {
-                // SAFETY: `simd` is only set by `refine_avx2`, on a CPU with AVX2.
-                unsafe { avx2::costs_row(&input, &mut out) }
-            } else {
-                0
-            };
-            #[cfg(not(target_arch = "x86_64"))]
-            let done = 0;
-            costs_row(&input, &mut out, done);
-        }
-    }
-    // Where a pixel and its eight neighbours are on the surface, the right image is warped
-    // first and differentiated after, in the left image's columns and rows: the prefilter's
-    // own kernel over the same texture as the left's.
     let mut warped = vec![0f32; rw * rh];
     for (k, &shift) in SHIFTS.iter().enumerate() {
         for y in 0..rh {
@@ -232,7 +212,13 @@ fn refine(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: &mut Disparity
             let done = 0;
             warp_row(&input, shift, &mut warped[row], done);
         }
-        derivative_costs(&warped, &lpf, &sampled, &mut costs[k * rw * rh..(k + 1) * rw * rh], rw);
+        let plane = &mut costs[k * rw * rh..(k + 1) * rw * rh];
+        derivative_costs(&warped, &lpf, &sampled, plane, rw);
+        for y in 0..rh {
+            let row = y * rw..(y + 1) * rw;
+            let input = CostRow { x0: rx0, smooth: &smooth[row.clone()], stretch: &stretch[row.clone()], left: &lpf[row.clone()], right: &rpf[y * cw..(y + 1) * cw], first, last };
+            stretched_costs(&input, shift, &mut plane[row]);
+        }
     }
     for cost in costs.chunks_mut(rw * rh) {
         box_sum(cost, &mut tmp, rw, rh, half);
@@ -302,15 +288,12 @@ fn equiangular(c0: f32, c1: f32, c2: f32) -> f32 {
 struct CostRow<'a> {
     /// The image column of the row's first pixel.
     x0: usize,
-    /// The smoothed map, the left image's prefiltered values, and the map at the pixels the
-    /// windows compare (NaN elsewhere: unmatched, or at the silhouette's edge), over the
-    /// region's columns.
+    /// The smoothed map and the left image's prefiltered values over the region's columns.
     smooth: &'a [f32],
     /// The warp's stretch along the row, `1 − ∂S/∂x` (within [`STRETCH_BOUNDS`]; 1 where
     /// `S` is NaN), which scales the right image's derivative.
     stretch: &'a [f32],
     left: &'a [f32],
-    sampled: &'a [f32],
     /// The right image's prefiltered values over the columns the shifted windows reach,
     /// `first` the image column of its first; `last` that of the last a sample may start at
     /// (its second pixel is the one after).
@@ -319,20 +302,20 @@ struct CostRow<'a> {
     last: f32,
 }
 
-/// Each pixel's absolute difference with the right image at `x − S − δ`, for every shift δ
-/// of [`SHIFTS`] (`out[k]` the row for the k-th), from pixel `from` on: the right image
-/// linearly between its two pixels, clamped to its span, times the warp's stretch (the
-/// right image's derivative as the left sees it). Only the sampled pixels count (0
-/// elsewhere): the window's background or holes are not the surface, nor is the
-/// silhouette's edge (and where the map is unmatched, S is NaN).
+/// The costs [`derivative_costs`] left to it (NaN) in one row of a shift's plane (`out`): the
+/// absolute difference of the left image's prefiltered value with the right image's at
+/// `x − S − shift`, linearly between its two pixels, clamped to its span, times the warp's
+/// stretch (the right image's derivative as the left sees it) and clipped to ±[`CAP`]; 0
+/// where `S` is NaN.
 #[inline(always)]
-fn costs_row(row: &CostRow, out: &mut [&mut [f32]; 5], from: usize) {
-    for x in from..row.smooth.len() {
-        for (k, &shift) in SHIFTS.iter().enumerate() {
-            let xr = (row.x0 + x) as f32 - row.smooth[x] - shift;
-            let v = (right_at(row.right, row.first, row.last, xr) * row.stretch[x]).max(-(CAP as f32)).min(CAP as f32);
-            out[k][x] = if !xr.is_nan() && !row.sampled[x].is_nan() { (row.left[x] - v).abs() } else { 0.0 };
+fn stretched_costs(row: &CostRow, shift: f32, out: &mut [f32]) {
+    for (x, o) in out.iter_mut().enumerate() {
+        if !o.is_nan() {
+            continue;
         }
+        let xr = (row.x0 + x) as f32 - row.smooth[x] - shift;
+        let v = (right_at(row.right, row.first, row.last, xr) * row.stretch[x]).max(-(CAP as f32)).min(CAP as f32);
+        *o = if !xr.is_nan() { (row.left[x] - v).abs() } else { 0.0 };
     }
 }
 
@@ -371,25 +354,35 @@ fn warp_row(row: &WarpRow, shift: f32, out: &mut [f32], from: usize) {
     }
 }
 
-/// Replaces a shift's costs (`cost`, the region `w` wide) by the absolute difference of the
-/// left image's prefiltered value with the prefilter of the `warped` right image, at every
-/// sampled pixel whose eight neighbours are warped too (the region's edge keeps its costs,
-/// as do pixels beside an unmatched one: there the stretched sample of [`costs_row`]
-/// stands). The prefilter: the x-Sobel, clipped to ±[`CAP`]. Branch-free, so that it
+/// A shift's costs (`cost`, the region `w` wide): the absolute difference of the left
+/// image's prefiltered value with the prefilter of the `warped` right image at every sampled
+/// pixel whose kernel's six pixels (the columns either side, three rows) are warped; 0 at the
+/// pixels not sampled; NaN, for [`stretched_costs`], at the other sampled pixels (beside an
+/// unwarped one, or on the region's edge).
+/// The prefilter: the x-Sobel, clipped to ±[`CAP`]. Branch-free inside the region, so that it
 /// vectorises.
 #[inline(always)]
 fn derivative_costs(warped: &[f32], left: &[f32], sampled: &[f32], cost: &mut [f32], w: usize) {
     let h = cost.len() / w;
     let cap = CAP as f32;
-    for y in 1..h.saturating_sub(1) {
-        let (up, mid, down) = (&warped[(y - 1) * w..y * w], &warped[y * w..(y + 1) * w], &warped[(y + 1) * w..(y + 2) * w]);
-        let (l, s, c) = (&left[y * w..(y + 1) * w], &sampled[y * w..(y + 1) * w], &mut cost[y * w..(y + 1) * w]);
-        for x in 1..w.saturating_sub(1) {
-            let g = 2.0 * (mid[x + 1] - mid[x - 1]) + (up[x + 1] - up[x - 1]) + (down[x + 1] - down[x - 1]);
-            let v = g.max(-cap).min(cap);
-            let take = !g.is_nan() && !s[x].is_nan();
-            c[x] = if take { (l[x] - v).abs() } else { c[x] };
+    let edge = |s: f32| if s.is_nan() { 0.0 } else { f32::NAN };
+    for y in 0..h {
+        let (s, c) = (&sampled[y * w..(y + 1) * w], &mut cost[y * w..(y + 1) * w]);
+        if y == 0 || y + 1 == h || w < 3 {
+            for (c, &s) in c.iter_mut().zip(s) {
+                *c = edge(s);
+            }
+            continue;
         }
+        let (up, mid, down) = (&warped[(y - 1) * w..y * w], &warped[y * w..(y + 1) * w], &warped[(y + 1) * w..(y + 2) * w]);
+        let l = &left[y * w..(y + 1) * w];
+        for x in 1..w - 1 {
+            let g = 2.0 * (mid[x + 1] - mid[x - 1]) + (up[x + 1] - up[x - 1]) + (down[x + 1] - down[x - 1]);
+            let d = (l[x] - g.max(-cap).min(cap)).abs();
+            let d = if g.is_nan() { f32::NAN } else { d };
+            c[x] = if s[x].is_nan() { 0.0 } else { d };
+        }
+        (c[0], c[w - 1]) = (edge(s[0]), edge(s[w - 1]));
     }
 }
 
@@ -397,46 +390,7 @@ fn derivative_costs(warped: &[f32], left: &[f32], sampled: &[f32], cost: &mut [f
 mod avx2 {
     use std::arch::x86_64::*;
 
-    use super::{CostRow, WarpRow, CAP, SHIFTS};
-
-    /// [`super::costs_row`] eight pixels at a time, the right image's two samples by
-    /// [`pairs`]; the same operations in the same order, so the same costs. Returns the
-    /// first pixel it left to the portable loop (the last few of the row).
-    ///
-    /// SAFETY: the CPU has AVX2; `out`'s rows are as long as `row.smooth`, and so are
-    /// `row.stretch`, `row.left` and `row.sampled`.
-    #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn costs_row(row: &CostRow, out: &mut [&mut [f32]; 5]) -> usize {
-        let n = row.smooth.len();
-        assert!(row.left.len() == n && row.sampled.len() == n && row.stretch.len() == n && out.iter().all(|o| o.len() == n) && row.right.len() >= 2);
-        let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
-        let first = _mm256_set1_ps(row.first);
-        let high = _mm256_set1_ps(row.last + 0.999);
-        // The last index a pair of samples may start at: the clamp keeps every index there
-        // already; this keeps the loads inside the row whatever the rounding.
-        let top = _mm256_set1_epi32(row.right.len() as i32 - 2);
-        let sign = _mm256_set1_ps(-0.0);
-        let (clip_lo, clip_hi) = (_mm256_set1_ps(-(CAP as f32)), _mm256_set1_ps(CAP as f32));
-        let right = row.right.as_ptr();
-        let mut x = 0;
-        while x + 8 <= n {
-            let s = _mm256_loadu_ps(row.smooth.as_ptr().add(x));
-            let l = _mm256_loadu_ps(row.left.as_ptr().add(x));
-            let stretch = _mm256_loadu_ps(row.stretch.as_ptr().add(x));
-            let sampled = _mm256_loadu_ps(row.sampled.as_ptr().add(x));
-            let at = _mm256_sub_ps(_mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32((row.x0 + x) as i32), lane)), s);
-            let matched = _mm256_cmp_ps::<_CMP_ORD_Q>(sampled, sampled);
-            for (k, &shift) in SHIFTS.iter().enumerate() {
-                let (v, near) = right_at(right, (first, high, top), _mm256_sub_ps(at, _mm256_set1_ps(shift)));
-                let v = _mm256_mul_ps(v, stretch);
-                let v = _mm256_min_ps(_mm256_max_ps(v, clip_lo), clip_hi);
-                let diff = _mm256_andnot_ps(sign, _mm256_sub_ps(l, v));
-                _mm256_storeu_ps(out[k].as_mut_ptr().add(x), _mm256_and_ps(diff, _mm256_and_ps(near, matched)));
-            }
-            x += 8;
-        }
-        x
-    }
+    use super::WarpRow;
 
     /// [`super::warp_row`] eight pixels at a time; the same operations in the same order, so
     /// the same values. Returns the first pixel it left to the portable loop.

@@ -265,13 +265,14 @@ fn the_avx2_copy_gives_the_portable_map() {
 }
 
 #[cfg(target_arch = "x86_64")]
+#[cfg(target_arch = "x86_64")]
 #[test]
-fn the_avx2_costs_and_warp_are_the_portable_ones_at_the_span_ends_too() {
+fn the_avx2_warp_is_the_portable_one_at_the_span_ends_too() {
     if !std::is_x86_feature_detected!("avx2") {
         return;
     }
     // Rows whose warped positions fall before, inside and past the right span (clamped),
-    // with unmatched pixels and a map never near (NaN), and a length not a multiple of 8.
+    // with a map never near (NaN), and a length not a multiple of 8.
     let mut seed = 0x2545_f491_4f6c_dd1d_u64;
     let mut rnd = move || {
         seed ^= seed << 13;
@@ -281,30 +282,6 @@ fn the_avx2_costs_and_warp_are_the_portable_ones_at_the_span_ends_too() {
     };
     for n in [8, 37, 64] {
         let smooth: Vec<f32> = (0..n).map(|i| if i % 11 == 3 { f32::NAN } else { -30.0 + 80.0 * rnd() }).collect();
-        let own: Vec<f32> = (0..n).map(|i| if i % 7 == 2 { f32::NAN } else { 1.0 }).collect();
-        let left: Vec<f32> = (0..n).map(|_| 124.0 * rnd() - 62.0).collect();
-        let right: Vec<f32> = (0..24).map(|_| 124.0 * rnd() - 62.0).collect();
-        let mut stretch = vec![0f32; n];
-        stretch_row(&smooth, &mut stretch);
-        let row = CostRow { x0: 5, smooth: &smooth, stretch: &stretch, left: &left, sampled: &own, right: &right, first: 3.0, last: 25.0 };
-        let (mut a, mut b) = (vec![vec![0f32; n]; 5], vec![vec![0f32; n]; 5]);
-        let mut portable: [&mut [f32]; 5] = std::array::from_fn(|_| &mut [][..]);
-        for (o, r) in portable.iter_mut().zip(a.iter_mut()) {
-            *o = r;
-        }
-        costs_row(&row, &mut portable, 0);
-        let mut simd: [&mut [f32]; 5] = std::array::from_fn(|_| &mut [][..]);
-        for (o, r) in simd.iter_mut().zip(b.iter_mut()) {
-            *o = r;
-        }
-        // SAFETY: the CPU has AVX2 (checked above); the rows are `n` long.
-        let done = unsafe { avx2::costs_row(&row, &mut simd) };
-        costs_row(&row, &mut simd, done);
-        assert_eq!(done, n / 8 * 8);
-        for k in 0..5 {
-            assert!(a[k].iter().zip(&b[k]).all(|(p, q)| p.to_bits() == q.to_bits()), "shift {k}, {n} px: {:?} against {:?}", a[k], b[k]);
-        }
-        // The warp of the raw right image, likewise.
         let raw: Vec<f32> = (0..24).map(|_| 255.0 * rnd()).collect();
         let warp = WarpRow { x0: 5, smooth: &smooth, right: &raw, first: 3.0, last: 25.0 };
         for &shift in &SHIFTS {
@@ -317,6 +294,49 @@ fn the_avx2_costs_and_warp_are_the_portable_ones_at_the_span_ends_too() {
             assert!(p.iter().zip(&q).all(|(a, b)| a.to_bits() == b.to_bits()), "warp at {shift}, {n} px: {p:?} against {q:?}");
             assert!(p.iter().zip(&smooth).all(|(v, s)| v.is_nan() == s.is_nan()), "NaN exactly where the map is");
         }
+    }
+}
+
+#[test]
+fn pixels_beside_an_unwarped_one_take_the_stretched_sample() {
+    // A 6 × 4 region: the warped right image a ramp (x-Sobel 8 a column of slope 1), one
+    // pixel unwarped (unmatched, so not sampled either), and one more not sampled.
+    let (w, h) = (6, 4);
+    let mut warped: Vec<f32> = (0..w * h).map(|i| 100.0 + (i % w) as f32).collect();
+    warped[w + 3] = f32::NAN;
+    let left = vec![5.0f32; w * h];
+    let mut sampled = vec![1.0f32; w * h];
+    (sampled[w + 3], sampled[2 * w + 1]) = (f32::NAN, f32::NAN);
+    let mut cost = vec![-1.0f32; w * h];
+    derivative_costs(&warped, &left, &sampled, &mut cost, w);
+    // The region's edge and the pixels whose kernel reaches the unwarped one (the columns
+    // either side of it) are left to the stretched sample; the pixels not sampled cost
+    // nothing; the rest compare 5 with the ramp's 8.
+    for y in 0..h {
+        for x in 0..w {
+            let (c, i) = (cost[y * w + x], y * w + x);
+            let beside = (x as isize - 3).abs() == 1 && (y as isize - 1).abs() <= 1;
+            let edge = x == 0 || y == 0 || x == w - 1 || y == h - 1;
+            if i == 2 * w + 1 || i == w + 3 {
+                assert_eq!(c, 0.0, "({x}, {y}) is not sampled");
+            } else if edge || beside {
+                assert!(c.is_nan(), "({x}, {y}): {c}");
+            } else {
+                assert_eq!(c, 3.0, "({x}, {y})");
+            }
+        }
+    }
+    // The stretched sample fills them: a map of 2 px, the right row its column's index.
+    let smooth = vec![2.0f32; w];
+    let stretch = vec![0.5f32; w];
+    let right: Vec<f32> = (0..8).map(|i| 10.0 * i as f32).collect();
+    let row = CostRow { x0: 0, smooth: &smooth, stretch: &stretch, left: &left[..w], right: &right, first: 0.0, last: 6.0 };
+    let mut out = cost[w..2 * w].to_vec();
+    stretched_costs(&row, 0.0, &mut out);
+    // At x the right image reads 10 (x − 2), scaled by 0.5 and clipped to ±62.
+    for (x, &c) in out.iter().enumerate() {
+        let want = if cost[w + x].is_nan() { (5.0 - (5.0 * (x as f32 - 2.0).max(0.0)).min(62.0)).abs() } else { cost[w + x] };
+        assert_eq!(c, want, "x = {x}");
     }
 }
 
