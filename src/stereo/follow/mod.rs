@@ -284,15 +284,16 @@ fn equiangular(c0: f32, c1: f32, c2: f32) -> f32 {
     }
 }
 
-/// One row of the region, as the residual costs read it.
+/// One row of the region, as the stretched samples read it.
 struct CostRow<'a> {
     /// The image column of the row's first pixel.
     x0: usize,
-    /// The smoothed map and the left image's prefiltered values over the region's columns.
+    /// The smoothed map over the region's columns.
     smooth: &'a [f32],
     /// The warp's stretch along the row, `1 − ∂S/∂x` (within [`STRETCH_BOUNDS`]; 1 where
     /// `S` is NaN), which scales the right image's derivative.
     stretch: &'a [f32],
+    /// The left image's prefiltered values over the region's columns.
     left: &'a [f32],
     /// The right image's prefiltered values over the columns the shifted windows reach,
     /// `first` the image column of its first; `last` that of the last a sample may start at
@@ -404,6 +405,8 @@ mod avx2 {
         let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
         let first = _mm256_set1_ps(row.first);
         let high = _mm256_set1_ps(row.last + 0.999);
+        // The last index a pair of samples may start at: the clamp keeps every index there
+        // already; this keeps the loads inside the row whatever the rounding.
         let top = _mm256_set1_epi32(row.right.len() as i32 - 2);
         let nan = _mm256_set1_ps(f32::NAN);
         let shift = _mm256_set1_ps(shift);
