@@ -21,14 +21,13 @@ fn pair_on(w: usize, h: usize, disp: &dyn Fn(f64, f64) -> f64, grey: u8) -> (Vec
 
 /// [`pair_on`] with the surface painted by `paint` (grey levels at a surface point).
 fn pair_of(w: usize, h: usize, disp: &dyn Fn(f64, f64) -> f64, grey: u8, paint: &dyn Fn(f64, f64) -> f64) -> (Vec<u8>, Vec<u8>) {
-    let texture = paint;
     let mut left = vec![grey; w * h];
     let mut right = vec![grey; w * h];
     for y in 0..h {
         for x in 0..w {
             let (xf, yf) = (x as f64, y as f64);
             if !disp(xf, yf).is_nan() {
-                left[y * w + x] = texture(xf, yf).round() as u8;
+                left[y * w + x] = paint(xf, yf).round() as u8;
             }
             // The left column this right pixel sees: x_l − d(x_l) = x_r, by fixed point.
             let mut xl = xf + 20.0;
@@ -40,7 +39,7 @@ fn pair_of(w: usize, h: usize, disp: &dyn Fn(f64, f64) -> f64, grey: u8, paint: 
                 xl = xf + d;
             }
             if !disp(xl, yf).is_nan() {
-                right[y * w + x] = texture(xl, yf).round() as u8;
+                right[y * w + x] = paint(xl, yf).round() as u8;
             }
         }
     }
@@ -264,7 +263,6 @@ fn the_avx2_copy_gives_the_portable_map() {
     assert!(portable.values().iter().zip(chosen.values()).all(|(p, c)| p.to_bits() == c.to_bits()), "the two builds' maps differ");
 }
 
-#[cfg(target_arch = "x86_64")]
 #[cfg(target_arch = "x86_64")]
 #[test]
 fn the_avx2_warp_is_the_portable_one_at_the_span_ends_too() {
