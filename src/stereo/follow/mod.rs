@@ -157,10 +157,6 @@ fn refine(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: &mut Disparity
         d.extend_from_slice(&disp.values()[region(y)]);
     }
     let smooth = plane_fit(&d, rw, rh, FOLLOW_FIT_RADIUS, MIN_SPREAD_PX2);
-    let mut stretch = vec![1f32; rw * rh];
-    for (s, o) in smooth.chunks_exact(rw).zip(stretch.chunks_exact_mut(rw)) {
-        stretch_row(s, o);
-    }
     // A pixel is looked at where at least MIN_MATCHED_SHARE of its window is matched.
     let mut count: Vec<f32> = d.iter().map(|v| if v.is_nan() { 0.0 } else { 1.0 }).collect();
     let mut tmp = vec![0f32; rw * rh];
@@ -216,7 +212,7 @@ fn refine(left: &[u8], right: &[u8], object: Option<&[u8]>, disp: &mut Disparity
         derivative_costs(&warped, &lpf, &sampled, plane, rw);
         for y in 0..rh {
             let row = y * rw..(y + 1) * rw;
-            let input = CostRow { x0: rx0, smooth: &smooth[row.clone()], stretch: &stretch[row.clone()], left: &lpf[row.clone()], right: &rpf[y * cw..(y + 1) * cw], first, last };
+            let input = CostRow { x0: rx0, smooth: &smooth[row.clone()], left: &lpf[row.clone()], right: &rpf[y * cw..(y + 1) * cw], first, last };
             stretched_costs(&input, shift, &mut plane[row]);
         }
     }
@@ -288,11 +284,8 @@ fn equiangular(c0: f32, c1: f32, c2: f32) -> f32 {
 struct CostRow<'a> {
     /// The image column of the row's first pixel.
     x0: usize,
-    /// The smoothed map over the region's columns.
+    /// The smoothed map over the region's columns (its slope gives the warp's stretch).
     smooth: &'a [f32],
-    /// The warp's stretch along the row, `1 − ∂S/∂x` (within [`STRETCH_BOUNDS`]; 1 where
-    /// `S` is NaN), which scales the right image's derivative.
-    stretch: &'a [f32],
     /// The left image's prefiltered values over the region's columns.
     left: &'a [f32],
     /// The right image's prefiltered values over the columns the shifted windows reach,
@@ -315,7 +308,7 @@ fn stretched_costs(row: &CostRow, shift: f32, out: &mut [f32]) {
             continue;
         }
         let xr = (row.x0 + x) as f32 - row.smooth[x] - shift;
-        let v = (right_at(row.right, row.first, row.last, xr) * row.stretch[x]).max(-(CAP as f32)).min(CAP as f32);
+        let v = (right_at(row.right, row.first, row.last, xr) * stretch_at(row.smooth, x)).max(-(CAP as f32)).min(CAP as f32);
         *o = if !xr.is_nan() { (row.left[x] - v).abs() } else { 0.0 };
     }
 }
@@ -458,34 +451,22 @@ mod avx2 {
     }
 }
 
-/// The warp's stretch `1 − ∂S/∂x` along one row of the smoothed map `S`, into `out` (as
-/// long): its slope by the central difference, one-sided where a neighbour is NaN (the
-/// row's ends included), none where both are; within [`STRETCH_BOUNDS`]; 1 where `S` itself
-/// is NaN. Branch-free inside the row, so that it vectorises.
-fn stretch_row(s: &[f32], out: &mut [f32]) {
-    let n = s.len();
-    assert_eq!(out.len(), n, "a stretch for each pixel");
-    #[inline(always)]
-    fn one(before: f32, c: f32, after: f32) -> f32 {
-        let slope = match (before.is_nan(), after.is_nan()) {
-            (false, false) => 0.5 * (after - before),
-            (true, false) => after - c,
-            (false, true) => c - before,
-            (true, true) => 0.0,
-        };
-        if c.is_nan() { 1.0 } else { (1.0 - slope).max(STRETCH_BOUNDS.0).min(STRETCH_BOUNDS.1) }
-    }
-    if n == 0 {
-        return;
-    }
-    out[0] = one(f32::NAN, s[0], s.get(1).copied().unwrap_or(f32::NAN));
-    if n == 1 {
-        return;
-    }
-    for (o, w) in out[1..n - 1].iter_mut().zip(s.windows(3)) {
-        *o = one(w[0], w[1], w[2]);
-    }
-    out[n - 1] = one(s[n - 2], s[n - 1], f32::NAN);
+/// The warp's stretch `1 − ∂S/∂x` at pixel `x` of a row of the smoothed map `S`: its slope by
+/// the central difference, one-sided where a neighbour is NaN (the row's ends included), none
+/// where both are; within [`STRETCH_BOUNDS`]; 1 where `S` itself is NaN. Taken only for the
+/// pixels [`stretched_costs`] fills, a few beside unmatched ones.
+#[inline(always)]
+fn stretch_at(s: &[f32], x: usize) -> f32 {
+    let c = s[x];
+    let before = if x > 0 { s[x - 1] } else { f32::NAN };
+    let after = s.get(x + 1).copied().unwrap_or(f32::NAN);
+    let slope = match (before.is_nan(), after.is_nan()) {
+        (false, false) => 0.5 * (after - before),
+        (true, false) => after - c,
+        (false, true) => c - before,
+        (true, true) => 0.0,
+    };
+    if c.is_nan() { 1.0 } else { (1.0 - slope).max(STRETCH_BOUNDS.0).min(STRETCH_BOUNDS.1) }
 }
 
 /// The box of the matched pixels: first and last column and row.

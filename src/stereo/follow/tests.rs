@@ -324,16 +324,17 @@ fn pixels_beside_an_unwarped_one_take_the_stretched_sample() {
             }
         }
     }
-    // The stretched sample fills them: a map of 2 px, the right row its column's index.
-    let smooth = vec![2.0f32; w];
-    let stretch = vec![0.5f32; w];
+    // The stretched sample fills them: a map of 2 + x/2 px (a stretch of 0.5), the right row
+    // ten times its column's index.
+    let smooth: Vec<f32> = (0..w).map(|x| 2.0 + 0.5 * x as f32).collect();
     let right: Vec<f32> = (0..8).map(|i| 10.0 * i as f32).collect();
-    let row = CostRow { x0: 0, smooth: &smooth, stretch: &stretch, left: &left[..w], right: &right, first: 0.0, last: 6.0 };
+    let row = CostRow { x0: 0, smooth: &smooth, left: &left[..w], right: &right, first: 0.0, last: 6.0 };
     let mut out = cost[w..2 * w].to_vec();
     stretched_costs(&row, 0.0, &mut out);
-    // At x the right image reads 10 (x − 2), scaled by 0.5 and clipped to ±62.
+    // At x the right image reads 10 (x/2 − 2) (0 before its first column), scaled by 0.5
+    // and clipped to ±62.
     for (x, &c) in out.iter().enumerate() {
-        let want = if cost[w + x].is_nan() { (5.0 - (5.0 * (x as f32 - 2.0).max(0.0)).min(62.0)).abs() } else { cost[w + x] };
+        let want = if cost[w + x].is_nan() { (5.0 - (5.0 * (0.5 * x as f32 - 2.0).max(0.0)).min(62.0)).abs() } else { cost[w + x] };
         assert_eq!(c, want, "x = {x}");
     }
 }
