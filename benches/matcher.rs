@@ -258,6 +258,22 @@ fn main() {
                     });
                     println!("{name:<34} {min:>9.2} {med:>9.2} {:>10}", format!("{} px", stats.looked));
                 }
+                // The rim's profile, on the refined map, as each view pays it after the
+                // refinement (each run starts from a copy of the map).
+                let name = format!("{} rim profile", case.name);
+                if threads == 1 && filter.as_deref().is_none_or(|f| name.contains(f)) {
+                    m.compute(pair.0, pair.1, &fg, &mut out).unwrap();
+                    spinscan::stereo::follow::refine_following(&case.left, &case.right, Some(mask), &mut out);
+                    let rim = spinscan::segment::rim_distance(mask, w, h);
+                    let mut map = out.clone();
+                    let mut stats = Default::default();
+                    let (min, med) = time(runs(), || {
+                        map = out.clone();
+                        stats = spinscan::stereo::follow::extrapolate_rim(&mut map, &rim, 1);
+                    });
+                    let spinscan::stereo::follow::RimStats { looked, profiled, .. } = stats;
+                    println!("{name:<34} {min:>9.2} {med:>9.2} {:>10}", format!("{profiled}/{looked} px"));
+                }
             }
         }
     }

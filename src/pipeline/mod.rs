@@ -153,6 +153,8 @@ pub struct View {
     pub for_registration: Option<PointCloud>,
     /// What the surface-following refinement looked at and moved (all 0 where it is off).
     pub followed: crate::stereo::follow::FollowStats,
+    /// What the rim's profile moved ([`crate::stereo::follow::extrapolate_rim`]), within the refinement's time.
+    pub rim_profile: crate::stereo::follow::RimStats,
     /// Its time, milliseconds.
     pub follow_ms: f64,
     /// The matcher's own map where the refinement changed `disparity`: the texture tracks'
@@ -446,12 +448,16 @@ impl Pipeline {
         // Registration takes the matcher's own map: on the refined one a sphere's ICP slid
         // and a realistic recording's fitted axis moved (docs/matcher.md, "The window that
         // follows the surface").
-        let (mut followed, mut follow_ms) = (Default::default(), 0.0);
+        let (mut followed, mut follow_ms, mut rim_profile) = (Default::default(), 0.0, Default::default());
         let unrefined = self.follow_surface.then(|| {
             let own = m.disparity.clone();
             let t0 = Instant::now();
             // The silhouette's edge lends the windows no samples (stereo::follow::SILHOUETTE_PX).
             followed = crate::stereo::follow::refine_following(&frame.left_gray, &frame.right_gray, frame.mask.as_deref(), &mut m.disparity);
+            // And the pixels nearest the silhouette take the rim's profile.
+            if let Some(rim) = rim.as_deref() {
+                rim_profile = crate::stereo::follow::extrapolate_rim(&mut m.disparity, rim, self.rect.disparity_sign);
+            }
             follow_ms = t0.elapsed().as_secs_f64() * 1e3;
             own
         });
@@ -475,6 +481,7 @@ impl Pipeline {
             clipped_px,
             for_registration,
             followed,
+            rim_profile,
             follow_ms,
             matched_disparity: unrefined,
         }

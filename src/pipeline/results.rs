@@ -224,8 +224,11 @@ impl ResultsWriter {
             "rim_points": view.rim_points(),
             // The surface-following refinement (`matching.follow_surface`): the matched pixels
             // it looked at (half their window matched or more), those it gave a new value, and
-            // its time.
-            "followed_px": {"looked": view.followed.looked, "refined": view.followed.refined, "ms": view.follow_ms},
+            // its time; and of the matched pixels within `stereo::follow::RIM_PROFILE_PX` of the
+            // silhouette, those given the rim's profile and those left on the flank the right
+            // camera sees compressed (its time is within `ms`).
+            "followed_px": {"looked": view.followed.looked, "refined": view.followed.refined, "ms": view.follow_ms,
+                "rim": {"looked": view.rim_profile.looked, "profiled": view.rim_profile.profiled, "compressed": view.rim_profile.compressed}},
             "right_saturated_share": view.right_near_white as f64 / view.mask.as_deref().map_or(view.left_rgb.len() / 3, |m| m.iter().filter(|&&v| v != 0).count()).max(1) as f64,
             "table_deg": frame.table_deg,
             "t_left_ns": frame.t_left_ns,

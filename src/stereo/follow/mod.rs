@@ -40,12 +40,14 @@
 //! and those the refinement would move by more than [`MAX_MOVE_PX`].
 
 mod plane;
+mod rim;
 
 use std::borrow::Cow;
 
 use super::disparity::{searched_span, DisparityMap, GrayView};
 use super::matcher::xsobel_rows;
 use plane::plane_fit;
+pub use rim::{extrapolate_rim, RimStats, RIM_FIT_RADIUS, RIM_PROFILE_PX, RIM_SAMPLE_PX};
 
 /// Side of the warped window, pixels. 11 while the window followed the map's mean; with the
 /// fitted plane and the silhouette's edge left out, 13 gave models 1–2 % closer and views
