@@ -26,7 +26,7 @@ pub(super) unsafe fn window_lanes(smp: &Samples, corner: usize) -> [[f32; LANES]
     for dy in 0..=2 * r {
         let yv = _mm256_set1_ps(dy as f32 - r as f32);
         let row = corner + dy * smp.rw;
-        for c in 0..CHUNKS {
+        for c in (0..CHUNKS).filter(|&c| smp.may_hold(row, c)) {
             let o = row + c * LANES;
             let (m, x) = (mask[c], xs[c]);
             let wt = _mm256_mul_ps(load(&smp.weight, o), m);
@@ -81,7 +81,7 @@ pub(super) unsafe fn residual_lanes(smp: &Samples, corner: usize, p: &Profile) -
         for (m, k) in terms.iter().enumerate() {
             let uy = _mm256_set1_ps(k.c0 + k.cy * (dy as f32 - r as f32));
             let (cx, cs, ct) = (_mm256_set1_ps(k.cx), _mm256_set1_ps(k.cs), _mm256_set1_ps(k.ct));
-            for c in 0..CHUNKS {
+            for c in (0..CHUNKS).filter(|&c| smp.may_hold(row, c)) {
                 let o = row + c * LANES;
                 let fit = _mm256_mul_ps(load(&smp.weight, o), _mm256_add_ps(uy, _mm256_mul_ps(cx, xs[c])));
                 let e = _mm256_sub_ps(_mm256_sub_ps(load(&smp.d, o), fit), _mm256_mul_ps(cs, load(&smp.s, o)));

@@ -154,7 +154,7 @@ fn the_avx2_window_sums_are_the_portable_ones() {
     // windows read.
     let (rw, rh) = (2 * RIM_FIT_RADIUS + 1 + LANES + 5, 2 * RIM_FIT_RADIUS + 1 + 4);
     let n = rw * rh;
-    let mut smp = Samples { rw, weight: vec![0.0; n], s: vec![0.0; n], d: vec![0.0; n], ss: vec![0.0; n], sd: vec![0.0; n], t: vec![0.0; n] };
+    let mut smp = Samples { rw, weight: vec![0.0; n], s: vec![0.0; n], d: vec![0.0; n], ss: vec![0.0; n], sd: vec![0.0; n], t: vec![0.0; n], spans: vec![0..rw; rh] };
     for i in 0..n {
         if noise(i, 7, 1.0) > 0.33 {
             let (s, d) = (2.0 + noise(i, 3, 1.0), 20.0 * noise(i, 5, 1.0));
