@@ -481,18 +481,54 @@ pub fn rim_distance(mask: &[u8], w: usize, h: usize) -> Vec<u8> {
             *v = if m != 0 { u8::MAX } else { 0 };
         }
     }
-    // Each pass: the three neighbours of the row before, for the whole row at once (element-
-    // wise, so that it vectorises), then the one before along the row.
-    let mut above = vec![0u8; bw];
+    chamfer_passes(&mut b, bw, bh, 1, 1);
+    for y in 0..bh {
+        d[(y0 + y) * w + x0..][..bw].copy_from_slice(&b[(y + 1) * stride + 1..][..bw]);
+    }
+    d
+}
+
+/// A step of a chamfer distance: added without overflowing (a sum past the type's top
+/// stays there).
+pub(crate) trait ChamferStep: Copy + Ord {
+    /// The type's top: not reached.
+    const TOP: Self;
+    fn plus(self, step: Self) -> Self;
+}
+
+impl ChamferStep for u8 {
+    const TOP: u8 = u8::MAX;
+    fn plus(self, step: u8) -> u8 {
+        self.saturating_add(step)
+    }
+}
+
+impl ChamferStep for u32 {
+    const TOP: u32 = u32::MAX;
+    fn plus(self, step: u32) -> u32 {
+        self.saturating_add(step)
+    }
+}
+
+/// The two passes of an 8-neighbour chamfer distance over a `bw × bh` box held in `b` with a
+/// frame of one pixel around it (rows of `bw + 2`): 0 on the background, [`ChamferStep::TOP`]
+/// elsewhere before; each pixel's least sum of `axial` and `diagonal` steps to the
+/// background after. The frame is never written: it holds what lies beyond the box.
+/// Each pass takes the three neighbours of the row before for the whole row at once
+/// (element-wise, so that it vectorises), then the one before along the row.
+pub(crate) fn chamfer_passes<T: ChamferStep>(b: &mut [T], bw: usize, bh: usize, axial: T, diagonal: T) {
+    let stride = bw + 2;
+    let top = T::TOP;
+    let mut above = vec![top; bw];
     for y in 1..=bh {
         let (prev, row) = b.split_at_mut(y * stride);
         let prev = &prev[(y - 1) * stride..];
         for (i, a) in above.iter_mut().enumerate() {
-            *a = prev[i].min(prev[i + 1]).min(prev[i + 2]).saturating_add(1);
+            *a = prev[i].plus(diagonal).min(prev[i + 1].plus(axial)).min(prev[i + 2].plus(diagonal));
         }
-        let mut left = u8::MAX;
+        let mut left = top;
         for (v, &a) in row[1..=bw].iter_mut().zip(&above) {
-            left = (*v).min(a).min(left.saturating_add(1));
+            left = (*v).min(a).min(left.plus(axial));
             *v = left;
         }
     }
@@ -500,18 +536,14 @@ pub fn rim_distance(mask: &[u8], w: usize, h: usize) -> Vec<u8> {
         let (row, next) = b.split_at_mut((y + 1) * stride);
         let next = &next[..stride];
         for (i, a) in above.iter_mut().enumerate() {
-            *a = next[i].min(next[i + 1]).min(next[i + 2]).saturating_add(1);
+            *a = next[i].plus(diagonal).min(next[i + 1].plus(axial)).min(next[i + 2].plus(diagonal));
         }
-        let mut right = u8::MAX;
+        let mut right = top;
         for (v, &a) in row[y * stride + 1..][..bw].iter_mut().zip(&above).rev() {
-            right = (*v).min(a).min(right.saturating_add(1));
+            right = (*v).min(a).min(right.plus(axial));
             *v = right;
         }
     }
-    for y in 0..bh {
-        d[(y0 + y) * w + x0..][..bw].copy_from_slice(&b[(y + 1) * stride + 1..][..bw]);
-    }
-    d
 }
 
 /// Square dilation (`dilate = true`) or erosion of a 0/255 mask, separable: the OR (AND) of

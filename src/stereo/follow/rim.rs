@@ -182,9 +182,9 @@ impl Chamfer {
     /// that is nearest to a pixel whose distance is read.
     fn over(rim: &[u8], w: usize, xs: std::ops::Range<usize>, ys: std::ops::Range<usize>) -> Chamfer {
         let (bw, bh) = (xs.len(), ys.len());
-        // A frame of one pixel around the box, beyond the background ("infinitely" far: the
-        // sums of steps saturate).
-        let far = u32::MAX / 2;
+        // A frame of one pixel around the box, beyond the background (u32's top: the sums of
+        // steps saturate there).
+        let far = u32::MAX;
         let stride = bw + 2;
         let mut d = vec![far; stride * (bh + 2)];
         for (y, src) in ys.clone().map(|y| &rim[y * w + xs.start..y * w + xs.end]).enumerate() {
@@ -192,33 +192,7 @@ impl Chamfer {
                 *v = if t == 0 { 0 } else { far };
             }
         }
-        // Each pass: the three neighbours of the row before, for the whole row at once (so
-        // that it vectorises), then the one before along the row.
-        let mut above = vec![0u32; bw];
-        for y in 1..=bh {
-            let (prev, row) = d.split_at_mut(y * stride);
-            let prev = &prev[(y - 1) * stride..];
-            for (i, a) in above.iter_mut().enumerate() {
-                *a = (prev[i] + Self::DIAGONAL_STEP).min(prev[i + 1] + Self::STEP).min(prev[i + 2] + Self::DIAGONAL_STEP).min(far);
-            }
-            let mut left = far;
-            for (v, &a) in row[1..=bw].iter_mut().zip(&above) {
-                left = (*v).min(a).min(left + Self::STEP);
-                *v = left;
-            }
-        }
-        for y in (1..=bh).rev() {
-            let (row, next) = d.split_at_mut((y + 1) * stride);
-            let next = &next[..stride];
-            for (i, a) in above.iter_mut().enumerate() {
-                *a = (next[i] + Self::DIAGONAL_STEP).min(next[i + 1] + Self::STEP).min(next[i + 2] + Self::DIAGONAL_STEP).min(far);
-            }
-            let mut right = far;
-            for (v, &a) in row[y * stride + 1..][..bw].iter_mut().zip(&above).rev() {
-                right = (*v).min(a).min(right + Self::STEP);
-                *v = right;
-            }
-        }
+        crate::segment::chamfer_passes(&mut d, bw, bh, Self::STEP, Self::DIAGONAL_STEP);
         Chamfer { xs, ys, d }
     }
 
