@@ -129,7 +129,9 @@ pub struct MatchArgs {
     /// Leave each view's sub-pixel disparities as the matcher gives them, instead of refining
     /// them by a second correlation whose window follows the surface (fused models 8–50 %
     /// and views up to 44 % closer to the truth on the recordings measured; docs/matcher.md,
-    /// "The window that follows the surface"). Used where views are made: `points`,
+    /// "The window that follows the surface"), and giving the pixels within 6.5 px of the
+    /// silhouette the rim's square-root profile (docs/matcher.md, "The rim's profile"). Used
+    /// where views are made: `points`,
     /// `replay`, `demo`, `bench table1`'s errors and `bench live`; `disparity` writes the
     /// matcher's own map either way.
     #[arg(long)]

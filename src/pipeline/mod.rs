@@ -153,7 +153,8 @@ pub struct View {
     pub for_registration: Option<PointCloud>,
     /// What the surface-following refinement looked at and moved (all 0 where it is off).
     pub followed: crate::stereo::follow::FollowStats,
-    /// What the rim's profile moved ([`crate::stereo::follow::extrapolate_rim`]), within the refinement's time.
+    /// What the rim's profile moved ([`crate::stereo::follow::extrapolate_rim`]); its time is
+    /// within `follow_ms`.
     pub rim_profile: crate::stereo::follow::RimStats,
     /// Its time, milliseconds.
     pub follow_ms: f64,

@@ -19,9 +19,10 @@
 //!
 //! The fit is taken only where the band behind the pixel bends as a surface turning away
 //! does: its samples within [`MAX_RMS_PX`] of the curve, its bend [`MIN_BEND_T`] standard
-//! errors or more from none, and towards the cameras inwards. A flat face seen up to its
-//! edge, a crease's facet that barely bends, a faint texture's scattered map keep their
-//! matched values.
+//! errors or more from none and still [`MIN_CURVE_T`] beside a slope along `t`, towards the
+//! cameras inwards. A flat face seen up to its edge, a face leaning back to a crease (whose
+//! band bends as much by the root alone, but none beside a slope), a faint texture's
+//! scattered map keep their matched values.
 //!
 //! Nor on the flank the right camera sees compressed (the disparity rising along the row,
 //! `∂d/∂x` over [`COMPRESSED_SLOPE`]): there the band's values carry the compression's own
@@ -49,9 +50,9 @@ pub const RIM_FIT_RADIUS: usize = 10;
 
 /// Where the outline lies, as a chamfer distance: 0.9, just short of the last object pixel's
 /// centre (0.955), as the key takes a pixel the object partly covers into the mask. Measured:
-/// with 0.9 `fr-i30`'s rim pixels read within 0.05 px of the truth on the faced flank, the
-/// top and the bottom, at every distance (docs/matcher.md, "The rim's profile"); 0.5 and 0.7
-/// left the models 1–3 % further.
+/// with 0.9, before the test of [`MIN_CURVE_T`], `fr-i30`'s rim pixels read within 0.05 px of
+/// the truth on the faced flank, the top and the bottom, at every distance (docs/matcher.md,
+/// "The rim's profile"); 0.5 and 0.7 left the models of eight recordings 0.4–1.8 % further.
 const EDGE_PX: f64 = 0.9;
 
 /// The least number of samples for a fit.
@@ -81,8 +82,8 @@ const MIN_BEND_T: f64 = 30.0;
 /// The least bend, in its standard errors, of the profile with a slope along `t` beside the
 /// root: a flat face leaning back to a crease bends by as much as a surface turning away over
 /// the samples' band, but none beside a slope. Measured (docs/matcher.md, "The rim's profile"):
-/// 2 left a box's rim within 2 % of its matched values, and kept two thirds of the gain on
-/// the ellipsoids of the independent renderer.
+/// 2 left an ideal box's rim within 2 % of its matched values (mean |error|), and kept 70–80 %
+/// of the gain on the rims of `fr-i30` and `fr-i13` (median |error|).
 const MIN_CURVE_T: f64 = 2.0;
 
 /// The side of the blocks of pixels that share one fit, and where in its block the fit's
@@ -110,7 +111,7 @@ pub struct RimStats {
 
 /// Gives the matched pixels within [`RIM_PROFILE_PX`] of the silhouette the rim's profile
 /// (see the module's documentation). `rim`: each pixel's distance inside the silhouette, as
-/// [`crate::segment::rim_distance`] gives it (0 the background, the object where it is not),
+/// [`crate::segment::rim_distance`] gives it (0 on the background, 1 and more on the object),
 /// the map's size.
 /// `disparity_sign`: +1 where the disparity grows as the surface comes nearer (the rectified
 /// right camera right of the left one), −1 where it falls
@@ -150,7 +151,8 @@ struct Samples {
 }
 
 impl Samples {
-    /// Whether chunk `c` of the window row starting at region index `o` may hold a sample.
+    /// Whether chunk `c` of the window row starting at region index `row_start` may hold a
+    /// sample.
     #[inline(always)]
     fn may_hold(&self, row_start: usize, c: usize) -> bool {
         let (ry, col) = (row_start / self.rw, row_start % self.rw + c * LANES);
@@ -441,7 +443,7 @@ struct Profile {
     /// The fit's normal matrix (over 1, u, s).
     h: [[f64; 3]; 3],
     sloped: [f64; 4],
-    /// The last diagonal element but one of the sloped fit's inverse normal matrix: the
+    /// The bend's diagonal element (the third) of the sloped fit's inverse normal matrix: the
     /// bend's variance over the residuals' variance.
     sloped_bend_var: f64,
 }
