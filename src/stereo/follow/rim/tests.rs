@@ -173,6 +173,40 @@ fn the_avx2_window_sums_are_the_portable_ones() {
         let count = (0..=2 * RIM_FIT_RADIUS).flat_map(|dy| (0..=2 * RIM_FIT_RADIUS).map(move |dx| corner + dy * rw + dx)).filter(|&i| smp.weight[i] != 0.0).count();
         assert_eq!(sums.n, count as f64);
     }
+    // And the whole pass: the same map either way.
+    let (map, _, mask) = matched_ball(1.0);
+    let rim = rim_distance(&mask, W, H);
+    let (mut portable, mut lanes) = (map.clone(), map);
+    assert_eq!(extrapolate(&mut portable, &rim, 1, false), extrapolate(&mut lanes, &rim, 1, true));
+    assert!(same(&portable, &lanes));
 }
 
 
+
+#[test]
+fn objects_cut_by_the_image_edge_and_small_images_are_refined_in_bounds() {
+    // The ball moved so that the image's edges cut it, and images smaller than the fit's
+    // window: every pixel read lies inside the image, and what moves stays near the truth.
+    for (w, h, cx, cy) in [(200usize, 200usize, 20.0, 180.0), (30, 30, 15.0, 15.0), (9, 40, 4.0, 20.0)] {
+        let mut map = DisparityMap::new(w, h);
+        let mut mask = vec![0u8; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let d = ball(x as f64 - cx + 100.0, y as f64 - cy + 100.0, 1.0);
+                if !d.is_nan() {
+                    mask[y * w + x] = 255;
+                    map.set(x, y, Some(d as f32 + noise(x, y, 0.05)));
+                }
+            }
+        }
+        let rim = rim_distance(&mask, w, h);
+        let before = map.clone();
+        let stats = extrapolate_rim(&mut map, &rim, 1);
+        assert!(stats.profiled <= stats.looked);
+        for i in 0..w * h {
+            let (a, b) = (before.values()[i], map.values()[i]);
+            assert_eq!(a.is_nan(), b.is_nan());
+            assert!(a.is_nan() || (a - b).abs() <= MAX_MOVE_PX as f32, "{w}×{h}: {a} → {b}");
+        }
+    }
+}
