@@ -14,8 +14,8 @@ fn noise(x: usize, y: usize, amp: f32) -> f32 {
 }
 
 /// A ball's true disparities (`f·B / Z` of a sphere of radius 45 mm whose centre is 410 mm
-/// away, 1.6 px a mm, seen orthographically), its silhouette 72 px across from the image's
-/// centre; NaN outside. `sign`: the rig's disparity sign.
+/// away, 1.6 px a mm, seen orthographically), its silhouette a circle of 72 px around
+/// (100, 100); NaN outside. `sign`: the rig's disparity sign.
 fn ball(x: f64, y: f64, sign: f64) -> f64 {
     let (rho, zc, px_mm, fb) = (45.0, 410.0, 1.6, 700.0 * 55.0);
     let r = (x - 100.0).hypot(y - 100.0) / px_mm;
