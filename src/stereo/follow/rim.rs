@@ -141,8 +141,6 @@ struct Samples {
     s: Vec<f32>,
     /// The disparity less the region's reference.
     d: Vec<f32>,
-    ss: Vec<f32>,
-    sd: Vec<f32>,
     /// The distance `t` itself.
     t: Vec<f32>,
     /// Each region row's columns from its first sample to its last (empty: none). The
@@ -174,9 +172,9 @@ struct Chamfer {
 }
 
 impl Chamfer {
-    const AXIAL: f32 = 0.955;
     /// The steps in thousandths of a pixel.
     const STEP: u32 = 955;
+    const AXIAL: f32 = Self::STEP as f32 * 1e-3;
     const DIAGONAL_STEP: u32 = 1369;
 
     /// The distances over `xs × ys` of an image `w` wide whose background is where `rim` is
@@ -277,7 +275,7 @@ fn extrapolate(disp: &mut DisparityMap, rim: &[u8], disparity_sign: i32, simd: b
     // The disparities less a reference, the first sample's (the region's disparities lie
     // within a few tens of it): the sums in f32 keep their precision.
     let mut reference = f32::NAN;
-    let mut smp = Samples { rw, weight: vec![0.0; rw * rh], s: vec![0.0; rw * rh], d: vec![0.0; rw * rh], ss: vec![0.0; rw * rh], sd: vec![0.0; rw * rh], t: vec![0.0; rw * rh], spans: vec![0..0; rh] };
+    let mut smp = Samples { rw, weight: vec![0.0; rw * rh], s: vec![0.0; rw * rh], d: vec![0.0; rw * rh], t: vec![0.0; rw * rh], spans: vec![0..0; rh] };
     // The region's columns inside the image (all inside the distances' box), and where they
     // start in the region's rows.
     let columns = ox.max(0) as usize..((ox + rw as isize) as usize).min(w);
@@ -297,7 +295,7 @@ fn extrapolate(disp: &mut DisparityMap, rim: &[u8], disparity_sign: i32, simd: b
                 let s = (t - EDGE_PX as f32).sqrt();
                 let d = v - reference;
                 let k = from + i;
-                (smp.weight[k], smp.s[k], smp.d[k], smp.ss[k], smp.sd[k], smp.t[k]) = (1.0, s, d, s * s, s * d, t);
+                (smp.weight[k], smp.s[k], smp.d[k], smp.t[k]) = (1.0, s, d, t);
                 let (col, span) = (k - ry * rw, &mut smp.spans[ry]);
                 *span = if span.start == span.end { col..col + 1 } else { span.start..col + 1 };
             }
@@ -408,11 +406,11 @@ fn window_lanes(smp: &Samples, corner: usize) -> [[f32; LANES]; SUMS] {
                 acc[6][i] += s;
                 acc[7][i] += s * x;
                 acc[8][i] += s * yv;
-                acc[9][i] += smp.ss[o + i] * m;
+                acc[9][i] += s * s;
                 acc[10][i] += d;
                 acc[11][i] += d * x;
                 acc[12][i] += d * yv;
-                acc[13][i] += smp.sd[o + i] * m;
+                acc[13][i] += s * d;
                 acc[14][i] += t;
                 acc[15][i] += t * x;
                 acc[16][i] += t * yv;
@@ -440,8 +438,9 @@ enum Fit {
 struct Profile {
     c: [f64; 3],
     along: (f64, f64),
-    /// The fit's normal matrix (over 1, u, s).
-    h: [[f64; 3]; 3],
+    /// The bend's diagonal element (the last) of the fit's inverse normal matrix: the bend's
+    /// variance over the residuals' variance.
+    bend_var: f64,
     sloped: [f64; 4],
     /// The bend's diagonal element (the third) of the sloped fit's inverse normal matrix: the
     /// bend's variance over the residuals' variance.
@@ -467,10 +466,7 @@ impl Profile {
         if var > MAX_RMS_PX * MAX_RMS_PX {
             return false;
         }
-        let h = &self.h;
-        let det = h[0][0] * (h[1][1] * h[2][2] - h[1][2] * h[2][1]) - h[0][1] * (h[1][0] * h[2][2] - h[1][2] * h[2][0]) + h[0][2] * (h[1][0] * h[2][1] - h[1][1] * h[2][0]);
-        // The bend's variance: var times the last diagonal element of the inverse.
-        let var_c2 = var * (h[0][0] * h[1][1] - h[0][1] * h[1][0]) / det;
+        let var_c2 = var * self.bend_var;
         let c2 = self.c[2];
         let bent = c2 * c2 >= MIN_BEND_T * MIN_BEND_T * var_c2 && c2 * nearer > 0.0;
         // Beside a slope, on n − 4 degrees of freedom.
@@ -571,12 +567,12 @@ fn profile_of(m: &Sums) -> Fit {
     let us = a * m.xs + b * m.ys;
     let ud = a * m.xd + b * m.yd;
     let h = [[m.n, u, m.s], [u, uu, us], [m.s, us, m.ss]];
-    let Some(c) = solve3(h, [m.d, ud, m.sd]) else { return Fit::None };
+    let (Some(c), Some(unit3)) = (solve3(h, [m.d, ud, m.sd]), solve3(h, [0.0, 0.0, 1.0])) else { return Fit::None };
     // The same with a slope along t.
     let ut = a * m.xt + b * m.yt;
     let h4 = [[m.n, u, m.s, m.t], [u, uu, us, ut], [m.s, us, m.ss, m.st], [m.t, ut, m.st, m.tt]];
     let (Some(sloped), Some(unit)) = (solve4(h4, [m.d, ud, m.sd, m.dt]), solve4(h4, [0.0, 0.0, 1.0, 0.0])) else { return Fit::None };
-    Fit::Profile(Profile { c, along: (a, b), h, sloped, sloped_bend_var: unit[2] })
+    Fit::Profile(Profile { c, along: (a, b), bend_var: unit3[2], sloped, sloped_bend_var: unit[2] })
 }
 
 /// Solves the 4 × 4 system `a·x = b` by Gaussian elimination with partial pivoting; `None`

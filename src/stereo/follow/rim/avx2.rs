@@ -43,11 +43,11 @@ pub(super) unsafe fn window_lanes(smp: &Samples, corner: usize) -> [[f32; LANES]
             acc[6] = _mm256_add_ps(acc[6], s);
             acc[7] = _mm256_add_ps(acc[7], _mm256_mul_ps(s, x));
             acc[8] = _mm256_add_ps(acc[8], _mm256_mul_ps(s, yv));
-            acc[9] = _mm256_add_ps(acc[9], _mm256_mul_ps(load(&smp.ss, o), m));
+            acc[9] = _mm256_add_ps(acc[9], _mm256_mul_ps(s, s));
             acc[10] = _mm256_add_ps(acc[10], d);
             acc[11] = _mm256_add_ps(acc[11], _mm256_mul_ps(d, x));
             acc[12] = _mm256_add_ps(acc[12], _mm256_mul_ps(d, yv));
-            acc[13] = _mm256_add_ps(acc[13], _mm256_mul_ps(load(&smp.sd, o), m));
+            acc[13] = _mm256_add_ps(acc[13], _mm256_mul_ps(s, d));
             acc[14] = _mm256_add_ps(acc[14], t);
             acc[15] = _mm256_add_ps(acc[15], _mm256_mul_ps(t, x));
             acc[16] = _mm256_add_ps(acc[16], _mm256_mul_ps(t, yv));

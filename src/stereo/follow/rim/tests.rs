@@ -154,14 +154,14 @@ fn the_avx2_window_sums_are_the_portable_ones() {
     // windows read.
     let (rw, rh) = (2 * RIM_FIT_RADIUS + 1 + LANES + 5, 2 * RIM_FIT_RADIUS + 1 + 4);
     let n = rw * rh;
-    let mut smp = Samples { rw, weight: vec![0.0; n], s: vec![0.0; n], d: vec![0.0; n], ss: vec![0.0; n], sd: vec![0.0; n], t: vec![0.0; n], spans: vec![0..rw; rh] };
+    let mut smp = Samples { rw, weight: vec![0.0; n], s: vec![0.0; n], d: vec![0.0; n], t: vec![0.0; n], spans: vec![0..rw; rh] };
     for i in 0..n {
         if noise(i, 7, 1.0) > 0.33 {
             let (s, d) = (2.0 + noise(i, 3, 1.0), 20.0 * noise(i, 5, 1.0));
-            (smp.weight[i], smp.s[i], smp.d[i], smp.ss[i], smp.sd[i], smp.t[i]) = (1.0, s, d, s * s, s * d, s * s + EDGE_PX as f32);
+            (smp.weight[i], smp.s[i], smp.d[i], smp.t[i]) = (1.0, s, d, s * s + EDGE_PX as f32);
         }
     }
-    let p = Profile { c: [0.3, -0.07, 1.4], along: (0.6, -0.8), h: [[0.0; 3]; 3], sloped: [0.2, -0.05, 1.1, 0.03], sloped_bend_var: 0.0 };
+    let p = Profile { c: [0.3, -0.07, 1.4], along: (0.6, -0.8), bend_var: 0.0, sloped: [0.2, -0.05, 1.1, 0.03], sloped_bend_var: 0.0 };
     for corner in [0, 1, 5, rw + 3, 3 * rw + 4] {
         // SAFETY: the CPU has AVX2 (checked above); the windows lie in the region.
         let (v, r) = unsafe { (avx2::window_lanes(&smp, corner), avx2::residual_lanes(&smp, corner, &p)) };
