@@ -588,8 +588,12 @@ impl Assistant {
 
     /// Checks a matched frame. `None`: accepted (it becomes the previous frame). `Some(why)`:
     /// the assisted result looks wrong; match the frame again over the full range and call
-    /// this again with that result (a full-range result is always accepted).
+    /// this again with that result (a full-range result is always accepted). With assistance
+    /// off nothing is kept: no plan reads a previous frame then.
     pub fn accept(&mut self, seq: u64, plan: &Plan, disparity: &DisparityMap, mask: Option<&[u8]>, stats: &MatchStats) -> Option<String> {
+        if self.params.mode == AssistMode::None {
+            return None;
+        }
         let valid = stats.valid_fraction();
         if plan.assisted() && !self.recent_valid.is_empty() {
             let mut v: Vec<f64> = self.recent_valid.iter().copied().collect();
