@@ -279,9 +279,6 @@ pub struct Assistant {
     spare: Option<(DisparityIntervals, Region)>,
     /// Tile granularity: the hull of each tile's bounds.
     tiles: tiles::TileBounds,
-    /// Plane granularity: the previous frame's planes, fitted when it was kept (its map is
-    /// still in the cache then; a plan, a frame later, would read it back from memory).
-    prev_planes: tiles::TileBounds,
 }
 
 impl Assistant {
@@ -310,7 +307,6 @@ impl Assistant {
             rho_blocks: Vec::new(),
             spare: None,
             tiles: tiles::TileBounds::default(),
-            prev_planes: tiles::TileBounds::default(),
         }
     }
 
@@ -440,8 +436,8 @@ impl Assistant {
     #[inline(always)]
     fn build(&mut self, gap: u64, mask: Option<&[u8]>, plan: &mut Plan) {
         if self.params.granularity == Granularity::Plane {
-            // (Fitted when the previous frame was kept: `accept`.)
-            self.tiles.planes_from(&self.prev_planes);
+            let prev = self.prev.as_ref().expect("planned with a previous frame");
+            self.tiles.fit_planes(&prev.disparity, &prev.region);
         }
         match self.params.mode {
             AssistMode::Paper { w: weight } if !self.params.granularity.tiled() => {
@@ -636,30 +632,8 @@ impl Assistant {
             }
             slot => *slot = Some(PrevFrame { seq, disparity: disparity.clone(), mask: mask.filter(|_| keep_mask).map(<[u8]>::to_vec), region }),
         }
-        if self.params.granularity == Granularity::Plane {
-            self.prev_planes.reset(disparity.width, disparity.height);
-            fit_planes_fastest(&mut self.prev_planes, disparity, &region);
-        }
         None
     }
-}
-
-/// [`tiles::TileBounds::fit_planes`] in the widest vector code the CPU runs (its passes are
-/// written branch-free so that they vectorise; the same operations in the same order either
-/// way, so the same planes).
-fn fit_planes_fastest(tiles: &mut tiles::TileBounds, d: &DisparityMap, region: &Region) {
-    #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("avx2") {
-        /// # Safety
-        /// The CPU supports AVX2.
-        #[target_feature(enable = "avx2")]
-        unsafe fn fit_avx2(tiles: &mut tiles::TileBounds, d: &DisparityMap, region: &Region) {
-            tiles.fit_planes(d, region)
-        }
-        // SAFETY: the CPU has AVX2 (checked just above).
-        return unsafe { fit_avx2(tiles, d, region) };
-    }
-    tiles.fit_planes(d, region)
 }
 
 /// A hole's interval: the hull `a..=b` of the bounds around it widened by `MARGIN`, or the

@@ -144,10 +144,7 @@ impl TileBounds {
         // Per tile: n, Σx, Σy, Σd, Σxx, Σxy, Σyy, Σxd, Σyd, about the tile's corner. Per
         // tile row, each column's n, Σy, Σd, Σyy, Σyd over its rows first (element-wise along
         // the row, branch-free, so that it vectorises), then the tiles' sums of their columns.
-        // (Only the region's tiles hold previous disparities: the others keep flat planes.)
-        let (tx0, ty0) = (region.x0 / TW, region.y0 / TH);
-        let (ncols, nrows) = (region.x1.div_ceil(TW).saturating_sub(tx0), region.y1.div_ceil(TH).saturating_sub(ty0));
-        let mut sums = vec![[0f32; 9]; ncols * nrows];
+        let mut sums = vec![[0f32; 9]; self.cols * self.rows];
         let n = region.x1 - region.x0;
         // (One array per sum, so that the loop over the row vectorises.)
         let (mut cn, mut cy, mut cd, mut cyy, mut cyd) = (vec![0f32; n], vec![0f32; n], vec![0f32; n], vec![0f32; n], vec![0f32; n]);
@@ -171,7 +168,7 @@ impl TileBounds {
                 }
             }
             for (xs, tx) in segments(region) {
-                let acc = &mut sums[(ty - ty0) * ncols + tx - tx0];
+                let acc = &mut sums[ty * self.cols + tx];
                 let ks = xs.start - region.x0..xs.end - region.x0;
                 if ks.len() == TW {
                     // A whole tile's columns: sums and moments in vector lanes.
@@ -190,11 +187,10 @@ impl TileBounds {
                 }
             }
         }
-        for (i, [n, sx, sy, sd, sxx, sxy, syy, sxd, syd]) in sums.into_iter().enumerate() {
+        for (t, [n, sx, sy, sd, sxx, sxy, syy, sxd, syd]) in sums.into_iter().enumerate() {
             if n < MIN_FIT_PX as f32 {
                 continue;
             }
-            let t = (ty0 + i / ncols) * self.cols + tx0 + i % ncols;
             // Centred moments, then the 2 × 2 normal equations of the slopes.
             let (mx, my, md) = (sx / n, sy / n, sd / n);
             let (cxx, cxy, cyy, cxd, cyd) = (sxx - sx * mx, sxy - sx * my, syy - sy * my, sxd - sx * md, syd - sy * md);
@@ -211,13 +207,6 @@ impl TileBounds {
             let (x0, y0) = (((t % self.cols) * TW) as f32 + mx, ((t / self.cols) * TH) as f32 + my);
             self.plane[t] = [gx, gy, -(gx * x0 + gy * y0)];
         }
-    }
-
-    /// The planes fitted into `from` (by [`TileBounds::fit_planes`] on an image of this
-    /// size), each tile's bounds left as they are.
-    pub(super) fn planes_from(&mut self, from: &TileBounds) {
-        assert_eq!((self.cols, self.rows), (from.cols, from.rows), "planes of an image of another size");
-        self.plane.copy_from_slice(&from.plane);
     }
 
     /// Tile `t`'s plane at `(x, y)`.
@@ -579,38 +568,6 @@ mod tests {
             }
         }
         assert_eq!(iv.get(TW, 0), None, "background");
-    }
-
-    /// A region away from the image's corner: its tiles take the planes a fit over the whole
-    /// image gives them where they lie whole inside it (the same sums), the others stay flat.
-    #[test]
-    fn planes_are_fitted_over_the_region_s_tiles_alone() {
-        let (w, h) = (5 * TW, 4 * TH);
-        let mut prev = DisparityMap::new(w, h);
-        for y in 0..h {
-            for x in 0..w {
-                let noise = ((x * 7 + y * 13) % 5) as f32 * 0.01;
-                prev.set(x, y, Some(30.0 + 0.3 * x as f32 + 0.1 * y as f32 + noise));
-            }
-        }
-        let mut whole = TileBounds::default();
-        whole.reset(w, h);
-        whole.fit_planes(&prev, &Region { x0: 0, x1: w, y0: 0, y1: h });
-        let region = Region { x0: TW, x1: 4 * TW - 5, y0: TH, y1: 3 * TH };
-        let mut part = TileBounds::default();
-        part.reset(w, h);
-        part.fit_planes(&prev, &region);
-        let cols = part.cols();
-        for ty in 0..4 {
-            for tx in 0..5 {
-                let t = ty * cols + tx;
-                match (tx, ty) {
-                    (1 | 2, 1 | 2) => assert_eq!(part.plane(t), whole.plane(t), "tile ({tx}, {ty}) lies whole inside the region"),
-                    (3, 1 | 2) => assert!((part.plane(t)[0] - 0.3).abs() < 0.01, "tile ({tx}, {ty}), cut by the region: {:?}", part.plane(t)),
-                    _ => assert_eq!(part.plane(t), [0.0; 3], "tile ({tx}, {ty}) lies outside the region"),
-                }
-            }
-        }
     }
 
     #[test]
