@@ -107,7 +107,7 @@ fn the_first_frames_and_no_assistance_search_the_full_range() {
     let mut none = assistant(&scene, AssistMode::None, 3);
     assert_eq!(none.plan(3, Some(&mask), &scene.poses(0..3)).full_range.as_deref(), Some("assistance off"));
     // With assistance off the accepted frames are not kept: no plan reads them, and a
-    // frame without assistance costs no copy (`bench table1`'s row without times it).
+    // frame without assistance costs no copy (`bench table1`'s row without assistance times it).
     assert!(none.prev.is_none() && none.recent_valid.is_empty(), "assistance off keeps no previous frame");
 }
 
