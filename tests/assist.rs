@@ -45,6 +45,10 @@ fn table1_prints_the_table_and_writes_its_json_and_figure() {
     let (o, t) = table1(&rec, &dir, &["--weights", "0.8,2"]);
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains("Table 1") && stdout.contains("w = 0.8") && stdout.contains("predicted"), "{stdout}");
+    // The vector code the times were taken with: named in the title and listed in the JSON.
+    let vectors: Vec<&str> = t["cpu_vector_extensions"].as_array().expect("the CPU's vector extensions").iter().map(|v| v.as_str().unwrap()).collect();
+    let label = if vectors.contains(&"avx512f") && vectors.contains(&"avx512bw") { "CPU: AVX-512)" } else if vectors.contains(&"avx2") { "CPU: AVX2)" } else { "CPU: no AVX2)" };
+    assert!(stdout.contains(label), "{label} in {stdout}");
 
     let rows = t["rows"].as_array().unwrap();
     let modes: Vec<(&str, Option<f64>)> = rows.iter().map(|r| (r["mode"].as_str().unwrap(), r["w"].as_f64())).collect();

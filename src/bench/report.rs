@@ -19,6 +19,7 @@ impl Table1 {
             "disparity_range": [self.range.0, self.range.1],
             "threads": self.threads,
             "repeat": self.repeat,
+            "cpu_vector_extensions": crate::stereo::vector_extensions(),
             "lag": self.lag,
             "fig_frame_seq": self.frames[self.fig_frame],
             "floor_ms": self.floor_ms,
@@ -75,7 +76,7 @@ impl Table1 {
         use std::fmt::Write;
         let mut s = String::new();
         let cols = self.frames.len().min(max_cols);
-        let _ = writeln!(s, "Table 1 — matching time per frame, ms ({}×{}, disparities {}…{}, {} thread(s), median of {} run(s) per frame{})", self.size.0, self.size.1, self.range.0, self.range.1, self.threads, self.repeat, if self.lag > 0 { format!(", registration {} view(s) behind", self.lag) } else { String::new() });
+        let _ = writeln!(s, "Table 1 — matching time per frame, ms ({}×{}, disparities {}…{}, {} thread(s), median of {} run(s) per frame{}; CPU: {})", self.size.0, self.size.1, self.range.0, self.range.1, self.threads, self.repeat, if self.lag > 0 { format!(", registration {} view(s) behind", self.lag) } else { String::new() }, vectors_label(&crate::stereo::vector_extensions()));
         let _ = write!(s, "{:<16}", "frame");
         for i in 0..cols {
             let _ = write!(s, "{:>7}", i + 1);
@@ -222,5 +223,15 @@ pub(super) fn row_label(r: &Row) -> String {
     match r.method {
         Method::Bm => mode,
         m => format!("{m} {mode}"),
+    }
+}
+
+/// The printout's short name of the vector code the matchers run: `AVX-512` where `bm`'s wide
+/// searches take it (`avx512f` and `avx512bw`), else `AVX2`, else `no AVX2`.
+fn vectors_label(found: &[&str]) -> &'static str {
+    match (found.contains(&"avx512f") && found.contains(&"avx512bw"), found.contains(&"avx2")) {
+        (true, _) => "AVX-512",
+        (false, true) => "AVX2",
+        (false, false) => "no AVX2",
     }
 }
