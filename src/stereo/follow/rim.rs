@@ -556,7 +556,7 @@ fn profile_of(m: &Sums) -> Fit {
         return Fit::None;
     }
     // The plane through the samples, for its slope along the row.
-    let Some([_, slope_x, _]) = solve3([[m.n, m.x, m.y], [m.x, m.xx, m.xy], [m.y, m.xy, m.yy]], [m.d, m.xd, m.yd]) else { return Fit::None };
+    let Some([[_, slope_x, _]]) = solve3([[m.n, m.x, m.y], [m.x, m.xx, m.xy], [m.y, m.xy, m.yy]], [[m.d, m.xd, m.yd]]) else { return Fit::None };
     if slope_x > COMPRESSED_SLOPE {
         return Fit::Compressed;
     }
@@ -567,17 +567,20 @@ fn profile_of(m: &Sums) -> Fit {
     let us = a * m.xs + b * m.ys;
     let ud = a * m.xd + b * m.yd;
     let h = [[m.n, u, m.s], [u, uu, us], [m.s, us, m.ss]];
-    let (Some(c), Some(unit3)) = (solve3(h, [m.d, ud, m.sd]), solve3(h, [0.0, 0.0, 1.0])) else { return Fit::None };
+    // The fit and, from the right-hand side (0, 0, 1), the bend's diagonal element of the
+    // inverse normal matrix: one solve of the two.
+    let Some([c, unit3]) = solve3(h, [[m.d, ud, m.sd], [0.0, 0.0, 1.0]]) else { return Fit::None };
     // The same with a slope along t.
     let ut = a * m.xt + b * m.yt;
     let h4 = [[m.n, u, m.s, m.t], [u, uu, us, ut], [m.s, us, m.ss, m.st], [m.t, ut, m.st, m.tt]];
-    let (Some(sloped), Some(unit)) = (solve4(h4, [m.d, ud, m.sd, m.dt]), solve4(h4, [0.0, 0.0, 1.0, 0.0])) else { return Fit::None };
+    let Some([sloped, unit]) = solve4(h4, [[m.d, ud, m.sd, m.dt], [0.0, 0.0, 1.0, 0.0]]) else { return Fit::None };
     Fit::Profile(Profile { c, along: (a, b), bend_var: unit3[2], sloped, sloped_bend_var: unit[2] })
 }
 
-/// Solves the 4 × 4 system `a·x = b` by Gaussian elimination with partial pivoting; `None`
-/// where it is nearly singular.
-fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> Option<[f64; 4]> {
+/// Solves the 4 × 4 system `a·x = b` for each right-hand side `b` by Gaussian elimination with
+/// partial pivoting, the matrix eliminated once; `None` where it is nearly singular. (Each
+/// right-hand side takes the operations a solve of it alone would: the same bits.)
+fn solve4<const R: usize>(mut a: [[f64; 4]; 4], mut b: [[f64; 4]; R]) -> Option<[[f64; 4]; R]> {
     let scale = a.iter().flatten().fold(0f64, |m, v| m.max(v.abs()));
     for col in 0..4 {
         let pivot = (col..4).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
@@ -585,38 +588,46 @@ fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> Option<[f64; 4]> {
             return None;
         }
         a.swap(col, pivot);
-        b.swap(col, pivot);
+        for rhs in &mut b {
+            rhs.swap(col, pivot);
+        }
         for row in col + 1..4 {
             let f = a[row][col] / a[col][col];
             for k in col..4 {
                 a[row][k] -= f * a[col][k];
             }
-            b[row] -= f * b[col];
+            for rhs in &mut b {
+                rhs[row] -= f * rhs[col];
+            }
         }
     }
-    let mut x = [0f64; 4];
-    for row in (0..4).rev() {
-        let rest: f64 = (row + 1..4).map(|k| a[row][k] * x[k]).sum();
-        x[row] = (b[row] - rest) / a[row][row];
-    }
-    Some(x)
+    Some(b.map(|rhs| {
+        let mut x = [0f64; 4];
+        for row in (0..4).rev() {
+            let rest: f64 = (row + 1..4).map(|k| a[row][k] * x[k]).sum();
+            x[row] = (rhs[row] - rest) / a[row][row];
+        }
+        x
+    }))
 }
 
-/// Solves the symmetric 3 × 3 system `a·x = b` by Cramer's rule; `None` where it is nearly
-/// singular.
-fn solve3(a: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
+/// Solves the symmetric 3 × 3 system `a·x = b` for each right-hand side `b` by Cramer's rule,
+/// the determinant taken once; `None` where it is nearly singular.
+fn solve3<const R: usize>(a: [[f64; 3]; 3], b: [[f64; 3]; R]) -> Option<[[f64; 3]; R]> {
     let det = |m: [[f64; 3]; 3]| m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
     let d = det(a);
     let scale = a[0][0] * a[1][1] * a[2][2];
     if !(d.abs() > 1e-9 * scale.abs()) {
         return None;
     }
-    Some(std::array::from_fn(|k| {
-        let mut m = a;
-        for (row, &v) in m.iter_mut().zip(&b) {
-            row[k] = v;
-        }
-        det(m) / d
+    Some(b.map(|rhs| {
+        std::array::from_fn(|k| {
+            let mut m = a;
+            for (row, &v) in m.iter_mut().zip(&rhs) {
+                row[k] = v;
+            }
+            det(m) / d
+        })
     }))
 }
 
