@@ -31,13 +31,24 @@ impl Sgm {
                 x += 1;
                 continue;
             }
-            // (The rest of the span at once when it all holds the band — the full range —
-            // checked without a branch per pixel.)
+            // The pixels after it that hold the band: chunks of sixteen, each twice the last
+            // while they hold it (the full range: the rest of the span in a few checks, each
+            // without a branch per pixel), back to sixteen at the first that does not, then
+            // one by one.
             let holds = |px: Range<usize>| all_eq(&self.band_a[px.clone()], a) && all_eq(&self.band_m[px], m as u16);
-            let mut len = if holds(i..y * w + end) { end - x } else { 1 };
-            // Sixteen at a time, then one by one.
-            while x + len + LANES <= w && holds(i + len..i + len + LANES) {
-                len += LANES;
+            let mut len = 1;
+            let mut chunk = LANES;
+            while x + len + LANES <= w {
+                let c = chunk.min(w - x - len);
+                if !holds(i + len..i + len + c) {
+                    if c > LANES {
+                        chunk = LANES;
+                        continue;
+                    }
+                    break;
+                }
+                len += c;
+                chunk = 2 * c;
             }
             while x + len < w && self.band_m[i + len] as usize == m && self.band_a[i + len] == a {
                 len += 1;

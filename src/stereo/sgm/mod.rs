@@ -309,7 +309,7 @@ fn step_portable<const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut 
 }
 
 /// Every value of `v` is `want`: a fold without an early exit, so that it vectorises (the
-/// run checks below ask it of the rest of a row).
+/// run checks below ask it of chunks of a row that double while they hold).
 #[inline(always)]
 fn all_eq<T: Copy + PartialEq>(v: &[T], want: T) -> bool {
     v.iter().fold(true, |ok, &b| ok & (b == want))
@@ -611,19 +611,23 @@ impl Sgm {
                 && band_m[prev_row.clone()][cols.clone()].iter().fold(true, |ok, &b| ok & (b > 0))
                 && all_eq(&cur.band[cols], band)
         };
-        // The rest of the row's span at once (the full range: every row but the first); else
-        // sixteen pixels at a time; then pixel by pixel up to the first that does not continue.
-        let span = &self.span[y];
-        let rest = if up { span.start..x0 + 1 } else { x0..span.end };
-        if continues(rest.clone()) {
-            len = rest.len();
-        }
+        // Chunks of sixteen pixels, each twice the last while they continue (the full range:
+        // the rest of the row in a few checks), back to sixteen at the first that does not;
+        // then pixel by pixel up to the first pixel that does not continue. (Asking the rest of
+        // the span first, as this did, scanned it again at every run of an assisted map.)
+        let mut chunk = LANES;
         while step_x + len + LANES <= w {
             let next = step_x + len;
-            if !continues(if up { w - next - LANES..w - next } else { next..next + LANES }) {
+            let c = chunk.min(w - next);
+            if !continues(if up { w - next - c..w - next } else { next..next + c }) {
+                if c > LANES {
+                    chunk = LANES;
+                    continue;
+                }
                 break;
             }
-            len += LANES;
+            len += c;
+            chunk = 2 * c;
         }
         while step_x + len < w {
             let x = if up { w - 1 - step_x - len } else { step_x + len };
