@@ -40,15 +40,11 @@ impl Sgm {
             let mut chunk = LANES;
             while x + len + LANES <= w {
                 let c = chunk.min(w - x - len);
-                if !holds(i + len..i + len + c) {
-                    if c > LANES {
-                        chunk = LANES;
-                        continue;
-                    }
+                let ok = holds(i + len..i + len + c);
+                if !ok && c == LANES {
                     break;
                 }
-                len += c;
-                chunk = 2 * c;
+                (len, chunk) = if ok { (len + c, 2 * c) } else { (len, LANES) };
             }
             while x + len < w && self.band_m[i + len] as usize == m && self.band_a[i + len] == a {
                 len += 1;

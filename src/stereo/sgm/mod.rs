@@ -613,21 +613,16 @@ impl Sgm {
         };
         // Chunks of sixteen pixels, each twice the last while they continue (the full range:
         // the rest of the row in a few checks), back to sixteen at the first that does not;
-        // then pixel by pixel up to the first pixel that does not continue. (Asking the rest of
-        // the span first, as this did, scanned it again at every run of an assisted map.)
+        // then pixel by pixel (why not the rest of the span first: docs/assisted-matching.md).
         let mut chunk = LANES;
         while step_x + len + LANES <= w {
             let next = step_x + len;
             let c = chunk.min(w - next);
-            if !continues(if up { w - next - c..w - next } else { next..next + c }) {
-                if c > LANES {
-                    chunk = LANES;
-                    continue;
-                }
+            let ok = continues(if up { w - next - c..w - next } else { next..next + c });
+            if !ok && c == LANES {
                 break;
             }
-            len += c;
-            chunk = 2 * c;
+            (len, chunk) = if ok { (len + c, 2 * c) } else { (len, LANES) };
         }
         while step_x + len < w {
             let x = if up { w - 1 - step_x - len } else { step_x + len };
