@@ -333,50 +333,45 @@ const LANES: usize = 16;
 
 /// The left image's object for the rim's masked correlation, in rows laid out as the
 /// reversed right rows are (increasing disparity walks forward): per row of the image,
-/// `w + 2·LANES` columns stored back to front, columns `−LANES … w + LANES − 1`. `searched`
-/// is `0xff` at a searched pixel, 0 elsewhere (outside the image too); `object` is the
-/// prefiltered left value at a searched pixel, 0 elsewhere; `background` is `0xff` at an
-/// unsearched pixel of the image, 0 elsewhere.
+/// `w + 2·LANES` columns stored back to front, columns `−LANES … w + LANES − 1`, one byte
+/// each: the prefiltered left value at a searched pixel (below `0x80`: at most twice the
+/// prefilter's cap of 63), [`RimRows::BACKGROUND`] at an unsearched pixel of the image and
+/// [`RimRows::OUTSIDE`] past its edges. (One array, not a mask, the object and the
+/// background each: it was built over the whole crop for the few hundred rim pixels a call
+/// correlates, and three arrays took about twice the time of their costs.)
 #[derive(Default)]
 pub(super) struct RimRows {
-    searched: Vec<u8>,
-    object: Vec<u8>,
-    background: Vec<u8>,
+    rows: Vec<u8>,
 }
 
 impl RimRows {
+    /// An unsearched pixel of the image: the window that holds one lies on the rim.
+    const BACKGROUND: u8 = 0x80;
+    /// A column past the image's edge: neither searched nor background.
+    const OUTSIDE: u8 = 0xff;
+
     /// Position of column `x` (−LANES ≤ x < w + LANES) in a row of `w` columns.
     fn at(w: usize, x: isize) -> usize {
         (w as isize + LANES as isize - 1 - x) as usize
     }
 
     /// The rows of a call: its searched pixels (`searched`) and the prefiltered left rows the
-    /// correlation pass has just left (`left_pf`, padded by `r`).
+    /// correlation pass has just left (`left_pf`, padded by `r`; values below `0x80`).
     fn build(&mut self, g: Geometry, left_pf: &[u8], searched: &DisparityIntervals) {
         let Geometry { w, h, r, wp, .. } = g;
         let width = w + 2 * LANES;
-        for v in [&mut self.searched, &mut self.object, &mut self.background] {
-            // Every byte is written below.
-            v.resize(width * h, 0);
-        }
-        for y in 0..h {
-            let row = y * width..(y + 1) * width;
-            let (sr, or, br) = (&mut self.searched[row.clone()], &mut self.object[row.clone()], &mut self.background[row]);
-            for v in [&mut *sr, &mut *or, &mut *br] {
-                v[..LANES].fill(0);
-                v[LANES + w..].fill(0);
-            }
+        // Every byte is written below.
+        self.rows.resize(width * h, 0);
+        for (y, row) in self.rows.chunks_exact_mut(width).enumerate() {
+            row[..LANES].fill(Self::OUTSIDE);
+            row[LANES + w..].fill(Self::OUTSIDE);
             let lrow = &left_pf[PF_SLACK + y * wp + r..][..w];
             let (lo, hi) = (&searched.lo[y * w..][..w], &searched.hi[y * w..][..w]);
-            // Columns 0 … w − 1 at positions w + LANES − 1 … LANES: reversed iterators, so
+            debug_assert!(lrow.iter().all(|&l| l < Self::BACKGROUND), "a prefiltered value at or above 0x80");
+            // Columns 0 … w − 1 at positions w + LANES − 1 … LANES: a reversed iterator, so
             // that it vectorises.
-            let cols = LANES..LANES + w;
-            let dst = sr[cols.clone()].iter_mut().rev().zip(or[cols.clone()].iter_mut().rev()).zip(br[cols].iter_mut().rev());
-            for (((s, o), b), ((&l, &a), &z)) in dst.zip(lrow.iter().zip(lo).zip(hi)) {
-                let m = if a <= z { 0xff } else { 0 };
-                *s = m;
-                *o = l & m;
-                *b = !m;
+            for (o, ((&l, &a), &z)) in row[LANES..LANES + w].iter_mut().rev().zip(lrow.iter().zip(lo).zip(hi)) {
+                *o = if a <= z { l } else { Self::BACKGROUND };
             }
         }
     }
@@ -404,7 +399,7 @@ impl RimRows {
         let (wr, width) = (g.wr(), w + 2 * LANES);
         let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
         let rows = y.saturating_sub(r)..(y + r + 1).min(h);
-        let on_rim = rows.clone().any(|yy| (x0..x1).any(|xx| self.background[yy * width + Self::at(w, xx as isize)] != 0));
+        let on_rim = rows.clone().any(|yy| (x0..x1).any(|xx| self.rows[yy * width + Self::at(w, xx as isize)] == Self::BACKGROUND));
         if !on_rim {
             return None;
         }
@@ -412,11 +407,11 @@ impl RimRows {
         for yy in rows {
             let rrow = &right_pf_rev[PF_SLACK + yy * wr..][..wr];
             for xx in x0..x1 {
-                let p = yy * width + Self::at(w, xx as isize);
-                if self.searched[p] == 0 {
+                let v = self.rows[yy * width + Self::at(w, xx as isize)];
+                if v >= Self::BACKGROUND {
                     continue;
                 }
-                let lv = self.object[p] as i32;
+                let lv = v as i32;
                 // The right pixel xx − d in the reversed padded row.
                 let base = (wr - 1 - g.rpad_left) as i32 - xx as i32;
                 for (k, c) in costs[..(hi - lo + 1) as usize].iter_mut().enumerate() {
@@ -435,24 +430,26 @@ impl RimRows {
     /// Loads of 16 bytes: the rim rows from `at(w, x + r)` = `w + LANES − 1 − x − r ≥ 0` (x < w),
     /// ending before `w + 2·LANES` (x + r ≥ 0); the right rows from
     /// `PF_SLACK + wr − rpad_left − 1 − x − r + d ≥ PF_SLACK` past the row's start
-    /// (`wr − rpad_left = w + rpad_right`, `rpad_right ≥ r − dmin`), ending at most
-    /// `PF_SLACK + wr + 15 − 2r` past it (`rpad_left = r + dmax`): inside the buffer, which has
-    /// `PF_SLACK` bytes after its last row.
+    /// (`wr − rpad_left = w + rpad_right`, `rpad_right ≥ r − dmin`) for `d` in `lo ..= lo + 4`
+    /// (five read whatever `hi`), ending at most `PF_SLACK + wr + 19 − 2r` past it
+    /// (`rpad_left = r + dmax`, `lo ≤ dmax`): inside the buffer, which has `PF_SLACK` (64)
+    /// bytes after its last row.
     #[cfg(target_arch = "x86_64")]
     unsafe fn costs_sse2(&self, g: Geometry, right_pf_rev: &[u8], x: usize, y: usize, lo: i32, hi: i32) -> Option<[u32; 5]> {
         use std::arch::x86_64::*;
         let Geometry { w, h, r, .. } = g;
         let (wr, width) = (g.wr(), w + 2 * LANES);
         let b = 2 * r + 1;
-        // Lane i holds column x + r − i: the window is the first b lanes.
-        let ramp: [u8; 2 * LANES] = std::array::from_fn(|i| if i < LANES { 0xff } else { 0 });
-        let window = _mm_loadu_si128(ramp.as_ptr().add(LANES - b) as *const __m128i);
+        // Lane i holds column x + r − i: the window is the first b lanes. (Made in a register:
+        // loaded from a ramp just written on the stack, the load waited on the ramp's stores,
+        // a third of this function's time.)
+        let window = _mm_cmpgt_epi8(_mm_set1_epi8(b as i8), _mm_setr_epi8(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15));
         let start = Self::at(w, (x + r) as isize);
         let rows = y.saturating_sub(r)..(y + r + 1).min(h);
         let mut any_bg = _mm_setzero_si128();
         for yy in rows.clone() {
-            let bg = _mm_loadu_si128(self.background.as_ptr().add(yy * width + start) as *const __m128i);
-            any_bg = _mm_or_si128(any_bg, _mm_and_si128(bg, window));
+            let v = _mm_loadu_si128(self.rows.as_ptr().add(yy * width + start) as *const __m128i);
+            any_bg = _mm_or_si128(any_bg, _mm_and_si128(_mm_cmpeq_epi8(v, _mm_set1_epi8(Self::BACKGROUND as i8)), window));
         }
         if _mm_movemask_epi8(_mm_cmpeq_epi8(any_bg, _mm_setzero_si128())) == 0xffff {
             return None;
@@ -463,16 +460,21 @@ impl RimRows {
         let first = PF_SLACK as isize + (wr - g.rpad_left) as isize - 1 - (x + r) as isize + lo as isize;
         for yy in rows {
             let p = yy * width + start;
-            let m = _mm_and_si128(_mm_loadu_si128(self.searched.as_ptr().add(p) as *const __m128i), window);
-            let lv = _mm_and_si128(_mm_loadu_si128(self.object.as_ptr().add(p) as *const __m128i), window);
+            let v = _mm_loadu_si128(self.rows.as_ptr().add(p) as *const __m128i);
+            // Searched: the top bit clear (a signed byte above −1), inside the window.
+            let m = _mm_and_si128(_mm_cmpgt_epi8(v, _mm_set1_epi8(-1)), window);
+            let lv = _mm_and_si128(v, m);
             let rp = right_pf_rev.as_ptr().offset(first + (yy * wr) as isize);
-            for (k, a) in acc[..n].iter_mut().enumerate() {
+            // All five disparities, so that the sums stay in registers (over `acc[..n]` they
+            // were kept in memory, each row's adds waiting on the last row's stores); the
+            // costs past `hi` are dropped below.
+            for (k, a) in acc.iter_mut().enumerate() {
                 let rv = _mm_and_si128(_mm_loadu_si128(rp.add(k) as *const __m128i), m);
                 *a = _mm_add_epi64(*a, _mm_sad_epu8(lv, rv));
             }
         }
         let mut costs = [0u32; 5];
-        for (c, a) in costs.iter_mut().zip(&acc[..n]) {
+        for (c, a) in costs.iter_mut().zip(&acc).take(n) {
             *c = (_mm_cvtsi128_si64(*a) + _mm_cvtsi128_si64(_mm_unpackhi_epi64(*a, *a))) as u32;
         }
         Some(costs)
