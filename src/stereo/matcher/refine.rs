@@ -336,9 +336,8 @@ const LANES: usize = 16;
 /// `w + 2·LANES` columns stored back to front, columns `−LANES … w + LANES − 1`, one byte
 /// each: the prefiltered left value at a searched pixel (below `0x80`: at most twice the
 /// prefilter's cap of 63), [`RimRows::BACKGROUND`] at an unsearched pixel of the image and
-/// [`RimRows::OUTSIDE`] past its edges. (One array, not a mask, the object and the
-/// background each: it was built over the whole crop for the few hundred rim pixels a call
-/// correlates, and three arrays took about twice the time of their costs.)
+/// [`RimRows::OUTSIDE`] past its edges. (One array instead of a mask, the object and the
+/// background each: a window row is one load for the costs, and one array is built.)
 #[derive(Default)]
 pub(super) struct RimRows {
     rows: Vec<u8>,
@@ -511,7 +510,9 @@ mod tests {
             for y in 0..h {
                 for x in 0..w {
                     let lo = dmin + (next() % (dmax - dmin - 3) as u64) as i32;
-                    for (lo, hi) in [(lo, lo + 4), (dmin, dmin + 2), (dmax - 4, dmax), (lo, lo)] {
+                    // (At the range's top too: the vector costs read five disparities from
+                    // `lo` whatever `hi`.)
+                    for (lo, hi) in [(lo, lo + 4), (dmin, dmin + 2), (dmax - 4, dmax), (lo, lo), (dmax - 2, dmax), (dmax, dmax)] {
                         let want = rows.costs_scalar(g, &right_pf_rev, x, y, lo, hi);
                         assert_eq!(rows.costs(g, &right_pf_rev, x, y, lo, hi), want, "block {block}, pixel ({x}, {y}), {lo} … {hi}");
                     }
