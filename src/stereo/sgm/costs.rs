@@ -8,6 +8,25 @@ use super::{census::Run, simd};
 use super::{all_eq, Geo, Sgm, LANES};
 use crate::stereo::params::ValidMatchParams;
 
+/// A run of `len` pixels grown by chunks while `holds(k, c)` (the `c` pixels from the run's
+/// `k`-th on continue it): chunks of [`LANES`], each twice the last while they hold, back to
+/// `LANES` at the first that does not, as long as `LANES` more fit in `end`. The caller goes
+/// on one by one. (Asking the whole rest of the span first, as the runs did, fails at every
+/// run of an assisted map and scanned the rest of its row each time:
+/// docs/assisted-matching.md, "The SGM runs found without rescanning the row".)
+pub(super) fn grow_run(mut len: usize, end: usize, holds: impl Fn(usize, usize) -> bool) -> usize {
+    let mut chunk = LANES;
+    while len + LANES <= end {
+        let c = chunk.min(end - len);
+        let ok = holds(len, c);
+        if !ok && c == LANES {
+            break;
+        }
+        (len, chunk) = if ok { (len + c, 2 * c) } else { (len, LANES) };
+    }
+    len
+}
+
 impl Sgm {
     /// Row `y`'s census costs, every searched pixel's band, into `cost` from `off[y·w] − cbase`
     /// on (`vpopcnt`: count bits with `vpopcntd`, [`super::has_vpopcnt`]).
@@ -31,21 +50,10 @@ impl Sgm {
                 x += 1;
                 continue;
             }
-            // The pixels after it that hold the band: chunks of sixteen, each twice the last
-            // while they hold it (the full range: the rest of the span in a few checks, each
-            // without a branch per pixel), back to sixteen at the first that does not, then
-            // one by one.
+            // The pixels after it that hold the band ([`grow_run`]: the full range's rest of
+            // the span in a few checks, each without a branch per pixel), then one by one.
             let holds = |px: Range<usize>| all_eq(&self.band_a[px.clone()], a) && all_eq(&self.band_m[px], m as u16);
-            let mut len = 1;
-            let mut chunk = LANES;
-            while x + len + LANES <= w {
-                let c = chunk.min(w - x - len);
-                let ok = holds(i + len..i + len + c);
-                if !ok && c == LANES {
-                    break;
-                }
-                (len, chunk) = if ok { (len + c, 2 * c) } else { (len, LANES) };
-            }
+            let mut len = grow_run(1, w - x, |k, c| holds(i + k..i + k + c));
             while x + len < w && self.band_m[i + len] as usize == m && self.band_a[i + len] == a {
                 len += 1;
             }

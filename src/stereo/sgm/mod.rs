@@ -599,7 +599,6 @@ impl Sgm {
         if blocks > 8 {
             return 0;
         }
-        let mut len = 0;
         let (band_a, band_m, cur) = (&self.band_a, &self.band_m, &mut self.vert_cur[1]);
         // Whether columns `cols` of the row all continue the run with nothing for `prepare`
         // to do: they hold the band, their previous row's pixels searched, and their slots
@@ -611,19 +610,12 @@ impl Sgm {
                 && band_m[prev_row.clone()][cols.clone()].iter().fold(true, |ok, &b| ok & (b > 0))
                 && all_eq(&cur.band[cols], band)
         };
-        // Chunks of sixteen pixels, each twice the last while they continue (the full range:
-        // the rest of the row in a few checks), back to sixteen at the first that does not;
-        // then pixel by pixel (why not the rest of the span first: docs/assisted-matching.md).
-        let mut chunk = LANES;
-        while step_x + len + LANES <= w {
-            let next = step_x + len;
-            let c = chunk.min(w - next);
-            let ok = continues(if up { w - next - c..w - next } else { next..next + c });
-            if !ok && c == LANES {
-                break;
-            }
-            (len, chunk) = if ok { (len + c, 2 * c) } else { (len, LANES) };
-        }
+        // In chunks ([`costs::grow_run`]: the full range's rest of the row in a few checks),
+        // then pixel by pixel up to the first pixel that does not continue.
+        let mut len = costs::grow_run(0, w - step_x, |k, c| {
+            let next = step_x + k;
+            continues(if up { w - next - c..w - next } else { next..next + c })
+        });
         while step_x + len < w {
             let x = if up { w - 1 - step_x - len } else { step_x + len };
             let i = y * w + x;
