@@ -14,6 +14,8 @@
 //! call's intervals say correspond ([`level_map_from_prior`]), else over the whole images
 //! ([`level_map`]).
 
+use std::ops::Range;
+
 use crate::stereo::disparity::{searched_span, DisparityIntervals, GrayView};
 
 /// Census window width and height (odd). 7 × 5 − 1 = 34 bits, in a `u64` per pixel: chosen
@@ -164,6 +166,82 @@ pub(super) fn transform_into(img: &[u8], w: usize, h: usize, pad: (usize, usize)
     transform(img, w, h, rows, planes_of, |y, planes| words_row(planes, pad, &mut out[y * wo..][..wo]));
 }
 
+/// Where the costs read the right image's rows: image column `c` of row `y` at
+/// `y · wr + pad_l + c`, the columns past the image's edges (`pad_l` on the left) holding
+/// copies of its edge pixel's entry, so that every disparity of every band has a right
+/// pixel. Only the columns a call's bands reach, `reach.0 ..= reach.1` (image columns, past
+/// the edges too), are written ([`right_split`], [`right_words`], [`pad_rows`]): an assisted
+/// crop's columns hold the left pixels' windows and background the bands never reach, and
+/// the padding on the left is a range's width (127 entries a row at 128 disparities) that
+/// only a pixel near the image's left edge reads. The rest keeps what earlier calls wrote.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct RightRows {
+    /// The image's width.
+    pub(super) w: usize,
+    pub(super) pad_l: usize,
+    /// A padded row's length.
+    pub(super) wr: usize,
+    /// The first and the last column read (none where the first is greater).
+    pub(super) reach: (i32, i32),
+}
+
+impl RightRows {
+    /// The image's columns written: those reached, clamped into the image (a reach past an
+    /// edge copies that edge's column). `None` where nothing is reached.
+    fn cols(&self) -> Option<Range<usize>> {
+        let (first, last) = self.reach;
+        let edge = |c: i32| c.clamp(0, self.w as i32 - 1) as usize;
+        (first <= last).then(|| edge(first)..edge(last) + 1)
+    }
+
+    /// Copies of `row`'s edge entries over the padding the reach passes into (`row`: one
+    /// padded row, its image columns [`RightRows::cols`] written).
+    fn pad<T: Copy>(&self, row: &mut [T]) {
+        let (first, last) = self.reach;
+        if first < 0 {
+            let from = self.pad_l.checked_add_signed(first as isize).expect("a reach inside the left padding");
+            let edge = row[self.pad_l];
+            row[from..self.pad_l].fill(edge);
+        }
+        if last >= self.w as i32 {
+            let (end, edge) = (self.pad_l + self.w, row[self.pad_l + self.w - 1]);
+            row[end..=self.pad_l + last as usize].fill(edge);
+        }
+    }
+}
+
+/// The right image's census as the AVX2 costs read it, its words' low 32 bits into `lo` and
+/// their high bits into `hi` (what [`split`] makes of them), over `rows`' reach.
+#[inline(always)]
+pub(super) fn right_split(img: &[u8], h: usize, rows: RightRows, scratch: &mut Vec<u8>, planes_of: impl Fn(&[u8], usize, &mut [u8]), lo: &mut Vec<u32>, hi: &mut Vec<u8>) {
+    let wr = rows.wr;
+    lo.resize(wr * h, 0);
+    hi.resize(wr * h, 0);
+    let Some(cols) = rows.cols() else { return };
+    let at = rows.pad_l + cols.start;
+    transform_cols(img, rows.w, h, cols, scratch, planes_of, |y, planes| {
+        let (lo, hi) = (&mut lo[y * wr..][..wr], &mut hi[y * wr..][..wr]);
+        let cw = planes[0].len();
+        split_row(planes, (0, 0), &mut lo[at..at + cw], &mut hi[at..at + cw]);
+        rows.pad(lo);
+        rows.pad(hi);
+    });
+}
+
+/// The right image's census words as the portable costs read them, over `rows`' reach.
+#[inline(always)]
+pub(super) fn right_words(img: &[u8], h: usize, rows: RightRows, scratch: &mut Vec<u8>, planes_of: impl Fn(&[u8], usize, &mut [u8]), out: &mut Vec<u64>) {
+    let wr = rows.wr;
+    out.resize(wr * h, 0);
+    let Some(cols) = rows.cols() else { return };
+    let at = rows.pad_l + cols.start;
+    transform_cols(img, rows.w, h, cols, scratch, planes_of, |y, planes| {
+        let row = &mut out[y * wr..][..wr];
+        words_row(planes, (0, 0), &mut row[at..at + planes[0].len()]);
+        rows.pad(row);
+    });
+}
+
 /// The map of the right image's grey levels onto the left's mean and standard deviation
 /// (both over the whole images): a gain and offset between the cameras removed before the
 /// intensity term compares levels. One table for a call, so that every stripe of rows
@@ -253,16 +331,18 @@ fn linear_map((ml, sl): (f64, f64), (mr, sr): (f64, f64)) -> [u8; 256] {
     std::array::from_fn(|v| ((v as f64 - mr) * sl / sr + ml).round().clamp(0.0, 255.0) as u8)
 }
 
-/// `img` (`w × h`) through `map`, with each row padded by `pad = (left, right)` copies of its
-/// first and last pixel, into `out` (the layout of the padded right census).
-pub(super) fn pad_rows(img: &[u8], w: usize, h: usize, pad: (usize, usize), map: &[u8; 256], out: &mut Vec<u8>) {
-    out.clear();
-    out.reserve((pad.0 + w + pad.1) * h);
-    for row in img.chunks_exact(w).take(h) {
-        let (first, last) = (map[row[0] as usize], map[row[w - 1] as usize]);
-        out.extend(std::iter::repeat_n(first, pad.0));
-        out.extend(row.iter().map(|&v| map[v as usize]));
-        out.extend(std::iter::repeat_n(last, pad.1));
+/// `img`'s rows (`rows.w` wide, `h` of them) through `map` into `out`, laid out and padded
+/// as [`RightRows`] says, over its reach.
+pub(super) fn pad_rows(img: &[u8], h: usize, rows: RightRows, map: &[u8; 256], out: &mut Vec<u8>) {
+    let (w, wr) = (rows.w, rows.wr);
+    out.resize(wr * h, 0);
+    let Some(cols) = rows.cols() else { return };
+    let at = rows.pad_l + cols.start;
+    for (src, dst) in img.chunks_exact(w).zip(out.chunks_exact_mut(wr)).take(h) {
+        for (o, &v) in dst[at..at + cols.len()].iter_mut().zip(&src[cols.clone()]) {
+            *o = map[v as usize];
+        }
+        rows.pad(dst);
     }
 }
 
@@ -360,6 +440,43 @@ mod tests {
         assert_eq!((lo, hi), (want_lo, want_hi));
     }
 
+    /// The right rows over a reach are the whole padded rows there — the image's columns,
+    /// and copies of its edge pixels where the reach passes an edge — and nothing outside
+    /// the reach is written: census words split and whole, and levels.
+    #[test]
+    fn the_right_rows_over_a_reach_are_the_padded_rows_there() {
+        let (w, h, pad) = (23, 6, (9, 4));
+        let wr = pad.0 + w + pad.1;
+        let mut next = crate::testing::xorshift(11);
+        let img: Vec<u8> = (0..w * h).map(|_| next() as u8).collect();
+        let map: [u8; 256] = std::array::from_fn(|v| (v as u8).wrapping_mul(3) | 1);
+        let mut words = Vec::new();
+        transform_into(&img, w, h, pad, &mut Vec::new(), planes_row, &mut words);
+        let (mut want_lo, mut want_hi) = (vec![0u32; wr * h], vec![0u8; wr * h]);
+        split(&words, &mut want_lo, &mut want_hi);
+        let levels: Vec<u8> = img.chunks_exact(w).flat_map(|row| {
+            let m = |v: u8| map[v as usize];
+            std::iter::repeat_n(m(row[0]), pad.0).chain(row.iter().map(move |&v| m(v))).chain(std::iter::repeat_n(m(row[w - 1]), pad.1))
+        }).collect();
+        // Inside the image, past the left edge, past the right, past both, one column, none.
+        for reach in [(3, 15), (-9, 5), (-4, 0), (17, 26), (12, 22), (-9, 26), (-1, 23), (8, 8), (5, 4)] {
+            let rows = RightRows { w, pad_l: pad.0, wr, reach };
+            let (mut lo, mut hi, mut whole, mut lv) = (vec![u32::MAX; wr * h], vec![0xee; wr * h], vec![u64::MAX; wr * h], vec![0xee; wr * h]);
+            right_split(&img, h, rows, &mut Vec::new(), planes_row, &mut lo, &mut hi);
+            right_words(&img, h, rows, &mut Vec::new(), planes_row, &mut whole);
+            pad_rows(&img, h, rows, &map, &mut lv);
+            for i in 0..wr * h {
+                let c = (i % wr) as i32 - pad.0 as i32;
+                let reached = (reach.0..=reach.1).contains(&c);
+                let at = format!("reach {reach:?}, column {c}, row {}", i / wr);
+                assert_eq!(lo[i], if reached { want_lo[i] } else { u32::MAX }, "{at}");
+                assert_eq!(hi[i], if reached { want_hi[i] } else { 0xee }, "{at}");
+                assert_eq!(whole[i], if reached { words[i] } else { u64::MAX }, "{at}");
+                assert_eq!(lv[i], if reached { levels[i] } else { 0xee }, "{at}");
+            }
+        }
+    }
+
     #[test]
     fn costs_walk_the_right_row_backwards() {
         let cr: Vec<u64> = (0..10u64).map(|i| (1u64 << i) - 1).collect();
@@ -382,10 +499,11 @@ mod tests {
         assert!(left.iter().zip(&right).all(|(a, b)| a.abs_diff(map[*b as usize]) <= 1), "{:?}", &map[..10]);
         let mut padded = Vec::new();
         let identity: [u8; 256] = std::array::from_fn(|v| v as u8);
-        pad_rows(&left[..20], 10, 2, (2, 1), &identity, &mut padded);
+        let rows = RightRows { w: 10, pad_l: 2, wr: 13, reach: (-2, 10) };
+        pad_rows(&left[..20], 2, rows, &identity, &mut padded);
         assert_eq!(padded.len(), 26);
         assert_eq!((&padded[..3], padded[12], &padded[13..16]), (&[left[0], left[0], left[0]][..], left[9], &[left[10], left[10], left[10]][..]));
-        pad_rows(&right[..20], 10, 2, (2, 1), &map, &mut padded);
+        pad_rows(&right[..20], 2, rows, &map, &mut padded);
         assert!(padded[2..12].iter().zip(&left[..10]).all(|(a, b)| a.abs_diff(*b) <= 1));
     }
 

@@ -44,7 +44,7 @@
 
 use std::ops::Range;
 
-use super::disparity::{searched_span, DisparityIntervals, DisparityMap, GrayView, MatchStats};
+use super::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
 use super::params::ValidMatchParams;
 
 mod census;
@@ -183,6 +183,9 @@ pub(super) struct Sgm {
     census_r_hi: Vec<u8>,
     /// The right image's grey levels matched to the left's, padded as `census_r`.
     levels_r: Vec<u8>,
+    /// The right columns the call's bands read ([`census::RightRows`]): of the right rows
+    /// above, only these are written.
+    reach: (i32, i32),
     /// Per pixel: the aggregated band (first disparity index, on the call's grid of blocks
     /// ([`grid::shift`]) but at the range's ends, and count, a multiple of [`LANES`]; 0 = not
     /// searched), and the interval searched inside it.
@@ -366,16 +369,14 @@ impl Sgm {
         // (The left words over the searched columns alone: `census::transform_spans_into`.)
         census::transform_spans_into(left.data, w, h, &self.span, &mut self.census_rows, planes_of, &mut self.census_l);
         // The right words as the costs read them: split on AVX2, whole words otherwise.
-        let wr = g.wr;
+        // Over the columns the bands read alone (an assisted crop's rows are half background).
+        let rows = census::RightRows { w, pad_l, wr: g.wr, reach: self.reach };
         if AVX2 {
-            self.census_r_lo.resize(wr * h, 0);
-            self.census_r_hi.resize(wr * h, 0);
-            let (lo, hi) = (&mut self.census_r_lo, &mut self.census_r_hi);
-            census::transform(right.data, w, h, &mut self.census_rows, planes_of, |y, planes| census::split_row(planes, (pad_l, pad_r), &mut lo[y * wr..][..wr], &mut hi[y * wr..][..wr]));
+            census::right_split(right.data, h, rows, &mut self.census_rows, planes_of, &mut self.census_r_lo, &mut self.census_r_hi);
         } else {
-            census::transform_into(right.data, w, h, (pad_l, pad_r), &mut self.census_rows, planes_of, &mut self.census_r);
+            census::right_words(right.data, h, rows, &mut self.census_rows, planes_of, &mut self.census_r);
         }
-        census::pad_rows(right.data, w, h, (pad_l, pad_r), levels, &mut self.levels_r);
+        census::pad_rows(right.data, h, rows, levels, &mut self.levels_r);
         stats.prefilter_ns = t0.elapsed().as_nanos() as u64;
         let total = self.off[w * h];
         // Pass one writes every cost and sum before anything reads them: no clearing. Folded,
@@ -406,83 +407,6 @@ impl Sgm {
             self.pass::<AVX2>(p, g, left.data, true, keep, vals, &mut stats);
         }
         Ok(stats)
-    }
-
-    /// Each pixel's interval clipped to the range and to right pixels inside the image, the
-    /// band of whole blocks around it, and the packed offsets: over the whole image, or
-    /// (`per_row`) from each row's start. Returns the most values a row packs.
-    #[inline(always)]
-    fn bands(&mut self, p: &ValidMatchParams, g: Geo, shift: u32, iv: &DisparityIntervals, keep: Range<usize>, per_row: bool, stats: &mut MatchStats) -> usize {
-        let Geo { w, h, dmin, n, .. } = g;
-        let dmax = p.max_disparity();
-        for v in [&mut self.band_a, &mut self.band_m, &mut self.lo, &mut self.hi] {
-            v.resize(w * h, 0);
-        }
-        self.off.resize(w * h + 1, 0);
-        self.span.resize(h, 0..0);
-        // The blocks' grid: `shift` disparities below the multiples of 16, one for the call
-        // ([`grid::shift`]), so that neighbours with the same interval keep sharing a band.
-        let (shift, npad) = (shift as i32, n as i32);
-        let (mut total, mut row_max) = (0usize, 0usize);
-        for y in 0..h {
-            if per_row {
-                total = 0;
-            }
-            let row = y * w..(y + 1) * w;
-            let (ilo, ihi) = (&iv.lo[row.clone()], &iv.hi[row.clone()]);
-            let (band_a, band_m) = (&mut self.band_a[row.clone()], &mut self.band_m[row.clone()]);
-            let (lo_out, hi_out) = (&mut self.lo[row.clone()], &mut self.hi[row.clone()]);
-            // Outside the row's searched span nothing is (m = 0); inside it, branch-free so
-            // that it vectorises: the clipped interval, its block band (m = 0 where nothing is
-            // searched) and its indices.
-            let searched_px = searched_span(ilo, ihi).map_or(0..0, |(first, last)| first..last + 1);
-            for v in [&mut *band_a, &mut *band_m, &mut *lo_out, &mut *hi_out] {
-                v[..searched_px.start].fill(0);
-                v[searched_px.end..].fill(0);
-            }
-            for x in searched_px.clone() {
-                let lo = (ilo[x] as i32).max(dmin).max(x as i32 - w as i32 + 1);
-                let hi = (ihi[x] as i32).min(dmax).min(x as i32);
-                let searched = lo <= hi;
-                // (Kept from overflowing where nothing is searched — its values are not
-                // used; where something is, lo ≥ dmin and a ≤ khi, so they change nothing.)
-                let (klo, khi) = ((lo - dmin).max(0) as u32, (hi - dmin).max(0) as u32);
-                // The blocks of the shifted grid that hold klo … khi, clipped to the range's
-                // blocks (a band that would pass either end moves inside; at shift 0 none does).
-                const B: i32 = LANES as i32;
-                let a0 = ((klo as i32 + shift) & !(B - 1)) - shift;
-                let e0 = ((khi as i32 + shift) & !(B - 1)) + B - shift;
-                let a1 = a0.max(0);
-                let m = ((e0 - a1 + B - 1) & !(B - 1)).min(npad);
-                let a = a1.min(npad - m);
-                let (a, m) = (a as u32, m as u32);
-                band_a[x] = if searched { a as u16 } else { 0 };
-                band_m[x] = if searched { m as u16 } else { 0 };
-                lo_out[x] = if searched { klo as u16 } else { 0 };
-                hi_out[x] = if searched { khi as u16 } else { 0 };
-            }
-            let off = &mut self.off[row];
-            let (mut row_total, mut row_searched) = (0usize, 0usize);
-            off[..searched_px.start].fill(total);
-            for (o, &m) in off[searched_px.clone()].iter_mut().zip(&band_m[searched_px.clone()]) {
-                *o = total + row_total;
-                row_total += m as usize;
-                row_searched += (m > 0) as usize;
-            }
-            off[searched_px.end..].fill(total + row_total);
-            let inside = &band_m[searched_px.clone()];
-            let first = inside.iter().position(|&m| m > 0);
-            let last = inside.iter().rposition(|&m| m > 0);
-            self.span[y] = first.zip(last).map_or(0..0, |(a, b)| searched_px.start + a..searched_px.start + b + 1);
-            total += row_total;
-            row_max = row_max.max(row_total);
-            if keep.contains(&y) {
-                stats.searched += row_searched;
-                stats.evaluated += row_total as u64;
-            }
-        }
-        self.off[w * h] = total;
-        row_max
     }
 
     /// One pass: down the image left to right (`up = false`: the costs, from the census words

@@ -347,6 +347,64 @@ fn negative_disparities_are_found_too() {
     assert!(stats.evaluated < (w * h * 32) as u64);
 }
 
+/// A matcher reused after a call on another pair reads nothing that call left in its right
+/// rows (nor anything else they held), which are written over the columns the bands reach
+/// alone ([`census::RightRows`]):
+/// its sums and map are a fresh matcher's, for narrow intervals inside the image, near its
+/// left edge (bands reaching into the left padding) and, with negative disparities, near its
+/// right edge; AVX2 and portable. (It fails when the reach leaves out a band's last or first
+/// disparity.)
+#[test]
+fn a_reused_matcher_reads_only_the_right_columns_its_call_wrote() {
+    let (w, h) = (90, 40);
+    let (l, r) = pair(w, h, |x, y| 6.0 + ((x / 20 + y / 10) % 3) as f32 * 2.0);
+    let (other_l, other_r): (Vec<u8>, Vec<u8>) = (r.iter().map(|v| 255 - v).collect(), l.iter().map(|v| 255 - v).collect());
+    let within = |at: &dyn Fn(usize, usize) -> Option<(i32, i32)>| {
+        let mut iv = DisparityIntervals::empty(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                iv.set(x, y, at(x, y));
+            }
+        }
+        iv
+    };
+    let middle = within(&|x, _| (30..80).contains(&x).then_some((5, 13)));
+    let left_edge = within(&|x, _| (x < 25).then_some((4, 12)));
+    let right_edge = within(&|x, _| (x >= 60).then_some((-14, -6)));
+    let (l_neg, r_neg) = pair(w, h, |_, _| -9.0);
+    let negative = MatchParams { min_disparity: -40, ..(*params(48)).clone() }.validate().unwrap();
+    for (p, (l, r), iv, what) in [(params(48), (&l, &r), &middle, "the middle"), (params(48), (&l, &r), &left_edge, "the left edge"), (negative, (&l_neg, &r_neg), &right_edge, "the right edge")] {
+        let full = DisparityIntervals::full(w, h, p.min_disparity, p.max_disparity());
+        for avx2 in [false, true] {
+            let call = |sgm: &mut Sgm, (l, r): (&[u8], &[u8]), iv: &DisparityIntervals| {
+                let mut out = DisparityMap::new(w, h);
+                let (lv, rv, levels, shift) = (GrayView::new(w, h, l).unwrap(), GrayView::new(w, h, r).unwrap(), level_map(l, r), grid::shift(iv, p.min_disparity, p.max_disparity()));
+                #[cfg(target_arch = "x86_64")]
+                if avx2 && std::is_x86_feature_detected!("avx2") {
+                    sgm.compute(&p, lv, rv, &levels, shift, iv, 0..h, &mut out).unwrap();
+                    return out;
+                }
+                sgm.compute_impl::<false>(&p, lv, rv, &levels, shift, iv, 0..h, &mut out).unwrap();
+                out
+            };
+            let mut fresh = Sgm::default();
+            let want = call(&mut fresh, (l, r), iv);
+            let mut reused = Sgm::default();
+            call(&mut reused, (&other_l, &other_r), &full);
+            // And whatever the rows held before, not what a fresh matcher's zeros would give.
+            reused.census_r_lo.fill(0x5a5a_5a5a);
+            reused.census_r_hi.fill(0x3);
+            reused.census_r.fill(0x2_5a5a_5a5a);
+            reused.levels_r.fill(77);
+            let got = call(&mut reused, (l, r), iv);
+            let sums = fresh.off[w * h];
+            assert!(got.valid_count() * 4 > iv.lo.iter().zip(&iv.hi).filter(|(a, b)| a <= b).count(), "{what}: {} matched", got.valid_count());
+            assert!(reused.sum[..sums] == fresh.sum[..sums], "{what}, AVX2 {avx2}: the sums differ");
+            assert!(got.values().iter().zip(want.values()).all(|(a, b)| a.to_bits() == b.to_bits()), "{what}, AVX2 {avx2}: the maps differ");
+        }
+    }
+}
+
 /// Pixels whose interval is empty once clipped to the image (the first columns when the
 /// range starts above zero; intervals entirely past the right image's edge, negative
 /// disparities) search nothing and stay unmatched — without overflowing on the way (debug
