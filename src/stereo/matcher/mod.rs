@@ -585,13 +585,14 @@ fn match_stripe_impl<const AVX2: bool, const AVX512: bool>(
         std::mem::swap(&mut s.ihi, &mut s.prev_ihi);
         let out_row = &mut out[(y - y0) * w..][..w];
         if (y - y0) % TILE_H == 0 {
-            let mean_band = tile_bands(g, intervals, y..(y + TILE_H).min(y_end), &mut s.clip_lo, &mut s.clip_hi, &mut s.tile_lo, &mut s.tile_hi, &mut s.tile_px, &mut s.tile_cols);
+            let mean_band = tile_bands(g, intervals, y..(y + TILE_H).min(y_end), &mut s.clip_lo, &mut s.clip_hi, &mut s.clip_spans, &mut s.tile_lo, &mut s.tile_hi, &mut s.tile_px, &mut s.tile_cols);
             narrow = tile_path_ok && mean_band <= (n / 2).max(TILE_PATH_BAND) as f64;
         }
         // Only the row's searched span is worked on: rows and columns of background cost
         // (almost) nothing.
         let blocks = (!narrow).then_some((&mut s.ilo[..], &mut s.ihi[..]));
-        let Some(span) = row_intervals(g, (&s.clip_lo[(y - y0) % TILE_H * w..], &s.clip_hi[(y - y0) % TILE_H * w..]), &mut s.tlo, &mut s.thi, blocks, &mut stats) else {
+        let i = (y - y0) % TILE_H;
+        let Some(span) = row_intervals(g, (&s.clip_lo[i * w..], &s.clip_hi[i * w..]), s.clip_spans[i].clone(), &mut s.tlo, &mut s.thi, blocks, &mut stats) else {
             out_row.fill(f32::NAN);
             continue;
         };

@@ -10,14 +10,17 @@ use crate::stereo::kernels::{self, absdiff, add_absdiff, add_into, first_index_o
 use crate::stereo::params::ValidMatchParams;
 
 /// Row `y`'s intervals as disparity indices, clipped to the search range and to right
-/// pixels inside the image, into `lo`/`hi` (`lo > hi`: nothing to search). Branch-free, so
-/// it vectorises.
+/// pixels inside the image, into `lo`/`hi` (`lo > hi`: nothing to search), from the row's
+/// first to its last searched pixel alone: returns those columns (empty where nothing is
+/// searched), outside which `lo`/`hi` are left as they were. (An assisted crop's rows are
+/// half columns that only the right image's pixels need.) Branch-free, so it vectorises.
 #[inline(always)]
-pub(super) fn clip_row(g: Geometry, iv: &DisparityIntervals, y: usize, lo: &mut [i32], hi: &mut [i32]) {
+pub(super) fn clip_row(g: Geometry, iv: &DisparityIntervals, y: usize, lo: &mut [i32], hi: &mut [i32]) -> Range<usize> {
     let Geometry { w, n, dmin, .. } = g;
     let (row_lo, row_hi) = (&iv.lo[y * w..][..w], &iv.hi[y * w..][..w]);
+    let Some((first, last)) = searched_span(row_lo, row_hi) else { return 0..0 };
     let (lo, hi) = (&mut lo[..w], &mut hi[..w]);
-    for x in 0..w {
+    for x in first..last + 1 {
         // The right pixel x − d must lie inside the image: x − w + 1 ≤ d ≤ x.
         let kmin = (x as i32 - w as i32 + 1).max(dmin) - dmin;
         let kmax = (x as i32).min(dmin + n as i32 - 1) - dmin;
@@ -29,14 +32,16 @@ pub(super) fn clip_row(g: Geometry, iv: &DisparityIntervals, y: usize, lo: &mut 
         lo[x] = (a & m) | (1 & !m);
         hi[x] = b & m;
     }
+    first..last + 1
 }
 
-/// The clipped intervals of the tile row `rows` (into `clip_lo/hi`, row by row, `w` apart)
-/// and the band of each of its tiles: the union of its pixels' intervals (empty tiles get
-/// `lo > hi`). Returns the mean band width over the searched pixels (0: none).
+/// The clipped intervals of the tile row `rows` (into `clip_lo/hi`, row by row, `w` apart,
+/// over each row's columns in `clip_spans` alone: [`clip_row`]) and the band of each of its
+/// tiles: the union of its pixels' intervals (empty tiles get `lo > hi`). Returns the mean
+/// band width over the searched pixels (0: none).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize>, clip_lo: &mut Vec<i32>, clip_hi: &mut Vec<i32>, tile_lo: &mut Vec<i32>, tile_hi: &mut Vec<i32>, tile_px: &mut Vec<u32>, cols: &mut Vec<i32>) -> f64 {
+pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize>, clip_lo: &mut Vec<i32>, clip_hi: &mut Vec<i32>, clip_spans: &mut Vec<Range<usize>>, tile_lo: &mut Vec<i32>, tile_hi: &mut Vec<i32>, tile_px: &mut Vec<u32>, cols: &mut Vec<i32>) -> f64 {
     let Geometry { w, .. } = g;
     let tiles = w.div_ceil(TILE_W);
     tile_lo.clear();
@@ -55,10 +60,12 @@ pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize
     let (col_hi, col_n) = rest.split_at_mut(w);
     col_lo.fill(i32::MAX);
     col_hi.fill(i32::MIN);
+    clip_spans.clear();
     for (i, y) in rows.enumerate() {
         let (lo, hi) = (&mut clip_lo[i * w..][..w], &mut clip_hi[i * w..][..w]);
-        clip_row(g, iv, y, lo, hi);
-        for x in 0..w {
+        let xs = clip_row(g, iv, y, lo, hi);
+        clip_spans.push(xs.clone());
+        for x in xs {
             let (l, h) = (lo[x], hi[x]);
             // An unsearched pixel (clipped to lo = 1 > hi = 0) takes part as 2³⁰ + 1 and
             // −2³⁰: out of every band. (With `if ok { l } else { i32::MAX }` LLVM stores only
@@ -90,21 +97,29 @@ pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize
     }
 }
 
-/// This row's clipped intervals (`lo`/`hi`, from [`tile_bands`]) into `tlo..=thi`, what is
-/// searched, and — when `blocks` is given (the row path; the narrow-band path has no use for
-/// them) — the block-aligned ranges the row path computes sums over (`ilo..=ihi`, see
-/// [`BLOCK`]); counts searched pixels and pairs. Returns the span from the first to the last
-/// searched pixel (None: nothing searched).
+/// This row's clipped intervals (`lo`/`hi` over the columns `clipped_cols`, from
+/// [`tile_bands`]) into `tlo..=thi`, what is searched, and — when `blocks` is given (the row
+/// path; the narrow-band path has no use for them) — the block-aligned ranges the row path
+/// computes sums over (`ilo..=ihi`, see [`BLOCK`]); both hold nothing searched (`1`, `0`)
+/// outside the searched pixels' span. Counts searched pixels and pairs. Returns the span from
+/// the first to the last searched pixel (None: nothing searched).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn row_intervals(g: Geometry, clipped: (&[i32], &[i32]), tlo: &mut [i32], thi: &mut [i32], blocks: Option<(&mut [i32], &mut [i32])>, stats: &mut MatchStats) -> Option<Range<usize>> {
+pub(super) fn row_intervals(g: Geometry, clipped: (&[i32], &[i32]), clipped_cols: Range<usize>, tlo: &mut [i32], thi: &mut [i32], blocks: Option<(&mut [i32], &mut [i32])>, stats: &mut MatchStats) -> Option<Range<usize>> {
     let Geometry { w, n, .. } = g;
     let (lo, hi) = (&clipped.0[..w], &clipped.1[..w]);
-    let (first, last) = searched_span(lo, hi)?;
-    tlo[..w].copy_from_slice(lo);
-    thi[..w].copy_from_slice(hi);
+    let (first, last) = searched_span(&lo[clipped_cols.clone()], &hi[clipped_cols.clone()])?;
+    let span = clipped_cols.start + first..clipped_cols.start + last + 1;
+    // Outside the span, nothing searched (what the clipped rows hold there, unwritten).
+    let outside = |v: &mut [i32], none: i32| {
+        v[..span.start].fill(none);
+        v[span.end..w].fill(none);
+    };
+    outside(tlo, 1);
+    outside(thi, 0);
+    tlo[span.clone()].copy_from_slice(&lo[span.clone()]);
+    thi[span.clone()].copy_from_slice(&hi[span.clone()]);
     let (mut searched, mut evaluated) = (0u64, 0u64);
-    let span = first..last + 1;
     for (&a, &b) in lo[span.clone()].iter().zip(&hi[span.clone()]) {
         let ok = a <= b;
         searched += ok as u64;
@@ -112,7 +127,9 @@ pub(super) fn row_intervals(g: Geometry, clipped: (&[i32], &[i32]), tlo: &mut [i
     }
     if let Some((ilo, ihi)) = blocks {
         let block = BLOCK as i32;
-        for x in 0..w {
+        outside(ilo, 1);
+        outside(ihi, 0);
+        for x in span.clone() {
             let (a, b) = (lo[x], hi[x]);
             let ok = a <= b;
             // Whole blocks, so that neighbours with slightly different intervals share one
@@ -126,7 +143,7 @@ pub(super) fn row_intervals(g: Geometry, clipped: (&[i32], &[i32]), tlo: &mut [i
     }
     stats.searched += searched as usize;
     stats.evaluated += evaluated;
-    Some(first..last + 1)
+    Some(span)
 }
 
 /// For each padded column, the union of the intervals of the pixels whose window covers it:

@@ -1,5 +1,7 @@
 //! The sizes and per-thread buffers every stripe of one matcher call shares.
 
+use std::ops::Range;
+
 use crate::stereo::disparity::DisparityIntervals;
 use crate::stereo::params::ValidMatchParams;
 
@@ -188,9 +190,11 @@ pub(super) struct StripeScratch {
     /// The bands of the current tile row's tiles.
     pub(super) tile_lo: Vec<i32>,
     pub(super) tile_hi: Vec<i32>,
-    /// The clipped intervals of the current tile row's rows, `w` apart.
+    /// The clipped intervals of the current tile row's rows, `w` apart, written over each
+    /// row's columns in `clip_spans` alone (`rows::clip_row`).
     pub(super) clip_lo: Vec<i32>,
     pub(super) clip_hi: Vec<i32>,
+    pub(super) clip_spans: Vec<Range<usize>>,
     /// Searched pixels per tile of the current tile row.
     pub(super) tile_px: Vec<u32>,
     /// Per column of a tile row: the min, max and count of its searched intervals (three

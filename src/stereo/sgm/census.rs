@@ -26,24 +26,17 @@ pub(super) const CENSUS_H: usize = 5;
 /// Bits of a census word: the most a pair's census cost can be.
 pub(super) const MAX_BITS: usize = CENSUS_W * CENSUS_H - 1;
 
-/// The census comparisons of every pixel of `img` (`w × h`, row-major), row by row:
-/// `emit(y, planes)` receives row `y`'s five byte planes (`w` bytes each; comparison t at bit
-/// t % 8 of plane t / 8), which [`words_row`] or [`split_row`] lay out as the costs read them.
-/// (Planes, not words: the right census is kept split on AVX2 — its low four planes are its
-/// low 32 bits, its fifth the high bits — and words only to be split again were one more
-/// pass over memory.)
+/// The census comparisons of the columns `cols` of `img` (`w × h`, row-major; `cols`
+/// non-empty, inside `0..w`), row by row: `emit(y, planes)` receives row `y`'s five byte
+/// planes (`cols.len()` bytes each; comparison t at bit t % 8 of plane t / 8), which
+/// [`words_row`] or [`split_row`] lay out as the costs read them. The comparisons are those
+/// over the whole image: the window reads the pixels beyond `cols` where the image has them,
+/// and is clamped at the image's border as there. (Planes, not words: the right census is
+/// kept split on AVX2 — its low four planes are its low 32 bits, its fifth the high bits —
+/// and words only to be split again were one more pass over memory.)
 ///
 /// `planes_of` makes a row's comparisons: [`planes_row`] or a vector copy of it; `rows` is
 /// the caller's buffer for the padded source, reused from call to call.
-#[inline(always)]
-pub(super) fn transform(img: &[u8], w: usize, h: usize, rows: &mut Vec<u8>, planes_of: impl Fn(&[u8], usize, &mut [u8]), emit: impl FnMut(usize, [&[u8]; PLANES])) {
-    transform_cols(img, w, h, 0..w, rows, planes_of, emit);
-}
-
-/// [`transform`] of the columns `cols` of the image alone (non-empty, inside `0..w`): the
-/// planes `emit` receives are `cols.len()` bytes wide, the comparisons of those columns with
-/// their windows as over the whole image (the window reads the pixels beyond `cols` where
-/// the image has them, and is clamped at the image's border as there).
 #[inline(always)]
 pub(super) fn transform_cols(img: &[u8], w: usize, h: usize, cols: std::ops::Range<usize>, rows: &mut Vec<u8>, planes_of: impl Fn(&[u8], usize, &mut [u8]), mut emit: impl FnMut(usize, [&[u8]; PLANES])) {
     let (rx, ry) = (CENSUS_W / 2, CENSUS_H / 2);
@@ -157,13 +150,16 @@ pub(super) fn transform_spans_into(img: &[u8], w: usize, h: usize, spans: &[std:
     });
 }
 
-/// [`transform`]'s words into `out`, `w + pad.0 + pad.1` per row.
-#[inline(always)]
+/// [`transform_cols`] over the whole image, its words into `out`, `w + pad.0 + pad.1` per
+/// row, padded by copies of each row's first and last word: the tests' reference (the
+/// matcher writes its rows over the columns its bands reach, [`right_words`], and the left
+/// words over the searched columns, [`transform_spans_into`]).
+#[cfg(test)]
 pub(super) fn transform_into(img: &[u8], w: usize, h: usize, pad: (usize, usize), rows: &mut Vec<u8>, planes_of: impl Fn(&[u8], usize, &mut [u8]), out: &mut Vec<u64>) {
     let wo = pad.0 + w + pad.1;
     // Every word is written below: no clearing (a fill of the whole image) unless it grows.
     out.resize(wo * h, 0);
-    transform(img, w, h, rows, planes_of, |y, planes| words_row(planes, pad, &mut out[y * wo..][..wo]));
+    transform_cols(img, w, h, 0..w, rows, planes_of, |y, planes| words_row(planes, pad, &mut out[y * wo..][..wo]));
 }
 
 /// Where the costs read the right image's rows: image column `c` of row `y` at
@@ -433,7 +429,7 @@ mod tests {
         let mut words = Vec::new();
         transform_into(&img, w, h, pad, &mut Vec::new(), planes_row, &mut words);
         let (mut lo, mut hi) = (vec![0u32; wo * h], vec![0u8; wo * h]);
-        transform(&img, w, h, &mut Vec::new(), planes_row, |y, planes| split_row(planes, pad, &mut lo[y * wo..][..wo], &mut hi[y * wo..][..wo]));
+        transform_cols(&img, w, h, 0..w, &mut Vec::new(), planes_row, |y, planes| split_row(planes, pad, &mut lo[y * wo..][..wo], &mut hi[y * wo..][..wo]));
         let (mut want_lo, mut want_hi) = (vec![0u32; wo * h], vec![0u8; wo * h]);
         split(&words, &mut want_lo, &mut want_hi);
         assert!(want_hi.iter().any(|&v| v != 0) && want_lo.iter().any(|&v| v != 0));

@@ -172,7 +172,7 @@ pub(super) struct VolumeRefused {
 #[derive(Default)]
 pub(super) struct Sgm {
     census_l: Vec<u64>,
-    /// The census's padded source image (`census::transform`), reused for both images.
+    /// The census's padded source image (`census::transform_cols`), reused for both images.
     census_rows: Vec<u8>,
     /// The right census, each row padded by replication so that every disparity of every
     /// block has a right pixel (the portable costs' words).
