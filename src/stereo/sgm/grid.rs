@@ -55,10 +55,10 @@ pub(in crate::stereo) fn shift(iv: &DisparityIntervals, dmin: i32, dmax: i32) ->
 impl Sgm {
     /// Each pixel's interval clipped to the range and to right pixels inside the image, the
     /// band of whole blocks around it, and the packed offsets: over the whole image, or
-    /// (`per_row`) from each row's start; and the right columns the costs of those bands read
-    /// (`reach`). Returns the most values a row packs.
+    /// (`per_row`) from each row's start. Returns the most values a row packs, and the first
+    /// and last right column the costs of those bands read ([`super::census::RightRows`]'s reach).
     #[inline(always)]
-    pub(super) fn bands(&mut self, p: &ValidMatchParams, g: Geo, shift: u32, iv: &DisparityIntervals, keep: Range<usize>, per_row: bool, stats: &mut MatchStats) -> usize {
+    pub(super) fn bands(&mut self, p: &ValidMatchParams, g: Geo, shift: u32, iv: &DisparityIntervals, keep: Range<usize>, per_row: bool, stats: &mut MatchStats) -> (usize, (i32, i32)) {
         let Geo { w, h, dmin, n, .. } = g;
         let dmax = p.max_disparity();
         for v in [&mut self.band_a, &mut self.band_m, &mut self.lo, &mut self.hi] {
@@ -134,8 +134,7 @@ impl Sgm {
             }
         }
         self.off[w * h] = total;
-        self.reach = (reach_lo, reach_hi);
-        row_max
+        (row_max, (reach_lo, reach_hi))
     }
 }
 

@@ -183,9 +183,6 @@ pub(super) struct Sgm {
     census_r_hi: Vec<u8>,
     /// The right image's grey levels matched to the left's, padded as `census_r`.
     levels_r: Vec<u8>,
-    /// The right columns the call's bands read ([`census::RightRows`]): of the right rows
-    /// above, only these are written.
-    reach: (i32, i32),
     /// Per pixel: the aggregated band (first disparity index, on the call's grid of blocks
     /// ([`grid::shift`]) but at the range's ends, and count, a multiple of [`LANES`]; 0 = not
     /// searched), and the interval searched inside it.
@@ -354,7 +351,7 @@ impl Sgm {
         let g = Geo { w, h, n, dmin, pad_l, wr: pad_l + w + pad_r, folded };
         let mut stats = MatchStats::default();
         let single = p.sgm_paths == 5;
-        let row_max = self.bands(p, g, shift, intervals, keep.clone(), single, &mut stats);
+        let (row_max, reach) = self.bands(p, g, shift, intervals, keep.clone(), single, &mut stats);
         let t0 = std::time::Instant::now();
         // The census comparisons: the AVX2 copy where the CPU has it.
         let planes_of = |rows: &[u8], w: usize, planes: &mut [u8]| {
@@ -370,7 +367,7 @@ impl Sgm {
         census::transform_spans_into(left.data, w, h, &self.span, &mut self.census_rows, planes_of, &mut self.census_l);
         // The right words as the costs read them: split on AVX2, whole words otherwise.
         // Over the columns the bands read alone (an assisted crop's rows are half background).
-        let rows = census::RightRows { w, pad_l, wr: g.wr, reach: self.reach };
+        let rows = census::RightRows { w, pad_l, wr: g.wr, reach };
         if AVX2 {
             census::right_split(right.data, h, rows, &mut self.census_rows, planes_of, &mut self.census_r_lo, &mut self.census_r_hi);
         } else {
