@@ -1,30 +1,52 @@
 //! A row's census costs: every searched pixel's band, in runs of pixels that share one.
 
-use std::ops::Range;
-
 use super::census::{costs, Pixel};
 #[cfg(target_arch = "x86_64")]
 use super::{census::Run, simd};
-use super::{all_eq, Geo, Sgm, LANES};
+use super::{Geo, Sgm};
 use crate::stereo::params::ValidMatchParams;
 
-/// A run of `len` pixels grown by chunks while `holds(k, c)` (the `c` pixels from the run's
-/// `k`-th on continue it): chunks of [`LANES`], each twice the last while they hold, back to
-/// `LANES` at the first that does not, as long as `LANES` more fit in `end`. The caller goes
-/// on one by one. (Asking the whole rest of the span first, as the runs did, fails at every
-/// run of an assisted map and scanned the rest of its row each time:
-/// docs/assisted-matching.md, "The SGM runs found without rescanning the row".)
-pub(super) fn grow_run(mut len: usize, end: usize, holds: impl Fn(usize, usize) -> bool) -> usize {
-    let mut chunk = LANES;
-    while len + LANES <= end {
-        let c = chunk.min(end - len);
-        let ok = holds(len, c);
-        if !ok && c == LANES {
-            break;
+/// Pixels a run looks at together: sixteen, one bit each of a mask ([`band_bits`]).
+pub(super) const RUN_CHUNK: usize = 16;
+
+/// The length of the run of columns from `x0` along a row's sweep (`up`: towards column 0),
+/// at most `limit` of them: the columns for which `bits` (the mask of the sixteen columns from
+/// its argument on, bit k for column `x_lo + k`) and, past the last whole chunk, `holds` (one
+/// column) are true. Sixteen columns a test, each found by the mask's first clear bit, so that
+/// neither a run's end nor its length takes a branch per pixel. (Chunks that doubled while
+/// they held, each tested whole, mispredicted a branch at every run of an assisted map's
+/// bands, which change every few dozen pixels: docs/assisted-matching.md, "The SGM runs
+/// measured by masks".)
+#[inline(always)]
+pub(super) fn run_length(x0: usize, limit: usize, up: bool, bits: impl Fn(usize) -> u32, holds: impl Fn(usize) -> bool) -> usize {
+    let mut len = 0;
+    while len + RUN_CHUNK <= limit {
+        // Columns x_lo … x_lo + 15, the run's next sixteen: bit 0 is the first in the sweep
+        // (`up`: bit 15).
+        let mask = bits(if up { x0 - len - (RUN_CHUNK - 1) } else { x0 + len });
+        let taken = if up { (!(mask << (32 - RUN_CHUNK))).leading_zeros() } else { (!mask).trailing_zeros() } as usize;
+        len += taken.min(RUN_CHUNK);
+        if taken < RUN_CHUNK {
+            return len;
         }
-        (len, chunk) = if ok { (len + c, 2 * c) } else { (len, LANES) };
+    }
+    while len < limit && holds(if up { x0 - len } else { x0 + len }) {
+        len += 1;
     }
     len
+}
+
+/// Bit k set where column k of the sixteen holds the band `(a, m)` (`band_a`, `band_m`) and
+/// `other[k]` is non-zero (on AVX2 by three compares: [`simd::band_bits`]).
+#[inline(always)]
+pub(super) fn band_bits<const AVX2: bool>(band_a: &[u16], band_m: &[u16], other: &[u16], band: (u16, u16)) -> u32 {
+    let (ba, bm, o): (&[u16; RUN_CHUNK], &[u16; RUN_CHUNK], &[u16; RUN_CHUNK]) = (band_a.try_into().unwrap(), band_m.try_into().unwrap(), other.try_into().unwrap());
+    #[cfg(target_arch = "x86_64")]
+    if AVX2 {
+        // SAFETY: AVX2 is only set where the CPU was checked (`compute_avx2`, and the test).
+        return unsafe { simd::band_bits(ba, bm, o, band) };
+    }
+    (0..RUN_CHUNK).fold(0u32, |bits, k| bits | (((ba[k] == band.0) & (bm[k] == band.1) & (o[k] > 0)) as u32) << k)
 }
 
 impl Sgm {
@@ -50,13 +72,10 @@ impl Sgm {
                 x += 1;
                 continue;
             }
-            // The pixels after it that hold the band ([`grow_run`]: the full range's rest of
-            // the span in a few checks, each without a branch per pixel), then one by one.
-            let holds = |px: Range<usize>| all_eq(&self.band_a[px.clone()], a) && all_eq(&self.band_m[px], m as u16);
-            let mut len = grow_run(1, w - x, |k, c| holds(i + k..i + k + c));
-            while x + len < w && self.band_m[i + len] as usize == m && self.band_a[i + len] == a {
-                len += 1;
-            }
+            // It and the pixels after it that hold the band ([`run_length`]).
+            let (ra, rm) = (&self.band_a[y * w..][..w], &self.band_m[y * w..][..w]);
+            let band = (a, m as u16);
+            let len = run_length(x, w - x, false, |c| band_bits::<AVX2>(&ra[c..c + RUN_CHUNK], &rm[c..c + RUN_CHUNK], &rm[c..c + RUN_CHUNK], band), |c| (ra[c], rm[c]) == band);
             // Right pixel of disparity index k: x − dmin − k, at x − dmin − k + pad_l in
             // the padded row.
             let start = (x as i32 + g.pad_l as i32 - g.dmin - a as i32) as usize;
@@ -84,6 +103,59 @@ impl Sgm {
                 costs(px, start + k, out);
             }
             x += len;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A run's length by masks is the plain scan's, both ways along a row, from every column,
+    /// with runs that end inside a chunk, on its last column, past the last whole chunk and at
+    /// the row's end; and the AVX2 masks are the portable ones.
+    #[test]
+    fn a_run_measured_by_masks_is_the_plain_scan() {
+        let mut next = crate::testing::xorshift(0x5eed_2d);
+        let w = 150;
+        for trial in 0..60 {
+            // Bands that hold for stretches of random length (long ones too), and other
+            // columns that mostly hold.
+            let mut band_a = vec![0u16; w];
+            let mut band_m = vec![0u16; w];
+            let mut x = 0;
+            while x < w {
+                let len = 1 + (next() % if trial % 2 == 0 { 40 } else { 4 }) as usize;
+                let band = ((next() % 2) as u16 * 16, 16 + (next() % 2) as u16 * 16);
+                for k in x..(x + len).min(w) {
+                    (band_a[k], band_m[k]) = band;
+                }
+                x += len;
+            }
+            let other: Vec<u16> = (0..w).map(|_| (next() % 50 != 0) as u16).collect();
+            let holds = |x: usize, band: (u16, u16)| (band_a[x], band_m[x]) == band && other[x] > 0;
+            for x0 in 0..w {
+                let band = (band_a[x0], band_m[x0]);
+                for up in [false, true] {
+                    let limit = if up { x0 + 1 } else { w - x0 };
+                    let plain = (0..limit).take_while(|&k| holds(if up { x0 - k } else { x0 + k }, band)).count();
+                    let chunk = |c: usize| c..c + RUN_CHUNK;
+                    let by = |avx2: bool| {
+                        run_length(
+                            x0,
+                            limit,
+                            up,
+                            |c| if avx2 { band_bits::<true>(&band_a[chunk(c)], &band_m[chunk(c)], &other[chunk(c)], band) } else { band_bits::<false>(&band_a[chunk(c)], &band_m[chunk(c)], &other[chunk(c)], band) },
+                            |x| holds(x, band),
+                        )
+                    };
+                    assert_eq!(by(false), plain, "trial {trial}, from column {x0}, up {up}");
+                    #[cfg(target_arch = "x86_64")]
+                    if std::is_x86_feature_detected!("avx2") {
+                        assert_eq!(by(true), plain, "trial {trial}, from column {x0}, up {up}, AVX2");
+                    }
+                }
+            }
         }
     }
 }

@@ -78,7 +78,7 @@ const UNREACHED: u16 = 0x7000;
 #[derive(Default)]
 struct PathRow {
     vals: Vec<u16>,
-    band: Vec<(u16, u16)>,
+    band: Vec<[u16; 2]>,
     min: Vec<u16>,
     /// The padded range the slots are laid out for.
     n: usize,
@@ -95,7 +95,7 @@ impl PathRow {
         }
         if self.band.len() < slots {
             self.vals.resize(slots * (n + 2), UNREACHED);
-            self.band.resize(slots, (0, 0));
+            self.band.resize(slots, [0, 0]);
             self.min.resize(slots, 0);
         }
     }
@@ -104,7 +104,7 @@ impl PathRow {
     /// `UNREACHED` again (nothing to do when the bands repeat, as at full range).
     #[inline(always)]
     fn prepare(&mut self, i: usize, n: usize, a: usize, m: usize) {
-        let (oa, om) = self.band[i];
+        let [oa, om] = self.band[i];
         let (oa, om) = (oa as usize, om as usize);
         if (oa, om) != (a, m) && om > 0 {
             let slot = &mut self.vals[i * (n + 2) + 1..][..n];
@@ -117,7 +117,7 @@ impl PathRow {
                 slot[start..oa + om].fill(UNREACHED);
             }
         }
-        self.band[i] = (a as u16, m as u16);
+        self.band[i] = [a as u16, m as u16];
     }
 
     /// Slot `i` over disparity indices `a − 1 … a + m`.
@@ -308,13 +308,6 @@ fn step_portable<const N: usize>(c: &[u8], from: [From; N], p1: u16, out: [&mut 
     mn.map(|v| v.into_iter().fold(u16::MAX, u16::min))
 }
 
-/// Every value of `v` is `want`: a fold without an early exit, so that it vectorises (the
-/// run checks below ask it of chunks of a row that double while they hold).
-#[inline(always)]
-fn all_eq<T: Copy + PartialEq>(v: &[T], want: T) -> bool {
-    v.iter().fold(true, |ok, &b| ok & (b == want))
-}
-
 impl Sgm {
     /// Matches checked inputs (same size, at least 2 × 1) over `intervals`, and keeps (writes
     /// and counts) the rows `keep` — the others only feed the paths; the speckle filter is the
@@ -449,7 +442,7 @@ impl Sgm {
                 }
                 let a = self.band_a[i] as usize;
                 #[cfg(target_arch = "x86_64")]
-                if AVX2 && !eight && h_live && has_prev_row && self.h_prev.band[0] == (a as u16, m as u16) {
+                if AVX2 && !eight && h_live && has_prev_row && self.h_prev.band[0] == [a as u16, m as u16] {
                     let len = self.run::<AVX2>(p, g, y, step_x, up, cbase);
                     if len > 0 {
                         step_x += len;
@@ -515,39 +508,33 @@ impl Sgm {
         let Geo { w, n, folded, .. } = g;
         let x0 = if up { w - 1 - step_x } else { step_x };
         let band = self.h_prev.band[0];
-        let (a, m) = (band.0 as usize, band.1 as usize);
+        let (a, m) = (band[0] as usize, band[1] as usize);
         let blocks = m / LANES;
         if blocks > 8 {
             return 0;
         }
-        let (band_a, band_m, cur) = (&self.band_a, &self.band_m, &mut self.vert_cur[1]);
-        // Whether columns `cols` of the row all continue the run with nothing for `prepare`
-        // to do: they hold the band, their previous row's pixels searched, and their slots
-        // already hold the band. Checked without a branch per pixel.
+        // The run: the pixels that hold the band and whose previous row's pixels searched
+        // (any band: outside its own band the slot holds `UNREACHED`, as the general step
+        // reads it) ([`costs::run_length`]).
         let (row, prev_row) = (y * w..(y + 1) * w, if up { (y + 1) * w..(y + 2) * w } else { (y - 1) * w..y * w });
-        let continues = |cols: Range<usize>| {
-            all_eq(&band_a[row.clone()][cols.clone()], band.0)
-                && all_eq(&band_m[row.clone()][cols.clone()], band.1)
-                && band_m[prev_row.clone()][cols.clone()].iter().fold(true, |ok, &b| ok & (b > 0))
-                && all_eq(&cur.band[cols], band)
-        };
-        // In chunks ([`costs::grow_run`]: the full range's rest of the row in a few checks),
-        // then pixel by pixel up to the first pixel that does not continue.
-        let mut len = costs::grow_run(0, w - step_x, |k, c| {
-            let next = step_x + k;
-            continues(if up { w - next - c..w - next } else { next..next + c })
-        });
-        while step_x + len < w {
-            let x = if up { w - 1 - step_x - len } else { step_x + len };
-            let i = y * w + x;
-            // (The previous row's pixel searched — its slot is live, not a stale one — over any
-            // band: outside its own band the slot holds `UNREACHED`, as the general step reads it.)
-            let q = if up { i + w } else { i - w };
-            if (band_a[i], band_m[i]) != band || band_m[q] == 0 {
-                break;
+        let (ra, rm, pm) = (&self.band_a[row.clone()], &self.band_m[row], &self.band_m[prev_row]);
+        let chunk = |c: usize| c..c + costs::RUN_CHUNK;
+        let pair = (band[0], band[1]);
+        let len = costs::run_length(x0, w - step_x, up, |c| costs::band_bits::<AVX2>(&ra[chunk(c)], &rm[chunk(c)], &pm[chunk(c)], pair), |x| (ra[x], rm[x]) == pair && pm[x] > 0);
+        // Their slots made ready for the band where they hold another one (from two rows
+        // back, or earlier).
+        let cur = &mut self.vert_cur[1];
+        let cols = if up { x0 + 1 - len..x0 + 1 } else { x0..x0 + len };
+        for c in cols.clone().step_by(costs::RUN_CHUNK) {
+            let mut stale = match cur.band.get(chunk(c)).filter(|_| c + costs::RUN_CHUNK <= cols.end) {
+                // SAFETY: AVX2 is only set by `compute_avx2`, which checked the CPU.
+                Some(slots) if AVX2 => unsafe { simd::other_band_bits(slots.try_into().unwrap(), band) },
+                _ => cur.band[c..cols.end.min(c + costs::RUN_CHUNK)].iter().enumerate().fold(0u32, |bits, (k, &b)| bits | ((b != band) as u32) << k),
+            };
+            while stale != 0 {
+                cur.prepare(c + stale.trailing_zeros() as usize, n, a, m);
+                stale &= stale - 1;
             }
-            cur.prepare(x, n, a, m);
-            len += 1;
         }
         if len == 0 {
             return 0;

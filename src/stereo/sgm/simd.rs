@@ -155,6 +155,43 @@ fn inside(k0: usize, lo: usize, hi: usize, skip: (usize, usize)) -> __m256i {
     m
 }
 
+/// [`super::costs::band_bits`] on AVX2: bit k set where column k of the sixteen holds the
+/// band `(a, m)` (`band_a`, `band_m`) and `other[k]` is non-zero.
+///
+/// # Safety
+/// The CPU supports AVX2.
+#[target_feature(enable = "avx2")]
+#[inline]
+pub(super) unsafe fn band_bits(band_a: &[u16; 16], band_m: &[u16; 16], other: &[u16; 16], (a, m): (u16, u16)) -> u32 {
+    // SAFETY: sixteen u16 each.
+    let (va, vm, vo) = unsafe { (_mm256_loadu_si256(band_a.as_ptr().cast()), _mm256_loadu_si256(band_m.as_ptr().cast()), _mm256_loadu_si256(other.as_ptr().cast())) };
+    let holds = _mm256_and_si256(_mm256_cmpeq_epi16(va, _mm256_set1_epi16(a as i16)), _mm256_cmpeq_epi16(vm, _mm256_set1_epi16(m as i16)));
+    lane_bits(_mm256_andnot_si256(_mm256_cmpeq_epi16(vo, _mm256_setzero_si256()), holds))
+}
+
+/// Bit k set where slot k of the sixteen (`[a, m]` each) holds another band than `band`.
+///
+/// # Safety
+/// The CPU supports AVX2.
+#[target_feature(enable = "avx2")]
+#[inline]
+pub(super) unsafe fn other_band_bits(slots: &[[u16; 2]; 16], band: [u16; 2]) -> u32 {
+    let want = _mm256_set1_epi32((band[0] as u32 | (band[1] as u32) << 16) as i32);
+    // SAFETY: sixteen slots of two u16, eight to a register.
+    let (lo, hi) = unsafe { (_mm256_loadu_si256(slots.as_ptr().cast()), _mm256_loadu_si256(slots.as_ptr().add(8).cast())) };
+    let same = |v| _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(v, want))) as u32;
+    !(same(lo) | same(hi) << 8) & 0xffff
+}
+
+/// The sixteen 16-bit lane masks of `v` (all ones or zero) as bits 0 … 15.
+#[target_feature(enable = "avx2")]
+#[inline]
+fn lane_bits(v: __m256i) -> u32 {
+    // Bytes per 128-bit half: lanes 0–7, 0–7, 8–15, 8–15; the quadwords reordered to 0–7, 8–15.
+    let bytes = _mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_packs_epi16(v, v));
+    _mm256_movemask_epi8(bytes) as u32 & 0xffff
+}
+
 /// [`super::select::masked_min`] on AVX2.
 ///
 /// # Safety
