@@ -72,7 +72,8 @@ impl Sgm {
                 x += 1;
                 continue;
             }
-            // It and the pixels after it that hold the band ([`run_length`]).
+            // It and the pixels after it that hold the band ([`run_length`]; the row's own
+            // widths stand for `band_bits`' other row: a pixel that holds the band has one).
             let (ra, rm) = (&self.band_a[y * w..][..w], &self.band_m[y * w..][..w]);
             let band = (a, m as u16);
             let len = run_length(x, w - x, false, |c| band_bits::<AVX2>(&ra[c..c + RUN_CHUNK], &rm[c..c + RUN_CHUNK], &rm[c..c + RUN_CHUNK], band), |c| (ra[c], rm[c]) == band);
