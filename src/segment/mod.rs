@@ -424,25 +424,30 @@ pub fn inside_rim(mask: &[u8], w: usize, h: usize, px: usize) -> Vec<u8> {
 /// The bounding box of the non-zero bytes of a row-major `w`-wide mask: its columns and rows
 /// (half-open), `None` where every byte is 0.
 pub fn mask_bounds(mask: &[u8], w: usize) -> Option<(std::ops::Range<usize>, std::ops::Range<usize>)> {
+    // Tested CHUNK bytes at a time, each chunk a fixed-size array folded branch-free (a few
+    // vector instructions): from each end of a row to its first chunk holding a set byte, so
+    // that a row of the object costs its background alone, and an empty row one scan.
+    const CHUNK: usize = 32;
+    let any = |c: &[u8]| <&[u8; CHUNK]>::try_from(c).expect("a whole chunk").iter().fold(0u8, |a, &v| a | v) != 0;
     let mut r: Option<(std::ops::Range<usize>, std::ops::Range<usize>)> = None;
     for (y, row) in mask.chunks_exact(w).enumerate() {
-        // Whole-row test first, eight bytes at a time: most rows hold none.
-        let (words, rest) = row.split_at(w / 8 * 8);
-        let any = words.chunks_exact(8).fold(0u64, |a, c| a | u64::from_le_bytes(c.try_into().expect("8 bytes"))) | rest.iter().fold(0u64, |a, &v| a | v as u64);
-        if any == 0 {
-            continue;
-        }
-        // From each end, eight bytes at a time to the first word holding a set byte.
-        let first = match row.chunks_exact(8).position(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")) != 0) {
-            Some(c) => c * 8 + row[c * 8..].iter().position(|&v| v != 0).expect("one in the word"),
-            None => row.len() / 8 * 8 + rest.iter().position(|&v| v != 0).expect("one in the rest"),
+        let whole = w / CHUNK * CHUNK;
+        let first = match row[..whole].chunks_exact(CHUNK).position(any) {
+            Some(c) => c * CHUNK + row[c * CHUNK..].iter().position(|&v| v != 0).expect("one in the chunk"),
+            None => match row[whole..].iter().position(|&v| v != 0) {
+                Some(k) => whole + k,
+                // An empty row.
+                None => continue,
+            },
         };
-        let last = match rest.iter().rposition(|&v| v != 0) {
-            Some(k) => row.len() / 8 * 8 + k,
+        // From the right end: the columns past the whole chunks, then whole chunks down to
+        // `first`'s (which holds a set byte).
+        let last = match row[whole..].iter().rposition(|&v| v != 0) {
+            Some(k) => whole + k,
             None => {
-                let c = words.rchunks_exact(8).position(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")) != 0).expect("one in the words");
-                let end = words.len() - c * 8;
-                words[..end].iter().rposition(|&v| v != 0).expect("one in the word")
+                let c = row[..whole].rchunks_exact(CHUNK).position(any).expect("first's chunk holds one");
+                let end = whole - c * CHUNK;
+                row[..end].iter().rposition(|&v| v != 0).expect("one in the chunk")
             }
         } + 1;
         // Grown row by row, top to bottom.

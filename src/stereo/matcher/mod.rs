@@ -49,12 +49,14 @@ use super::speckle::SpeckleFilter;
 use crop::{Crop, Searched};
 use rows::{column_bands, left_right_check, row_intervals, select_row, texture_row, tile_bands, update_column_sums, update_texture};
 use scratch::{Geometry, StripeInput, StripeScratch, TileSums, PF_SLACK, TILE_H, TILE_W};
+use source::IntervalSource;
 
 mod crop;
 mod refine;
 mod rows;
 mod scratch;
 mod seed;
+mod source;
 mod tiles;
 #[cfg(test)]
 mod tests;
@@ -256,7 +258,7 @@ impl StereoMatcher {
 
     /// The correlation matcher (`bm`) with `params` over the whole of checked inputs, without
     /// the speckle filter.
-    fn correlate(&mut self, params: &ValidMatchParams, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> MatchStats {
+    fn correlate(&mut self, params: &ValidMatchParams, left: GrayView, right: GrayView, intervals: IntervalSource, out: &mut DisparityMap) -> MatchStats {
         let (w, h) = (left.width, left.height);
         let geo = Geometry::new(params, w, h);
 
@@ -441,9 +443,12 @@ unsafe fn prefilter_xsobel_avx2(img: GrayView, cap: u8, pad: (usize, usize), rev
 fn prefilter_xsobel_body(img: GrayView, cap: u8, pad: (usize, usize), reversed: bool, out: &mut Vec<u8>) {
     let (w, h) = (img.width, img.height);
     let (r, wp) = (pad.0, w + pad.0 + pad.1);
-    out.clear();
     // Slack before and after the rows: the narrow-band path loads whole chunks of columns.
+    // Every byte of the rows is written below, so only the slack is cleared (clearing the
+    // whole buffer first wrote every byte twice).
     out.resize(wp * h + 2 * PF_SLACK, 0);
+    out[..PF_SLACK].fill(0);
+    out[PF_SLACK + wp * h..].fill(0);
     let rows = &mut out[PF_SLACK..PF_SLACK + wp * h];
     let cap_i = cap as i16;
     for y in 0..h {

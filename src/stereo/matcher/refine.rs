@@ -12,7 +12,8 @@ use std::ops::Range;
 
 use super::rows::equiangular;
 use super::scratch::{Geometry, PF_SLACK};
-use super::{round_half_away_within, Method, StereoMatcher};
+use super::source::{around, IntervalSource};
+use super::{Method, StereoMatcher};
 use crate::stereo::disparity::{searched_span, DisparityIntervals, DisparityMap, GrayView, MatchStats};
 
 /// SGM's share of a refined disparity where its own sub-pixel value `d` and the correlation's
@@ -69,8 +70,6 @@ const RIM_AGREE_PX: f32 = 0.5;
 
 /// The refinement's buffers, reused between calls.
 pub(super) struct RefineScratch {
-    /// Each matched pixel's correlation interval (its SGM disparity ± 2).
-    intervals: DisparityIntervals,
     /// The correlation's disparities.
     corr: DisparityMap,
     /// Per row, its first to last matched pixel.
@@ -82,11 +81,13 @@ pub(super) struct RefineScratch {
     /// agreeing pixels it is taken over.
     lean: Vec<f32>,
     agreeing: Vec<u32>,
+    /// The leans of a row of squares, one per column of the image.
+    lean_row: Vec<f32>,
 }
 
 impl Default for RefineScratch {
     fn default() -> Self {
-        RefineScratch { intervals: DisparityIntervals::empty(0, 0), corr: DisparityMap::new(0, 0), spans: Vec::new(), rim: RimRows::default(), candidates: Vec::new(), lean: Vec::new(), agreeing: Vec::new() }
+        RefineScratch { corr: DisparityMap::new(0, 0), spans: Vec::new(), rim: RimRows::default(), candidates: Vec::new(), lean: Vec::new(), agreeing: Vec::new(), lean_row: Vec::new() }
     }
 }
 
@@ -131,38 +132,16 @@ impl StereoMatcher {
         let agree = p.sgm_refine_agree;
         let bm = crate::stereo::MatchParams { method: Method::Bm, uniqueness_ratio: 0, texture_threshold: 0, lr_max_diff: None, speckle_window: 0, block: p.sgm_refine_block, ..(**p).clone() }.validate().expect("the sgm parameters with the correlation's tests off are valid");
         let mut s = std::mem::take(&mut self.refine);
-        let iv = &mut s.intervals;
-        (iv.width, iv.height) = (w, h);
-        iv.searched = None;
-        iv.lo.resize(w * h, 0);
-        iv.hi.resize(w * h, 0);
-        // Branch-free, so that it vectorises; unmatched pixels search nothing. The value is
-        // clamped to 3 past the range before it is rounded (NaN to 0, its bounds unused),
-        // which changes no bound below and lets the rounding skip the cast's checks.
-        let (below, above) = (dmin as f32 - 3.0, dmax as f32 + 3.0);
         // Per row, only from its first match to its last (`d <= d` fails for NaN alone):
         // outside them nothing is searched, and nothing changes below.
         s.spans.clear();
         s.spans.extend(out.values().chunks_exact(w).map(|row| searched_span(row, row).map_or(0..0, |(first, last)| first..last + 1)));
-        for (y, span) in s.spans.iter().enumerate() {
-            let row = y * w..(y + 1) * w;
-            let (vals, los, his) = (&out.values()[row.clone()], &mut iv.lo[row.clone()], &mut iv.hi[row]);
-            los[..span.start].fill(1);
-            his[..span.start].fill(0);
-            los[span.end..].fill(1);
-            his[span.end..].fill(0);
-            for x in span.clone() {
-                let d = vals[x];
-                let matched = !d.is_nan();
-                let r = round_half_away_within((if matched { d } else { 0.0 }).clamp(below, above));
-                los[x] = if matched { (r - 2).max(dmin).min(dmax) as i16 } else { 1 };
-                his[x] = if matched { (r + 2).max(dmin).min(dmax) as i16 } else { 0 };
-            }
-        }
         if (s.corr.width, s.corr.height) != (w, h) {
             s.corr = DisparityMap::new(w, h);
         }
-        let stats = self.correlate(&bm, left, right, &s.intervals, &mut s.corr);
+        // Each matched pixel's interval read from SGM's map as the rows are matched
+        // (`around`).
+        let stats = self.correlate(&bm, left, right, IntervalSource::Around(out), &mut s.corr);
         totals.evaluated += stats.evaluated;
         if masked {
             // The rim's pixels are taken again only where the correlation disagrees: where it
@@ -192,7 +171,7 @@ impl StereoMatcher {
                 s.rim.build(g, &self.left_pf, searched);
                 for &i in &s.candidates {
                     let i = i as usize;
-                    let (lo, hi) = (s.intervals.lo[i] as i32, s.intervals.hi[i] as i32);
+                    let (lo, hi) = around(out.values()[i], dmin, dmax);
                     if let Some(costs) = s.rim.costs(g, &self.right_pf_rev, i % w, i / w, lo, hi) {
                         totals.evaluated += (hi - lo + 1) as u64;
                         let c = lo as f32 + fit(&costs[..(hi - lo + 1) as usize]);
@@ -221,17 +200,23 @@ impl StereoMatcher {
         for (lean, &n) in s.lean.iter_mut().zip(&s.agreeing) {
             *lean = if n > 0 { *lean / n as f32 } else { 0.0 };
         }
+        // The blend, each row's span in one loop: the squares' leans are spread over a row of
+        // columns once per row of squares.
+        s.lean_row.resize(w, 0.0);
         for (y, span) in s.spans.iter().enumerate() {
-            let t0 = y / OFFSET_TILE * tiles_x;
-            for (tx, cols) in tile_chunks(span.clone()) {
-                let row = y * w + cols.start..y * w + cols.end;
-                let lean = s.lean[t0 + tx];
-                for (d, &c) in out.values_mut()[row.clone()].iter_mut().zip(&s.corr.values()[row]) {
-                    // Branch-free: an unmatched pixel stays unmatched.
-                    let agrees = agrees(*d, c, agree);
-                    let kept = if masked { f32::NAN } else { *d };
-                    *d = if agrees { c + own_weight(*d, c) * (*d - c - lean) } else { kept };
+            if y % OFFSET_TILE == 0 {
+                let t0 = y / OFFSET_TILE * tiles_x;
+                for (cols, &lean) in s.lean_row.chunks_mut(OFFSET_TILE).zip(&s.lean[t0..t0 + tiles_x]) {
+                    cols.fill(lean);
                 }
+            }
+            let row = y * w + span.start..y * w + span.end;
+            let leans = &s.lean_row[span.clone()];
+            for ((d, &c), &lean) in out.values_mut()[row.clone()].iter_mut().zip(&s.corr.values()[row]).zip(leans) {
+                // Branch-free: an unmatched pixel stays unmatched.
+                let agrees = agrees(*d, c, agree);
+                let kept = if masked { f32::NAN } else { *d };
+                *d = if agrees { c + own_weight(*d, c) * (*d - c - lean) } else { kept };
             }
         }
         self.refine = s;
@@ -284,7 +269,9 @@ unsafe fn disagree_bits_avx2(d: &[f32], c: &[f32], agree: f32) -> u32 {
 }
 
 /// The sum of `d − c` over the pixels where SGM's `d` and the correlation's `c` agree, and
-/// their count. Eight running sums, so that it vectorises (one sum waits on each add).
+/// their count. Eight running sums, so that it vectorises (one sum waits on each add);
+/// inlined, so that it is compiled for the caller's vector width (`refine_avx2`).
+#[inline(always)]
 fn lean_sum(d: &[f32], c: &[f32], agree: f32) -> (f32, u32) {
     const LANES: usize = 8;
     let (mut sums, mut counts) = ([0.0f32; LANES], [0u32; LANES]);
@@ -484,6 +471,52 @@ impl RimRows {
 mod tests {
     use super::*;
     use crate::stereo::MatchParams;
+
+    /// The refinement's correlation reads its intervals straight from SGM's map
+    /// (`IntervalSource::Around`): the same map and counts as the same intervals written out
+    /// as a map of intervals first, on random images, with SGM values inside, at and past the
+    /// range's ends and holes, on both code paths.
+    #[test]
+    fn intervals_read_from_the_map_are_those_written_out() {
+        let mut next = crate::testing::xorshift(0x5eed_a40);
+        let (w, h) = (211, 41);
+        let mut image = || (0..w * h).map(|_| (next() % 256) as u8).collect::<Vec<u8>>();
+        let (l, r) = (image(), image());
+        let (l, r) = (GrayView::new(w, h, &l).unwrap(), GrayView::new(w, h, &r).unwrap());
+        let mut next = crate::testing::xorshift(0xd15_9a);
+        for (min_disparity, num_disparities, block) in [(0, 16, 9), (-5, 32, 5), (3, 128, 9)] {
+            let p = MatchParams { method: Method::Bm, block, min_disparity, num_disparities, uniqueness_ratio: 0, texture_threshold: 0, lr_max_diff: None, speckle_window: 0, threads: 1, ..Default::default() }.validate().unwrap();
+            let (dmin, dmax) = (min_disparity, p.max_disparity());
+            let mut map = DisparityMap::new(w, h);
+            for v in map.values_mut() {
+                *v = match next() % 6 {
+                    0 => f32::NAN,
+                    1 => dmin as f32 - 3.0 + (next() % 12) as f32 * 0.5,
+                    2 => dmax as f32 - 3.0 + (next() % 12) as f32 * 0.5,
+                    _ => dmin as f32 + (next() % 1000) as f32 / 1000.0 * (dmax - dmin) as f32,
+                };
+            }
+            // A row and a band of columns with no match.
+            map.values_mut()[7 * w..8 * w].fill(f32::NAN);
+            for row in map.values_mut().chunks_exact_mut(w) {
+                row[..11].fill(f32::NAN);
+            }
+            let mut iv = DisparityIntervals::empty(w, h);
+            for (i, &d) in map.values().iter().enumerate() {
+                let (a, b) = around(d, dmin, dmax);
+                iv.set(i % w, i / w, (a <= b).then_some((a, b)));
+            }
+            let mut m = StereoMatcher::new(p.clone());
+            let (mut from_map, mut written) = (DisparityMap::new(w, h), DisparityMap::new(w, h));
+            let a = m.correlate(&p, l, r, IntervalSource::Around(&map), &mut from_map);
+            let b = m.correlate(&p, l, r, IntervalSource::Given(&iv), &mut written);
+            let bits = |m: &DisparityMap| m.values().iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&from_map), bits(&written), "{dmin} … {dmax}");
+            assert_eq!((a.searched, a.evaluated), (b.searched, b.evaluated), "{dmin} … {dmax}");
+            // (Most pixels: a right pixel must lie inside the image.)
+            assert!(from_map.valid_count_within(0..w, 0..h) > w * h / 4, "{dmin} … {dmax}: the correlation matches");
+        }
+    }
 
     /// The vector rim costs are the scalar ones: every window side up to sixteen lanes, pixels
     /// at the image's edges and corners, masks with holes, disparities at the range's ends.

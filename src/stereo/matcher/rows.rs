@@ -5,6 +5,7 @@
 use std::ops::Range;
 
 use super::scratch::{clamp_row, Geometry, StripeScratch, BLOCK, NARROW, TILE_W};
+use super::source::{around, IntervalSource};
 use crate::stereo::disparity::{searched_span, DisparityIntervals, MatchStats};
 use crate::stereo::kernels::{self, absdiff, add_absdiff, add_into, first_index_of, min_into, min_u16, min_u16_away_from, slide_column, slide_row};
 use crate::stereo::params::ValidMatchParams;
@@ -15,24 +16,42 @@ use crate::stereo::params::ValidMatchParams;
 /// searched), outside which `lo`/`hi` are left as they were. (An assisted crop's rows are
 /// half columns that only the right image's pixels need.) Branch-free, so it vectorises.
 #[inline(always)]
-pub(super) fn clip_row(g: Geometry, iv: &DisparityIntervals, y: usize, lo: &mut [i32], hi: &mut [i32]) -> Range<usize> {
+pub(super) fn clip_row(g: Geometry, src: IntervalSource, y: usize, lo: &mut [i32], hi: &mut [i32]) -> Range<usize> {
     let Geometry { w, n, dmin, .. } = g;
-    let (row_lo, row_hi) = (&iv.lo[y * w..][..w], &iv.hi[y * w..][..w]);
-    let Some((first, last)) = searched_span(row_lo, row_hi) else { return 0..0 };
+    let dmax = dmin + n as i32 - 1;
     let (lo, hi) = (&mut lo[..w], &mut hi[..w]);
-    for x in first..last + 1 {
+    // Pixel x's interval `dlo ..= dhi` (disparities) into `lo[x]`/`hi[x]`.
+    let clip = |lo: &mut [i32], hi: &mut [i32], x: usize, dlo: i32, dhi: i32| {
         // The right pixel x − d must lie inside the image: x − w + 1 ≤ d ≤ x.
         let kmin = (x as i32 - w as i32 + 1).max(dmin) - dmin;
-        let kmax = (x as i32).min(dmin + n as i32 - 1) - dmin;
-        let (dlo, dhi) = (row_lo[x] as i32, row_hi[x] as i32);
+        let kmax = (x as i32).min(dmax) - dmin;
         let (a, b) = ((dlo - dmin).max(kmin), (dhi - dmin).min(kmax));
         // Selected with masks, not `if`: LLVM turns an `if` here into masked stores, which
         // are slow on AMD cores.
         let m = -(((dlo <= dhi) & (a <= b)) as i32);
         lo[x] = (a & m) | (1 & !m);
         hi[x] = b & m;
+    };
+    match src {
+        IntervalSource::Given(iv) => {
+            let (row_lo, row_hi) = (&iv.lo[y * w..][..w], &iv.hi[y * w..][..w]);
+            let Some((first, last)) = searched_span(row_lo, row_hi) else { return 0..0 };
+            for x in first..last + 1 {
+                clip(lo, hi, x, row_lo[x] as i32, row_hi[x] as i32);
+            }
+            first..last + 1
+        }
+        IntervalSource::Around(map) => {
+            let row = &map.values()[y * w..][..w];
+            // (`d <= d` fails for NaN alone.)
+            let Some((first, last)) = searched_span(row, row) else { return 0..0 };
+            for x in first..last + 1 {
+                let (dlo, dhi) = around(row[x], dmin, dmax);
+                clip(lo, hi, x, dlo, dhi);
+            }
+            first..last + 1
+        }
     }
-    first..last + 1
 }
 
 /// The clipped intervals of the tile row `rows` (into `clip_lo/hi`, row by row, `w` apart,
@@ -41,7 +60,7 @@ pub(super) fn clip_row(g: Geometry, iv: &DisparityIntervals, y: usize, lo: &mut 
 /// band width over the searched pixels (0: none).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn tile_bands(g: Geometry, iv: &DisparityIntervals, rows: Range<usize>, clip_lo: &mut Vec<i32>, clip_hi: &mut Vec<i32>, clip_spans: &mut Vec<Range<usize>>, tile_lo: &mut Vec<i32>, tile_hi: &mut Vec<i32>, tile_px: &mut Vec<u32>, cols: &mut Vec<i32>) -> f64 {
+pub(super) fn tile_bands(g: Geometry, iv: IntervalSource, rows: Range<usize>, clip_lo: &mut Vec<i32>, clip_hi: &mut Vec<i32>, clip_spans: &mut Vec<Range<usize>>, tile_lo: &mut Vec<i32>, tile_hi: &mut Vec<i32>, tile_px: &mut Vec<u32>, cols: &mut Vec<i32>) -> f64 {
     let Geometry { w, .. } = g;
     let tiles = w.div_ceil(TILE_W);
     tile_lo.clear();

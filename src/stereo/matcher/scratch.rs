@@ -2,7 +2,7 @@
 
 use std::ops::Range;
 
-use crate::stereo::disparity::DisparityIntervals;
+use super::source::IntervalSource;
 use crate::stereo::params::ValidMatchParams;
 
 /// Below this many disparities a from-scratch window sum runs per entry (scalar) instead of
@@ -131,7 +131,7 @@ pub(super) struct StripeInput<'a> {
     pub(super) g: Geometry,
     pub(super) lpf: &'a [u8],
     pub(super) rrev: &'a [u8],
-    pub(super) intervals: &'a DisparityIntervals,
+    pub(super) intervals: IntervalSource<'a>,
     /// The same rows with the slack around them, for the narrow-band path's chunked loads.
     pub(super) slack: Slack<'a>,
 }
@@ -139,7 +139,7 @@ pub(super) struct StripeInput<'a> {
 impl<'a> StripeInput<'a> {
     /// The input of the prefiltered buffers `left` and `right` (rows with
     /// [`PF_SLACK`] bytes around them, as `prefilter_xsobel` writes them).
-    pub(super) fn new(p: &'a ValidMatchParams, g: Geometry, left: &'a [u8], right: &'a [u8], intervals: &'a DisparityIntervals) -> Self {
+    pub(super) fn new(p: &'a ValidMatchParams, g: Geometry, left: &'a [u8], right: &'a [u8], intervals: IntervalSource<'a>) -> Self {
         let (nl, nr) = (g.h * g.wp, g.h * g.wr());
         assert!(left.len() == nl + 2 * PF_SLACK && right.len() == nr + 2 * PF_SLACK, "prefiltered rows of another size");
         StripeInput {

@@ -73,7 +73,7 @@ pub(super) fn match_level(m: &mut StereoMatcher, params: &ValidMatchParams, dept
 /// The method's own call at level `depth`, each level of SGM with its own buffers.
 fn match_plain(m: &mut StereoMatcher, params: &ValidMatchParams, depth: usize, left: GrayView, right: GrayView, intervals: &DisparityIntervals, out: &mut DisparityMap) -> Result<MatchStats, MatchError> {
     match params.method {
-        Method::Bm => Ok(m.correlate(params, left, right, intervals, out)),
+        Method::Bm => Ok(m.correlate(params, left, right, IntervalSource::Given(intervals), out)),
         Method::Sgm => {
             if m.sgm_levels.len() <= depth {
                 m.sgm_levels.resize_with(depth + 1, Vec::new);

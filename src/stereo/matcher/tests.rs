@@ -157,7 +157,7 @@ fn run_path<const AVX2: bool, const AVX512: bool>(m: &mut StereoMatcher, l: Gray
     let geo = Geometry::new(&p, l.width, l.height);
     let mut scratch = StripeScratch::default();
     let mut vals = vec![0f32; l.width * l.height];
-    let input = StripeInput::new(&p, geo, &m.left_pf, &m.right_pf_rev, iv);
+    let input = StripeInput::new(&p, geo, &m.left_pf, &m.right_pf_rev, IntervalSource::Given(iv));
     match_stripe_impl::<AVX2, AVX512>(input, 0..l.height, &mut vals, &mut scratch);
     vals
 }
