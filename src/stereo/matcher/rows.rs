@@ -6,7 +6,7 @@ use std::ops::Range;
 
 use super::scratch::{clamp_row, Geometry, StripeScratch, BLOCK, NARROW, TILE_W};
 use super::source::{around, IntervalSource};
-use crate::stereo::disparity::{searched_span, DisparityIntervals, MatchStats};
+use crate::stereo::disparity::{searched_span, MatchStats};
 use crate::stereo::kernels::{self, absdiff, add_absdiff, add_into, first_index_of, min_into, min_u16, min_u16_away_from, slide_column, slide_row};
 use crate::stereo::params::ValidMatchParams;
 
