@@ -475,7 +475,8 @@ mod tests {
     /// The refinement's correlation reads its intervals straight from SGM's map
     /// (`IntervalSource::Around`): the same map and counts as the same intervals written out
     /// as a map of intervals first, on random images, with SGM values inside, at and past the
-    /// range's ends and holes, on both code paths.
+    /// range's ends and holes, in the vector copy of the matcher the CPU runs (the
+    /// narrow-band path of the AVX2 copy, or of the AVX-512 one over 128 disparities).
     #[test]
     fn intervals_read_from_the_map_are_those_written_out() {
         let mut next = crate::testing::xorshift(0x5eed_a40);
