@@ -12,9 +12,9 @@ use std::ops::Range;
 
 use super::rows::equiangular;
 use super::scratch::{Geometry, PF_SLACK};
-use super::source::{around, IntervalSource};
+use super::source::{around, matched_spans, IntervalSource};
 use super::{Method, StereoMatcher};
-use crate::stereo::disparity::{searched_span, DisparityIntervals, DisparityMap, GrayView, MatchStats};
+use crate::stereo::disparity::{DisparityIntervals, DisparityMap, GrayView, MatchStats};
 
 /// SGM's share of a refined disparity where its own sub-pixel value `d` and the correlation's
 /// `c` lie within [`OWN_WEIGHT_FROM_PX`] of each other. Wherever the two agree, the refined
@@ -132,16 +132,15 @@ impl StereoMatcher {
         let agree = p.sgm_refine_agree;
         let bm = crate::stereo::MatchParams { method: Method::Bm, uniqueness_ratio: 0, texture_threshold: 0, lr_max_diff: None, speckle_window: 0, block: p.sgm_refine_block, ..(**p).clone() }.validate().expect("the sgm parameters with the correlation's tests off are valid");
         let mut s = std::mem::take(&mut self.refine);
-        // Per row, only from its first match to its last (`d <= d` fails for NaN alone):
-        // outside them nothing is searched, and nothing changes below.
-        s.spans.clear();
-        s.spans.extend(out.values().chunks_exact(w).map(|row| searched_span(row, row).map_or(0..0, |(first, last)| first..last + 1)));
+        // Per row, only from its first match to its last: outside them nothing is searched,
+        // and nothing changes below.
+        matched_spans(out, &mut s.spans);
         if (s.corr.width, s.corr.height) != (w, h) {
             s.corr = DisparityMap::new(w, h);
         }
         // Each matched pixel's interval read from SGM's map as the rows are matched
-        // (`around`).
-        let stats = self.correlate(&bm, left, right, IntervalSource::Around(out), &mut s.corr);
+        // (`around`), over the spans just found.
+        let stats = self.correlate(&bm, left, right, IntervalSource::Around { map: out, spans: &s.spans }, &mut s.corr);
         totals.evaluated += stats.evaluated;
         if masked {
             // The rim's pixels are taken again only where the correlation disagrees: where it
@@ -509,7 +508,9 @@ mod tests {
             }
             let mut m = StereoMatcher::new(p.clone());
             let (mut from_map, mut written) = (DisparityMap::new(w, h), DisparityMap::new(w, h));
-            let a = m.correlate(&p, l, r, IntervalSource::Around(&map), &mut from_map);
+            let mut spans = Vec::new();
+            matched_spans(&map, &mut spans);
+            let a = m.correlate(&p, l, r, IntervalSource::Around { map: &map, spans: &spans }, &mut from_map);
             let b = m.correlate(&p, l, r, IntervalSource::Given(&iv), &mut written);
             let bits = |m: &DisparityMap| m.values().iter().map(|v| v.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&from_map), bits(&written), "{dmin} … {dmax}");

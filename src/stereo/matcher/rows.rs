@@ -41,15 +41,15 @@ pub(super) fn clip_row(g: Geometry, src: IntervalSource, y: usize, lo: &mut [i32
             }
             first..last + 1
         }
-        IntervalSource::Around(map) => {
+        IntervalSource::Around { map, spans } => {
             let row = &map.values()[y * w..][..w];
-            // (`d <= d` fails for NaN alone.)
-            let Some((first, last)) = searched_span(row, row) else { return 0..0 };
-            for x in first..last + 1 {
+            let span = spans[y].clone();
+            debug_assert_eq!(span, searched_span(row, row).map_or(0..0, |(first, last)| first..last + 1), "row {y}'s span is not the map's");
+            for x in span.clone() {
                 let (dlo, dhi) = around(row[x], dmin, dmax);
                 clip(lo, hi, x, dlo, dhi);
             }
-            first..last + 1
+            span
         }
     }
 }

@@ -3,8 +3,10 @@
 //! around its value. Its own file, so that the rows that read the intervals (`rows.rs`) and
 //! the refinement that asks for them share it without importing each other.
 
+use std::ops::Range;
+
 use super::round_half_away_within;
-use crate::stereo::disparity::{DisparityIntervals, DisparityMap};
+use crate::stereo::disparity::{searched_span, DisparityIntervals, DisparityMap};
 
 /// Where a call's search intervals come from.
 #[derive(Clone, Copy)]
@@ -13,8 +15,16 @@ pub(super) enum IntervalSource<'a> {
     Given(&'a DisparityIntervals),
     /// SGM's refinement (`refine.rs`): each matched pixel of the map searches around its
     /// disparity ([`around`]), an unmatched one (NaN) nothing. Read straight from the
-    /// map, row by row, rather than written out as a map of intervals first.
-    Around(&'a DisparityMap),
+    /// map, row by row, rather than written out as a map of intervals first; `spans` are
+    /// the map's rows' [`matched_spans`], which the refinement needs itself too.
+    Around { map: &'a DisparityMap, spans: &'a [Range<usize>] },
+}
+
+/// Per row of `map`, its first to last matched pixel (`0..0` where none) into `spans`.
+pub(super) fn matched_spans(map: &DisparityMap, spans: &mut Vec<Range<usize>>) {
+    spans.clear();
+    // (`d <= d` fails for NaN alone.)
+    spans.extend(map.values().chunks_exact(map.width).map(|row| searched_span(row, row).map_or(0..0, |(first, last)| first..last + 1)));
 }
 
 /// How far, disparities, the correlation searches either side of SGM's rounded value.
